@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# One-shot, idempotent set-up: system libraries Open3D needs, .venv from the pinned lock file,
+# then a colcon build of src/. Fast (a few seconds) when everything is already in place.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+PY=${PYTHON:-python3}
+
+# Open3D's wheel links against a few Debian libraries; a bare image may lack them.
+missing=()
+for lib in libusb-1.0.so.0 libEGL.so.1 libGL.so.1 libX11.so.6 libudev.so.1 libgomp.so.1; do
+  ldconfig -p | grep -q "$lib" || missing+=("$lib")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "setup: missing system libraries: ${missing[*]}" >&2
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    apt-get install -y -q libusb-1.0-0 libegl1 libgl1 libx11-6 libudev1 libgomp1 >/dev/null \
+      || { apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 libegl1 libgl1 libx11-6 libudev1 libgomp1 >/dev/null; }
+  else
+    echo "setup: install them with: sudo apt-get install libusb-1.0-0 libegl1 libgl1 libx11-6 libudev1 libgomp1" >&2
+    exit 1
+  fi
+fi
+
+mkdir -p .stamps
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+fi
+if [ ! -f .stamps/lock ] || ! cmp -s requirements.lock .stamps/lock; then
+  echo "setup: installing pinned dependencies into .venv (about a minute the first time)" >&2
+  .venv/bin/pip install -q --disable-pip-version-check -r requirements.lock
+  cp requirements.lock .stamps/lock
+fi
+
+# colcon from the venv, never a system ROS: build every package of src/ (ament_python).
+export PATH="$ROOT/.venv/bin:$PATH"
+mkdir -p log
+colcon --log-base log build --symlink-install --base-paths src \
+  --event-handlers console_cohesion- summary- status- >/dev/null 2>log/colcon-build.err \
+  || { cat log/colcon-build.err >&2; colcon --log-base log build --symlink-install --base-paths src; exit 1; }
+echo "setup: ready (.venv + install/)" >&2

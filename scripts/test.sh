@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# The README's test command (`make test`) and CI's: set up, lint, then every test in one pytest run.
+# Fails when any test fails. Each run gets its own ROS domain and log folder; DDS stays on loopback.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+export ROS_LOG_DIR=$(mktemp -d /tmp/wheelgrid-test-log.XXXXXX)
+export ROS_DOMAIN_ID=$(( (RANDOM % 100) + 1 ))
+. scripts/env.sh
+echo "test: ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE ROS_LOG_DIR=$ROS_LOG_DIR"
+ruff check src test bench
+ruff format --check src test bench
+python -m pytest -p no:dash -p no:cacheprovider "$@"

@@ -1,0 +1,1 @@
+"""The wheelgrid command, parameter files and launch description for the whole chain."""

@@ -1,0 +1,67 @@
+"""PointCloud2 <-> numpy: round trips, layouts ROS allows, and every malformed cloud named."""
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.pointcloud2 import CloudError, read_fields, read_xyz, to_pointcloud2
+
+
+def _cloud(n=12, height=3):
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(n, 3))
+    pts[1] = np.nan
+    return pts, to_pointcloud2(
+        pts, "cam", height=height, extra={"confidence": np.arange(n, dtype=np.uint8)}
+    )
+
+
+def test_round_trip_keeps_order_nan_and_extra_fields():
+    pts, msg = _cloud()
+    assert (msg.height, msg.width, msg.is_dense) == (3, 4, False)
+    back = read_fields(msg, ("x", "y", "z"))
+    assert np.isnan(back[1]).all()
+    np.testing.assert_allclose(back[[0, 2, 3]], pts[[0, 2, 3]].astype(np.float32), rtol=0)
+    assert read_fields(msg, ("confidence",))[:, 0].tolist() == list(range(12))
+    assert read_xyz(msg).shape == (11, 3)
+
+
+def test_big_endian_and_row_padding_are_honoured():
+    pts, msg = _cloud(6, 2)
+    specs = [(f.name, f.offset) for f in msg.fields]
+    raw = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(2, -1)
+    dt = np.dtype(
+        {
+            "names": ["x", "y", "z"],
+            "formats": ["<f4"] * 3,
+            "offsets": [o for _, o in specs[:3]],
+            "itemsize": msg.point_step,
+        }
+    )
+    rec = raw.copy().view(dt)
+    be = np.zeros(rec.shape, dtype=dt.newbyteorder(">"))
+    for k in "xyz":
+        be[k] = rec[k]
+    padded = np.zeros((2, msg.row_step + 8), dtype=np.uint8)
+    padded[:, : msg.row_step] = be.view(np.uint8).reshape(2, -1)
+    msg.is_bigendian = True
+    msg.row_step += 8
+    msg.data = padded.ravel().tobytes()
+    np.testing.assert_allclose(read_xyz(msg), pts[np.isfinite(pts).all(1)].astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    ("mutate", "cause"),
+    [
+        (lambda m: setattr(m, "fields", m.fields[:2]), "missing_fields"),
+        (lambda m: setattr(m, "point_step", 8), "bad_point_step"),
+        (lambda m: setattr(m, "data", bytes(m.data)[:-5]), "truncated_data"),
+        (lambda m: (setattr(m, "width", 0), setattr(m, "height", 0)), "empty"),
+        (lambda m: setattr(m, "row_step", 3), "bad_row_step"),
+    ],
+)
+def test_malformed_clouds_raise_a_named_cause(mutate, cause):
+    _, msg = _cloud()
+    mutate(msg)
+    with pytest.raises(CloudError) as err:
+        read_xyz(msg)
+    assert err.value.cause == cause

@@ -1,0 +1,168 @@
+"""Reading and writing bags with ``rosbags`` (there is no rosbag2 in the ROS wheels).
+
+Reads rosbag2 folders (sqlite3 or mcap) and ROS 1 ``.bag`` files through one API; every way a
+bag can be unusable becomes a :class:`BagError` with a sentence a user can act on. Writes
+rosbag2 (sqlite3 or mcap) from rclpy messages: rclpy's CDR bytes are what rosbag2 stores.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+
+
+class BagError(Exception):
+    """A bag that cannot be used; the message says why and what to do."""
+
+
+def typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _check_path(path: Path) -> None:
+    if not path.exists():
+        raise BagError(f"{path}: no such bag (expected a rosbag2 folder or a ROS 1 .bag file)")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        raise BagError(f"{path}: folder has no metadata.yaml, so it is not a rosbag2 bag")
+    if path.is_file() and path.suffix != ".bag":
+        raise BagError(f"{path}: not a bag (a rosbag2 folder or a ROS 1 .bag file)")
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    msgtype: str
+    count: int
+
+
+class BagReader:
+    """Context manager over ``rosbags.highlevel.AnyReader`` with clear errors."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._reader: Any = None
+
+    def __enter__(self) -> BagReader:
+        from rosbags.highlevel import AnyReader
+
+        _check_path(self.path)
+        try:
+            self._reader = AnyReader([self.path], default_typestore=typestore())
+            self._reader.open()
+        except Exception as exc:  # rosbags raises several unrelated types for corrupt bags
+            raise BagError(f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})") from exc
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._reader is not None:
+            try:
+                self._reader.close()
+            finally:
+                self._reader = None
+
+    @property
+    def reader(self) -> Any:
+        if self._reader is None:
+            raise RuntimeError("BagReader used outside its with-block")
+        return self._reader
+
+    def topics(self) -> list[TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        for c in self.reader.connections:
+            prev = out.get(c.topic)
+            out[c.topic] = TopicInfo(c.topic, c.msgtype, (prev.count if prev else 0) + c.msgcount)
+        return sorted(out.values(), key=lambda t: t.name)
+
+    def pick_topic(self, topic: str | None, msgtype: str = POINTCLOUD2) -> str:
+        """The requested topic, or the only topic of ``msgtype``; BagError listing them if not."""
+        infos = self.topics()
+        if topic is not None:
+            match = [t for t in infos if t.name == topic]
+            if not match:
+                listing = ", ".join(f"{t.name} ({t.msgtype})" for t in infos) or "none"
+                raise BagError(f"{self.path}: no topic {topic!r}; topics: {listing}")
+            if match[0].msgtype != msgtype:
+                raise BagError(
+                    f"{self.path}: topic {topic!r} carries {match[0].msgtype}, not {msgtype}"
+                )
+            return topic
+        cands = [t for t in infos if t.msgtype == msgtype]
+        if len(cands) == 1:
+            return cands[0].name
+        listing = ", ".join(f"{t.name} ({t.count} msgs)" for t in cands) or "none"
+        raise BagError(
+            f"{self.path}: {len(cands)} {msgtype} topics ({listing}); choose one with --topic"
+        )
+
+    def count(self, topics: Iterable[str]) -> int:
+        wanted = set(topics)
+        return sum(c.msgcount for c in self.reader.connections if c.topic in wanted)
+
+    def raw(self, topics: Iterable[str]) -> Iterator[tuple[str, str, int, bytes]]:
+        """(topic, msgtype, log time ns, CDR bytes) in log-time order."""
+        wanted = set(topics)
+        conns = [c for c in self.reader.connections if c.topic in wanted]
+        try:
+            for conn, t_ns, raw in self.reader.messages(connections=conns):
+                yield conn.topic, conn.msgtype, int(t_ns), bytes(raw)
+        except Exception as exc:
+            raise BagError(f"{self.path}: bag is corrupt ({type(exc).__name__}: {exc})") from exc
+
+    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time ns, deserialised rosbags message) in log-time order."""
+        for topic, msgtype, t_ns, raw in self.raw(topics):
+            try:
+                msg = self.reader.deserialize(raw, msgtype)
+            except Exception as exc:
+                raise BagError(
+                    f"{self.path}: message on {topic} at {t_ns} ns does not deserialise as "
+                    f"{msgtype} ({type(exc).__name__}: {exc})"
+                ) from exc
+            yield topic, t_ns, msg
+
+
+class BagWriter:
+    """Write rclpy messages (or raw CDR bytes) into a new rosbag2 bag."""
+
+    def __init__(self, path: str | Path, storage: str = "sqlite3") -> None:
+        from rosbags.rosbag2 import StoragePlugin
+
+        if storage not in ("sqlite3", "mcap"):
+            raise ValueError(f"storage must be sqlite3 or mcap, not {storage!r}")
+        self.path = Path(path)
+        self.storage = storage
+        self._plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        self._writer: Any = None
+        self._conns: dict[str, Any] = {}
+        self._store = typestore()
+
+    def __enter__(self) -> BagWriter:
+        from rosbags.rosbag2 import Writer
+
+        if self.path.exists():
+            raise BagError(f"{self.path}: already exists; rosbag2 will not overwrite a bag")
+        self._writer = Writer(self.path, version=9, storage_plugin=self._plugin)
+        self._writer.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    def write(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+        if topic not in self._conns:
+            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self._store)
+        if isinstance(msg, bytes | bytearray | memoryview):
+            data = bytes(msg)
+        else:
+            from rclpy.serialization import serialize_message
+
+            data = serialize_message(msg)
+        self._writer.write(self._conns[topic], int(stamp_ns), data)

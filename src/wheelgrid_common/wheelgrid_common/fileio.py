@@ -1,0 +1,177 @@
+"""Small file formats every stage shares: binary PLY point clouds and TUM trajectories.
+
+PLY is written by hand (float32 x y z, little endian) so files are compact and identical
+whatever Open3D version is installed; the reader accepts any binary/ascii PLY with x y z.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+_PLY_TYPES = {
+    "char": "i1",
+    "uchar": "u1",
+    "short": "i2",
+    "ushort": "u2",
+    "int": "i4",
+    "uint": "u4",
+    "float": "f4",
+    "double": "f8",
+    "int8": "i1",
+    "uint8": "u1",
+    "int16": "i2",
+    "uint16": "u2",
+    "int32": "i4",
+    "uint32": "u4",
+    "float32": "f4",
+    "float64": "f8",
+}
+
+
+def write_ply(path: str | Path, points: np.ndarray, comment: str = "") -> None:
+    """Write ``(N, 3)`` points as binary little-endian PLY with float x y z (metres)."""
+    pts = np.ascontiguousarray(np.asarray(points, dtype="<f4").reshape(-1, 3))
+    header = ["ply", "format binary_little_endian 1.0"]
+    if comment:
+        header += [f"comment {line}" for line in comment.splitlines()]
+    header += [
+        f"element vertex {pts.shape[0]}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "end_header",
+    ]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(pts.tobytes())
+
+
+def read_ply(path: str | Path) -> np.ndarray:
+    """Read the vertex x y z of a PLY file as ``(N, 3)`` float64; ValueError if unreadable."""
+    raw = Path(path).read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file")
+    body_start = raw.index(b"\n", end) + 1
+    lines = raw[:end].decode("ascii", "replace").splitlines()
+    fmt = ""
+    count = 0
+    props: list[tuple[str, str]] = []
+    in_vertex = False
+    for line in lines:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            in_vertex = parts[1] == "vertex"
+            if in_vertex:
+                count = int(parts[2])
+        elif parts[0] == "property" and in_vertex:
+            if parts[1] == "list":
+                raise ValueError(f"{path}: list properties on vertices are not supported")
+            props.append((parts[2], _PLY_TYPES[parts[1]]))
+    names = [p[0] for p in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise ValueError(f"{path}: vertex element has no x y z")
+    if fmt == "ascii":
+        table = np.loadtxt(
+            raw[body_start:].decode().splitlines()[:count], ndmin=2, dtype=np.float64
+        )
+        return table[:, [names.index("x"), names.index("y"), names.index("z")]]
+    order = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(n, order + t) for n, t in props])
+    need = dtype.itemsize * count
+    if len(raw) - body_start < need:
+        raise ValueError(f"{path}: truncated ({len(raw) - body_start} B of {need} B of vertices)")
+    table = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
+    return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
+
+
+def quat_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix (normalises first)."""
+    q = np.array([qw, qx, qy, qz], dtype=np.float64)
+    n = np.linalg.norm(q)
+    if n == 0:
+        raise ValueError("zero quaternion")
+    w, x, y, z = q / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(rot: np.ndarray) -> tuple[float, float, float, float]:
+    """3x3 rotation matrix -> unit quaternion (x, y, z, w), w >= 0."""
+    m = np.asarray(rot, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        w, x, y, z = (
+            0.25 * s,
+            (m[2, 1] - m[1, 2]) / s,
+            (m[0, 2] - m[2, 0]) / s,
+            (m[1, 0] - m[0, 1]) / s,
+        )
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        w, x, y, z = (
+            (m[2, 1] - m[1, 2]) / s,
+            0.25 * s,
+            (m[0, 1] + m[1, 0]) / s,
+            (m[0, 2] + m[2, 0]) / s,
+        )
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        w, x, y, z = (
+            (m[0, 2] - m[2, 0]) / s,
+            (m[0, 1] + m[1, 0]) / s,
+            0.25 * s,
+            (m[1, 2] + m[2, 1]) / s,
+        )
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        w, x, y, z = (
+            (m[1, 0] - m[0, 1]) / s,
+            (m[0, 2] + m[2, 0]) / s,
+            (m[1, 2] + m[2, 1]) / s,
+            0.25 * s,
+        )
+    q = np.array([x, y, z, w])
+    q /= np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
+
+
+def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
+    """Write poses (``(N, 4, 4)``) as TUM lines: ``t x y z qx qy qz qw`` (seconds, metres)."""
+    with open(path, "w") as fh:
+        for t, pose in zip(np.asarray(stamps, dtype=np.float64), np.asarray(poses), strict=True):
+            qx, qy, qz, qw = matrix_to_quat(pose[:3, :3])
+            x, y, z = pose[:3, 3]
+            fh.write(f"{t:.9f} {x:.6f} {y:.6f} {z:.6f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}\n")
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file -> (stamps ``(N,)``, poses ``(N, 4, 4)``); '#' lines are comments."""
+    stamps, poses = [], []
+    for line in Path(path).read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        v = [float(x) for x in line.replace(",", " ").split()]
+        if len(v) != 8:
+            raise ValueError(f"{path}: TUM lines need 8 numbers, got {len(v)}: {line!r}")
+        pose = np.eye(4)
+        pose[:3, :3] = quat_to_matrix(v[4], v[5], v[6], v[7])
+        pose[:3, 3] = v[1:4]
+        stamps.append(v[0])
+        poses.append(pose)
+    return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)

@@ -1,0 +1,205 @@
+"""Occupancy grids in Nav2 map_server format (YAML + PGM) and as nav_msgs/OccupancyGrid.
+
+Convention used across wheelgrid: :class:`Grid.data` is ``(rows, cols)`` int8 in *image*
+orientation -- row 0 is the top row of the picture (largest y), as in the paper's Table II,
+where "down" is row + 1. Values: 0 free, 100 occupied, -1 unknown. ``origin`` is map_server's
+``[x, y, yaw]``: the pose of the lower-left corner of the bottom-left cell in the map frame.
+
+Writing follows nav2_map_server's map_saver (trinary: free 254, occupied 0, unknown 205);
+reading follows its loader exactly (``occ = 1 - shade`` unless negated, then thresholds). We
+write ``free_thresh: 0.196`` because with map_saver's default 0.25 an unknown pixel (205,
+occ = 0.196) reloads as FREE -- unacceptable for a wheelchair.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+FREE, OCCUPIED, UNKNOWN = 0, 100, -1
+PIX_FREE, PIX_OCCUPIED, PIX_UNKNOWN = 254, 0, 205
+OCCUPIED_THRESH = 0.65
+FREE_THRESH = 0.196
+
+
+@dataclass
+class Grid:
+    """A 2D grid in image orientation (see module docstring)."""
+
+    data: np.ndarray  # (rows, cols) int8: 0 free, 100 occupied, -1 unknown
+    resolution: float  # metres per cell
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)  # x, y (m), yaw (rad)
+    frame_id: str = "map"
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def rows(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def cols(self) -> int:
+        return int(self.data.shape[1])
+
+    def cell_center(self, row: int | np.ndarray, col: int | np.ndarray) -> np.ndarray:
+        """Map-frame (x, y) of cell centres; works on arrays too (returns ``(..., 2)``)."""
+        gx = (np.asarray(col, dtype=np.float64) + 0.5) * self.resolution
+        gy = (self.rows - np.asarray(row, dtype=np.float64) - 0.5) * self.resolution
+        x0, y0, yaw = self.origin
+        c, s = math.cos(yaw), math.sin(yaw)
+        return np.stack([x0 + c * gx - s * gy, y0 + s * gx + c * gy], axis=-1)
+
+    def cell_of(self, x: float | np.ndarray, y: float | np.ndarray) -> tuple[Any, Any]:
+        """(row, col) containing map-frame point(s); may be outside the grid (check bounds)."""
+        x0, y0, yaw = self.origin
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = np.asarray(x, dtype=np.float64) - x0, np.asarray(y, dtype=np.float64) - y0
+        gx, gy = c * dx + s * dy, -s * dx + c * dy
+        col = np.floor(gx / self.resolution).astype(int)
+        row = self.rows - 1 - np.floor(gy / self.resolution).astype(int)
+        if np.ndim(row) == 0:
+            return int(row), int(col)
+        return row, col
+
+    def inside(self, row: int, col: int) -> bool:
+        return 0 <= row < self.rows and 0 <= col < self.cols
+
+
+def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) -> Path:
+    """Write ``grid`` as map_server YAML + binary PGM (trinary); returns the YAML path."""
+    yaml_path = Path(yaml_path)
+    image_name = image_name or yaml_path.with_suffix(".pgm").name
+    pix = np.full(grid.data.shape, PIX_UNKNOWN, dtype=np.uint8)
+    pix[grid.data == FREE] = PIX_FREE
+    pix[grid.data == OCCUPIED] = PIX_OCCUPIED
+    write_pgm(yaml_path.parent / image_name, pix)
+    doc = {
+        "image": image_name,
+        "mode": "trinary",
+        "resolution": float(grid.resolution),
+        "origin": [float(v) for v in grid.origin],
+        "negate": 0,
+        "occupied_thresh": OCCUPIED_THRESH,
+        "free_thresh": FREE_THRESH,
+    }
+    text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+    if grid.meta:
+        text += "# wheelgrid: " + yaml.safe_dump(grid.meta, default_flow_style=True).strip() + "\n"
+    yaml_path.write_text(text)
+    return yaml_path
+
+
+def write_pgm(path: str | Path, pixels: np.ndarray) -> None:
+    """Binary (P5) 8-bit PGM, row 0 at the top."""
+    pix = np.asarray(pixels, dtype=np.uint8)
+    with open(path, "wb") as fh:
+        fh.write(f"P5\n{pix.shape[1]} {pix.shape[0]}\n255\n".encode("ascii"))
+        fh.write(np.ascontiguousarray(pix).tobytes())
+
+
+def read_pgm(path: str | Path) -> np.ndarray:
+    """Read a P5 or P2 PGM (8 or 16 bit) as a 2D array scaled to 0..255."""
+    raw = Path(path).read_bytes()
+    tokens: list[bytes] = []
+    pos = 0
+    while len(tokens) < 4:
+        while pos < len(raw) and raw[pos : pos + 1].isspace():
+            pos += 1
+        if raw[pos : pos + 1] == b"#":
+            pos = raw.index(b"\n", pos) + 1
+            continue
+        start = pos
+        while pos < len(raw) and not raw[pos : pos + 1].isspace():
+            pos += 1
+        tokens.append(raw[start:pos])
+    magic, width, height, maxval = tokens[0], int(tokens[1]), int(tokens[2]), int(tokens[3])
+    if magic == b"P5":
+        dtype = ">u2" if maxval > 255 else "u1"
+        body = np.frombuffer(raw, dtype=dtype, count=width * height, offset=pos + 1)
+    elif magic == b"P2":
+        body = np.array(raw[pos:].split()[: width * height], dtype=np.int64)
+    else:
+        raise ValueError(f"{path}: not a PGM (magic {magic!r})")
+    img = body.reshape(height, width).astype(np.float64)
+    return img * (255.0 / maxval)
+
+
+def read_map(yaml_path: str | Path) -> Grid:
+    """Load a map_server YAML the way nav2_map_server does (trinary / scale / raw)."""
+    yaml_path = Path(yaml_path)
+    doc = yaml.safe_load(yaml_path.read_text())
+    if not isinstance(doc, dict) or "image" not in doc or "resolution" not in doc:
+        raise ValueError(f"{yaml_path}: not a map_server YAML (needs image and resolution)")
+    image_path = Path(doc["image"])
+    if not image_path.is_absolute():
+        image_path = yaml_path.parent / image_path
+    if image_path.suffix.lower() == ".pgm":
+        img = read_pgm(image_path)
+    else:
+        from PIL import Image
+
+        with Image.open(image_path) as im:
+            img = np.asarray(im.convert("L"), dtype=np.float64)
+    mode = str(doc.get("mode", "trinary")).lower()
+    negate = bool(int(doc.get("negate", 0)))
+    occ_t = float(doc.get("occupied_thresh", OCCUPIED_THRESH))
+    free_t = float(doc.get("free_thresh", FREE_THRESH))
+    if mode == "raw":
+        value = 255.0 - img if negate else img
+        data = np.where((value >= 0) & (value <= 100), value, UNKNOWN).astype(np.int8)
+    else:
+        shade = img / 255.0
+        occ = shade if negate else 1.0 - shade
+        data = np.full(img.shape, UNKNOWN, dtype=np.int8)
+        data[occ > occ_t] = OCCUPIED
+        data[occ < free_t] = FREE
+        if mode == "scale":
+            mid = (occ >= free_t) & (occ <= occ_t)
+            data[mid] = np.rint(99.0 * (occ[mid] - free_t) / (occ_t - free_t)).astype(np.int8)
+    origin = doc.get("origin", [0.0, 0.0, 0.0])
+    return Grid(
+        data=data,
+        resolution=float(doc["resolution"]),
+        origin=(float(origin[0]), float(origin[1]), float(origin[2]) if len(origin) > 2 else 0.0),
+    )
+
+
+def to_occupancy_grid(grid: Grid, stamp: Any = None) -> Any:
+    """Grid -> rclpy nav_msgs/OccupancyGrid (row-major from the bottom row, as ROS expects)."""
+    from nav_msgs.msg import OccupancyGrid
+
+    msg = OccupancyGrid()
+    msg.header.frame_id = grid.frame_id
+    if stamp is not None:
+        msg.header.stamp = stamp
+        msg.info.map_load_time = stamp
+    msg.info.resolution = float(grid.resolution)
+    msg.info.width = grid.cols
+    msg.info.height = grid.rows
+    x0, y0, yaw = grid.origin
+    msg.info.origin.position.x = float(x0)
+    msg.info.origin.position.y = float(y0)
+    msg.info.origin.orientation.z = math.sin(yaw / 2.0)
+    msg.info.origin.orientation.w = math.cos(yaw / 2.0)
+    msg.data = np.flipud(grid.data).astype(np.int8).ravel().tolist()
+    return msg
+
+
+def from_occupancy_grid(msg: Any) -> Grid:
+    """nav_msgs/OccupancyGrid (rclpy or rosbags) -> Grid in image orientation."""
+    rows, cols = int(msg.info.height), int(msg.info.width)
+    flat = np.asarray(msg.data, dtype=np.int8)
+    if flat.size != rows * cols:
+        raise ValueError(f"OccupancyGrid has {flat.size} cells, info says {rows}x{cols}")
+    q = msg.info.origin.orientation
+    yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    return Grid(
+        data=np.flipud(flat.reshape(rows, cols)).copy(),
+        resolution=float(msg.info.resolution),
+        origin=(float(msg.info.origin.position.x), float(msg.info.origin.position.y), yaw),
+        frame_id=str(msg.header.frame_id) or "map",
+    )

@@ -1,0 +1,110 @@
+"""One config dataclass per stage, both for the CLI (YAML) and for nodes (ROS parameters).
+
+A field documents itself through ``metadata={"doc": ..., "unit": ...}`` (use :func:`field`);
+nodes declare every field as a ROS parameter with that description, so ``--ros-args
+--params-file`` and ``ros2 param describe`` work, and CLIs load the same keys from YAML.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+
+def field(default: Any, doc: str, unit: str = "") -> Any:
+    """A dataclass field with a description (and unit) that becomes the ROS parameter's."""
+    if isinstance(default, list | dict):
+        return dataclasses.field(
+            default_factory=lambda d=default: type(d)(d), metadata={"doc": doc, "unit": unit}
+        )
+    return dataclasses.field(default=default, metadata={"doc": doc, "unit": unit})
+
+
+def describe(cls: type) -> dict[str, str]:
+    """Field name -> human description with unit, for --help texts and parameter descriptors."""
+    out = {}
+    for f in dataclasses.fields(cls):
+        doc = f.metadata.get("doc", "")
+        unit = f.metadata.get("unit", "")
+        out[f.name] = f"{doc} [{unit}]" if unit else doc
+    return out
+
+
+def _coerce(value: Any, typ: Any, name: str) -> Any:
+    origin = typing.get_origin(typ)
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        raise ValueError(f"{name}: expected true/false, got {value!r}")
+    if typ is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        raise ValueError(f"{name}: expected a number, got {value!r}")
+    if typ is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ValueError(f"{name}: expected an integer, got {value!r}")
+    if typ is str:
+        return str(value)
+    if origin in (list, tuple):
+        return list(value) if origin is list else tuple(value)
+    return value
+
+
+def from_mapping(cls: type[T], values: dict[str, Any], *, strict: bool = True) -> T:
+    """Build ``cls`` from a mapping, type-checking each value; unknown keys are errors."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown and strict:
+        raise ValueError(f"unknown {cls.__name__} parameter(s): {', '.join(unknown)}")
+    kwargs = {k: _coerce(v, hints[k], k) for k, v in values.items() if k in names}
+    return cls(**kwargs)
+
+
+def load_yaml(cls: type[T], path: str | Path | None, section: str | None = None) -> T:
+    """Load a config from YAML.
+
+    Accepts a plain mapping, a ``section:`` sub-mapping, or the ROS params-file layout
+    ``node_name: {ros__parameters: {...}}`` so one file serves both CLIs and nodes.
+    """
+    if path is None:
+        return cls()
+    data = yaml.safe_load(Path(path).read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping at the top level")
+    if section and section in data:
+        data = data[section]
+    if isinstance(data, dict) and "ros__parameters" in data:
+        data = data["ros__parameters"]
+    elif isinstance(data, dict) and len(data) == 1:
+        (only,) = data.values()
+        if isinstance(only, dict) and "ros__parameters" in only:
+            data = only["ros__parameters"]
+    return from_mapping(cls, data)
+
+
+def declare_dataclass(node: Any, cfg: T, prefix: str = "") -> T:
+    """Declare every field of ``cfg`` as a described ROS parameter and return the values read.
+
+    Defaults come from ``cfg`` (so a YAML-loaded config can seed them); overrides come from the
+    usual ``--ros-args -p`` / ``--params-file`` mechanisms.
+    """
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    docs = describe(type(cfg))
+    values = {}
+    for f in dataclasses.fields(cfg):
+        name = prefix + f.name
+        default = getattr(cfg, f.name)
+        if isinstance(default, tuple):
+            default = list(default)
+        node.declare_parameter(name, default, ParameterDescriptor(description=docs[f.name]))
+        values[f.name] = node.get_parameter(name).value
+    return from_mapping(type(cfg), values)

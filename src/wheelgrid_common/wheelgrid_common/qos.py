@@ -1,0 +1,33 @@
+"""The two QoS profiles the suite uses (ROS conventions, see REP-2003).
+
+Sensor streams tolerate loss and must never back up: best effort, keep last 5, volatile.
+Maps are state, not a stream: reliable, transient-local, keep last 1, so a subscriber that
+starts late (RViz, Nav2, the planner) still gets the current map at once.
+"""
+
+from __future__ import annotations
+
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+SENSOR_QOS: QoSProfile = qos_profile_sensor_data
+
+MAP_QOS: QoSProfile = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+# Commands and state that must arrive but need no late-joiner replay.
+RELIABLE_QOS: QoSProfile = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)

@@ -1,0 +1,78 @@
+"""Running ROS 2 safely from pip wheels, and the same code under a full apt install.
+
+Every process that starts rclpy goes through :func:`configure_ros_env` first, so DDS discovery
+stays on this machine unless the user explicitly chose otherwise, and rclpy has a log folder
+even where ``HOME`` is unset (it refuses to start without one).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable, MutableMapping
+from importlib.util import find_spec
+from typing import Any
+
+
+def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMapping[str, str]:
+    """Fill in safe defaults without overriding what the user set explicitly."""
+    env = os.environ if env is None else env
+    # Fast DDS multicasts beyond the machine with default discovery; never do that by default.
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if "ROS_LOG_DIR" not in env:
+        home = env.get("HOME")
+        base = (
+            os.path.join(home, ".ros", "log")
+            if home
+            else os.path.join(tempfile.gettempdir(), "wheelgrid-ros-log")
+        )
+        env["ROS_LOG_DIR"] = base
+    os.makedirs(env["ROS_LOG_DIR"], exist_ok=True)
+    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    return env
+
+
+def child_env(domain_id: int | None = None, **extra: str) -> dict[str, str]:
+    """An environment for a child process that starts ROS: inherits ours, safe defaults set."""
+    env = dict(os.environ)
+    configure_ros_env(env)
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    env.update(extra)
+    return env
+
+
+def tf2_available() -> bool:
+    """True where tf2_msgs is importable (a full ROS install); the pip wheels lack it."""
+    return find_spec("tf2_msgs") is not None
+
+
+def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
+    """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, clean up; return an exit code.
+
+    Node ``main`` functions all go through here so shutdown behaves the same everywhere:
+    SIGINT and SIGTERM end the spin, the node is destroyed and the context shut down.
+    """
+    configure_ros_env()
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except SystemExit as exc:  # a node may ask to stop with a code
+        code = int(exc.code or 0)
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if callable(close):
+                close()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return code
