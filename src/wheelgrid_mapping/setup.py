@@ -18,6 +18,10 @@ setup(
     license="Apache-2.0",
     extras_require={"test": ["pytest"]},
     entry_points={
-        "console_scripts": ["mapper = wheelgrid_mapping.mapper_node:main"],
+        "console_scripts": [
+            "mapper = wheelgrid_mapping.mapper_node:main",
+            "depth_to_cloud = wheelgrid_mapping.depth_to_cloud_node:main",
+            "iphone_bridge = wheelgrid_mapping.iphone_bridge_node:main",
+        ],
     },
 )
