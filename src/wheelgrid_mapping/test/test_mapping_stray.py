@@ -1,0 +1,158 @@
+"""StrayExport on a hand-made export and on the real iPhone capture in ../shared/data."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from wheelgrid_mapping.depth import (
+    ARKIT_CAMERA_TO_OPTICAL,
+    arkit_pose_to_ros,
+    depth_to_points,
+    transform_points,
+)
+from wheelgrid_mapping.stray import StrayExport
+
+
+def _shared_data() -> Path:
+    base = os.environ.get("WHEELGRID_SHARED")
+    root = Path(base) if base else Path(__file__).resolve().parents[3] / "../shared"
+    return root / "data"
+
+
+def _real_capture() -> Path:
+    path = _shared_data() / "stray-iphone-room"
+    if not (path / "depth").is_dir():
+        pytest.skip(f"{path}: real Stray capture not present")
+    return path
+
+
+def make_export(root: Path, n: int = 3, *, odometry: bool = True) -> Path:
+    """A tiny Stray-format export: 8x6 depth (mm), confidence, K for 1920x1440, poses."""
+    (root / "depth").mkdir(parents=True)
+    (root / "confidence").mkdir()
+    (root / "camera_matrix.csv").write_text("960.0, 0.0, 960.0\n0.0, 720.0, 720.0\n0.0, 0.0, 1.0")
+    for i in range(n):
+        d = np.full((6, 8), 1000 + 100 * i, dtype=np.uint16)
+        d[0, 0] = 0
+        Image.fromarray(d).save(root / "depth" / f"{i:06d}.png")
+        c = np.full((6, 8), 2, dtype=np.uint8)
+        c[1, 1] = 0
+        Image.fromarray(c).save(root / "confidence" / f"{i:06d}.png")
+    if odometry:
+        lines = ["timestamp, frame, x, y, z, qx, qy, qz, qw"]
+        lines += [f"{100 + i / 60:.6f}, {i:06d}, {0.1 * i}, 1.0, 0.0, 0, 0, 0, 1" for i in range(n)]
+        (root / "odometry.csv").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_hand_made_export(tmp_path: Path) -> None:
+    exp = StrayExport(make_export(tmp_path / "cap"))
+    assert len(exp) == 3 and exp.has_poses
+    frames = list(exp)
+    f = exp.frame(2)
+    assert [fr.index for fr in frames] == [0, 1, 2]
+    assert f.depth.dtype == np.float32 and f.depth.shape == (6, 8)
+    assert np.isnan(f.depth[0, 0]) and np.isclose(f.depth[3, 3], 1.2)
+    assert f.confidence is not None and f.confidence.dtype == np.uint8 and f.confidence[1, 1] == 0
+    # K scaled from 1920x1440 to 8x6: row 0 by 8/1920, row 1 by 6/1440
+    np.testing.assert_allclose(f.K, [[4.0, 0, 4.0], [0, 3.0, 3.0], [0, 0, 1]])
+    assert f.stamp == pytest.approx(100 + 2 / 60)
+    assert f.pose is not None
+    np.testing.assert_allclose(f.pose[:3, 3], [0.2, 1.0, 0.0])
+    assert exp.stamp(1) == pytest.approx(frames[1].stamp)
+    with pytest.raises(IndexError):
+        exp.frame(3)
+
+
+def test_export_without_odometry_has_no_pose(tmp_path: Path) -> None:
+    exp = StrayExport(make_export(tmp_path / "cap", 2, odometry=False))
+    f = exp.frame(1)
+    assert not exp.has_poses and f.pose is None and f.stamp == pytest.approx(1 / 60)
+
+
+def test_not_an_export_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="not a folder"):
+        StrayExport(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"not a Stray Scanner export \(missing depth"):
+        StrayExport(tmp_path / "empty")
+    cap = make_export(tmp_path / "bad")
+    (cap / "odometry.csv").write_text("timestamp, frame, x, y, z, qx, qy, qz, qw\n1, 0, x\n")
+    with pytest.raises(ValueError, match=r"odometry\.csv:2"):
+        StrayExport(cap)
+    (cap / "camera_matrix.csv").write_text("1, 2\n")
+    with pytest.raises(ValueError, match="camera matrix"):
+        StrayExport(cap)
+
+
+def _world_cloud(exp: StrayExport, i: int, arkit_camera_axes: bool = False) -> np.ndarray:
+    f = exp.frame(i)
+    assert f.pose is not None
+    pts = depth_to_points(f.depth, f.K, f.confidence, min_confidence=2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    T = f.pose @ ARKIT_CAMERA_TO_OPTICAL if arkit_camera_axes else f.pose
+    return transform_points(arkit_pose_to_ros(T), pts)
+
+
+def test_real_capture_reads() -> None:
+    exp = StrayExport(_real_capture())
+    assert len(exp) == 942 and exp.has_poses
+    f = exp.frame(0)
+    assert f.depth.shape == (192, 256)
+    assert 0.4 < np.nanmin(f.depth) < np.nanmax(f.depth) < 7.0
+    assert f.confidence is not None and set(np.unique(f.confidence)) <= {0, 1, 2}
+    np.testing.assert_allclose(f.K[0, 0], 1352.0168 * 256 / 1920)
+    np.testing.assert_allclose(f.K[1, 2], 722.88153 * 192 / 1440)
+    stamps = [exp.stamp(i) for i in range(len(exp))]
+    assert np.all(np.diff(stamps) > 0)
+    assert stamps[-1] - stamps[0] == pytest.approx(15.7, abs=0.1)
+
+
+def test_real_capture_floor_is_flat_and_level_in_ros_frame() -> None:
+    """Fused with ARKit poses and turned z-up, the floor is one level plane below the camera."""
+    exp = StrayExport(_real_capture())
+    P = np.concatenate([_world_cloud(exp, i) for i in range(0, len(exp), 30)])
+    z = P[:, 2]
+    hist, edges = np.histogram(z, bins=np.arange(z.min(), z.max() + 0.02, 0.02))
+    # the floor: the lowest well-populated 2 cm slab (occupied by >= 1 % of all points)
+    floor_z = edges[np.nonzero(hist >= 0.01 * P.shape[0])[0][0]] + 0.01
+    floor = P[np.abs(z - floor_z) < 0.06]
+    c = floor.mean(axis=0)
+    _, _, vt = np.linalg.svd(floor - c, full_matrices=False)
+    normal = vt[2]
+    tilt_deg = np.degrees(np.arccos(abs(normal[2])))
+    residual = np.abs((floor - c) @ normal)
+    rms, med = float(np.sqrt(np.mean(residual**2))), float(np.median(residual))
+    cam_z = arkit_pose_to_ros(exp.frame(0).pose)[2, 3]  # type: ignore[arg-type]
+    assert floor.shape[0] > 10_000
+    assert tilt_deg < 2.0, f"floor tilt {tilt_deg:.2f} deg"
+    # iPhone LiDAR depth noise is ~1-2 cm; a wrong pose convention smears the floor by dm
+    assert med < 0.02 and rms < 0.03, f"floor plane residual median {med:.3f} m RMS {rms:.3f} m"
+    assert 0.8 < cam_z - floor_z < 2.0  # a phone held at chest height above that floor
+    # the ceiling (SOURCE.md: ~2.65 m) is above the floor, i.e. z really is up
+    top = edges[np.nonzero(hist >= 0.01 * P.shape[0])[0][-1]]
+    assert 2.3 < top - floor_z < 3.0
+
+
+def test_real_capture_walls_of_different_frames_line_up() -> None:
+    """Frames 1-2 s apart overlap to a few cm with the optical convention, not with ARKit axes."""
+    import open3d as o3d
+
+    exp = StrayExport(_real_capture())
+
+    def pcd(p: np.ndarray) -> o3d.geometry.PointCloud:
+        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(0.03)
+
+    for a, b in [(0, 120), (540, 660), (240, 300)]:
+        fractions = {}
+        for axes in (False, True):
+            A, B = pcd(_world_cloud(exp, a, axes)), pcd(_world_cloud(exp, b, axes))
+            d = np.asarray(B.compute_point_cloud_distance(A))
+            fractions[axes] = float(np.mean(d < 0.05))
+        assert fractions[False] > 0.6, f"frames {a},{b}: only {fractions[False]:.2f} within 5 cm"
+        assert fractions[True] < fractions[False] - 0.3, fractions

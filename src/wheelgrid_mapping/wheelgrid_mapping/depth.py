@@ -1,0 +1,125 @@
+"""Depth images -> 3D points, and ARKit's coordinate conventions -> ROS's (ROS-free).
+
+Every iPhone path into wheelgrid (Stray Scanner exports, the live bridge, any ROS depth camera
+through ``depth_to_cloud``) goes through these few functions, so the frame conventions are
+decided in exactly one place:
+
+- Camera points are in the OPTICAL convention (x right, y down, z forward), REP-103's
+  ``*_optical_frame``. ARKit's own camera axes are x right, y up, z backward
+  (:data:`ARKIT_CAMERA_TO_OPTICAL` converts a pose given in those axes).
+- ARKit's world is gravity aligned with y up; at session start -z is the camera's viewing
+  direction and x its right. A REP-103 world (x forward, y left, z up) is therefore
+  ``x_ros = -z_ark, y_ros = -x_ark, z_ros = y_ark`` (:data:`ARKIT_WORLD_TO_ROS`).
+
+Pixels with no return (depth 0 / non-finite) or below the confidence threshold become NaN
+points in place, so organised clouds keep their pixel order and nothing downstream can mistake
+"no measurement" for "free space".
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+# ARKit world (y up, -z initial forward, x right) -> ROS world (x forward, y left, z up).
+ARKIT_WORLD_TO_ROS: np.ndarray = np.array(
+    [
+        [0.0, 0.0, -1.0, 0.0],
+        [-1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+ARKIT_WORLD_TO_ROS.setflags(write=False)
+
+# ARKit camera axes (x right, y up, z backward) <- optical axes (x right, y down, z forward):
+# T_world_optical = T_world_arkitcam @ ARKIT_CAMERA_TO_OPTICAL.
+ARKIT_CAMERA_TO_OPTICAL: np.ndarray = np.diag([1.0, -1.0, -1.0, 1.0])
+ARKIT_CAMERA_TO_OPTICAL.setflags(write=False)
+
+
+@lru_cache(maxsize=8)
+def _rays(h: int, w: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Per-pixel (x/z, y/z) for a pinhole camera; cached because K rarely changes per stream."""
+    u = (np.arange(w, dtype=np.float64) - cx) / fx
+    v = (np.arange(h, dtype=np.float64) - cy) / fy
+    rays = np.empty((h, w, 2), dtype=np.float32)
+    rays[:, :, 0] = u[None, :]
+    rays[:, :, 1] = v[:, None]
+    rays.setflags(write=False)
+    return rays
+
+
+def check_intrinsics(K: np.ndarray) -> np.ndarray:
+    """Return K as a (3, 3) float64 array; ValueError if it cannot be a pinhole camera."""
+    k = np.asarray(K, dtype=np.float64)
+    if k.shape != (3, 3):
+        raise ValueError(f"intrinsics must be 3x3, got shape {k.shape}")
+    if not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise ValueError(f"intrinsics need finite positive fx, fy; got fx={k[0, 0]} fy={k[1, 1]}")
+    return k
+
+
+def depth_to_points(
+    depth: np.ndarray,
+    K: np.ndarray,
+    confidence: np.ndarray | None = None,
+    min_confidence: int = 0,
+) -> np.ndarray:
+    """Back-project a depth image (metres) into ``(H*W, 3)`` float32 optical-frame points.
+
+    Row-major pixel order is kept (point ``r*W + c`` is pixel (r, c)) so the result can be
+    published as an organised cloud. Pixels whose depth is 0, negative or non-finite, or whose
+    confidence is below ``min_confidence``, become NaN rows: unknown, never free.
+    """
+    d = np.asarray(depth)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be a 2-D image, got shape {d.shape}")
+    h, w = d.shape
+    k = check_intrinsics(K)
+    rays = _rays(h, w, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    z = d.astype(np.float32, copy=False)
+    valid = np.isfinite(z) & (z > 0)
+    if confidence is not None and min_confidence > 0:
+        c = np.asarray(confidence)
+        if c.shape != d.shape:
+            raise ValueError(f"confidence shape {c.shape} differs from depth shape {d.shape}")
+        valid &= c >= min_confidence
+    zz = np.where(valid, z, np.float32(np.nan))
+    out = np.empty((h, w, 3), dtype=np.float32)
+    out[:, :, 0] = rays[:, :, 0] * zz
+    out[:, :, 1] = rays[:, :, 1] * zz
+    out[:, :, 2] = zz
+    return out.reshape(-1, 3)
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to ``(N, 3)`` points (NaN rows stay NaN)."""
+    t = np.asarray(T, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    return p @ t[:3, :3].T + t[:3, 3]
+
+
+def pose_from_xyz_quat(
+    x: float, y: float, z: float, qx: float, qy: float, qz: float, qw: float
+) -> np.ndarray:
+    """4x4 pose from a translation and a unit quaternion (x, y, z, w)."""
+    from wheelgrid_common.fileio import quat_to_matrix
+
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(qx, qy, qz, qw)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def arkit_pose_to_ros(T_ark_world_optical: np.ndarray) -> np.ndarray:
+    """ARKit world (y up) <- optical camera  ->  ROS ``odom`` (z up) <- optical camera.
+
+    Only the world side changes: the camera side is already optical. For a pose in ARKit's own
+    camera axes, right-multiply by :data:`ARKIT_CAMERA_TO_OPTICAL` first.
+    """
+    T = np.asarray(T_ark_world_optical, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"pose must be 4x4, got shape {T.shape}")
+    return ARKIT_WORLD_TO_ROS @ T

@@ -1,0 +1,189 @@
+"""Reader for Stray Scanner exports (iPhone LiDAR recordings), ROS-free.
+
+Stray Scanner (https://docs.strayrobots.io/apps/scanner/format.html) writes one folder per
+capture: ``depth/NNNNNN.png`` (16-bit millimetres, 0 = no return; older versions ``.npy``),
+``confidence/NNNNNN.png`` (ARKit confidence 0/1/2), ``camera_matrix.csv`` (3x3 intrinsics of the
+1920x1440 RGB video) and ``odometry.csv`` (``timestamp, frame, x, y, z, qx, qy, qz, qw``: the
+ARKit pose of the camera per frame). We keep the exporter's numbers and only convert units and
+conventions, so every consumer (mapper tests, ``stream-stray``, ``import-stray``) sees the same
+frames:
+
+- depth in metres as float32, NaN where the sensor gave no return (never 0 = "free");
+- K scaled from the RGB resolution to the depth resolution;
+- pose = ARKit world (y up) <- camera in the OPTICAL convention. Checked on a real capture:
+  with the optical convention walls of different frames line up, with ARKit's camera axes
+  they smear (see test_mapping_stray.py).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from wheelgrid_mapping.depth import pose_from_xyz_quat
+
+# Stray's camera_matrix.csv describes the RGB video, which is always 1920 x 1440.
+RGB_WIDTH = 1920
+RGB_HEIGHT = 1440
+# Stray records at 60 Hz; used for stamps only when odometry.csv is missing.
+NOMINAL_RATE_HZ = 60.0
+
+
+@dataclass(frozen=True)
+class StrayFrame:
+    """One depth frame: ``index`` is Stray's frame number, ``stamp`` seconds (ARKit clock)."""
+
+    index: int
+    stamp: float
+    depth: np.ndarray  # (H, W) float32 metres, NaN = no return
+    confidence: np.ndarray | None  # (H, W) uint8 0 low .. 2 high, None if not exported
+    K: np.ndarray  # (3, 3) intrinsics at the depth resolution
+    pose: np.ndarray | None  # (4, 4) ARKit world (y up) <- optical camera; None if unknown
+
+
+def _read_image(path: Path) -> np.ndarray:
+    if path.suffix == ".npy":
+        return np.load(path, allow_pickle=False)
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.array(im)
+
+
+def _read_camera_matrix(path: Path) -> np.ndarray:
+    try:
+        rows = [
+            [float(v) for v in line.replace(",", " ").split()]
+            for line in path.read_text().splitlines()
+            if line.strip()
+        ]
+        K = np.array(rows, dtype=np.float64)
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a 3x3 camera matrix ({exc})") from exc
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"{path}: not a valid 3x3 camera matrix (got shape {K.shape})")
+    return K
+
+
+def _read_odometry(path: Path) -> dict[int, tuple[float, np.ndarray]]:
+    """frame number -> (timestamp s, 4x4 pose); ValueError naming the bad line."""
+    out: dict[int, tuple[float, np.ndarray]] = {}
+    with open(path, newline="") as fh:
+        reader = csv.reader(fh)
+        header = [h.strip() for h in next(reader, [])]
+        need = ["timestamp", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
+        if [h for h in header if h] != need:
+            raise ValueError(f"{path}: header {header} is not {need}")
+        for lineno, row in enumerate(reader, start=2):
+            if not row or not "".join(row).strip():
+                continue
+            try:
+                t, frame, *v = (float(x) for x in row)
+                if len(v) != 7 or not all(math.isfinite(x) for x in (t, *v)):
+                    raise ValueError("need 9 finite numbers")
+                out[int(frame)] = (t, pose_from_xyz_quat(*v))
+            except ValueError as exc:
+                raise ValueError(f"{path}:{lineno}: bad odometry row {row!r} ({exc})") from exc
+    return out
+
+
+class StrayExport:
+    """A Stray Scanner export folder; ``len()``, iteration and ``frame(i)`` give StrayFrames.
+
+    ``frame(i)`` takes the position ``0 <= i < len()`` in capture order (normally equal to
+    Stray's frame number, which is ``StrayFrame.index``).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise ValueError(f"{self.path}: not a folder (expected a Stray Scanner export)")
+        depth_dir = self.path / "depth"
+        cam = self.path / "camera_matrix.csv"
+        missing = [p.name for p in (depth_dir, cam) if not p.exists()]
+        if missing:
+            raise ValueError(
+                f"{self.path}: not a Stray Scanner export (missing {', '.join(missing)})"
+            )
+        files = [
+            p for p in depth_dir.iterdir() if p.suffix in (".png", ".npy") and p.stem.isdigit()
+        ]
+        if not files:
+            raise ValueError(f"{depth_dir}: no depth frames (NNNNNN.png or .npy)")
+        files.sort(key=lambda p: int(p.stem))
+        self._depth_files = files
+        self._K_rgb = _read_camera_matrix(cam)
+        odo = self.path / "odometry.csv"
+        self._odometry = _read_odometry(odo) if odo.exists() else {}
+        self._conf_dir = self.path / "confidence"
+        first = _read_image(files[0])
+        if first.ndim != 2:
+            raise ValueError(f"{files[0]}: depth image must be single-channel, got {first.shape}")
+        self.height, self.width = (int(s) for s in first.shape)
+        K = self._K_rgb.copy()
+        K[0, :] *= self.width / RGB_WIDTH
+        K[1, :] *= self.height / RGB_HEIGHT
+        self.K = K
+        self.K.setflags(write=False)
+
+    @property
+    def has_poses(self) -> bool:
+        return bool(self._odometry)
+
+    def __len__(self) -> int:
+        return len(self._depth_files)
+
+    def __iter__(self) -> Iterator[StrayFrame]:
+        for i in range(len(self)):
+            yield self.frame(i)
+
+    def stamp(self, i: int) -> float:
+        """Capture time of position ``i`` without reading its images (for real-time playback)."""
+        return self._stamp_of(int(self._depth_files[i].stem))
+
+    def _stamp_of(self, index: int) -> float:
+        """Odometry time of frame ``index``; else extrapolated at 60 Hz on the same clock."""
+        if index in self._odometry:
+            return self._odometry[index][0]
+        if self._odometry:
+            first = min(self._odometry)
+            return self._odometry[first][0] + (index - first) / NOMINAL_RATE_HZ
+        return index / NOMINAL_RATE_HZ
+
+    def frame(self, i: int) -> StrayFrame:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame {i} out of range: export has {len(self)} frames")
+        path = self._depth_files[i]
+        index = int(path.stem)
+        raw = _read_image(path)
+        if raw.shape != (self.height, self.width):
+            raise ValueError(f"{path}: shape {raw.shape} differs from the first frame's")
+        if np.issubdtype(raw.dtype, np.integer):
+            depth = raw.astype(np.float32) * np.float32(0.001)  # millimetres
+        else:
+            depth = raw.astype(np.float32)  # float exports are already metres
+        depth[~(depth > 0)] = np.nan
+        confidence = None
+        for ext in (".png", ".npy"):
+            cpath = self._conf_dir / f"{path.stem}{ext}"
+            if cpath.exists():
+                confidence = _read_image(cpath).astype(np.uint8)
+                if confidence.shape != depth.shape:
+                    raise ValueError(
+                        f"{cpath}: shape {confidence.shape} differs from depth {depth.shape}"
+                    )
+                break
+        odo = self._odometry.get(index)
+        return StrayFrame(
+            index=index,
+            stamp=self._stamp_of(index),
+            depth=depth,
+            confidence=confidence,
+            K=self.K.copy(),
+            pose=odo[1] if odo else None,
+        )
