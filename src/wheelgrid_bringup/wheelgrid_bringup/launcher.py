@@ -1,0 +1,131 @@
+"""``wheelgrid launch``: the chain from one command, where ``ros2 launch`` may not exist.
+
+Starts mapper, grid, planner and drive (and the iPhone bridge with ``--iphone``) as supervised
+processes sharing one parameter YAML, optionally replays a bag into them, prints a live status
+line, and shuts everything down on Ctrl-C or as soon as any node dies (exit 1, naming it).
+``launch/wheelgrid.launch.py`` starts the same nodes with the same file under ``ros2 launch``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from pathlib import Path
+
+from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
+from wheelgrid_bringup.supervisor import Supervisor, default_params_file
+from wheelgrid_common.bagio import BagError
+from wheelgrid_common.ros_env import child_env, configure_ros_env
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="wheelgrid launch", description=__doc__.splitlines()[0])
+    p.add_argument("--params", type=Path, help="parameter YAML (default: bringup wheelgrid.yaml)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--bag", type=Path, help="rosbag2 folder or .bag to replay into the mapper")
+    src.add_argument("--iphone", action="store_true", help="start the iPhone bridge node")
+    p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1.0)")
+    p.add_argument("--topic", action="append", help="replay only these topics (repeatable)")
+    p.add_argument("--motor-port", help="serial port of the motor controller (drive node)")
+    p.add_argument("--no-drive", action="store_true", help="do not start the drive node")
+    p.add_argument("--log-dir", type=Path, default=Path("log/launch"), help="node logs")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0: never)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.rate <= 0:
+        print("wheelgrid launch: --rate must be > 0", file=sys.stderr)
+        return 2
+    configure_ros_env()
+    try:
+        params = args.params or default_params_file()
+    except FileNotFoundError as exc:
+        print(f"wheelgrid launch: {exc}", file=sys.stderr)
+        return 2
+    if not params.exists():
+        print(f"wheelgrid launch: no such params file {params}", file=sys.stderr)
+        return 2
+    names = ["mapper", "grid", "planner"]
+    if not args.no_drive:
+        names.append("drive")
+    if args.iphone:
+        names.insert(0, "iphone_bridge")
+
+    import rclpy
+    from rclpy.context import Context
+
+    from wheelgrid_bringup.replay import BagPlayer
+
+    stop = {"flag": False}
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop["flag"] = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    sup = Supervisor(args.log_dir, child_env())
+    ctx = Context()
+    rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    monitor = Monitor(ctx, "wheelgrid_launch")
+    chain = Chain(sup, monitor)
+    player = None
+    code = 0
+    try:
+        for name in names:
+            overrides: dict[str, object] = {}
+            if name == "drive" and args.motor_port:
+                overrides["port"] = args.motor_port
+            sup.start_node(name, params, overrides)
+            print(
+                f"launch: started {name} (pid {sup.procs[name].proc.pid}, log "
+                f"{sup.procs[name].log_path})",
+                flush=True,
+            )
+        if args.bag:
+            try:
+                player = BagPlayer(monitor.node, args.bag, args.topic, args.rate)
+            except BagError as exc:
+                print(f"wheelgrid launch: {exc}", file=sys.stderr)
+                return 2
+            player.start(delay=2.0)  # let the nodes' subscriptions match first
+        t0 = time.monotonic()
+        last = 0.0
+        while not stop["flag"]:
+            chain.check()
+            now = time.monotonic()
+            if now - last >= 1.0:
+                extra = ""
+                if player is not None:
+                    extra = f"replay {player.published}/{player.total}"
+                    if player.error:
+                        extra += f" ERROR {player.error}"
+                print(f"[{now - t0:6.1f} s] {monitor.status_line(extra)}", flush=True)
+                last = now
+            if args.duration and now - t0 >= args.duration:
+                break
+            time.sleep(0.1)
+    except NodeDiedError as exc:
+        print(
+            f"wheelgrid launch: {exc}; stopping the chain\n--- last lines of {exc.name} ---\n"
+            f"{exc.tail}",
+            file=sys.stderr,
+        )
+        code = 1
+    finally:
+        if player is not None:
+            player.stop()
+        codes = sup.stop_all()
+        monitor.close()
+        if ctx.ok():
+            rclpy.shutdown(context=ctx)
+        print("launch: stopped " + ", ".join(f"{n} ({c})" for n, c in codes.items()), flush=True)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,110 @@
+"""Supervised node processes for machines without ``ros2 launch`` (the pip-wheel ROS).
+
+Each node runs as its own process (as under ``ros2 launch``), started through its package's
+``main`` so no installed console script or sourced ROS is needed. The supervisor notices a
+node that dies, names it, and stops everything else: a half-running chain must never keep
+driving a chair.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from wheelgrid_common.ros_env import child_env
+from wheelgrid_common.testing import stop_process
+
+# node name -> "module:function" of its main(); the same table the launch file mirrors.
+NODES: dict[str, str] = {
+    "mapper": "wheelgrid_mapping.mapper_node:main",
+    "grid": "wheelgrid_nav.grid_node:main",
+    "planner": "wheelgrid_nav.planner_node:main",
+    "drive": "wheelgrid_drive.drive_node:main",
+    "iphone_bridge": "wheelgrid_mapping.iphone_bridge_node:main",
+    "depth_to_cloud": "wheelgrid_mapping.depth_to_cloud_node:main",
+}
+
+
+def node_argv(name: str, params_file: Path | None, overrides: dict[str, object]) -> list[str]:
+    """argv that runs node ``name`` with a params file and ``-p`` overrides."""
+    module, func = NODES[name].split(":")
+    code = f"import sys; from {module} import {func} as m; sys.exit(m() or 0)"
+    ros_args = ["--ros-args", "-r", f"__node:={name}"]
+    if params_file is not None:
+        ros_args += ["--params-file", str(params_file)]
+    for key, value in overrides.items():
+        text = ("true" if value else "false") if isinstance(value, bool) else str(value)
+        ros_args += ["-p", f"{key}:={text}"]
+    return [sys.executable, "-c", code, *ros_args]
+
+
+@dataclass
+class Managed:
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+    started: float = field(default_factory=time.monotonic)
+
+
+class Supervisor:
+    """Start, watch and stop a set of node processes; logs go to ``log_dir/<name>.log``."""
+
+    def __init__(self, log_dir: Path, env: dict[str, str] | None = None) -> None:
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.env = env if env is not None else child_env()
+        self.procs: dict[str, Managed] = {}
+
+    def start(self, name: str, argv: Sequence[str]) -> Managed:
+        log_path = self.log_dir / f"{name}.log"
+        log = open(log_path, "wb")  # noqa: SIM115 - owned by the child for its lifetime
+        env = dict(self.env)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        proc = subprocess.Popen(
+            list(argv), env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+        )
+        log.close()
+        managed = Managed(name, proc, log_path)
+        self.procs[name] = managed
+        return managed
+
+    def start_node(
+        self, name: str, params_file: Path | None, overrides: dict[str, object] | None = None
+    ) -> Managed:
+        return self.start(name, node_argv(name, params_file, overrides or {}))
+
+    def dead(self) -> list[tuple[str, int]]:
+        """Processes that exited, with their exit codes."""
+        return [(m.name, rc) for m in self.procs.values() if (rc := m.proc.poll()) is not None]
+
+    def tail(self, name: str, lines: int = 15) -> str:
+        try:
+            text = self.procs[name].log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+        return "\n".join(text.splitlines()[-lines:])
+
+    def stop_all(self) -> dict[str, int | None]:
+        """Stop in reverse start order (drive first: the chair stops before its inputs go)."""
+        codes: dict[str, int | None] = {}
+        for name in reversed(list(self.procs)):
+            codes[name] = stop_process(self.procs[name].proc)
+        return codes
+
+
+def default_params_file() -> Path:
+    """The bringup package's wheelgrid.yaml (source tree or installed share/)."""
+    here = Path(__file__).resolve().parent.parent / "config" / "wheelgrid.yaml"
+    if here.exists():
+        return here
+    prefix = os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
+    for p in prefix:
+        cand = Path(p) / "share" / "wheelgrid_bringup" / "wheelgrid.yaml"
+        if cand.exists():
+            return cand
+    raise FileNotFoundError("wheelgrid.yaml not found (is wheelgrid_bringup built?)")
