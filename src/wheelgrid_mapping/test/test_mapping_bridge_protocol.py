@@ -1,0 +1,194 @@
+"""bridge_protocol: round trips, every rejection reason, and fuzzing of the decoder."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from wheelgrid_mapping import bridge_protocol as bp
+from wheelgrid_mapping.depth import ARKIT_CAMERA_TO_OPTICAL, pose_from_xyz_quat
+
+K = np.array([[180.0, 0.0, 128.0], [0.0, 181.0, 96.0], [0.0, 0.0, 1.0]])
+
+
+def _frame_bytes(w: int = 8, h: int = 6, **kw: object) -> bytes:
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 5.0, (h, w)).astype(np.float32)
+    return bp.encode_frame(1.5, K, depth, **kw)  # type: ignore[arg-type]
+
+
+def test_frame_round_trip_f32_with_confidence_and_pose() -> None:
+    depth = np.array([[1.0, np.nan, 0.0], [2.5, 3.25, 4.0]], dtype=np.float32)
+    conf = np.array([[2, 1, 0], [2, 2, 1]], dtype=np.uint8)
+    pose = pose_from_xyz_quat(0.1, 1.2, -0.3, 0.1, 0.2, 0.3, 0.9)
+    raw = bp.encode_frame(12.25, K, depth, seq=7, confidence=conf, pose=pose)
+    (f,) = bp.FrameDecoder().feed(raw)
+    assert isinstance(f, bp.Frame)
+    assert (f.stamp, f.seq, f.width, f.height) == (12.25, 7, 3, 2)
+    np.testing.assert_allclose(f.K, K)
+    np.testing.assert_array_equal(f.confidence, conf)
+    dm = f.depth_m()
+    assert np.isnan(dm[0, 1]) and np.isnan(dm[0, 2]) and dm[1, 1] == 3.25
+    np.testing.assert_allclose(f.pose_optical(), pose, atol=1e-12)
+
+
+def test_u16_millimetres_and_arkit_axes_pose() -> None:
+    depth_m = np.array([[1.2344, 0.0], [np.nan, 6.5]], dtype=np.float32)
+    pose = pose_from_xyz_quat(0, 1, 0, 0, 0, 0, 1)
+    raw = bp.encode_frame(
+        3.0, K, depth_m, pose=pose, pose_axes=bp.POSE_ARKIT, depth_encoding=bp.DEPTH_U16_MM
+    )
+    (f,) = bp.FrameDecoder().feed(raw)
+    assert f.depth.dtype == np.uint16 and f.depth.tolist() == [[1234, 0], [0, 6500]]
+    assert f.confidence is None
+    np.testing.assert_allclose(f.pose_optical(), pose @ ARKIT_CAMERA_TO_OPTICAL, atol=1e-12)
+    (g,) = bp.FrameDecoder().feed(bp.encode_frame(3.0, K, depth_m))
+    assert g.pose is None and g.pose_optical() is None
+
+
+def test_stream_split_anywhere_and_hello_status() -> None:
+    stream = bp.encode_hello("s3cret", "test") + _frame_bytes(seq=1) + _frame_bytes(seq=2)
+    dec = bp.FrameDecoder()
+    out: list[bp.Message] = []
+    for i in range(len(stream)):  # one byte at a time
+        out += dec.feed(stream[i : i + 1])
+    assert out[0] == bp.Hello("s3cret", "test")
+    assert [m.seq for m in out[1:]] == [1, 2]  # type: ignore[union-attr]
+    assert dec.buffered == 0 and not dec.errors
+    st_dec = bp.FrameDecoder(accept=(bp.MSG_STATUS,))
+    assert st_dec.feed(bp.encode_status(bp.STATUS_BUSY, "busy")) == [bp.Status(2, "busy")]
+
+
+def _patch_header(raw: bytes, fmt_index: int, value: object) -> bytes:
+    fields = list(bp.FRAME_HEADER.unpack_from(raw, bp.PREFIX.size))
+    fields[fmt_index] = value
+    return (
+        raw[: bp.PREFIX.size]
+        + bp.FRAME_HEADER.pack(*fields)
+        + raw[bp.PREFIX.size + bp.FRAME_HEADER.size :]
+    )
+
+
+@pytest.mark.parametrize(
+    ("index", "value", "reason"),
+    [
+        (0, float("nan"), "bad_stamp"),
+        (0, -1.0, "bad_stamp"),
+        (2, 0, "bad_size"),
+        (2, 9, "size_mismatch"),
+        (4, 0.0, "bad_intrinsics"),
+        (6, float("inf"), "bad_intrinsics"),
+        (15, 9, "bad_depth_encoding"),
+        (15, bp.DEPTH_U16_MM, "size_mismatch"),
+        (16, 5, "bad_confidence_encoding"),
+        (17, 7, "bad_pose_axes"),
+        (14, 5.0, "bad_pose"),  # qw: quaternion no longer unit
+        (8, float("nan"), "bad_pose"),
+    ],
+)
+def test_bad_frames_are_rejected_and_stream_stays_in_sync(
+    index: int, value: object, reason: str
+) -> None:
+    pose = np.eye(4)
+    bad = _patch_header(_frame_bytes(pose=pose), index, value)
+    dec = bp.FrameDecoder()
+    out = dec.feed(bad + _frame_bytes(seq=5))
+    assert [m.seq for m in out] == [5]  # type: ignore[union-attr]
+    (err,) = dec.pop_errors()
+    assert err.reason == reason and not err.fatal and str(err)
+
+
+def test_oversized_is_skipped_without_buffering() -> None:
+    dec = bp.FrameDecoder(max_frame_bytes=1000)
+    big = _frame_bytes(w=64, h=64)
+    out = []
+    for i in range(0, len(big), 100):
+        out += dec.feed(big[i : i + 100])
+        assert dec.buffered <= bp.PREFIX.size
+    out += dec.feed(_frame_bytes(w=4, h=4, seq=3))
+    assert [m.seq for m in out] == [3]  # type: ignore[union-attr]
+    assert [e.reason for e in dec.pop_errors()] == ["oversized"]
+
+
+def test_unknown_type_short_body_and_bad_hello() -> None:
+    dec = bp.FrameDecoder()
+    junk = bp.PREFIX.pack(bp.MAGIC, bp.VERSION, 99, 0, 3) + b"abc"
+    short = bp.PREFIX.pack(bp.MAGIC, bp.VERSION, bp.MSG_FRAME, 0, 4) + b"abcd"
+    hello = (
+        bp.PREFIX.pack(bp.MAGIC, bp.VERSION, bp.MSG_HELLO, 0, 4) + struct.pack("<H", 900) + b"xx"
+    )
+    assert dec.feed(junk + short + hello) == []
+    assert [e.reason for e in dec.pop_errors()] == ["unexpected_type", "short_frame", "bad_hello"]
+    with pytest.raises(ValueError, match="token"):
+        bp.encode_hello("x" * 300)
+
+
+def test_bad_magic_and_version_are_fatal() -> None:
+    dec = bp.FrameDecoder()
+    with pytest.raises(bp.ProtocolError) as exc:
+        dec.feed(b"GET / HTTP/1.1\r\n\r\n")
+    assert exc.value.fatal and exc.value.reason == "bad_magic" and dec.failed
+    with pytest.raises(bp.ProtocolError):
+        dec.feed(_frame_bytes())  # stays failed
+    dec2 = bp.FrameDecoder()
+    good = _frame_bytes(seq=1)
+    out = dec2.feed(good + bp.PREFIX.pack(bp.MAGIC, 2, bp.MSG_FRAME, 0, 0))
+    assert [m.seq for m in out] == [1] and dec2.failed  # type: ignore[union-attr]
+    with pytest.raises(bp.ProtocolError, match="bad_version"):
+        dec2.feed(b"")
+
+
+# ---- fuzzing: whatever arrives, the decoder returns/raises ProtocolError, never anything else,
+# finishes, and holds at most one prefix + max_frame_bytes.
+LIMIT = 4096
+_VALID = [_frame_bytes(w=4, h=3, seq=i, pose=np.eye(4)) for i in range(3)] + [bp.encode_hello("t")]
+
+
+def _run_decoder(chunks: list[bytes]) -> None:
+    dec = bp.FrameDecoder(max_frame_bytes=LIMIT)
+    for chunk in chunks:
+        try:
+            out = dec.feed(chunk)
+        except bp.ProtocolError as exc:
+            assert exc.fatal and dec.failed
+            return
+        assert dec.buffered <= bp.PREFIX.size + LIMIT
+        for m in out:
+            assert isinstance(m, bp.Frame | bp.Hello)
+        for e in dec.pop_errors():
+            assert isinstance(e, bp.ProtocolError) and e.reason
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.binary(max_size=300), max_size=20))
+def test_fuzz_random_bytes(chunks: list[bytes]) -> None:
+    _run_decoder(chunks)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.lists(st.sampled_from(range(len(_VALID))), min_size=1, max_size=4),
+    st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), max_size=8),
+    st.integers(0, 10_000),
+    st.integers(1, 500),
+)
+def test_fuzz_mutated_valid_stream(
+    picks: list[int], flips: list[tuple[int, int]], cut: int, chunk: int
+) -> None:
+    """Valid messages with bytes overwritten, truncated, and split at random boundaries."""
+    data = bytearray(b"".join(_VALID[i] for i in picks))
+    for pos, val in flips:
+        data[pos % len(data)] = val
+    data = data[: max(1, len(data) - cut % len(data))]
+    _run_decoder([bytes(data[i : i + chunk]) for i in range(0, len(data), chunk)])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 255), st.binary(max_size=64))
+def test_fuzz_claimed_lengths(length: int, mtype: int, tail: bytes) -> None:
+    """A peer claiming up to 4 GiB never makes the decoder buffer more than its limit."""
+    _run_decoder([bp.PREFIX.pack(bp.MAGIC, bp.VERSION, mtype, 0, length) + tail, _VALID[0]])

@@ -1,0 +1,417 @@
+"""The iPhone bridge wire protocol, version 1 (ROS-free): encoder and streaming decoder.
+
+A phone (or ``wheelgrid stream-stray`` standing in for one) sends depth frames over TCP to the
+``iphone_bridge`` node. Every message is length-prefixed, so a receiver always knows where the
+next message starts and can skip one it does not want without buffering it; the full layout is
+in docs/iphone-protocol.md. Untrusted bytes arrive here, so the decoder:
+
+- never allocates more than ``max_frame_bytes`` (+ a 12-byte prefix) whatever the peer claims;
+- rejects malformed messages with a :class:`ProtocolError` whose ``reason`` is a stable code
+  (for log-once) and whose text says what was wrong;
+- tells recoverable problems (a well-framed message with bad content or too big: skipped, the
+  stream stays in sync) from fatal ones (bad magic/version: the framing itself is lost, the
+  connection must close).
+
+All integers and floats are little-endian.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MAGIC = b"WGIP"
+VERSION = 1
+
+# Message types.
+MSG_HELLO = 1  # client -> bridge, first message: token and client name
+MSG_FRAME = 2  # client -> bridge: one depth frame
+MSG_STATUS = 3  # bridge -> client: accepted / rejected (+ reason)
+
+# Depth encodings.
+DEPTH_F32_M = 1  # float32 metres, 0/NaN = no return
+DEPTH_U16_MM = 2  # uint16 millimetres, 0 = no return
+DEPTH_BYTES = {DEPTH_F32_M: 4, DEPTH_U16_MM: 2}
+# Confidence encodings.
+CONF_NONE = 0
+CONF_U8 = 1  # ARKit confidence 0 low, 1 medium, 2 high
+# Which camera axes the pose's rotation is expressed in.
+POSE_NONE = 0  # no pose (tracking lost): the frame is still usable as a cloud
+POSE_OPTICAL = 1  # world <- camera with x right, y down, z forward (OpenCV/ROS optical)
+POSE_ARKIT = 2  # world <- camera with ARKit's axes x right, y up, z backward (camera.transform)
+
+# Status codes.
+STATUS_OK = 0
+STATUS_BAD_TOKEN = 1
+STATUS_BUSY = 2
+STATUS_PROTOCOL_ERROR = 3
+
+# Limits. Defaults fit an iPhone (256x192) with a wide margin; receivers may lower them.
+MAX_FRAME_BYTES = 8 * 1024 * 1024  # largest message body accepted (bytes)
+MAX_DIMENSION = 4096  # largest width or height (pixels)
+MAX_TOKEN_BYTES = 256
+MAX_NAME_BYTES = 256
+MAX_STATUS_TEXT_BYTES = 1024
+
+PREFIX = struct.Struct("<4sBBHI")  # magic, version, type, flags (0), body length
+# stamp, seq, width, height, fx, fy, cx, cy, tx, ty, tz, qx, qy, qz, qw,
+# depth encoding, confidence encoding, pose axes, reserved
+FRAME_HEADER = struct.Struct("<dIHH4d7dBBBB")
+_U16 = struct.Struct("<H")
+
+
+class ProtocolError(ValueError):
+    """A message that cannot be used. ``reason`` is a stable code; ``fatal`` = stream lost."""
+
+    def __init__(self, reason: str, detail: str, *, fatal: bool = False) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+        self.fatal = fatal
+
+
+@dataclass(frozen=True)
+class Hello:
+    token: str
+    name: str
+
+
+@dataclass(frozen=True)
+class Status:
+    code: int
+    text: str
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One depth frame as sent by the phone.
+
+    ``pose`` is ARKit world (y up) <- camera, with the camera axes given by ``pose_axes``;
+    :meth:`pose_optical` always returns the optical-axes version (or None).
+    """
+
+    stamp: float  # seconds, the phone's clock
+    seq: int
+    K: np.ndarray  # (3, 3)
+    depth: np.ndarray  # (H, W) float32 metres or uint16 millimetres (see depth_encoding)
+    depth_encoding: int
+    confidence: np.ndarray | None = None  # (H, W) uint8
+    pose: np.ndarray | None = None  # (4, 4)
+    pose_axes: int = POSE_NONE
+    extra: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
+
+    def depth_m(self) -> np.ndarray:
+        """Depth as float32 metres with NaN where there was no return."""
+        if self.depth_encoding == DEPTH_U16_MM:
+            d = self.depth.astype(np.float32) * np.float32(0.001)
+        else:
+            d = self.depth.astype(np.float32, copy=True)
+        d[~(d > 0)] = np.nan
+        return d
+
+    def pose_optical(self) -> np.ndarray | None:
+        from wheelgrid_mapping.depth import ARKIT_CAMERA_TO_OPTICAL
+
+        if self.pose is None or self.pose_axes == POSE_NONE:
+            return None
+        if self.pose_axes == POSE_ARKIT:
+            return self.pose @ ARKIT_CAMERA_TO_OPTICAL
+        return self.pose.copy()
+
+
+def _prefix(msg_type: int, body_len: int) -> bytes:
+    return PREFIX.pack(MAGIC, VERSION, msg_type, 0, body_len)
+
+
+def _short_str(data: str, limit: int, what: str) -> bytes:
+    raw = data.encode("utf-8")
+    if len(raw) > limit:
+        raise ValueError(f"{what} is {len(raw)} bytes; at most {limit}")
+    return _U16.pack(len(raw)) + raw
+
+
+def encode_hello(token: str = "", name: str = "") -> bytes:
+    body = _short_str(token, MAX_TOKEN_BYTES, "token") + _short_str(name, MAX_NAME_BYTES, "name")
+    return _prefix(MSG_HELLO, len(body)) + body
+
+
+def encode_status(code: int, text: str = "") -> bytes:
+    raw = text.encode("utf-8")[:MAX_STATUS_TEXT_BYTES]
+    body = bytes([code]) + _U16.pack(len(raw)) + raw
+    return _prefix(MSG_STATUS, len(body)) + body
+
+
+def encode_frame(
+    stamp: float,
+    K: np.ndarray,
+    depth: np.ndarray,
+    *,
+    seq: int = 0,
+    confidence: np.ndarray | None = None,
+    pose: np.ndarray | None = None,
+    pose_axes: int = POSE_OPTICAL,
+    depth_encoding: int | None = None,
+) -> bytes:
+    """Encode one frame; ``depth`` float (metres) or uint16 (millimetres).
+
+    ``depth_encoding`` converts on the way: float depth sent as DEPTH_U16_MM is rounded to mm
+    (NaN -> 0 = no return). ``pose`` is ARKit world <- camera in ``pose_axes``.
+    """
+    d = np.asarray(depth)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {d.shape}")
+    h, w = d.shape
+    if not (0 < h <= MAX_DIMENSION and 0 < w <= MAX_DIMENSION):
+        raise ValueError(f"depth {w}x{h} outside 1..{MAX_DIMENSION}")
+    enc = depth_encoding or (DEPTH_U16_MM if d.dtype == np.uint16 else DEPTH_F32_M)
+    if enc == DEPTH_F32_M:
+        payload = np.ascontiguousarray(d, dtype="<f4").tobytes()
+    elif enc == DEPTH_U16_MM:
+        if d.dtype == np.uint16:
+            mm = d
+        else:
+            m = np.nan_to_num(d.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+            mm = np.clip(np.rint(m * 1000.0), 0, 65535).astype(np.uint16)
+        payload = np.ascontiguousarray(mm, dtype="<u2").tobytes()
+    else:
+        raise ValueError(f"unknown depth encoding {enc}")
+    conf_enc = CONF_NONE
+    if confidence is not None:
+        c = np.asarray(confidence)
+        if c.shape != d.shape:
+            raise ValueError(f"confidence {c.shape} differs from depth {d.shape}")
+        payload += np.ascontiguousarray(c, dtype=np.uint8).tobytes()
+        conf_enc = CONF_U8
+    k = np.asarray(K, dtype=np.float64)
+    if pose is None:
+        pose_axes = POSE_NONE
+        t: tuple[float, ...] = (0.0, 0.0, 0.0)
+        q: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0)
+    else:
+        from wheelgrid_common.fileio import matrix_to_quat
+
+        p = np.asarray(pose, dtype=np.float64)
+        t = tuple(float(v) for v in p[:3, 3])
+        q = matrix_to_quat(p[:3, :3])
+    header = FRAME_HEADER.pack(
+        float(stamp),
+        int(seq) & 0xFFFFFFFF,
+        w,
+        h,
+        k[0, 0],
+        k[1, 1],
+        k[0, 2],
+        k[1, 2],
+        *t,
+        *q,
+        enc,
+        conf_enc,
+        pose_axes,
+        0,
+    )
+    body_len = len(header) + len(payload)
+    return _prefix(MSG_FRAME, body_len) + header + payload
+
+
+def _read_short_str(body: bytes, pos: int, limit: int, what: str) -> tuple[str, int]:
+    if pos + 2 > len(body):
+        raise ProtocolError("bad_hello", f"{what} length missing")
+    (n,) = _U16.unpack_from(body, pos)
+    pos += 2
+    if n > limit or pos + n > len(body):
+        raise ProtocolError("bad_hello", f"{what} of {n} bytes (limit {limit}, {len(body)} B body)")
+    try:
+        return body[pos : pos + n].decode("utf-8"), pos + n
+    except UnicodeDecodeError as exc:
+        raise ProtocolError("bad_hello", f"{what} is not UTF-8") from exc
+
+
+def decode_hello(body: bytes) -> Hello:
+    token, pos = _read_short_str(body, 0, MAX_TOKEN_BYTES, "token")
+    name, pos = _read_short_str(body, pos, MAX_NAME_BYTES, "name")
+    if pos != len(body):
+        raise ProtocolError("bad_hello", f"{len(body) - pos} trailing bytes")
+    return Hello(token, name)
+
+
+def decode_status(body: bytes) -> Status:
+    if len(body) < 3:
+        raise ProtocolError("bad_status", f"body of {len(body)} bytes")
+    (n,) = _U16.unpack_from(body, 1)
+    if 3 + n != len(body):
+        raise ProtocolError("bad_status", f"text length {n} does not match body {len(body)}")
+    return Status(body[0], body[3:].decode("utf-8", "replace"))
+
+
+def decode_frame(body: bytes) -> Frame:
+    """Parse and validate a FRAME body; ProtocolError (recoverable) on any inconsistency."""
+    if len(body) < FRAME_HEADER.size:
+        raise ProtocolError(
+            "short_frame", f"{len(body)} B body, the header alone is {FRAME_HEADER.size} B"
+        )
+    (stamp, seq, w, h, fx, fy, cx, cy, *tq, enc, conf_enc, axes, _res) = FRAME_HEADER.unpack_from(
+        body
+    )
+    if not math.isfinite(stamp) or stamp < 0:
+        raise ProtocolError("bad_stamp", f"stamp {stamp!r} is not a finite time >= 0")
+    if not (0 < w <= MAX_DIMENSION and 0 < h <= MAX_DIMENSION):
+        raise ProtocolError("bad_size", f"{w}x{h} outside 1..{MAX_DIMENSION}")
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise ProtocolError("bad_intrinsics", f"fx={fx} fy={fy} cx={cx} cy={cy}")
+    if enc not in DEPTH_BYTES:
+        raise ProtocolError("bad_depth_encoding", f"depth encoding {enc} (known: 1 f32, 2 u16)")
+    if conf_enc not in (CONF_NONE, CONF_U8):
+        raise ProtocolError("bad_confidence_encoding", f"confidence encoding {conf_enc}")
+    if axes not in (POSE_NONE, POSE_OPTICAL, POSE_ARKIT):
+        raise ProtocolError("bad_pose_axes", f"pose axes {axes} (known: 0, 1, 2)")
+    n = w * h
+    need = FRAME_HEADER.size + n * DEPTH_BYTES[enc] + (n if conf_enc == CONF_U8 else 0)
+    if len(body) != need:
+        raise ProtocolError(
+            "size_mismatch", f"{w}x{h} with these encodings needs a {need} B body, got {len(body)}"
+        )
+    pose = None
+    if axes != POSE_NONE:
+        tx, ty, tz, qx, qy, qz, qw = tq
+        qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) if all(map(math.isfinite, tq)) else 0
+        if not all(math.isfinite(v) for v in tq) or abs(qn - 1.0) > 1e-3:
+            raise ProtocolError("bad_pose", f"pose t={tq[:3]} q={tq[3:]} (|q| must be 1)")
+        from wheelgrid_mapping.depth import pose_from_xyz_quat
+
+        pose = pose_from_xyz_quat(tx, ty, tz, qx, qy, qz, qw)
+    off = FRAME_HEADER.size
+    dt = "<f4" if enc == DEPTH_F32_M else "<u2"
+    depth = np.frombuffer(body, dtype=dt, count=n, offset=off).reshape(h, w)
+    depth = depth.astype(np.float32 if enc == DEPTH_F32_M else np.uint16)  # native, owned
+    off += n * DEPTH_BYTES[enc]
+    conf = None
+    if conf_enc == CONF_U8:
+        conf = np.frombuffer(body, dtype=np.uint8, count=n, offset=off).reshape(h, w).copy()
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return Frame(
+        stamp=stamp,
+        seq=seq,
+        K=K,
+        depth=depth,
+        depth_encoding=enc,
+        confidence=conf,
+        pose=pose,
+        pose_axes=axes,
+    )
+
+
+Message = Hello | Frame | Status
+
+
+class FrameDecoder:
+    """Incremental decoder for a byte stream: ``feed(chunk) -> list of complete messages``.
+
+    Recoverable problems (bad content, oversized body, unknown type) drop that one message and
+    are queued in :attr:`errors` (take them with :meth:`pop_errors`); the stream stays usable.
+    A fatal problem (bad magic or version) raises ProtocolError(fatal=True) -- deferred to the
+    next ``feed`` if messages were already decoded in this call -- and :attr:`failed` stays true.
+    Memory is bounded by ``max_frame_bytes`` plus one prefix, whatever the peer sends.
+    """
+
+    def __init__(
+        self,
+        max_frame_bytes: int = MAX_FRAME_BYTES,
+        accept: tuple[int, ...] = (MSG_HELLO, MSG_FRAME),
+    ) -> None:
+        self.max_frame_bytes = int(max_frame_bytes)
+        self.accept = accept
+        self._buf = bytearray()
+        self._skip = 0  # bytes of an oversized body still to discard
+        self._fatal: ProtocolError | None = None
+        self.errors: list[ProtocolError] = []
+        self.bytes_in = 0
+        self.messages_out = 0
+
+    @property
+    def failed(self) -> bool:
+        return self._fatal is not None
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held right now (for memory-bound checks)."""
+        return len(self._buf)
+
+    def pop_errors(self) -> list[ProtocolError]:
+        out, self.errors = self.errors, []
+        return out
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        if self._fatal is not None:
+            raise self._fatal
+        self.bytes_in += len(data)
+        out: list[Message] = []
+        view = memoryview(data)
+        while True:
+            if self._skip:
+                n = min(self._skip, len(view))
+                self._skip -= n
+                view = view[n:]
+                if self._skip:
+                    break
+            # the prefix first: nothing the peer claims is trusted before it is checked
+            take = max(0, min(PREFIX.size - len(self._buf), len(view)))
+            self._buf += view[:take]
+            view = view[take:]
+            if len(self._buf) < PREFIX.size:
+                break
+            magic, version, mtype, _flags, length = PREFIX.unpack_from(self._buf)
+            if magic != MAGIC:
+                return self._fail(out, "bad_magic", f"expected {MAGIC!r}, got {bytes(magic)!r}")
+            if version != VERSION:
+                return self._fail(out, "bad_version", f"protocol version {version}, want {VERSION}")
+            if length > self.max_frame_bytes:
+                self.errors.append(
+                    ProtocolError(
+                        "oversized",
+                        f"message of {length} B exceeds the {self.max_frame_bytes} B limit",
+                    )
+                )
+                self._buf.clear()
+                self._skip = length
+                continue
+            take = min(PREFIX.size + length - len(self._buf), len(view))
+            self._buf += view[:take]
+            view = view[take:]
+            if len(self._buf) < PREFIX.size + length:
+                break
+            body = bytes(self._buf[PREFIX.size : PREFIX.size + length])
+            self._buf.clear()
+            if mtype not in self.accept:
+                self.errors.append(
+                    ProtocolError("unexpected_type", f"message type {mtype} skipped")
+                )
+                continue
+            try:
+                if mtype == MSG_FRAME:
+                    out.append(decode_frame(body))
+                elif mtype == MSG_HELLO:
+                    out.append(decode_hello(body))
+                else:
+                    out.append(decode_status(body))
+                self.messages_out += 1
+            except ProtocolError as exc:
+                self.errors.append(exc)
+        return out
+
+    def _fail(self, out: list[Message], reason: str, detail: str) -> list[Message]:
+        self._fatal = ProtocolError(reason, detail, fatal=True)
+        self._buf.clear()
+        if out:
+            return out
+        raise self._fatal
