@@ -1,0 +1,253 @@
+"""``wheelgrid drive PLAN.json --port DEV``: send a plan to the motor controller over serial.
+
+The plan comes from ``wheelgrid plan --json``: an object with ``cells`` [[r, c], ...], ``moves``
+[...] and optionally ``actions`` (Table II rows). Everything in it is cross-checked before the
+chair moves (cells are 4-neighbours, moves agree with cells, given actions agree with our own
+Table II conversion): a plan that disagrees with itself is a bad plan, and a wheelchair does not
+execute bad plans. Exit codes: 0 done, 1 a step failed (the chair has been stopped), 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from wheelgrid_drive import actions
+from wheelgrid_drive import protocol as proto
+from wheelgrid_drive.link import LinkError, MotorLink
+from wheelgrid_drive.runner import CellCheck, grid_cell_check, run_steps
+
+
+class PlanError(ValueError):
+    """The plan file is unusable (message is shown to the user as is)."""
+
+
+def load_plan(
+    doc: Any, heading: str | None = None
+) -> tuple[list[actions.Step], list[tuple[int, int]]]:
+    """Validate a plan object and convert it to Table II steps: ``(steps, cells)``."""
+    if not isinstance(doc, dict):
+        raise PlanError("plan must be a JSON object with 'cells'")
+    cells_raw = doc.get("cells")
+    if not isinstance(cells_raw, list) or not cells_raw:
+        raise PlanError("plan has no 'cells' list")
+    try:
+        cells = [(int(c[0]), int(c[1])) for c in cells_raw if len(c) == 2]
+    except (TypeError, ValueError, IndexError) as exc:
+        raise PlanError(f"'cells' must be [[row, col], ...]: {exc}") from exc
+    if len(cells) != len(cells_raw):
+        raise PlanError("'cells' must be [[row, col], ...]")
+    try:
+        moves = actions.moves_from_cells(cells)
+    except ValueError as exc:
+        raise PlanError(str(exc)) from exc
+    given_moves = doc.get("moves")
+    if given_moves is not None and (
+        not isinstance(given_moves, list) or [str(m).lower() for m in given_moves] != moves
+    ):
+        raise PlanError(f"'moves' {given_moves} disagree with 'cells' (which give {moves})")
+    acts = doc.get("actions")
+    plan_heading = None
+    if acts:
+        if not isinstance(acts, list) or not isinstance(acts[0], dict):
+            raise PlanError("'actions' must be a list of objects")
+        plan_heading = str(acts[0].get("heading", "")).lower() or None
+    if heading and plan_heading and heading.lower() != plan_heading:
+        raise PlanError(
+            f"--heading {heading} disagrees with the plan's start heading {plan_heading}"
+        )
+    start_heading = (heading or plan_heading or "").lower()
+    if not start_heading:
+        raise PlanError("start heading unknown: the plan has no 'actions'; give --heading")
+    if start_heading not in actions.DELTA:
+        raise PlanError(f"heading must be up/down/left/right, got {start_heading!r}")
+    steps = actions.plan_steps(cells[0], moves, start_heading)
+    if acts:
+        if len(acts) != len(steps):
+            raise PlanError(f"plan has {len(acts)} actions for {len(steps)} moves")
+        for i, (given, step) in enumerate(zip(acts, steps, strict=True)):
+            ours = step.to_json()
+            for key, value in ours.items():
+                if key in given and _norm(given[key]) != _norm(value):
+                    raise PlanError(
+                        f"action {i + 1}: plan says {key}={given[key]!r}, Table II gives {value!r}"
+                    )
+    return steps, cells
+
+
+def _norm(v: Any) -> Any:
+    if isinstance(v, list | tuple):
+        return [_norm(x) for x in v]
+    if isinstance(v, str):
+        return v.strip().upper().replace("-", "_")
+    return v
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="wheelgrid drive",
+        description="Convert a plan's moves into chair actions (the paper's Table II) and send "
+        "them to the motor controller over serial (docs/serial-protocol.md). The chair is "
+        "stopped on any failure.",
+    )
+    p.add_argument("plan", help="plan JSON from 'wheelgrid plan --json'")
+    p.add_argument("--port", help="serial device of the motor controller (or a simulator pty)")
+    p.add_argument("--baud", type=int, default=115200)
+    p.add_argument("--heading", choices=list(actions.DELTA), help="the chair's start heading")
+    p.add_argument("--cell-size", type=float, default=None, help="metres per cell (default 1.2)")
+    p.add_argument(
+        "--speed", type=float, default=3.0, help=f"km/h, capped at {proto.MAX_SPEED_KMH:g}"
+    )
+    p.add_argument("--grid", help="safe grid YAML: refuse any step into a cell not free in it")
+    p.add_argument(
+        "--set-pose",
+        action="store_true",
+        help="first tell the controller it stands on the start cell centre (simulator/demo)",
+    )
+    p.add_argument("--reply-timeout", type=float, default=0.1, help="seconds per attempt")
+    p.add_argument("--retries", type=int, default=3, help="resends of an unanswered frame")
+    p.add_argument("--dry-run", action="store_true", help="print the Table II rows only")
+    p.add_argument("--jsonl", action="store_true", help="print one JSON object per command")
+    return p
+
+
+def _err(msg: str) -> int:
+    print(f"wheelgrid drive: {msg}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        doc = json.loads(Path(args.plan).read_text())
+    except (OSError, ValueError) as exc:
+        return _err(f"cannot read plan {args.plan}: {exc}")
+    try:
+        steps, cells = load_plan(doc, args.heading)
+    except PlanError as exc:
+        return _err(str(exc))
+    if not (args.speed > 0):
+        return _err("--speed must be > 0")
+    if args.speed > proto.MAX_SPEED_KMH:
+        print(
+            f"wheelgrid drive: --speed {args.speed:g} km/h capped at {proto.MAX_SPEED_KMH:g} km/h",
+            file=sys.stderr,
+        )
+    speed = min(args.speed, proto.MAX_SPEED_KMH)
+    grid = None
+    if args.grid:
+        from wheelgrid_common.map_io import read_map
+
+        try:
+            grid = read_map(args.grid)
+        except (OSError, ValueError) as exc:
+            return _err(f"cannot read grid {args.grid}: {exc}")
+        if args.cell_size is not None and abs(args.cell_size - grid.resolution) > 1e-6:
+            return _err(f"--cell-size {args.cell_size} != grid resolution {grid.resolution}")
+    cell_size = grid.resolution if grid is not None else (args.cell_size or 1.2)
+    if not 0 < cell_size * 1000 <= proto.MAX_DISTANCE_MM:
+        return _err(f"cell size {cell_size} m outside (0, {proto.MAX_DISTANCE_MM / 1000:g}] m")
+    check: CellCheck | None = grid_cell_check(lambda: grid) if grid is not None else None
+    if check is not None:
+        bad = check(cells[0])
+        if bad:
+            return _err(f"start {bad}")
+
+    print(
+        f"wheelgrid drive: {len(steps)} step(s) from {cells[0]} "
+        f"heading {steps[0].heading if steps else '-'}"
+        f", {cell_size:g} m per cell at {speed:g} km/h"
+    )
+    if args.dry_run or not steps:
+        for i, s in enumerate(steps, 1):
+            print(f"  {i}: {_describe(s)}")
+        return 0
+    if not args.port:
+        return _err("--port is required (or --dry-run)")
+
+    def on_event(kind: str, message: str) -> None:
+        if kind not in ("timeout",):
+            print(f"  ! {kind}: {message}", file=sys.stderr)
+
+    link = MotorLink(
+        args.port,
+        args.baud,
+        reply_timeout=args.reply_timeout,
+        retries=args.retries,
+        on_event=on_event,
+    )
+    try:
+        link.open()
+    except LinkError as exc:
+        print(f"wheelgrid drive: {exc}", file=sys.stderr)
+        return 1
+    total = len(steps)
+    counter = {"i": 0}
+
+    def on_step(step: actions.Step, rec: dict[str, Any]) -> None:
+        counter["i"] += 1
+        if args.jsonl:
+            print(json.dumps(rec), flush=True)
+            return
+        extra = f" seq {rec['seq']} pose {rec['pose']}" if "seq" in rec else ""
+        reason = f": {rec['reason']}" if "reason" in rec else ""
+        line = f"  {counter['i']}/{total}: {_describe(step)} -> {rec['ack']}{extra}{reason}"
+        print(line, flush=True)
+
+    try:
+        link.start_heartbeat()
+        st = link.status()
+        if st.moving:
+            link.stop()
+            msg = "the controller reports a move in progress; stopped"
+            print(f"wheelgrid drive: {msg}", file=sys.stderr)
+            return 1
+        if args.set_pose:
+            x, y = _cell_xy(cells[0], cell_size, grid)
+            yaw = actions.YAW[steps[0].heading] + (grid.origin[2] if grid is not None else 0.0)
+            link.set_pose(x, y, yaw)
+        result = run_steps(
+            link, steps, distance_m=cell_size, speed_kmh=speed, cell_check=check, on_step=on_step
+        )
+    except LinkError as exc:
+        link.stop()
+        print(f"wheelgrid drive: {exc}; chair stopped", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        link.stop()
+        print("wheelgrid drive: interrupted; chair stopped", file=sys.stderr)
+        return 130
+    finally:
+        link.close()
+    if not result.ok:
+        print(
+            f"wheelgrid drive: step {result.done + 1}/{result.total} failed: {result.error}; "
+            "chair stopped",
+            file=sys.stderr,
+        )
+        return 1
+    print(f"wheelgrid drive: {result.done}/{result.total} steps done; stats {link.stats}")
+    return 0
+
+
+def _describe(s: actions.Step) -> str:
+    return (
+        f"{s.src} -> {s.dst} heading {s.heading} move {s.move} => "
+        f"{actions.PAPER_NAME[s.action]} (new heading {s.new_heading})"
+    )
+
+
+def _cell_xy(cell: tuple[int, int], cell_size: float, grid: Any) -> tuple[float, float]:
+    """Map-frame centre of ``cell``: from the grid if we have one, else a grid at the origin
+    with row 0 at y = 0 going down (-y), as the image convention implies."""
+    if grid is not None:
+        x, y = grid.cell_center(cell[0], cell[1])
+        return float(x), float(y)
+    return (cell[1] + 0.5) * cell_size, -(cell[0] + 0.5) * cell_size
+
+
+if __name__ == "__main__":
+    sys.exit(main())

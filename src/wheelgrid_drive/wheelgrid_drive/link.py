@@ -1,0 +1,452 @@
+"""The host side of the motor-controller link (pyserial), ROS-free.
+
+Safety rules this class implements (docs/serial-protocol.md, "host duties"):
+
+* Every request waits for its reply with a timeout and is retried with the SAME sequence
+  number, so the controller can recognise a retry and never executes a move twice.
+* A garbled reply (CRC/framing damage), a reply of the wrong type, a NAK, or a reply to a
+  sequence number nobody is waiting for is logged and counts as a failure -- never ignored.
+* A vanished port (USB unplugged, pty closed) is detected by the reader thread, reported, and
+  reconnected by the heartbeat thread; the first thing sent after a reconnection is STOP.
+* A heartbeat thread keeps the controller's watchdog fed; if this process dies, the heartbeats
+  stop and the controller stops the motors on its own.
+* STOP on every doubt: a move that fails, times out, is aborted or ends in any way but DONE is
+  followed by STOP.
+
+One reader thread owns the port's input and routes replies to waiters by sequence number, so a
+STOP can be sent while another thread waits for a reply (an e-stop never queues behind a poll).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from wheelgrid_drive import protocol as proto
+
+log = logging.getLogger("wheelgrid_drive.link")
+
+
+class LinkError(RuntimeError):
+    """The controller did not do what was asked (timeout, NAK, garbled reply, lost port)."""
+
+
+class LinkAbortedError(LinkError):
+    """A move was aborted by the caller (e-stop, new plan); STOP has been sent."""
+
+
+@dataclass
+class _Waiter:
+    mtype: int
+    event: threading.Event = field(default_factory=threading.Event)
+    frame: proto.Frame | None = None
+    error: str = ""
+
+
+@dataclass
+class LinkStats:
+    sent: int = 0
+    replies: int = 0
+    retries: int = 0
+    timeouts: int = 0
+    garbled: int = 0
+    unexpected: int = 0
+    naks: int = 0
+    disconnects: int = 0
+    reconnects: int = 0
+    stops: int = 0
+
+
+EventCallback = Callable[[str, str], None]  # (kind, message)
+
+
+def _default_serial_factory(port: str, baud: int) -> Any:
+    import serial
+
+    return serial.Serial(port, baud, timeout=0.02, write_timeout=0.5, exclusive=True)
+
+
+class MotorLink:
+    """A connection to the motor controller on ``port``. Thread-safe.
+
+    ``on_status(Status)`` is called from the heartbeat thread with every status report;
+    ``on_event(kind, message)`` with every problem and recovery ("garbled", "timeout",
+    "unexpected", "nak", "vanished", "reconnected", "stop", ...), so a CLI can print and a node
+    can publish diagnostics.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        baud: int = 115200,
+        *,
+        reply_timeout: float = 0.1,
+        retries: int = 3,
+        heartbeat_period: float = 0.1,
+        reconnect_period: float = 0.5,
+        on_status: Callable[[proto.Status], None] | None = None,
+        on_event: EventCallback | None = None,
+        serial_factory: Callable[[str, int], Any] = _default_serial_factory,
+    ) -> None:
+        self.port = port
+        self.baud = baud
+        self.reply_timeout = reply_timeout
+        self.retries = retries
+        self.heartbeat_period = heartbeat_period
+        self.reconnect_period = reconnect_period
+        self.on_status = on_status
+        self.on_event = on_event
+        self.stats = LinkStats()
+        self.last_status: proto.Status | None = None
+        self.last_status_time = 0.0
+        self._factory = serial_factory
+        self._ser: Any = None
+        self._decoder = proto.FrameDecoder()
+        self._write_lock = threading.Lock()
+        self._state_lock = threading.Lock()
+        self._pending: dict[int, _Waiter] = {}
+        self._seq = 0
+        self._closing = threading.Event()
+        self._reader: threading.Thread | None = None
+        self._heartbeat: threading.Thread | None = None
+
+    # ---- connection ---------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._ser is not None
+
+    def open(self) -> MotorLink:
+        """Open the port and start the reader; LinkError if it cannot be opened."""
+        self._closing.clear()
+        self._open_port()
+        return self
+
+    def _open_port(self) -> None:
+        try:
+            ser = self._factory(self.port, self.baud)
+        except Exception as exc:  # pyserial raises SerialException/OSError/ValueError
+            raise LinkError(f"cannot open {self.port}: {exc}") from exc
+        with contextlib.suppress(Exception):
+            ser.reset_input_buffer()  # stale bytes from before us are not replies to us
+        self._decoder = proto.FrameDecoder()
+        self._ser = ser
+        self._reader = threading.Thread(
+            target=self._read_loop, args=(ser,), name="motor-link-reader", daemon=True
+        )
+        self._reader.start()
+
+    def close(self, stop: bool = True) -> None:
+        """Stop the chair (unless told not to), end the threads, close the port."""
+        if stop and self.connected:
+            self.stop()
+        self._closing.set()
+        for th in (self._heartbeat, self._reader):
+            if th is not None and th is not threading.current_thread():
+                th.join(timeout=2.0)
+        self._heartbeat = None
+        self._drop_port("closed", report=False)
+
+    def __enter__(self) -> MotorLink:
+        return self if self.connected else self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _emit(self, kind: str, message: str, level: int = logging.WARNING) -> None:
+        log.log(level, "%s: %s", kind, message)
+        if self.on_event is not None:
+            try:
+                self.on_event(kind, message)
+            except Exception:  # a broken observer must not break the safety path
+                log.exception("on_event callback failed")
+
+    def _drop_port(self, why: str, report: bool = True) -> None:
+        with self._state_lock:
+            ser, self._ser = self._ser, None
+        if ser is None:
+            return
+        with contextlib.suppress(Exception):
+            ser.close()
+        if report:
+            self.stats.disconnects += 1
+            self._emit("vanished", f"port {self.port} lost: {why}", logging.ERROR)
+        self._fail_pending(f"port lost: {why}")
+
+    def _fail_pending(self, why: str) -> None:
+        with self._state_lock:
+            waiters = list(self._pending.values())
+        for w in waiters:
+            if not w.event.is_set():
+                w.error = why
+                w.event.set()
+
+    def reconnect(self) -> bool:
+        """Try once to reopen the port; on success send STOP first (we lost track of it)."""
+        if self.connected:
+            return True
+        try:
+            self._open_port()
+        except LinkError as exc:
+            log.debug("reconnect failed: %s", exc)
+            return False
+        self.stats.reconnects += 1
+        self._emit("reconnected", f"port {self.port} reopened; sending STOP", logging.WARNING)
+        self.stop()
+        return True
+
+    # ---- reader thread ------------------------------------------------------------------------
+
+    def _read_loop(self, ser: Any) -> None:
+        while not self._closing.is_set() and self._ser is ser:
+            try:
+                data = ser.read(max(1, ser.in_waiting))
+            except Exception as exc:  # SerialException / OSError(EIO) when the device vanishes
+                if self._ser is ser and not self._closing.is_set():
+                    self._drop_port(str(exc))
+                return
+            if data:
+                for item in self._decoder.feed(data):
+                    self._dispatch(item)
+
+    def _dispatch(self, item: proto.Frame | proto.DecodeError) -> None:
+        if isinstance(item, proto.DecodeError):
+            self.stats.garbled += 1
+            self._emit("garbled", f"damaged reply bytes ({item.reason}, {item.dropped} dropped)")
+            # We cannot know whose reply was damaged: every waiter fails this attempt.
+            self._fail_pending(f"garbled reply: {item.reason}")
+            return
+        with self._state_lock:
+            waiter = self._pending.get(item.seq)
+        if waiter is None or waiter.event.is_set():
+            self.stats.unexpected += 1
+            self._emit("unexpected", f"reply {item.type_name} seq {item.seq} matches no request")
+            self._fail_pending(f"unexpected {item.type_name} seq {item.seq}")
+            return
+        self.stats.replies += 1
+        waiter.frame = item
+        waiter.event.set()
+
+    # ---- requests -----------------------------------------------------------------------------
+
+    def _next_seq(self) -> int:
+        with self._state_lock:
+            self._seq = (self._seq + 1) & 0xFF
+            return self._seq
+
+    def _write(self, data: bytes) -> None:
+        ser = self._ser
+        if ser is None:
+            raise LinkError(f"port {self.port} is not connected")
+        try:
+            with self._write_lock:
+                ser.write(data)
+                ser.flush()
+        except Exception as exc:
+            self._drop_port(f"write failed: {exc}")
+            raise LinkError(f"write to {self.port} failed: {exc}") from exc
+        self.stats.sent += 1
+
+    def _check_reply(self, mtype: int, frame: proto.Frame) -> str:
+        """'' if ``frame`` is a well-formed answer to a request of ``mtype``, else why not."""
+        if mtype in (proto.MsgType.HEARTBEAT, proto.MsgType.STATUS_REQ):
+            if frame.type != proto.MsgType.STATUS:
+                return f"expected STATUS, got {frame.type_name}"
+            try:
+                proto.unpack_status(frame.payload)
+            except ValueError as exc:
+                return str(exc)
+            return ""
+        if frame.type == proto.MsgType.NAK:
+            return ""  # a well-formed refusal; the caller turns it into an error
+        if frame.type != proto.MsgType.ACK:
+            return f"expected ACK/NAK, got {frame.type_name}"
+        if frame.payload != bytes([mtype]):
+            return f"ACK names type {frame.payload.hex() or 'nothing'}, not 0x{mtype:02X}"
+        return ""
+
+    def request(
+        self, mtype: proto.MsgType, payload: bytes = b"", retries: int | None = None
+    ) -> proto.Frame:
+        """Send one request and return its valid reply (ACK, NAK or STATUS), retrying on failure.
+
+        Raises LinkError when no valid reply came after all attempts or the port is lost.
+        """
+        seq = self._next_seq()
+        data = proto.encode(seq, mtype, payload)
+        attempts = 1 + (self.retries if retries is None else retries)
+        last = ""
+        for attempt in range(attempts):
+            if attempt:
+                self.stats.retries += 1
+            waiter = _Waiter(int(mtype))
+            with self._state_lock:
+                self._pending[seq] = waiter
+            try:
+                self._write(data)
+                if not waiter.event.wait(self.reply_timeout):
+                    self.stats.timeouts += 1
+                    last = f"no reply within {self.reply_timeout * 1000:.0f} ms"
+                    self._emit("timeout", f"{mtype.name} seq {seq}: {last}", logging.INFO)
+                    continue
+            finally:
+                with self._state_lock:
+                    self._pending.pop(seq, None)
+            if waiter.frame is None:
+                last = waiter.error or "failed"
+                if not self.connected:
+                    break
+                continue
+            why = self._check_reply(int(mtype), waiter.frame)
+            if why:
+                self.stats.unexpected += 1
+                last = why
+                self._emit("unexpected", f"{mtype.name} seq {seq}: {why}")
+                continue
+            return waiter.frame
+        raise LinkError(f"{mtype.name} seq {seq}: {last} ({attempts} attempt(s))")
+
+    def stop(self) -> bool:
+        """Send STOP (retried); True if the controller acknowledged it. Never raises."""
+        self.stats.stops += 1
+        try:
+            frame = self.request(proto.MsgType.STOP)
+        except LinkError as exc:
+            self._emit("stop", f"STOP not acknowledged: {exc}", logging.ERROR)
+            return False
+        return frame.type == proto.MsgType.ACK
+
+    def status(self) -> proto.Status:
+        frame = self.request(proto.MsgType.STATUS_REQ)
+        return self._got_status(frame)
+
+    def _got_status(self, frame: proto.Frame) -> proto.Status:
+        st = proto.unpack_status(frame.payload)
+        self.last_status = st
+        self.last_status_time = time.monotonic()
+        if self.on_status is not None:
+            try:
+                self.on_status(st)
+            except Exception:
+                log.exception("on_status callback failed")
+        return st
+
+    def set_pose(self, x: float, y: float, yaw: float) -> None:
+        """Tell the controller (simulator) where it is; LinkError on NAK/failure."""
+        frame = self.request(proto.MsgType.SET_POSE, proto.pack_pose(x, y, yaw))
+        if frame.type == proto.MsgType.NAK:
+            raise LinkError(f"SET_POSE refused: {_nak_reason(frame)}")
+
+    def move(self, action: str, distance_m: float, speed_kmh: float) -> int:
+        """Start a move; returns its sequence number once ACKed. STOP + LinkError otherwise."""
+        if action not in proto.MOVE_TYPES:
+            raise ValueError(f"unknown action {action!r}")
+        payload = proto.pack_move(distance_m, min(speed_kmh, proto.MAX_SPEED_KMH))
+        mtype = proto.MOVE_TYPES[action]
+        try:
+            frame = self.request(mtype, payload)
+        except LinkError:
+            self.stop()
+            raise
+        if frame.type == proto.MsgType.NAK:
+            self.stats.naks += 1
+            why = _nak_reason(frame)
+            self._emit("nak", f"{action} refused: {why}", logging.ERROR)
+            self.stop()
+            raise LinkError(f"{action} refused by the controller: {why}")
+        return frame.seq
+
+    def wait_done(
+        self,
+        seq: int,
+        timeout: float,
+        abort: threading.Event | None = None,
+        poll: float = 0.02,
+    ) -> proto.Status:
+        """Poll STATUS until move ``seq`` is DONE; anything else -> STOP + LinkError."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if abort is not None and abort.is_set():
+                self.stop()
+                raise LinkAbortedError(f"move seq {seq} aborted")
+            try:
+                st = self.status()
+            except LinkError:
+                self.stop()
+                raise
+            if st.last_seq != seq:
+                self.stop()
+                raise LinkError(f"controller reports move seq {st.last_seq}, expected {seq}")
+            if st.result == proto.Result.DONE:
+                return st
+            if st.result != proto.Result.RUNNING:
+                self.stop()
+                raise LinkError(f"move seq {seq} ended {st.result.name}, not DONE")
+            if time.monotonic() > deadline:
+                self.stop()
+                raise LinkError(f"move seq {seq} not done within {timeout:.1f} s")
+            if abort is not None:
+                abort.wait(poll)
+            else:
+                time.sleep(poll)
+
+    def execute(
+        self,
+        action: str,
+        distance_m: float,
+        speed_kmh: float,
+        timeout: float | None = None,
+        abort: threading.Event | None = None,
+    ) -> tuple[int, proto.Status]:
+        """Start a move and wait until it is done: ``(seq, final status)``."""
+        if abort is not None and abort.is_set():
+            raise LinkAbortedError(f"{action} not started: aborted")
+        seq = self.move(action, distance_m, speed_kmh)
+        if timeout is None:
+            timeout = move_timeout(distance_m, speed_kmh)
+        return seq, self.wait_done(seq, timeout, abort)
+
+    # ---- heartbeat ----------------------------------------------------------------------------
+
+    def start_heartbeat(self) -> None:
+        """Start the thread that feeds the controller's watchdog and reconnects a lost port."""
+        if self._heartbeat is not None:
+            return
+        self._heartbeat = threading.Thread(
+            target=self._heartbeat_loop, name="motor-link-heartbeat", daemon=True
+        )
+        self._heartbeat.start()
+
+    def _heartbeat_loop(self) -> None:
+        next_reconnect = 0.0
+        while not self._closing.wait(self.heartbeat_period):
+            if not self.connected:
+                now = time.monotonic()
+                if now >= next_reconnect:
+                    next_reconnect = now + self.reconnect_period
+                    self.reconnect()
+                continue
+            try:
+                self._got_status(self.request(proto.MsgType.HEARTBEAT, retries=1))
+            except LinkError as exc:
+                self._emit("heartbeat", f"heartbeat failed: {exc}")
+
+
+def _nak_reason(frame: proto.Frame) -> str:
+    if len(frame.payload) != 2:
+        return f"malformed NAK ({frame.payload.hex()})"
+    try:
+        return proto.Nak(frame.payload[1]).name
+    except ValueError:
+        return f"reason {frame.payload[1]}"
+
+
+def move_timeout(distance_m: float, speed_kmh: float, turn_s: float = 6.0) -> float:
+    """Generous time a move may take: twice the driving time plus a 90 deg turn budget."""
+    v = max(min(speed_kmh, proto.MAX_SPEED_KMH), 0.1) / 3.6
+    return 2.0 * distance_m / v + turn_s + 2.0

@@ -1,0 +1,114 @@
+"""Executing a converted plan step by step over a :class:`~wheelgrid_drive.link.MotorLink`.
+
+Shared by ``wheelgrid drive`` and the drive node, so both apply the same rules before every
+single command: the abort flag (e-stop, new plan) is checked, the next cell must be known to be
+free, and any failure ends the run with STOP. ROS-free.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_drive.actions import Step
+from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
+
+# (step, record) -> None; record is the drive_commands JSON object.
+StepCallback = Callable[[Step, dict[str, Any]], None]
+# cell -> None if the chair may enter it, else the reason it may not.
+CellCheck = Callable[[tuple[int, int]], str | None]
+
+
+@dataclass
+class RunResult:
+    ok: bool
+    done: int  # steps completed
+    total: int
+    error: str = ""
+    refused: bool = False  # True when a cell check (not the link) ended the run
+    aborted: bool = False
+
+
+def grid_cell_check(grid_getter: Callable[[], Any]) -> CellCheck:
+    """A cell check against the latest safe grid: only cells that are exactly FREE (0) pass.
+
+    Unknown (-1), occupied (100), any intermediate cost, outside the grid, or no grid at all
+    is a refusal: the chair never moves into a cell not known to be free.
+    """
+
+    def check(cell: tuple[int, int]) -> str | None:
+        grid = grid_getter()
+        if grid is None:
+            return "no safe grid received"
+        r, c = cell
+        if not grid.inside(r, c):
+            return f"cell {cell} is outside the safe grid ({grid.rows}x{grid.cols})"
+        value = int(np.asarray(grid.data)[r, c])
+        if value != 0:
+            what = {100: "occupied", -1: "unknown"}.get(value, f"not free (value {value})")
+            return f"cell {cell} is {what}"
+        return None
+
+    return check
+
+
+def command_record(step: Step, ack: str, t: float | None = None, **extra: Any) -> dict[str, Any]:
+    """The JSON object published per executed command (drive_commands / CLI output)."""
+    rec: dict[str, Any] = step.to_json()
+    rec["ack"] = ack
+    rec["t"] = time.time() if t is None else t
+    rec.update(extra)
+    return rec
+
+
+def run_steps(
+    link: MotorLink,
+    steps: Sequence[Step],
+    *,
+    distance_m: float,
+    speed_kmh: float,
+    cell_check: CellCheck | None = None,
+    abort: threading.Event | None = None,
+    on_step: StepCallback | None = None,
+    timeout: float | None = None,
+) -> RunResult:
+    """Drive ``steps`` one by one; stops the chair and returns at the first problem."""
+    total = len(steps)
+    for i, step in enumerate(steps):
+        if abort is not None and abort.is_set():
+            link.stop()
+            return RunResult(False, i, total, "aborted before the next command", aborted=True)
+        if cell_check is not None:
+            reason = cell_check(step.dst)
+            if reason:
+                link.stop()
+                if on_step is not None:
+                    on_step(step, command_record(step, "REFUSED", reason=reason))
+                return RunResult(False, i, total, f"refused: {reason}", refused=True)
+        try:
+            seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
+        except LinkAbortedError as exc:
+            if on_step is not None:
+                on_step(step, command_record(step, "ABORTED", reason=str(exc)))
+            return RunResult(False, i, total, str(exc), aborted=True)
+        except LinkError as exc:
+            link.stop()  # already sent by the link; again, cheap, in case it was lost
+            if on_step is not None:
+                on_step(step, command_record(step, "FAILED", reason=str(exc)))
+            return RunResult(False, i, total, str(exc))
+        if on_step is not None:
+            on_step(
+                step,
+                command_record(step, "ACK", seq=seq, pose=[round(st.x, 3), round(st.y, 3)]),
+            )
+    return RunResult(True, total, total)
+
+
+def dumps_record(rec: dict[str, Any]) -> str:
+    return json.dumps(rec, separators=(",", ":"))
