@@ -36,7 +36,7 @@ map becomes a grid in well under 0.2 s on two cores.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -186,6 +186,22 @@ class GridConfig:
             raise ValueError("boundary_margin, fine_margin and floor_fill must be >= 0")
         if self.min_points_per_pixel < 1 or self.guard_min_pixels < 1:
             raise ValueError("min_points_per_pixel and guard_min_pixels must be >= 1")
+
+
+@dataclass
+class GridNodeConfig(GridConfig):
+    """The grid node's parameters: the grid's own plus where ``~/save`` writes and how often the
+    grid is recomputed. The CLI reads the same YAML (node-only keys are ignored there)."""
+
+    output_dir: str = field(
+        "out/grid", "folder where ~/save writes grid.yaml/pgm, fine.yaml/pgm and grid.png"
+    )
+    max_rate_hz: float = field(
+        1.0,
+        "the grid is recomputed at most this often while the map keeps changing (a 1 M point "
+        "map costs about 0.1 s)",
+        "Hz",
+    )
 
 
 @dataclass
@@ -513,12 +529,12 @@ def build_grid(
 
     c, s = math.cos(yaw), math.sin(yaw)
     origin = (c * u0 - s * v0, s * u0 + c * v0, yaw)
+    # Kept short: map_io.write_map dumps meta as ONE comment line and PyYAML wraps flow mappings
+    # at 80 columns, which would break the YAML (the continuation is not commented).
     meta = {
         "safe_height": cfg.safe_height,
         "density_threshold": cfg.density_threshold,
-        "cell_size": cfg.cell_size,
-        "pixel_size": cfg.pixel_size,
-        "yaw_deg": round(math.degrees(yaw), 3),
+        "yaw_deg": round(math.degrees(yaw), 2),
     }
     grid = Grid(data=data, resolution=cfg.cell_size, origin=origin, frame_id=frame_id, meta=meta)
     fine = _fine_map(pts, cls, grid, cfg, frame_id)
@@ -579,6 +595,11 @@ def _fine_map(pts: np.ndarray, cls: np.ndarray, grid: Grid, cfg: GridConfig, fra
         frame_id=frame_id,
         meta=meta,
     )
+
+
+def grid_config(cfg: GridConfig) -> GridConfig:
+    """The plain :class:`GridConfig` part of a (possibly node) config."""
+    return GridConfig(**{f.name: getattr(cfg, f.name) for f in fields(GridConfig)})
 
 
 def config_dict(cfg: GridConfig) -> dict[str, Any]:

@@ -1,0 +1,125 @@
+"""The grid's files: grid.yaml/pgm and fine.yaml/pgm (Nav2 map_server format) and grid.png, the
+paper's Fig. 12 in one picture -- (a) the 2D map, (b) the grid overlaid on it, (c) the safe 2D
+grid -- with a scale bar, drawn with Pillow (no matplotlib on the chair's PC).
+
+Colours: obstacle pixels black, observed floor white, unobserved grey, pixels taken as the walls
+(the boundary rule) dark blue; grid cells black (occupied), white (free), grey (unknown), with an
+orange frame on cells that only the thin-obstacle guard made occupied (eq 10 alone says free).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from wheelgrid_common.map_io import FREE, OCCUPIED, write_map
+from wheelgrid_nav.grid import GridResult, classify_density
+
+_WHITE = (255, 255, 255)
+_BLACK = (0, 0, 0)
+_GREY = (170, 170, 170)
+_WALL = (30, 50, 140)
+_LINE = (220, 30, 30)
+_GUARD = (255, 140, 0)
+_PANEL = 420  # target panel side, pixels
+_PAD = 16
+_TITLE = 22
+_FOOT = 40
+
+
+def _map_rgb(result: GridResult) -> np.ndarray:
+    h, w = result.obstacles.shape
+    rgb = np.empty((h, w, 3), dtype=np.uint8)
+    rgb[:] = _GREY
+    rgb[result.floor] = _WHITE
+    rgb[result.boundary] = _WALL
+    rgb[result.obstacles] = _BLACK
+    return rgb
+
+
+def _grid_rgb(result: GridResult, k: int) -> np.ndarray:
+    data = result.grid.data
+    rgb = np.empty((*data.shape, 3), dtype=np.uint8)
+    rgb[:] = _GREY
+    rgb[data == FREE] = _WHITE
+    rgb[data == OCCUPIED] = _BLACK
+    return np.repeat(np.repeat(rgb, k, axis=0), k, axis=1)
+
+
+def render(result: GridResult) -> Image.Image:
+    """The three panels side by side, titled, with a 1 m scale bar under each."""
+    cfg = result.config
+    k = cfg.cell_pixels()
+    h, w = result.obstacles.shape
+    scale = max(1, _PANEL // max(h, w))
+    ph, pw = h * scale, w * scale
+    width = 3 * pw + 4 * _PAD
+    height = _TITLE + ph + _FOOT + _PAD
+    canvas = Image.new("RGB", (width, height), _WHITE)
+    draw = ImageDraw.Draw(canvas)
+
+    def up(rgb: np.ndarray) -> Image.Image:
+        big = np.repeat(np.repeat(rgb, scale, axis=0), scale, axis=1)
+        return Image.fromarray(np.ascontiguousarray(big), "RGB")
+
+    map_img = up(_map_rgb(result))
+    grid_img = up(_grid_rgb(result, k))
+    xs = [_PAD + i * (pw + _PAD) for i in range(3)]
+    y0 = _TITLE
+    canvas.paste(map_img, (xs[0], y0))
+    canvas.paste(map_img, (xs[1], y0))
+    canvas.paste(grid_img, (xs[2], y0))
+    cell_px = k * scale
+    rows, cols = result.grid.data.shape
+    for x in xs[1:]:
+        for c in range(cols + 1):
+            gx = x + min(c * cell_px, pw - 1)
+            draw.line([(gx, y0), (gx, y0 + ph - 1)], fill=_LINE, width=1)
+        for r in range(rows + 1):
+            gy = y0 + min(r * cell_px, ph - 1)
+            draw.line([(x, gy), (x + pw - 1, gy)], fill=_LINE, width=1)
+    guard_only = result.guard & ~classify_density(result.density, cfg.density_threshold)
+    for r, c in zip(*np.nonzero(guard_only), strict=True):
+        x, y = xs[2] + c * cell_px, y0 + r * cell_px
+        draw.rectangle([x + 2, y + 2, x + cell_px - 3, y + cell_px - 3], outline=_GUARD, width=3)
+    titles = (
+        f"(a) 2D map, band {cfg.floor_clearance:g}-{cfg.safe_height:g} m",
+        f"(b) {rows} x {cols} grid of {cfg.cell_size:g} m",
+        f"(c) safe grid, density > {cfg.density_threshold:g}",
+    )
+    for x, title in zip(xs, titles, strict=True):
+        draw.text((x, 4), title, fill=_BLACK)
+    bar = round(1.0 / cfg.pixel_size) * scale  # 1 m in canvas pixels
+    yb = y0 + ph + 12
+    for x in xs:
+        draw.rectangle([x, yb, x + bar, yb + 5], fill=_BLACK)
+        draw.text((x + bar + 6, yb - 3), "1 m", fill=_BLACK)
+    yaw = result.stats.get("yaw_deg", 0.0)
+    draw.text((xs[1], yb - 3 + 14), f"grid yaw {yaw:.2f} deg in the map frame", fill=_BLACK)
+    return canvas
+
+
+def write_png(path: str | Path, result: GridResult) -> Path:
+    """Render :func:`render` to ``path`` (PNG)."""
+    path = Path(path)
+    render(result).save(path, format="PNG")
+    return path
+
+
+def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> dict[str, Path]:
+    """Write DIR/grid.yaml + grid.pgm (cells), DIR/fine.yaml + fine.pgm (fine safe obstacle map)
+    and DIR/grid.png; returns name -> path. The YAML/PGM pairs are what Nav2's map_server loads
+    (trinary, unknown stays unknown on reload: see wheelgrid_common.map_io)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {
+        "grid.yaml": write_map(out / "grid.yaml", result.grid),
+        "fine.yaml": write_map(out / "fine.yaml", result.fine),
+    }
+    files["grid.pgm"] = out / "grid.pgm"
+    files["fine.pgm"] = out / "fine.pgm"
+    if png:
+        files["grid.png"] = write_png(out / "grid.png", result)
+    return files
