@@ -1,0 +1,153 @@
+"""`wheelgrid drive PLAN.json --port DEV` against the simulated controller on a pty."""
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import Grid, write_map
+from wheelgrid_drive import protocol as proto
+from wheelgrid_drive.cli import main
+
+CELLS = [[2, 0], [2, 1], [2, 2], [2, 3], [2, 4], [2, 5], [3, 5], [4, 5], [5, 5], [6, 5]]
+MOVES = ["right"] * 5 + ["down"] * 4
+
+
+def table_ii_plan(with_actions=True):
+    plan = {"cells": CELLS, "moves": MOVES}
+    if with_actions:
+        heading = "down"
+        acts = []
+        for (a, b), m in zip(itertools.pairwise(CELLS), MOVES, strict=True):
+            action = (
+                "Forward"
+                if m == heading
+                else ("Left-Forward" if heading == "down" else "Right-Forward")
+            )
+            acts.append(
+                {
+                    "from": a,
+                    "to": b,
+                    "heading": heading,
+                    "move": m,
+                    "new_heading": m,
+                    "action": action,
+                }
+            )
+            heading = m
+        plan["actions"] = acts
+    return plan
+
+
+def write(tmp_path, doc, name="plan.json"):
+    path = tmp_path / name
+    path.write_text(json.dumps(doc))
+    return str(path)
+
+
+def sim_moves(sim):
+    return [e.detail for e in sim.events if e.what == "move"]
+
+
+def test_drive_executes_the_table_ii_plan(make_sim, tmp_path, capsys):
+    sim = make_sim()
+    free = Grid(np.zeros((8, 8), np.int8), 1.2)
+    grid = write_map(tmp_path / "grid.yaml", free)
+    rc = main(
+        [
+            write(tmp_path, table_ii_plan()),
+            "--port",
+            sim.slave_path,
+            "--grid",
+            str(grid),
+            "--set-pose",
+            "--jsonl",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    recs = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert [r["action"] for r in recs] == ["LEFT_FORWARD"] + ["FORWARD"] * 4 + ["RIGHT_FORWARD"] + [
+        "FORWARD"
+    ] * 3
+    assert all(r["ack"] == "ACK" for r in recs)
+    assert sim_moves(sim) == [r["action"] for r in recs]
+    # The chair ends on the centre of the goal cell (6, 5) of the grid.
+    x, y = free.cell_center(6, 5)
+    st = sim.status()
+    assert (st.x, st.y) == pytest.approx((x, y), abs=0.01)
+
+
+def test_speed_is_capped_and_heading_flag_works(make_sim, tmp_path, capsys):
+    sim = make_sim()
+    rc = main(
+        [
+            write(tmp_path, table_ii_plan(False)),
+            "--port",
+            sim.slave_path,
+            "--heading",
+            "down",
+            "--speed",
+            "9",
+            "--cell-size",
+            "0.6",
+        ]
+    )
+    captured = capsys.readouterr()
+    assert rc == 0 and "capped" in captured.err
+    assert sim_moves(sim)[0] == "LEFT_FORWARD"
+    assert sim.speed * 1000 == pytest.approx(proto.MAX_SPEED_MM_S)
+
+
+def test_a_step_into_an_occupied_or_unknown_cell_is_refused(make_sim, tmp_path, capsys):
+    for value in (100, -1):
+        sim = make_sim()
+        data = np.zeros((8, 8), np.int8)
+        data[2, 3] = value  # the third step's destination
+        grid = write_map(tmp_path / f"grid{value}.yaml", Grid(data, 1.2))
+        rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--grid", str(grid)])
+        err = capsys.readouterr().err
+        assert rc == 1
+        assert "(2, 3)" in err and ("occupied" if value == 100 else "unknown") in err
+        assert sim_moves(sim) == ["LEFT_FORWARD", "FORWARD"]  # never the move into (2, 3)
+        assert sim.state == proto.State.IDLE
+
+
+@pytest.mark.parametrize(
+    ("doc", "extra", "message"),
+    [
+        ({"cells": [[0, 0], [1, 1]]}, ["--heading", "up"], "4-neighbours"),
+        ({"cells": CELLS, "moves": ["up"] * 9}, ["--heading", "down"], "disagree"),
+        ({"cells": CELLS}, [], "heading"),
+        (table_ii_plan(), ["--heading", "up"], "disagrees"),
+        (
+            {
+                **table_ii_plan(),
+                "actions": [{**a, "action": "FORWARD"} for a in table_ii_plan()["actions"]],
+            },
+            [],
+            "Table II",
+        ),
+        ([1, 2], [], "JSON object"),
+    ],
+)
+def test_bad_plans_exit_2_without_moving(make_sim, tmp_path, capsys, doc, extra, message):
+    sim = make_sim()
+    rc = main([write(tmp_path, doc), "--port", sim.slave_path, *extra])
+    assert rc == 2
+    assert message in capsys.readouterr().err
+    assert not any(e.what == "rx" for e in sim.events)
+
+
+def test_missing_port_is_a_failure(tmp_path, capsys):
+    rc = main([write(tmp_path, table_ii_plan()), "--port", str(tmp_path / "ttyNONE")])
+    assert rc == 1 and "cannot open" in capsys.readouterr().err
+
+
+def test_silent_controller_exits_1_and_stops(make_sim, tmp_path, capsys):
+    sim = make_sim(time_scale=1.0)
+    sim.drop_rx_next = 10**6  # the controller hears nothing any more: every request times out
+    rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--retries", "1"])
+    assert rc == 1
+    assert "chair stopped" in capsys.readouterr().err

@@ -1,0 +1,178 @@
+"""The pyserial link against the simulated controller over a real pty."""
+
+import math
+import os
+import signal
+import sys
+import textwrap
+
+import pytest
+
+from wheelgrid_common.ros_env import child_env
+from wheelgrid_common.testing import managed_process
+from wheelgrid_drive import protocol as proto
+from wheelgrid_drive.actions import YAW, plan_steps
+from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
+from wheelgrid_drive.runner import run_steps
+
+
+def moves(sim):
+    return [(e.seq, e.detail) for e in sim.events if e.what == "move"]
+
+
+def test_table_ii_route_is_executed_exactly(make_sim, make_link):
+    # Start cell (2, 0) of a 1.2 m grid whose row 0 spans y in [-1.2, 0]: centre (0.6, -3.0).
+    sim = make_sim(pose=(0.6, -3.0, YAW["down"]))
+    link = make_link(sim.slave_path)
+    steps = plan_steps((2, 0), ["right"] * 5 + ["down"] * 4, "down")
+    records = []
+    result = run_steps(
+        link, steps, distance_m=1.2, speed_kmh=3.0, on_step=lambda s, r: records.append(r)
+    )
+    assert result.ok and result.done == 9
+    assert [d for _, d in moves(sim)] == ["LEFT_FORWARD"] + ["FORWARD"] * 4 + ["RIGHT_FORWARD"] + [
+        "FORWARD"
+    ] * 3
+    assert [r["ack"] for r in records] == ["ACK"] * 9
+    # Each move ends at the centre of its destination cell (no noise configured).
+    for step, rec in zip(steps, records, strict=True):
+        r, c = step.dst
+        assert rec["pose"] == pytest.approx([(c + 0.5) * 1.2, -(r + 0.5) * 1.2], abs=0.01)
+    st = link.status()
+    assert st.result == proto.Result.DONE and not st.moving
+    assert math.isclose(st.yaw, YAW["down"], abs_tol=0.01)
+    # Every frame arrived intact and no move was sent twice.
+    assert st.rx_errors == 0 and len(moves(sim)) == 9
+
+
+def test_lost_reply_is_retried_and_the_move_runs_once(make_sim, make_link):
+    sim = make_sim()
+    link = make_link(sim.slave_path, heartbeat=False)
+    sim.drop_tx_next = 1  # the ACK of the FORWARD is lost on the wire
+    seq, st = link.execute("FORWARD", 1.2, 3.0)
+    assert st.result == proto.Result.DONE
+    assert link.stats.retries >= 1 and link.stats.timeouts >= 1
+    assert moves(sim) == [(seq, "FORWARD")]  # the retry was recognised, not executed again
+    assert st.x == pytest.approx(1.2, abs=0.01)
+
+
+def test_garbled_reply_is_logged_as_a_failure_and_retried(make_sim, make_link):
+    sim = make_sim()
+    link = make_link(sim.slave_path, heartbeat=False)
+    sim.corrupt_tx_next = 1
+    st = link.status()
+    assert st.state == proto.State.IDLE
+    assert link.stats.garbled == 1 and link.stats.retries >= 1
+    assert any(kind == "garbled" for kind, _ in link.events)
+
+
+def test_lost_requests_exhaust_retries_and_raise(make_sim, make_link):
+    sim = make_sim()
+    link = make_link(sim.slave_path, heartbeat=False, retries=2)
+    sim.drop_rx_next = 3  # the request and both retries are lost
+    with pytest.raises(LinkError, match="3 attempt"):
+        link.status()
+    assert link.stats.timeouts == 3
+
+
+def test_nak_busy_fails_the_move_and_stops_the_chair(make_sim, make_link):
+    sim = make_sim(time_scale=1.0)
+    link = make_link(sim.slave_path)
+    link.move("FORWARD", 1.2, 3.0)  # 1.4 s of driving
+    with pytest.raises(LinkError, match="BUSY"):
+        link.move("LEFT_FORWARD", 1.2, 3.0)
+    st = link.status()
+    assert not st.moving and st.result == proto.Result.STOPPED
+    assert any(kind == "nak" for kind, _ in link.events)
+
+
+def test_controller_refuses_speed_over_cap_even_from_a_rogue_host(make_sim, make_link):
+    sim = make_sim()
+    link = make_link(sim.slave_path, heartbeat=False)
+    too_fast = (1200).to_bytes(2, "big") + (proto.MAX_SPEED_MM_S + 1).to_bytes(2, "big")
+    frame = link.request(proto.MsgType.FORWARD, too_fast)
+    assert frame.type == proto.MsgType.NAK and frame.payload[1] == proto.Nak.SPEED_OVER_CAP
+    assert moves(sim) == []
+
+
+def test_abort_stops_a_running_move(make_sim, make_link, wait):
+    import threading
+
+    sim = make_sim(time_scale=1.0)
+    link = make_link(sim.slave_path)
+    abort = threading.Event()
+    steps = plan_steps((0, 0), ["right", "right"], "right")
+    out = {}
+    th = threading.Thread(
+        target=lambda: out.update(
+            r=run_steps(link, steps, distance_m=1.2, speed_kmh=3.0, abort=abort)
+        )
+    )
+    th.start()
+    assert wait(lambda: sim.state != proto.State.IDLE, 3.0)
+    abort.set()
+    th.join(5.0)
+    assert out["r"].aborted and out["r"].done == 0
+    assert sim.result == proto.Result.STOPPED and sim.state == proto.State.IDLE
+    assert next(e.detail for e in sim.events if e.what == "stop") == "STOP frame"
+    with pytest.raises(LinkAbortedError):
+        link.execute("FORWARD", 1.2, 3.0, abort=abort)
+
+
+HOST = textwrap.dedent("""
+    import sys, time
+    from wheelgrid_drive.link import MotorLink
+    link = MotorLink(sys.argv[1]).open()
+    link.start_heartbeat()
+    link.move("FORWARD", 2.0, 0.5)  # 14 s of slow driving: the host will die long before
+    print("moving", flush=True)
+    time.sleep(60)
+""")
+
+
+def test_controller_stops_by_itself_when_the_host_dies(make_sim, wait, tmp_path):
+    sim = make_sim(time_scale=1.0, heartbeat_timeout=0.5)
+    script = tmp_path / "host.py"
+    script.write_text(HOST)
+    with managed_process(
+        [sys.executable, str(script), sim.slave_path], env=child_env(), stdout=-1, text=True
+    ) as proc:
+        assert proc.stdout.readline().strip() == "moving"
+        assert wait(lambda: sim.state == proto.State.DRIVING, 2.0)
+        # Heartbeats flow while the host lives: the move keeps running past the timeout.
+        wait(lambda: False, 0.8)
+        assert sim.state == proto.State.DRIVING
+        os.killpg(proc.pid, signal.SIGKILL)  # the host dies without a word
+        assert wait(lambda: sim.state == proto.State.IDLE, 3.0)
+    dog = [e for e in sim.events if e.what == "watchdog"]
+    assert len(dog) == 1 and sim.result == proto.Result.WATCHDOG
+    assert sim.flags & proto.FLAG_WATCHDOG
+    # The controller's own measure of the silence when it stopped: just over the timeout
+    # (it checks every 5 ms tick), never a multiple of it.
+    silence = float(dog[0].detail)
+    print(f"watchdog stopped the motors after {silence * 1000:.1f} ms of silence")
+    assert 0.5 < silence < 0.5 + 0.25
+
+
+def test_vanished_port_is_reported_and_recovered(make_sim, make_link, wait, tmp_path):
+    port = str(tmp_path / "ttyWG")
+    sim1 = make_sim(link=port)
+    link = make_link(port, reconnect_period=0.1)
+    assert link.status().state == proto.State.IDLE
+    sim1.vanish()
+    assert wait(lambda: not link.connected, 3.0)
+    assert any(kind == "vanished" for kind, _ in link.events)
+    with pytest.raises(LinkError):
+        link.move("FORWARD", 1.2, 3.0)  # never pretends to move without a controller
+    sim2 = make_sim(link=port)  # the adapter comes back under the same name
+    assert wait(lambda: link.connected and link.stats.reconnects == 1, 3.0)
+    assert wait(lambda: any(e.what == "rx" for e in sim2.events), 2.0)
+    first = next(e for e in sim2.events if e.what == "rx")
+    assert first.detail == "STOP"  # the first word after a reconnection is STOP
+    seq, st = link.execute("FORWARD", 1.2, 3.0)
+    assert st.result == proto.Result.DONE and moves(sim2) == [(seq, "FORWARD")]
+
+
+def test_unopenable_port_is_an_error(tmp_path):
+    with pytest.raises(LinkError, match="cannot open"):
+        MotorLink(str(tmp_path / "nothing")).open()
