@@ -73,6 +73,28 @@ def start_goal(scene: Scene, grid: Grid) -> tuple[list[int], list[int]]:
     return [grid.rows - 1, 0], [0, grid.cols - 1]
 
 
+def canonical_cdr(msg: Any, msgtype: str) -> bytes:
+    """CDR bytes of an rclpy message with ZEROED alignment padding.
+
+    rclpy's ``serialize_message`` leaves the padding bytes after strings uninitialised (seen
+    here: two runs of the same frame differ only at the bytes after ``frame_id`` and the field
+    names), so bags would not be reproducible bit for bit. A round trip through rosbags'
+    serialiser, whose output is otherwise byte-identical, writes zeros there.
+    """
+    from rclpy.serialization import serialize_message
+
+    from wheelgrid_common.bagio import typestore
+
+    store = _STORE.get("store")
+    if store is None:
+        store = _STORE["store"] = typestore()
+    raw = serialize_message(msg)
+    return bytes(store.serialize_cdr(store.deserialize_cdr(raw, msgtype), msgtype))
+
+
+_STORE: dict[str, Any] = {}
+
+
 @dataclass
 class SimResult:
     """What :func:`simulate` wrote, with counts a summary line can report."""
@@ -156,7 +178,7 @@ def simulate(
                 height=cam.rows,
             )
             msg.is_dense = False  # organised: NaN pixels may appear in any frame
-            writer.write(TOPIC, POINTCLOUD2, ns, msg)
+            writer.write(TOPIC, POINTCLOUD2, ns, canonical_cdr(msg, POINTCLOUD2))
             if on_frame is not None:
                 on_frame(i)
     bag_bytes = sum(p.stat().st_size for p in bag.rglob("*") if p.is_file())
