@@ -83,3 +83,41 @@ def test_pose_from_xyz_quat() -> None:
     T = pose_from_xyz_quat(1, 2, 3, 0, 0, s, s)  # 90 deg about z
     np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
     np.testing.assert_allclose(T[:3, 3], [1, 2, 3])
+
+
+def test_image_array_and_depth_encodings() -> None:
+    from wheelgrid_mapping.depth import depth_image_to_metres, image_array
+
+    mm = np.array([[0, 1500, 65535], [10, 20, 30]], dtype=np.uint16)
+    padded = np.zeros((2, 4), dtype=np.uint16)
+    padded[:, :3] = mm
+    d = depth_image_to_metres("16UC1", 2, 3, 8, False, padded.tobytes())
+    assert np.isnan(d[0, 0]) and d[0, 1] == pytest.approx(1.5) and d[1, 2] == pytest.approx(0.03)
+    be = mm.astype(">u2").tobytes()
+    np.testing.assert_array_equal(image_array("16UC1", 2, 3, 6, True, be), mm)
+    f = np.array([[1.0, np.nan], [0.0, -2.0]], dtype=np.float32)
+    d2 = depth_image_to_metres("32FC1", 2, 2, 8, False, f.tobytes())
+    assert d2[0, 0] == 1.0 and np.isnan(d2[0, 1]) and np.isnan(d2[1, 0]) and np.isnan(d2[1, 1])
+    with pytest.raises(ValueError, match="needs step"):
+        image_array("mono8", 2, 3, 3, False, b"12345")
+    with pytest.raises(ValueError, match="not supported"):
+        depth_image_to_metres("rgb8", 1, 1, 3, False, b"123")
+    with pytest.raises(ValueError, match="step"):
+        image_array("32FC1", 1, 2, 4, False, b"12345678")
+
+
+def test_stamp_sync_matches_by_stamp_and_bounds_memory() -> None:
+    from wheelgrid_mapping.depth import StampSync
+
+    sync = StampSync(["depth", "info", "conf"], tolerance=0.001, queue=3)
+    assert sync.add("depth", 1.0, "d1") is None
+    assert sync.add("info", 1.0005, "i1") is None
+    assert sync.add("depth", 2.0, "d2") is None
+    assert sync.add("conf", 1.0, "c1") == {"depth": "d1", "info": "i1", "conf": "c1"}
+    # info for 2.0 never arrives; the depth queue stays bounded
+    for k in range(3, 10):
+        sync.add("depth", float(k), f"d{k}")
+    assert len(sync._items["depth"]) == 3 and sync.dropped >= 5
+    assert sync.add("info", 9.0, "i9") is None
+    assert sync.add("conf", 9.0, "c9") == {"depth": "d9", "info": "i9", "conf": "c9"}
+    assert sync._items["depth"] == []  # d7, d8 were older than the completed set: abandoned

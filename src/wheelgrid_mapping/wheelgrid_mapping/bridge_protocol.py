@@ -17,8 +17,16 @@ All integers and floats are little-endian.
 
 from __future__ import annotations
 
+import contextlib
+import hmac
+import ipaddress
 import math
+import selectors
+import socket
 import struct
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -415,3 +423,245 @@ class FrameDecoder:
         if out:
             return out
         raise self._fatal
+
+
+# ---- the receiving side: a small TCP server (ROS-free; the node only publishes) -------------
+
+
+def is_loopback(address: str) -> bool:
+    """True for addresses only this machine can reach (127.0.0.0/8, ::1, localhost)."""
+    if address == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass
+class _Client:
+    sock: socket.socket
+    addr: str
+    decoder: FrameDecoder
+    connected_at: float
+    authed: bool = False
+    name: str = ""
+    errors_in_row: int = 0
+
+
+class BridgeServer:
+    """Accepts phones over TCP, checks their token, decodes frames, hands them to ``on_frame``.
+
+    One thread with a selector serves the listening socket and every client, so a slow or
+    hostile client can at worst fill its own bounded decoder. Nothing a client sends can raise
+    out of the thread: every problem becomes a log line (``log(level, text)``) and, when the
+    stream is unusable (bad magic/version, bad token, no HELLO in time, too many bad messages
+    in a row), the connection is closed. Binding beyond loopback requires a token.
+    """
+
+    def __init__(
+        self,
+        on_frame: Callable[[Frame, int], None],
+        log: Callable[[str, str], None],
+        *,
+        bind_address: str = "127.0.0.1",
+        port: int = 0,
+        token: str = "",
+        max_clients: int = 1,
+        max_frame_bytes: int = MAX_FRAME_BYTES,
+        hello_timeout_s: float = 5.0,
+        max_errors_in_row: int = 20,
+    ) -> None:
+        if not is_loopback(bind_address) and not token:
+            raise ValueError(
+                f"refusing to listen on {bind_address} without a token: anyone on the network "
+                "could inject depth frames; set a shared token or bind to 127.0.0.1"
+            )
+        if max_clients < 1:
+            raise ValueError("max_clients must be >= 1")
+        self.on_frame = on_frame
+        self.log = log
+        self.bind_address = bind_address
+        self.requested_port = int(port)
+        self.token = token
+        self.max_clients = int(max_clients)
+        self.max_frame_bytes = int(max_frame_bytes)
+        self.hello_timeout_s = float(hello_timeout_s)
+        self.max_errors_in_row = int(max_errors_in_row)
+        self.port = 0
+        self.frames_received = 0
+        self.messages_rejected = 0
+        self.clients_accepted = 0
+        self.clients_refused = 0
+        self._clients: dict[int, _Client] = {}
+        self._listener: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._sel = selectors.DefaultSelector()
+        self._stop = False
+
+    @property
+    def clients(self) -> int:
+        return sum(1 for c in self._clients.values() if c.authed)
+
+    def start(self) -> None:
+        family = socket.AF_INET6 if ":" in self.bind_address else socket.AF_INET
+        lst = socket.socket(family, socket.SOCK_STREAM)
+        lst.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        lst.bind((self.bind_address, self.requested_port))
+        lst.listen(4)
+        lst.setblocking(False)
+        self.port = int(lst.getsockname()[1])
+        self._listener = lst
+        self._sel.register(lst, selectors.EVENT_READ, None)
+        self._thread = threading.Thread(target=self._run, name="iphone-bridge-tcp", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop = True
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for c in list(self._clients.values()):
+            self._close(c, None)
+        if self._listener is not None:
+            self._sel.close()
+            self._listener.close()
+            self._listener = None
+
+    def _run(self) -> None:
+        while not self._stop:
+            try:
+                events = self._sel.select(timeout=0.1)
+            except OSError:
+                break
+            for key, _ in events:
+                try:
+                    if key.data is None:
+                        self._accept()
+                    else:
+                        self._read(key.data)
+                except Exception as exc:  # never let a client kill the server thread
+                    self.log("error", f"bridge: unexpected {type(exc).__name__}: {exc}")
+                    if key.data is not None:
+                        self._close(key.data, None)
+            now = time.monotonic()
+            for c in list(self._clients.values()):
+                if not c.authed and now - c.connected_at > self.hello_timeout_s:
+                    self.log("warn", f"bridge: {c.addr} sent no HELLO in {self.hello_timeout_s} s")
+                    self._close(c, (STATUS_PROTOCOL_ERROR, "no HELLO in time"))
+
+    def _accept(self) -> None:
+        assert self._listener is not None
+        sock, addr = self._listener.accept()
+        peer = f"{addr[0]}:{addr[1]}"
+        if len(self._clients) >= self.max_clients:
+            self.clients_refused += 1
+            self.log("warn", f"bridge: refused {peer}: {self.max_clients} client(s) already")
+            try:
+                sock.settimeout(1.0)
+                sock.sendall(encode_status(STATUS_BUSY, "another client is connected"))
+            except OSError:
+                pass
+            sock.close()
+            return
+        sock.setblocking(False)
+        c = _Client(sock, peer, FrameDecoder(self.max_frame_bytes), time.monotonic())
+        self._clients[sock.fileno()] = c
+        self._sel.register(sock, selectors.EVENT_READ, c)
+        self.log("info", f"bridge: connection from {peer}")
+
+    def _send(self, c: _Client, data: bytes) -> None:
+        sock = c.sock
+        try:
+            sock.settimeout(1.0)
+            sock.sendall(data)
+        except OSError:
+            pass
+        finally:
+            with contextlib.suppress(OSError):
+                sock.setblocking(False)
+
+    def _close(self, c: _Client, status: tuple[int, str] | None) -> None:
+        if status is not None:
+            self._send(c, encode_status(*status))
+        with contextlib.suppress(KeyError, ValueError, OSError):
+            self._sel.unregister(c.sock)
+        self._clients = {k: v for k, v in self._clients.items() if v is not c}
+        with contextlib.suppress(OSError):
+            c.sock.close()
+
+    def _read(self, c: _Client) -> None:
+        try:
+            data = c.sock.recv(1 << 16)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self.log("warn", f"bridge: {c.addr} read failed ({exc}); closing")
+            self._close(c, None)
+            return
+        if not data:
+            self.log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected")
+            self._close(c, None)
+            return
+        try:
+            messages = c.decoder.feed(data)
+        except ProtocolError as exc:
+            self.messages_rejected += 1
+            self.log("error", f"bridge: {c.addr} sent an unusable stream ({exc}); closing")
+            self._close(c, (STATUS_PROTOCOL_ERROR, str(exc)))
+            return
+        for m in messages:
+            if isinstance(m, Hello):
+                if c.authed:
+                    continue
+                if self.token and not hmac.compare_digest(m.token.encode(), self.token.encode()):
+                    self.clients_refused += 1
+                    self.log("warn", f"bridge: {c.addr} ({m.name!r}) gave a wrong token; closing")
+                    self._close(c, (STATUS_BAD_TOKEN, "wrong token"))
+                    return
+                c.authed, c.name = True, m.name
+                self.clients_accepted += 1
+                self.log("info", f"bridge: {c.addr} accepted as {m.name!r}")
+                self._send(c, encode_status(STATUS_OK, "ok"))
+            elif isinstance(m, Frame):
+                if not c.authed:
+                    self.log("warn", f"bridge: {c.addr} sent a frame before HELLO; closing")
+                    self._close(c, (STATUS_PROTOCOL_ERROR, "HELLO first"))
+                    return
+                c.errors_in_row = 0
+                self.frames_received += 1
+                try:
+                    self.on_frame(m, id(c))
+                except Exception as exc:
+                    self.log("error", f"bridge: frame {m.seq} not published: {exc}")
+        for err in c.decoder.pop_errors():
+            self.messages_rejected += 1
+            c.errors_in_row += 1
+            self.log("warn", f"bridge: {c.addr} message rejected: {err}")
+        if c.errors_in_row > self.max_errors_in_row:
+            self.log("error", f"bridge: {c.addr}: {c.errors_in_row} bad messages in a row; closing")
+            self._close(c, (STATUS_PROTOCOL_ERROR, "too many bad messages"))
+
+
+def connect(
+    host: str, port: int, token: str = "", name: str = "", timeout: float = 5.0
+) -> socket.socket:
+    """Open a sender connection: HELLO, then wait for the bridge's STATUS; ConnectionError if
+    it refuses (the text says why: busy, wrong token). Returns the connected socket."""
+    sock = socket.create_connection((host, port), timeout=timeout)
+    try:
+        sock.sendall(encode_hello(token, name))
+        dec = FrameDecoder(accept=(MSG_STATUS,))
+        while True:
+            data = sock.recv(4096)
+            if not data:
+                raise ConnectionError(f"{host}:{port} closed the connection without a status")
+            for m in dec.feed(data):
+                assert isinstance(m, Status)
+                if m.code != STATUS_OK:
+                    raise ConnectionError(f"{host}:{port} refused: {m.text} (status {m.code})")
+                sock.settimeout(None)
+                return sock
+    except BaseException:
+        sock.close()
+        raise

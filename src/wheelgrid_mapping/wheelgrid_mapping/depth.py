@@ -123,3 +123,106 @@ def arkit_pose_to_ros(T_ark_world_optical: np.ndarray) -> np.ndarray:
     if T.shape != (4, 4):
         raise ValueError(f"pose must be 4x4, got shape {T.shape}")
     return ARKIT_WORLD_TO_ROS @ T
+
+
+# ---- sensor_msgs/Image payloads, without cv_bridge (not in the ROS wheels) ----------------
+
+_IMAGE_DTYPES: dict[str, str] = {
+    "32FC1": "f4",
+    "16UC1": "u2",
+    "mono16": "u2",
+    "8UC1": "u1",
+    "mono8": "u1",
+}
+
+
+def image_array(
+    encoding: str, height: int, width: int, step: int, is_bigendian: bool, data: bytes
+) -> np.ndarray:
+    """A single-channel sensor_msgs/Image payload as a native-endian ``(H, W)`` array.
+
+    Row padding (``step > width * bytes``) and big-endian data are honoured; anything that does
+    not add up raises ValueError naming the field, so a node can log it instead of crashing.
+    """
+    if encoding not in _IMAGE_DTYPES:
+        raise ValueError(f"image encoding {encoding!r} not supported (use {sorted(_IMAGE_DTYPES)})")
+    dt = np.dtype((">" if is_bigendian else "<") + _IMAGE_DTYPES[encoding])
+    if height <= 0 or width <= 0:
+        raise ValueError(f"image is {width}x{height}")
+    if step < width * dt.itemsize:
+        raise ValueError(f"step {step} < width {width} x {dt.itemsize} B")
+    raw = np.frombuffer(data, dtype=np.uint8)
+    if raw.size < step * height:
+        raise ValueError(f"image data has {raw.size} B, needs step {step} x height {height}")
+    rows = raw[: step * height].reshape(height, step)[:, : width * dt.itemsize]
+    return np.ascontiguousarray(rows).view(dt).reshape(height, width).astype(dt.newbyteorder("="))
+
+
+def depth_image_to_metres(
+    encoding: str,
+    height: int,
+    width: int,
+    step: int,
+    is_bigendian: bool,
+    data: bytes,
+    mm_scale: float = 0.001,
+) -> np.ndarray:
+    """Depth Image (32FC1 metres, or 16UC1/mono16 scaled by ``mm_scale``) -> float32 metres.
+
+    0 and non-finite values become NaN: REP-118 uses 0 (16UC1) and NaN (32FC1) for "no return".
+    """
+    if encoding not in ("32FC1", "16UC1", "mono16"):
+        raise ValueError(f"depth encoding {encoding!r} not supported (32FC1 m or 16UC1 mm)")
+    arr = image_array(encoding, height, width, step, is_bigendian, data)
+    if encoding == "32FC1":
+        d = arr.astype(np.float32)
+    else:
+        d = arr.astype(np.float32) * np.float32(mm_scale)
+    d[~(np.isfinite(d) & (d > 0))] = np.nan
+    return d
+
+
+class StampSync:
+    """Group messages of several streams that carry the same stamp (message_filters stand-in).
+
+    ``add(stream, stamp, item)`` returns ``{stream: item}`` once every required stream has an item
+    within ``tolerance`` seconds of each other, else None. Each stream keeps at most ``queue``
+    items, so a stream that stops never grows memory; items older than a completed set are
+    dropped (they can no longer be matched in order).
+    """
+
+    def __init__(self, streams: list[str], tolerance: float = 0.001, queue: int = 10) -> None:
+        if not streams:
+            raise ValueError("StampSync needs at least one stream")
+        self.streams = list(streams)
+        self.tolerance = float(tolerance)
+        self.queue = int(queue)
+        self._items: dict[str, list[tuple[float, object]]] = {s: [] for s in self.streams}
+        self.dropped = 0
+
+    def add(self, stream: str, stamp: float, item: object) -> dict[str, object] | None:
+        if stream not in self._items:
+            raise KeyError(f"unknown stream {stream!r}")
+        q = self._items[stream]
+        q.append((stamp, item))
+        if len(q) > self.queue:
+            q.pop(0)
+            self.dropped += 1
+        return self._match(stamp)
+
+    def _match(self, stamp: float) -> dict[str, object] | None:
+        found: dict[str, tuple[int, object]] = {}
+        for s, q in self._items.items():
+            best = None
+            for i, (t, item) in enumerate(q):
+                if abs(t - stamp) <= self.tolerance and (
+                    best is None or abs(t - stamp) < abs(q[best[0]][0] - stamp)
+                ):
+                    best = (i, item)
+            if best is None:
+                return None
+            found[s] = best
+        for s, (i, _) in found.items():
+            self.dropped += i  # older unmatched items of this stream are abandoned
+            del self._items[s][: i + 1]
+        return {s: item for s, (_, item) in found.items()}

@@ -1,0 +1,234 @@
+"""``wheelgrid stream-stray`` and ``wheelgrid import-stray``: Stray Scanner exports as a live
+phone or as a bag.
+
+``stream-stray`` plays an export through the bridge protocol in real time (``--rate`` is a speed
+factor), standing in for the phone so the whole live path (TCP, bridge, DDS, mapper) can be run
+and measured without one. ``import-stray`` writes the same topics the bridge publishes into a
+rosbag2 bag, stamped with the capture's own timestamps, using the same message builder
+(:func:`wheelgrid_mapping.iphone_bridge_node.frame_messages`), so offline and live runs agree.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from wheelgrid_mapping.bridge_protocol import (
+    DEPTH_F32_M,
+    DEPTH_U16_MM,
+    POSE_OPTICAL,
+    Frame,
+    connect,
+    encode_frame,
+)
+from wheelgrid_mapping.stray import StrayExport, StrayFrame
+
+TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
+
+
+class _UsageError(Exception):
+    """Bad input: exit code 2 with this one-line message."""
+
+
+def _fail(code: int, text: str) -> int:
+    print(f"wheelgrid: {text}", file=sys.stderr)
+    return code
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise _UsageError(f"--to must be HOST:PORT (e.g. 127.0.0.1:8765), not {text!r}")
+    return host.strip("[]"), int(port)
+
+
+def to_millimetres(depth_m: np.ndarray) -> np.ndarray:
+    """float metres (NaN = none) -> uint16 mm (0 = none), exact for Stray's mm depth."""
+    m = np.nan_to_num(depth_m.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(np.rint(m * 1000.0), 0, 65535).astype(np.uint16)
+
+
+def stray_to_frame(sf: StrayFrame, seq: int) -> Frame:
+    """A Stray frame as the bridge would receive it (uint16 mm depth, optical-axes pose)."""
+    return Frame(
+        stamp=sf.stamp,
+        seq=seq,
+        K=sf.K,
+        depth=to_millimetres(sf.depth),
+        depth_encoding=DEPTH_U16_MM,
+        confidence=sf.confidence,
+        pose=sf.pose,
+        pose_axes=POSE_OPTICAL if sf.pose is not None else 0,
+    )
+
+
+def _frame_range(exp: StrayExport, start: int, frames: int | None) -> range:
+    if start < 0 or start >= len(exp):
+        raise _UsageError(f"--start {start} outside 0..{len(exp) - 1} ({len(exp)} frames)")
+    if frames is not None and frames < 1:
+        raise _UsageError("--frames must be >= 1")
+    end = len(exp) if frames is None else min(len(exp), start + frames)
+    return range(start, end)
+
+
+def _open_export(path: str) -> StrayExport:
+    try:
+        return StrayExport(path)
+    except ValueError as exc:
+        raise _UsageError(str(exc)) from exc
+
+
+@dataclass
+class StreamStats:
+    frames_sent: int = 0
+    bytes_sent: int = 0
+    wall_s: float = 0.0
+    capture_s: float = 0.0
+    late_frames: int = 0  # sent more than 50 ms after their real-time slot
+    max_lag_s: float = 0.0
+
+
+def stream_export(
+    exp: StrayExport,
+    host: str,
+    port: int,
+    *,
+    rate: float = 1.0,
+    token: str = "",
+    indices: range | None = None,
+    depth_encoding: int = DEPTH_U16_MM,
+) -> StreamStats:
+    """Send frames of ``exp`` to a bridge, paced by their capture stamps / ``rate`` (0 = no
+    pacing). Raises ConnectionError/OSError when the bridge refuses or goes away."""
+    idx = indices if indices is not None else range(len(exp))
+    stats = StreamStats()
+    if not idx:
+        return stats
+    sock = connect(host, port, token=token, name=f"stream-stray {exp.path.name}")
+    try:
+        t_first = exp.stamp(idx[0])
+        t0 = time.monotonic()
+        for seq, i in enumerate(idx):
+            sf = exp.frame(i)
+            data = encode_frame(
+                sf.stamp,
+                sf.K,
+                sf.depth,
+                seq=seq,
+                confidence=sf.confidence,
+                pose=sf.pose,
+                pose_axes=POSE_OPTICAL,
+                depth_encoding=depth_encoding,
+            )
+            if rate > 0:
+                slot = t0 + (sf.stamp - t_first) / rate
+                wait = slot - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                lag = time.monotonic() - slot
+                stats.max_lag_s = max(stats.max_lag_s, lag)
+                stats.late_frames += lag > 0.05
+            sock.sendall(data)
+            stats.frames_sent += 1
+            stats.bytes_sent += len(data)
+        stats.capture_s = exp.stamp(idx[-1]) - t_first
+        stats.wall_s = time.monotonic() - t0
+    finally:
+        sock.close()
+    return stats
+
+
+def stream_main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(
+        prog="wheelgrid stream-stray",
+        description="Play a Stray Scanner export to an iphone_bridge over TCP, in real time "
+        "(stands in for the phone).",
+    )
+    ap.add_argument("dir", help="Stray Scanner export folder (depth/, camera_matrix.csv, ...)")
+    ap.add_argument("--to", default="127.0.0.1:8765", help="bridge HOST:PORT [127.0.0.1:8765]")
+    ap.add_argument("--rate", type=float, default=1.0, help="speed factor, 0 = unpaced [1.0]")
+    ap.add_argument("--token", default=None, help=f"bridge token [env {TOKEN_ENV}]")
+    ap.add_argument("--frames", type=int, default=None, help="send at most N frames")
+    ap.add_argument("--start", type=int, default=0, help="first frame position [0]")
+    ap.add_argument(
+        "--depth-encoding", choices=("u16", "f32"), default="u16", help="wire depth [u16 mm]"
+    )
+    args = ap.parse_args(argv)
+    try:
+        host, port = parse_host_port(args.to)
+        if not args.rate >= 0 or not np.isfinite(args.rate):
+            raise _UsageError(f"--rate must be >= 0, not {args.rate}")
+        exp = _open_export(args.dir)
+        idx = _frame_range(exp, args.start, args.frames)
+    except _UsageError as exc:
+        return _fail(2, str(exc))
+    token = args.token if args.token is not None else os.environ.get(TOKEN_ENV, "")
+    enc = DEPTH_U16_MM if args.depth_encoding == "u16" else DEPTH_F32_M
+    try:
+        stats = stream_export(
+            exp, host, port, rate=args.rate, token=token, indices=idx, depth_encoding=enc
+        )
+    except KeyboardInterrupt:
+        return _fail(1, "interrupted")
+    except (OSError, ConnectionError) as exc:
+        return _fail(1, f"streaming to {host}:{port} failed: {exc}")
+    print(
+        f"sent {stats.frames_sent} frames ({stats.bytes_sent / 1e6:.1f} MB) in "
+        f"{stats.wall_s:.2f} s (capture {stats.capture_s:.2f} s, rate {args.rate}); "
+        f"late > 50 ms: {stats.late_frames}, max lag {stats.max_lag_s * 1000:.1f} ms"
+    )
+    return 0
+
+
+def import_main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(
+        prog="wheelgrid import-stray",
+        description="Write a Stray Scanner export as a rosbag2 bag with the iphone_bridge's "
+        "topics, stamped with the capture's timestamps.",
+    )
+    ap.add_argument("dir", help="Stray Scanner export folder")
+    ap.add_argument("--out", required=True, help="new bag folder to write")
+    ap.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3")
+    ap.add_argument("--frames", type=int, default=None, help="write at most N frames")
+    ap.add_argument("--start", type=int, default=0, help="first frame position [0]")
+    ap.add_argument(
+        "--min-confidence", type=int, default=1, help="confidence a point needs (0-2) [1]"
+    )
+    ap.add_argument("--dense", action="store_true", help="dense clouds instead of organised")
+    args = ap.parse_args(argv)
+    from wheelgrid_common.bagio import BagError, BagWriter
+    from wheelgrid_common.progress import Progress
+    from wheelgrid_mapping.iphone_bridge_node import frame_messages
+
+    try:
+        exp = _open_export(args.dir)
+        idx = _frame_range(exp, args.start, args.frames)
+        if Path(args.out).exists():
+            raise _UsageError(f"{args.out}: already exists; rosbag2 will not overwrite a bag")
+    except _UsageError as exc:
+        return _fail(2, str(exc))
+    counts: dict[str, int] = {}
+    try:
+        with BagWriter(args.out, args.storage) as bag, Progress(len(idx), "import-stray") as bar:
+            for seq, i in enumerate(idx):
+                frame = stray_to_frame(exp.frame(i), seq)
+                stamp_ns = round(frame.stamp * 1e9)
+                for topic, msgtype, msg in frame_messages(
+                    frame, frame.stamp, min_confidence=args.min_confidence, organized=not args.dense
+                ):
+                    bag.write(topic, msgtype, stamp_ns, msg)
+                    counts[topic] = counts.get(topic, 0) + 1
+                bar.update()
+    except BagError as exc:
+        return _fail(2, str(exc))
+    except (OSError, ValueError) as exc:
+        return _fail(1, f"import failed: {exc}")
+    listing = ", ".join(f"{t} {n}" for t, n in sorted(counts.items()))
+    print(f"wrote {len(idx)} frames to {args.out} ({args.storage}): {listing}")
+    return 0

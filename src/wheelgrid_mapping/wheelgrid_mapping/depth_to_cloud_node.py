@@ -1,0 +1,143 @@
+"""``depth_to_cloud`` node: depth Image + CameraInfo (+ confidence) -> PointCloud2.
+
+Works for any depth camera that follows REP-118 (32FC1 metres or 16UC1 millimetres), not only
+the iPhone. The three streams are matched by header stamp with
+:class:`~wheelgrid_mapping.depth.StampSync` (message_filters is not in the ROS wheels); a depth
+image whose camera info (or confidence) never arrives is dropped, never projected with guessed
+intrinsics. Defaults are the bridge's topics, so ``depth_to_cloud`` also serves apps that
+publish only images (Record3D-ROS2, ARKit-to-ROS2 bridges).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.params import field
+from wheelgrid_mapping.depth import (
+    StampSync,
+    check_intrinsics,
+    depth_image_to_metres,
+    depth_to_points,
+    image_array,
+)
+
+
+@dataclass
+class DepthToCloudConfig:
+    depth_topic: str = field("/iphone/depth/image", "depth Image (32FC1 m or 16UC1 mm)")
+    info_topic: str = field("/iphone/depth/camera_info", "CameraInfo of the depth image")
+    confidence_topic: str = field(
+        "/iphone/confidence/image", "confidence Image (mono8/8UC1); empty = do not use one"
+    )
+    points_topic: str = field("/iphone/points", "PointCloud2 output, in the depth image's frame")
+    min_confidence: int = field(
+        1, "pixels with confidence below this become NaN (ARKit: 0 low, 1 medium, 2 high)"
+    )
+    organized: bool = field(True, "organised cloud (H x W, NaN kept) or dense (valid only)")
+    mm_scale: float = field(0.001, "metres per unit of 16UC1 depth", "m")
+    sync_tolerance_s: float = field(0.001, "largest stamp difference still 'the same frame'", "s")
+    queue_size: int = field(10, "messages kept per stream while waiting for a match")
+
+
+def _stamp_s(msg: Any) -> float:
+    return float(msg.header.stamp.sec) + 1e-9 * float(msg.header.stamp.nanosec)
+
+
+def _make_node() -> Any:
+    from rclpy.node import Node
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+    from wheelgrid_common.params import declare_dataclass
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+    from wheelgrid_common.qos import SENSOR_QOS
+
+    class DepthToCloudNode(Node):
+        def __init__(self) -> None:
+            super().__init__("depth_to_cloud")
+            self.cfg = declare_dataclass(self, DepthToCloudConfig())
+            use_conf = bool(self.cfg.confidence_topic)
+            streams = ["depth", "info"] + (["conf"] if use_conf else [])
+            self.sync = StampSync(streams, self.cfg.sync_tolerance_s, self.cfg.queue_size)
+            self.pub = self.create_publisher(PointCloud2, self.cfg.points_topic, SENSOR_QOS)
+            self.create_subscription(
+                Image, self.cfg.depth_topic, lambda m: self._add("depth", m), SENSOR_QOS
+            )
+            self.create_subscription(
+                CameraInfo, self.cfg.info_topic, lambda m: self._add("info", m), SENSOR_QOS
+            )
+            if use_conf:
+                self.create_subscription(
+                    Image, self.cfg.confidence_topic, lambda m: self._add("conf", m), SENSOR_QOS
+                )
+            self.published = 0
+            self._warned: set[str] = set()
+            self.get_logger().info(
+                f"{self.cfg.depth_topic} + {self.cfg.info_topic}"
+                + (f" + {self.cfg.confidence_topic}" if use_conf else "")
+                + f" -> {self.cfg.points_topic}"
+            )
+
+        def _warn_once(self, key: str, text: str) -> None:
+            if key not in self._warned:
+                self._warned.add(key)
+                self.get_logger().warning(text)
+
+        def _add(self, stream: str, msg: Any) -> None:
+            group = self.sync.add(stream, _stamp_s(msg), msg)
+            if group is not None:
+                try:
+                    self._publish(group["depth"], group["info"], group.get("conf"))
+                except ValueError as exc:  # malformed input: log once per cause, keep running
+                    self._warn_once(str(exc).split(":")[0], f"frame dropped: {exc}")
+
+        def _publish(self, depth_msg: Any, info: Any, conf_msg: Any) -> None:
+            depth = depth_image_to_metres(
+                depth_msg.encoding,
+                depth_msg.height,
+                depth_msg.width,
+                depth_msg.step,
+                bool(depth_msg.is_bigendian),
+                bytes(depth_msg.data),
+                self.cfg.mm_scale,
+            )
+            K = check_intrinsics(np.asarray(info.k, dtype=np.float64).reshape(3, 3))
+            if (info.width, info.height) != (depth_msg.width, depth_msg.height):
+                raise ValueError(
+                    f"camera info is {info.width}x{info.height}, depth "
+                    f"{depth_msg.width}x{depth_msg.height}"
+                )
+            conf = None
+            if conf_msg is not None:
+                conf = image_array(
+                    conf_msg.encoding,
+                    conf_msg.height,
+                    conf_msg.width,
+                    conf_msg.step,
+                    bool(conf_msg.is_bigendian),
+                    bytes(conf_msg.data),
+                )
+            pts = depth_to_points(depth, K, conf, self.cfg.min_confidence)
+            frame_id = depth_msg.header.frame_id
+            if self.cfg.organized:
+                cloud = to_pointcloud2(pts, frame_id, depth_msg.header.stamp, height=depth.shape[0])
+            else:
+                pts = pts[np.isfinite(pts).all(axis=1)]
+                cloud = to_pointcloud2(pts, frame_id, depth_msg.header.stamp)
+            self.pub.publish(cloud)
+            self.published += 1
+
+    return DepthToCloudNode()
+
+
+def main() -> None:
+    from wheelgrid_common.ros_env import spin_node
+
+    sys.exit(spin_node(_make_node))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,317 @@
+"""``iphone_bridge`` node: depth frames from a phone over TCP -> ROS topics.
+
+The network side (listening, tokens, limits, decoding) is the ROS-free
+:class:`~wheelgrid_mapping.bridge_protocol.BridgeServer`; this module only turns each decoded
+:class:`~wheelgrid_mapping.bridge_protocol.Frame` into messages. :func:`frame_messages` is also
+what ``wheelgrid import-stray`` writes into bags, so a live stream and an imported capture look
+the same to the mapper.
+
+Published (sensor-data QoS): /iphone/depth/image, /iphone/depth/camera_info,
+/iphone/confidence/image, /iphone/points (organised unless ``organized`` is false),
+/iphone/odometry (ARKit pose in ROS conventions: ``odom`` z-up <- optical camera). Also
+/iphone/bridge_status (DiagnosticArray, 1 Hz, reliable): frames received / published /
+rejected, clients, so a user can see that a phone is connected and streaming.
+"""
+
+from __future__ import annotations
+
+import array
+import os
+import sys
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.params import field
+from wheelgrid_mapping.bridge_protocol import (
+    DEPTH_U16_MM,
+    MAX_FRAME_BYTES,
+    BridgeServer,
+    Frame,
+)
+from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
+
+TOPIC_DEPTH = "/iphone/depth/image"
+TOPIC_INFO = "/iphone/depth/camera_info"
+TOPIC_CONF = "/iphone/confidence/image"
+TOPIC_POINTS = "/iphone/points"
+TOPIC_ODOM = "/iphone/odometry"
+TOPIC_STATUS = "/iphone/bridge_status"
+CAMERA_FRAME = "iphone_depth_optical_frame"
+ODOM_FRAME = "odom"
+DEFAULT_PORT = 8765
+TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
+
+
+@dataclass
+class BridgeConfig:
+    bind_address: str = field(
+        "127.0.0.1", "address to listen on; anything but loopback requires a token"
+    )
+    port: int = field(DEFAULT_PORT, "TCP port to listen on (0 = any free port)")
+    token: str = field("", f"shared secret the phone must send in HELLO (or env {TOKEN_ENV})")
+    max_clients: int = field(1, "phones streaming at once; later ones are refused as busy")
+    max_frame_bytes: int = field(MAX_FRAME_BYTES, "largest message accepted", "bytes")
+    hello_timeout_s: float = field(5.0, "a client that sends no HELLO in this time is dropped", "s")
+    max_errors_in_row: int = field(20, "bad messages in a row before a client is disconnected")
+    min_confidence: int = field(
+        1,
+        "ARKit confidence (0 low, 1 medium, 2 high) a pixel needs to become a point; low "
+        "confidence pixels are mostly flying pixels at edges. Dropped pixels are NaN (unknown)",
+    )
+    organized: bool = field(True, "publish /iphone/points organised (H x W, NaN kept) or dense")
+    stamp_mode: str = field(
+        "offset",
+        "offset: phone clock shifted onto ROS time at each connection's first frame (keeps "
+        "the phone's exact frame spacing); phone: phone clock as is; receive: ROS time on "
+        "arrival",
+    )
+    camera_frame: str = field(CAMERA_FRAME, "frame_id of images, camera info and points")
+    odom_frame: str = field(ODOM_FRAME, "header.frame_id of /iphone/odometry (ARKit world z-up)")
+
+
+def stamp_to_msg(seconds: float) -> Any:
+    from builtin_interfaces.msg import Time
+
+    sec = int(np.floor(seconds))
+    nsec = round((seconds - sec) * 1e9)
+    if nsec >= 1_000_000_000:
+        sec, nsec = sec + 1, nsec - 1_000_000_000
+    return Time(sec=sec, nanosec=nsec)
+
+
+def _image(stamp: Any, frame_id: str, arr: np.ndarray, encoding: str) -> Any:
+    from sensor_msgs.msg import Image
+
+    a = np.ascontiguousarray(arr)
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = int(a.shape[0]), int(a.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = sys.byteorder == "big"
+    msg.step = int(a.shape[1] * a.dtype.itemsize)
+    msg.data = array.array("B", a.tobytes())
+    return msg
+
+
+def camera_info(stamp: Any, frame_id: str, K: np.ndarray, width: int, height: int) -> Any:
+    from sensor_msgs.msg import CameraInfo
+
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    msg = CameraInfo()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = int(width), int(height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5  # ARKit depth is already undistorted
+    msg.k = [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.p = [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return msg
+
+
+def odometry(stamp: Any, T_odom_optical: np.ndarray, odom_frame: str, child_frame: str) -> Any:
+    """nav_msgs/Odometry of the ARKit pose. ARKit gives no covariance and no twist: both
+    covariances carry -1 in element 0 ("unknown", the sensor_msgs convention), never a false
+    certainty of zero."""
+    from nav_msgs.msg import Odometry
+
+    from wheelgrid_common.fileio import matrix_to_quat
+
+    msg = Odometry()
+    msg.header.stamp = stamp
+    msg.header.frame_id = odom_frame
+    msg.child_frame_id = child_frame
+    x, y, z = (float(v) for v in T_odom_optical[:3, 3])
+    qx, qy, qz, qw = matrix_to_quat(T_odom_optical[:3, :3])
+    p = msg.pose.pose
+    p.position.x, p.position.y, p.position.z = x, y, z
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = qx, qy, qz, qw
+    cov = [0.0] * 36
+    cov[0] = -1.0
+    msg.pose.covariance = cov
+    msg.twist.covariance = cov
+    return msg
+
+
+def frame_messages(
+    frame: Frame,
+    stamp_s: float,
+    *,
+    min_confidence: int = 1,
+    organized: bool = True,
+    camera_frame: str = CAMERA_FRAME,
+    odom_frame: str = ODOM_FRAME,
+) -> list[tuple[str, str, Any]]:
+    """All messages one frame becomes: ``[(topic, rosbag2 msgtype, rclpy message), ...]``."""
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+
+    stamp = stamp_to_msg(stamp_s)
+    out: list[tuple[str, str, Any]] = []
+    enc = "16UC1" if frame.depth_encoding == DEPTH_U16_MM else "32FC1"
+    out.append(
+        (TOPIC_DEPTH, "sensor_msgs/msg/Image", _image(stamp, camera_frame, frame.depth, enc))
+    )
+    out.append(
+        (
+            TOPIC_INFO,
+            "sensor_msgs/msg/CameraInfo",
+            camera_info(stamp, camera_frame, frame.K, frame.width, frame.height),
+        )
+    )
+    if frame.confidence is not None:
+        out.append(
+            (
+                TOPIC_CONF,
+                "sensor_msgs/msg/Image",
+                _image(stamp, camera_frame, frame.confidence, "mono8"),
+            )
+        )
+    pts = depth_to_points(frame.depth_m(), frame.K, frame.confidence, min_confidence)
+    if organized:
+        cloud = to_pointcloud2(pts, camera_frame, stamp, height=frame.height)
+    else:
+        cloud = to_pointcloud2(pts[np.isfinite(pts).all(axis=1)], camera_frame, stamp)
+    out.append((TOPIC_POINTS, "sensor_msgs/msg/PointCloud2", cloud))
+    T = frame.pose_optical()
+    if T is not None:
+        out.append(
+            (
+                TOPIC_ODOM,
+                "nav_msgs/msg/Odometry",
+                odometry(stamp, arkit_pose_to_ros(T), odom_frame, camera_frame),
+            )
+        )
+    return out
+
+
+def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from nav_msgs.msg import Odometry
+    from rclpy.node import Node
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+    from wheelgrid_common.params import declare_dataclass
+    from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
+
+    class IPhoneBridgeNode(Node):
+        def __init__(self) -> None:
+            super().__init__("iphone_bridge")
+            self.cfg = declare_dataclass(self, cfg_override or BridgeConfig())
+            if self.cfg.stamp_mode not in ("offset", "phone", "receive"):
+                self.get_logger().fatal(
+                    f"stamp_mode must be offset, phone or receive, not {self.cfg.stamp_mode!r}"
+                )
+                raise SystemExit(2)
+            token = self.cfg.token or os.environ.get(TOKEN_ENV, "")
+            self._pubs = {
+                TOPIC_DEPTH: self.create_publisher(Image, TOPIC_DEPTH, SENSOR_QOS),
+                TOPIC_INFO: self.create_publisher(CameraInfo, TOPIC_INFO, SENSOR_QOS),
+                TOPIC_CONF: self.create_publisher(Image, TOPIC_CONF, SENSOR_QOS),
+                TOPIC_POINTS: self.create_publisher(PointCloud2, TOPIC_POINTS, SENSOR_QOS),
+                TOPIC_ODOM: self.create_publisher(Odometry, TOPIC_ODOM, SENSOR_QOS),
+            }
+            self._status_pub = self.create_publisher(DiagnosticArray, TOPIC_STATUS, RELIABLE_QOS)
+            self._lock = threading.Lock()
+            self._offsets: dict[int, float] = {}
+            self.frames_published = 0
+            self.frames_without_pose = 0
+            log = self.get_logger()
+            server_args = dict(
+                bind_address=self.cfg.bind_address,
+                port=self.cfg.port,
+                token=token,
+                max_clients=self.cfg.max_clients,
+                max_frame_bytes=self.cfg.max_frame_bytes,
+                hello_timeout_s=self.cfg.hello_timeout_s,
+                max_errors_in_row=self.cfg.max_errors_in_row,
+            )
+            try:
+                self.server = BridgeServer(self._on_frame, self._log, **server_args)
+                self.server.start()
+            except (ValueError, OSError) as exc:  # unsafe config or port taken: say so, exit 2
+                log.fatal(f"cannot start: {exc}")
+                raise SystemExit(2) from exc
+            log.info(
+                f"listening on {self.cfg.bind_address}:{self.server.port} "
+                f"(token {'required' if token else 'not required: loopback only'})"
+            )
+            self._diag = (DiagnosticArray, DiagnosticStatus, KeyValue)
+            self.create_timer(1.0, self._publish_status)
+
+        def _log(self, level: str, text: str) -> None:
+            log = self.get_logger()
+            {"info": log.info, "error": log.error}.get(level, log.warning)(text)
+
+        def _stamp(self, frame: Frame, client: int) -> float:
+            now = self.get_clock().now().nanoseconds * 1e-9
+            if self.cfg.stamp_mode == "receive":
+                return now
+            if self.cfg.stamp_mode == "phone":
+                return frame.stamp
+            if client not in self._offsets:
+                self._offsets = {client: now - frame.stamp}  # new connection: new phone clock
+            return frame.stamp + self._offsets[client]
+
+        def _on_frame(self, frame: Frame, client: int) -> None:
+            msgs = frame_messages(
+                frame,
+                self._stamp(frame, client),
+                min_confidence=self.cfg.min_confidence,
+                organized=self.cfg.organized,
+                camera_frame=self.cfg.camera_frame,
+                odom_frame=self.cfg.odom_frame,
+            )
+            with self._lock:
+                for topic, _, msg in msgs:
+                    self._pubs[topic].publish(msg)
+                self.frames_published += 1
+                if frame.pose_optical() is None:
+                    self.frames_without_pose += 1
+
+        def _publish_status(self) -> None:
+            DiagnosticArray, DiagnosticStatus, KeyValue = self._diag
+            s = self.server
+            values = {
+                "port": s.port,
+                "clients": s.clients,
+                "frames_received": s.frames_received,
+                "frames_published": self.frames_published,
+                "frames_without_pose": self.frames_without_pose,
+                "messages_rejected": s.messages_rejected,
+                "clients_refused": s.clients_refused,
+            }
+            st = DiagnosticStatus(
+                level=DiagnosticStatus.OK if s.clients else DiagnosticStatus.WARN,
+                name="iphone_bridge",
+                message="streaming" if s.clients else "waiting for a phone",
+                hardware_id=f"{self.cfg.bind_address}:{s.port}",
+                values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+            )
+            arr = DiagnosticArray(status=[st])
+            arr.header.stamp = self.get_clock().now().to_msg()
+            self._status_pub.publish(arr)
+
+        def close(self) -> None:
+            if not hasattr(self, "server"):
+                return
+            self.server.stop()
+            self.get_logger().info(
+                f"stopped: {self.server.frames_received} frames received, "
+                f"{self.frames_published} published, {self.server.messages_rejected} rejected"
+            )
+
+    return IPhoneBridgeNode()
+
+
+def main() -> None:
+    from wheelgrid_common.ros_env import spin_node
+
+    sys.exit(spin_node(_make_node))
+
+
+if __name__ == "__main__":
+    main()
