@@ -1,0 +1,153 @@
+"""Preprocessing against hand-made clouds: each step, and that thin obstacles survive."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wheelgrid_mapping.preprocess import (
+    PreprocessConfig,
+    PreprocessStats,
+    cell_for_target,
+    grid_knn,
+    plane_fit_criterion,
+    preprocess,
+    statistical_outlier_mask,
+    subdivision_cell,
+    valid_mask,
+    voxel_downsample,
+)
+
+
+def plane(n: int, rng: np.random.Generator, size=(2.0, 2.0), z=0.0) -> np.ndarray:
+    xy = rng.random((n, 2)) * size
+    return np.column_stack([xy, np.full(n, z)])
+
+
+def test_valid_mask_drops_nan_inf_range_and_low_confidence() -> None:
+    pts = np.array(
+        [[0, 0, 1.0], [np.nan, 0, 1], [0, np.inf, 1], [0, 0, 0.1], [0, 0, 9.0], [0, 0, 2.0]]
+    )
+    conf = np.array([2, 2, 2, 2, 2, 0], dtype=np.uint8)
+    assert valid_mask(pts, 0.2, 5.0).tolist() == [True, False, False, False, False, True]
+    assert valid_mask(pts, 0.2, 5.0, conf, 1).tolist() == [True] + [False] * 5
+    with pytest.raises(ValueError):
+        valid_mask(pts, confidence=conf[:3])
+
+
+def test_subdivision_cell_is_equation_5() -> None:
+    # 1000 points in a 2 x 4 x 1 m box, 8 points per cell: L = cbrt(8/1000 * 8) = 0.4 m.
+    assert subdivision_cell(1000, np.array([2.0, 4.0, 1.0]), 8) == pytest.approx(0.4)
+    # A flat cloud still gets a finite cell.
+    assert subdivision_cell(1000, np.array([2.0, 2.0, 0.0]), 8) > 0
+
+
+def test_voxel_downsample_keeps_centroids() -> None:
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.03, 0.03], [0.51, 0.01, 0.01]])
+    out = voxel_downsample(pts, 0.1)
+    assert out.shape == (2, 3)
+    assert np.allclose(sorted(out[:, 0]), [0.02, 0.51])
+
+
+def test_cell_for_target_hits_target_count() -> None:
+    rng = np.random.default_rng(1)
+    pts = plane(200_000, rng, (4.0, 4.0))
+    cell = cell_for_target(pts, 20_000)
+    n = voxel_downsample(pts, cell).shape[0]
+    assert abs(n - 20_000) / 20_000 < 0.1
+
+
+def test_grid_knn_matches_brute_force_within_one_cell() -> None:
+    rng = np.random.default_rng(2)
+    cell = 0.05
+    pts = voxel_downsample(rng.random((5000, 3)) * [1.0, 1.0, 0.2], cell)
+    idx, dist = grid_knn(pts, 6, cell)
+    full = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    np.fill_diagonal(full, np.inf)
+    brute = np.sort(full, axis=1)[:, :6]
+    close = brute <= cell  # the guaranteed-exact radius
+    assert close.sum() > 1000
+    assert np.allclose(dist[close], brute[close])
+    assert (idx != np.arange(len(pts))[:, None]).all()  # self excluded
+    # An isolated point far from everything gets no neighbours.
+    lonely = np.vstack([pts, [[5.0, 5.0, 5.0]]])
+    idx2, dist2 = grid_knn(lonely, 3, cell)
+    assert (idx2[-1] == -1).all() and np.isinf(dist2[-1]).all()
+
+
+def test_statistical_outlier_mask_is_equations_1_to_4() -> None:
+    dist = np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [5.0, 5.0]])
+    mu_i = dist.mean(axis=1)
+    t = mu_i.mean() + 1.0 * mu_i.std(ddof=1)
+    keep = statistical_outlier_mask(dist, 1.0)
+    assert keep.tolist() == (mu_i < t).tolist() == [True, True, True, True, False]
+    # Missing neighbours count as far away: an isolated point is an outlier.
+    d2 = np.vstack([np.ones((20, 3)) * 0.02, [[np.inf] * 3]])
+    assert not statistical_outlier_mask(d2, 2.0, missing_distance=0.1)[-1]
+
+
+def test_pfc_flags_a_point_off_a_flat_neighbourhood() -> None:
+    rng = np.random.default_rng(3)
+    pts = np.vstack([plane(400, rng, (0.3, 0.3)), [[0.15, 0.15, 0.045]]])
+    idx, _ = grid_knn(pts, 10, 0.03)
+    pfc, d_p = plane_fit_criterion(pts, idx)
+    assert pfc[-1] > 0.9 and d_p[-1] > 0.035
+    assert np.median(pfc[:-1]) < 0.7
+
+
+def room_with_thin_obstacles(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Floor, wall, a 5 cm bar, a 4 cm table leg, a table top; sampled like a close scan."""
+    n = 60_000
+    floor = plane(n, rng, (3.0, 3.0))
+    wall = np.column_stack([rng.random(n // 2) * 3, np.full(n // 2, 3.0), rng.random(n // 2) * 2])
+    t = rng.random(4000) * 2 * np.pi
+    bar = np.column_stack(
+        [0.5 + rng.random(4000) * 2.0, 1.5 + 0.025 * np.cos(t), 0.8 + 0.025 * np.sin(t)]
+    )
+    leg = np.column_stack(
+        [2.0 + rng.random(3000) * 0.04, 0.5 + rng.random(3000) * 0.04, rng.random(3000) * 0.7]
+    )
+    top = np.column_stack(
+        [1.6 + rng.random(8000) * 0.8, 0.3 + rng.random(8000) * 0.6, np.full(8000, 0.72)]
+    )
+    noise = rng.normal(0, 0.003, (1, 3))
+    outliers = rng.random((300, 3)) * [3.0, 3.0, 2.0] + [0, 0, 0.3]
+    parts = {"floor": floor, "wall": wall, "bar": bar, "leg": leg, "top": top}
+    parts = {k: v + noise for k, v in parts.items()}
+    parts["outliers"] = outliers
+    return parts
+
+
+def near(a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
+    """For each point of b: is some point of a within tol."""
+    out = np.zeros(len(b), dtype=bool)
+    for s in range(0, len(b), 2000):
+        d = np.linalg.norm(b[s : s + 2000, None] - a[None], axis=2)
+        out[s : s + 2000] = (d <= tol).any(axis=1)
+    return out
+
+
+def test_filters_keep_thin_obstacles_and_remove_floating_noise() -> None:
+    rng = np.random.default_rng(4)
+    parts = room_with_thin_obstacles(rng)
+    cloud = np.vstack(list(parts.values()))
+    stats = PreprocessStats()
+    cfg = PreprocessConfig(min_range=0.0, max_range=100.0)
+    out = preprocess(cloud, cfg, stats=stats)
+    assert stats.input == len(cloud) and stats.after_pfc == len(out)
+    # Every 10 cm of the bar, of the leg, and of the table's front edge still has points.
+    bar_samples = np.column_stack([np.arange(0.55, 2.5, 0.1), np.full(20, 1.5), np.full(20, 0.8)])
+    leg_samples = np.column_stack([np.full(7, 2.02), np.full(7, 0.52), np.arange(0.05, 0.7, 0.1)])
+    edge_samples = np.column_stack([np.arange(1.65, 2.4, 0.1), np.full(8, 0.3), np.full(8, 0.72)])
+    for name, samples in (("bar", bar_samples), ("leg", leg_samples), ("edge", edge_samples)):
+        kept = near(out, samples, 0.05)
+        assert kept.all(), f"{name} lost at {samples[~kept]}"
+    # Most floating outliers are gone (those that happen to touch a surface may stay).
+    gone = ~near(out, parts["outliers"], 0.005)
+    assert gone.mean() > 0.8
+
+
+def test_all_nan_frame_gives_empty_result() -> None:
+    stats = PreprocessStats()
+    out = preprocess(np.full((100, 3), np.nan), PreprocessConfig(), stats=stats)
+    assert out.shape == (0, 3) and stats.valid == 0

@@ -1,0 +1,212 @@
+"""``wheelgrid map INPUT --out DIR``: build the levelled 3D map offline.
+
+INPUT is a rosbag2 folder (sqlite3/mcap), a ROS 1 ``.bag`` or a Stray Scanner export folder.
+Writes DIR/map.ply (map frame, metres), DIR/trajectory.tum (sensor pose per registered frame,
+map frame) and DIR/report.json. Exit codes: 0 ok, 2 bad input (one clear line on stderr),
+1 mapping failed (e.g. no floor found, every frame failed to register).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from wheelgrid_common.progress import Progress
+
+from .pipeline import Mapper, load_configs
+
+Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None]
+
+
+class InputError(Exception):
+    """Unusable input: reported on one line, exit code 2."""
+
+
+def is_stray(path: Path) -> bool:
+    return path.is_dir() and (path / "depth").is_dir() and not (path / "metadata.yaml").exists()
+
+
+def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
+    """Frames of a Stray export as optical-frame clouds (+ confidence, + ARKit pose prior)."""
+    from .depth import depth_to_points
+    from .stray import StrayExport
+
+    try:
+        export = StrayExport(path)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    if use_prior and not export.has_poses:
+        raise InputError(f"{path}: --prior arkit needs odometry.csv, which this export lacks")
+
+    def gen() -> Iterator[Frame]:
+        for i in range(len(export)):
+            try:
+                fr = export.frame(i)
+            except ValueError as exc:
+                raise InputError(str(exc)) from exc
+            pts = depth_to_points(fr.depth, fr.K)
+            conf = None if fr.confidence is None else fr.confidence.reshape(-1)
+            yield (
+                pts,
+                fr.stamp,
+                "iphone_depth_optical_frame",
+                conf,
+                (fr.pose if use_prior else None),
+            )
+
+    return len(export), gen()
+
+
+def bag_frames(path: Path, topic: str | None) -> tuple[int, Iterator[Frame], list[str]]:
+    """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause."""
+    from wheelgrid_common.bagio import BagError, BagReader
+    from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields
+
+    bad: list[str] = []
+    try:
+        reader = BagReader(path).__enter__()
+        name = reader.pick_topic(topic)
+        total = reader.count([name])
+    except BagError as exc:
+        raise InputError(str(exc)) from exc
+    if total == 0:
+        reader.__exit__()
+        raise InputError(f"{path}: topic {name} has no messages")
+
+    def gen() -> Iterator[Frame]:
+        try:
+            for _, t_ns, msg in reader.messages([name]):
+                try:
+                    pts = read_fields(msg)
+                except CloudError as exc:
+                    bad.append(exc.cause)
+                    yield np.empty((0, 3)), t_ns * 1e-9, "", None, None
+                    continue
+                conf = (
+                    read_fields(msg, ("confidence",))[:, 0]
+                    if has_field(msg, "confidence")
+                    else None
+                )
+                st = msg.header.stamp
+                stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
+                yield pts, stamp, msg.header.frame_id, conf, None
+        except BagError as exc:
+            raise InputError(str(exc)) from exc
+        finally:
+            reader.__exit__()
+
+    return total, gen(), bad
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="wheelgrid map",
+        description="Filter and register iPhone-LiDAR frames into a levelled 3D map "
+        "(map frame: z up, z=0 on the floor, origin below the first sensor pose, "
+        "x = first viewing direction on the floor).",
+    )
+    p.add_argument("input", type=Path, help="rosbag2 folder, ROS 1 .bag, or Stray export folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--topic", help="PointCloud2 topic (default: the only one in the bag)")
+    p.add_argument("--config", type=Path, help="YAML with preprocess/registration/mapper sections")
+    p.add_argument(
+        "--prior",
+        choices=["none", "arkit"],
+        default="none",
+        help="pose prior: arkit = the Stray export's odometry.csv as initial guess",
+    )
+    p.add_argument("--method", choices=["kiss", "open3d"], help="override registration.method")
+    p.add_argument("--max-frames", type=int, default=0, help="stop after this many frames")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except InputError as exc:
+        print(f"wheelgrid map: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
+        pre, reg, cfg = load_configs(args.config)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"config: {exc}") from exc
+    if args.method:
+        reg.method = args.method
+    path: Path = args.input
+    bad: list[str] = []
+    if is_stray(path):
+        if args.topic:
+            raise InputError("--topic applies to bags, not to a Stray export")
+        total, frames = stray_frames(path, args.prior == "arkit")
+    else:
+        if args.prior == "arkit":
+            raise InputError("--prior arkit needs a Stray export (odometry.csv)")
+        total, frames, bad = bag_frames(path, args.topic)
+    if args.max_frames > 0:
+        total = min(total, args.max_frames)
+    mapper = Mapper(pre, reg, cfg)
+    t0 = time.perf_counter()
+    n = 0
+    with Progress(total, "mapping", "frames") as bar:
+        for pts, stamp, frame_id, conf, prior in frames:
+            if n >= total:
+                break
+            n += 1
+            if pts.shape[0] == 0:
+                bar.update(1)
+                continue
+            out = mapper.add_frame(
+                pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior
+            )
+            if out.status == "failed":
+                print(
+                    f"\nWARNING frame {n - 1}: registration failed: {out.reason}; "
+                    "map integration paused, relocalising",
+                    file=sys.stderr,
+                )
+            elif out.relocalised:
+                print(
+                    f"\nframe {n - 1}: relocalised against the map; mapping resumed",
+                    file=sys.stderr,
+                )
+            bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
+    if bad and len(bad) == n:
+        raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
+    if mapper.frames_empty == n - len(bad):
+        raise InputError(f"{path}: all {n} frames have no valid points (all NaN/out of range)")
+    if mapper.registrar.counters.accepted == 0:
+        print("wheelgrid map: no frame could be registered", file=sys.stderr)
+        return 1
+    try:
+        rep = mapper.save(
+            args.out,
+            {
+                "input": str(path),
+                "malformed_frames": {c: bad.count(c) for c in sorted(set(bad))},
+                "wall_s": round(time.perf_counter() - t0, 3),
+            },
+        )
+    except RuntimeError as exc:
+        print(f"wheelgrid map: cannot level the map: {exc}", file=sys.stderr)
+        return 1
+    fr = rep["frames"]
+    wall = time.perf_counter() - t0
+    print(
+        f"map: {fr['read']} frames read, {fr['used']} used, {fr['failed']} failed "
+        f"({fr['relocalised']} relocalised), {rep['points']['map']} points -> "
+        f"{args.out / 'map.ply'} in {wall:.1f} s ({fr['read'] / max(wall, 1e-9):.1f} frames/s)"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,280 @@
+"""The mapping pipeline shared by ``wheelgrid map`` and the mapper node (ROS-free).
+
+``Mapper.add_frame`` = preprocess (valid/range/confidence, subdivision downsample, SOR, PFC)
+-> register against the map (KISS-ICP, failure detection) -> integrate into the global map.
+Registration and the global map live in "odom" (the first sensor frame); the levelled ``map``
+frame (see :mod:`wheelgrid_mapping.levelling` for the convention) is found from the floor once
+enough of it has been seen, or from ``mount_xyz_rpy``. Until it is known, nothing is published
+as a map: a map in the wrong frame would put obstacles in the wrong place.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.fileio import write_ply, write_tum
+from wheelgrid_common.params import field, from_mapping
+
+from .levelling import (
+    DOWN_HINT,
+    FloorNotFound,
+    find_floor,
+    map_from_floor,
+    map_from_mount,
+)
+from .preprocess import PreprocessConfig, PreprocessStats, preprocess, voxel_downsample
+from .registration import Registrar, RegistrationConfig, transform
+
+
+@dataclass
+class MapperConfig:
+    """Map building and levelling parameters (YAML section ``mapper``)."""
+
+    map_voxel: float = field(0.02, "voxel of the saved/published map", "m")
+    max_published_points: int = field(
+        300000, "the published map cloud is coarsened until it has at most this many", "points"
+    )
+    sensor_convention: str = field(
+        "auto", "auto (REP-103: frame id ending in _optical_frame = optical), optical or body", ""
+    )
+    mount_xyz_rpy: list[float] = field(
+        [], "sensor pose on a levelled base (z=0 floor): x y z roll pitch yaw; [] = from floor", ""
+    )
+    floor_max_tilt_deg: float = field(40.0, "the floor normal may differ this much from up", "deg")
+    level_min_frames: int = field(3, "frames integrated before the floor is looked for", "")
+    min_frame_interval: float = field(
+        0.0, "frames closer in time than this to the last processed one are skipped", "s"
+    )
+
+
+def load_configs(
+    path: str | Path | None,
+) -> tuple[PreprocessConfig, RegistrationConfig, MapperConfig]:
+    """Read ``preprocess:``, ``registration:``, ``mapper:`` sections from one YAML file."""
+    import yaml
+
+    if path is None:
+        return PreprocessConfig(), RegistrationConfig(), MapperConfig()
+    data = yaml.safe_load(Path(path).read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping with preprocess/registration/mapper")
+    unknown = sorted(set(data) - {"preprocess", "registration", "mapper"})
+    if unknown:
+        raise ValueError(
+            f"{path}: unknown section(s) {unknown}; use preprocess/registration/mapper"
+        )
+    return (
+        from_mapping(PreprocessConfig, data.get("preprocess") or {}),
+        from_mapping(RegistrationConfig, data.get("registration") or {}),
+        from_mapping(MapperConfig, data.get("mapper") or {}),
+    )
+
+
+@dataclass
+class FrameOutcome:
+    """What happened to one frame (for logs and the node's status)."""
+
+    status: str  # used | failed | skipped | empty
+    reason: str = ""
+    pose_map: np.ndarray | None = None  # sensor pose in map (None until levelled)
+    relocalised: bool = False
+
+
+class Mapper:
+    """Incremental map builder; one instance per mapping session."""
+
+    def __init__(
+        self,
+        pre: PreprocessConfig | None = None,
+        reg: RegistrationConfig | None = None,
+        cfg: MapperConfig | None = None,
+    ) -> None:
+        self.pre = pre or PreprocessConfig()
+        self.reg_cfg = reg or RegistrationConfig()
+        self.cfg = cfg or MapperConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (the node's ~/reset)."""
+        self.registrar = Registrar(self.reg_cfg)
+        self.convention: str | None = None
+        self.T_map_odom: np.ndarray | None = None
+        self.level_info: dict[str, Any] = {}
+        self._chunks: list[np.ndarray] = []
+        self._map_odom = np.empty((0, 3))
+        self._dirty = 0
+        self.stamps: list[float] = []
+        self.poses_odom: list[np.ndarray] = []
+        self.frames_read = 0
+        self.frames_skipped = 0
+        self.frames_empty = 0
+        self.failures: list[dict[str, Any]] = []
+        self.points = {"input": 0, "valid": 0, "downsampled": 0, "after_sor": 0, "after_pfc": 0}
+        self.timings = {"preprocess_s": 0.0, "registration_s": 0.0, "levelling_s": 0.0}
+        self._last_processed: float | None = None
+
+    # -- per frame ----------------------------------------------------------------------------
+    def add_frame(
+        self,
+        points: np.ndarray,
+        stamp: float,
+        frame_id: str = "iphone_depth_optical_frame",
+        confidence: np.ndarray | None = None,
+        prior: np.ndarray | None = None,
+    ) -> FrameOutcome:
+        """Process one sensor-frame cloud (``(N, 3)``, NaN allowed) taken at ``stamp`` seconds."""
+        self.frames_read += 1
+        if self.convention is None:
+            from .levelling import convention_for_frame
+
+            self.convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
+        if (
+            self.cfg.min_frame_interval > 0
+            and self._last_processed is not None
+            and stamp - self._last_processed < self.cfg.min_frame_interval
+        ):
+            self.frames_skipped += 1
+            return FrameOutcome("skipped", "keyframe interval")
+        self._last_processed = stamp
+        t0 = time.perf_counter()
+        st = PreprocessStats()
+        pts = preprocess(points, self.pre, confidence, st)
+        for k in self.points:
+            self.points[k] += int(getattr(st, k))
+        t1 = time.perf_counter()
+        self.timings["preprocess_s"] += t1 - t0
+        if st.valid == 0:
+            self.frames_empty += 1
+            self.failures.append(
+                {"frame": self.frames_read - 1, "stamp": stamp, "reason": "no valid points"}
+            )
+            return FrameOutcome("empty", "no valid points (all NaN or out of range)")
+        res = self.registrar.register(pts, stamp, prior)
+        self.timings["registration_s"] += time.perf_counter() - t1
+        if not res.accepted:
+            self.failures.append(
+                {"frame": self.frames_read - 1, "stamp": stamp, "reason": res.reason}
+            )
+            return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
+        self.stamps.append(float(stamp))
+        self.poses_odom.append(res.pose)
+        self._chunks.append(transform(pts, res.pose))
+        self._dirty += pts.shape[0]
+        if self.T_map_odom is None and len(self.poses_odom) >= self.cfg.level_min_frames:
+            self.try_level()
+        return FrameOutcome(
+            "used", pose_map=self.pose_in_map(res.pose), relocalised=res.relocalised
+        )
+
+    # -- map -----------------------------------------------------------------------------------
+    def map_odom(self) -> np.ndarray:
+        """Global map in odom, voxelised at ``map_voxel`` (consolidated lazily)."""
+        if self._chunks:
+            allp = np.vstack([self._map_odom, *self._chunks])
+            self._chunks = []
+            self._map_odom = voxel_downsample(allp, self.cfg.map_voxel)
+            self._dirty = 0
+        return self._map_odom
+
+    def try_level(self) -> bool:
+        """Find ``T_map_odom`` (mount parameter or floor); True once known."""
+        if self.T_map_odom is not None:
+            return True
+        t0 = time.perf_counter()
+        conv = self.convention or "optical"
+        try:
+            if self.cfg.mount_xyz_rpy:
+                self.T_map_odom = map_from_mount(self.cfg.mount_xyz_rpy, conv)
+                self.level_info = {"method": "mount", "mount_xyz_rpy": list(self.cfg.mount_xyz_rpy)}
+            else:
+                pts = self.map_odom()
+                first = self.poses_odom[0] if self.poses_odom else np.eye(4)
+                down = first[:3, :3] @ DOWN_HINT[conv]
+                n, d = find_floor(pts, down, first[:3, 3], self.cfg.floor_max_tilt_deg)
+                self.T_map_odom = map_from_floor(n, d, conv, first)
+                tilt = float(np.degrees(np.arccos(np.clip(-(n @ down), -1, 1))))
+                self.level_info = {
+                    "method": "floor",
+                    "sensor_height_m": float(n @ first[:3, 3] + d),
+                    "first_view_tilt_deg": tilt,
+                }
+        except FloorNotFound as exc:
+            self.level_info = {"method": "none", "error": str(exc)}
+        finally:
+            self.timings["levelling_s"] += time.perf_counter() - t0
+        return self.T_map_odom is not None
+
+    def pose_in_map(self, pose_odom: np.ndarray) -> np.ndarray | None:
+        return None if self.T_map_odom is None else self.T_map_odom @ pose_odom
+
+    def map_points(self) -> np.ndarray:
+        """The map in the levelled map frame; RuntimeError if the floor was never found."""
+        if not self.try_level():
+            raise RuntimeError(self.level_info.get("error", "map frame unknown"))
+        assert self.T_map_odom is not None
+        return transform(self.map_odom(), self.T_map_odom)
+
+    def published_points(self) -> np.ndarray:
+        """``map_points`` coarsened until it fits ``max_published_points``."""
+        pts = self.map_points()
+        cell = self.cfg.map_voxel
+        while pts.shape[0] > self.cfg.max_published_points:
+            cell *= 1.25
+            pts = voxel_downsample(pts, cell)
+        return pts
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps, sensor poses in map) of every registered frame."""
+        if not self.try_level():
+            raise RuntimeError(self.level_info.get("error", "map frame unknown"))
+        assert self.T_map_odom is not None
+        poses = np.array([self.T_map_odom @ p for p in self.poses_odom]).reshape(-1, 4, 4)
+        return np.asarray(self.stamps), poses
+
+    @property
+    def state(self) -> str:
+        return self.registrar.state
+
+    def report(self) -> dict[str, Any]:
+        c = self.registrar.counters
+        return {
+            "frames": {
+                "read": self.frames_read,
+                "used": c.accepted,
+                "failed": c.failed,
+                "empty": self.frames_empty,
+                "skipped": self.frames_skipped,
+                "relocalised": c.relocalised,
+            },
+            "failure_reasons": dict(c.failure_reasons),
+            "failures": self.failures[:200],
+            "points": dict(self.points, map=int(self.map_odom().shape[0])),
+            "timings": {k: round(v, 3) for k, v in self.timings.items()},
+            "levelling": self.level_info,
+            "map_frame": "z up, z=0 floor, origin below first sensor pose, x = first view on floor",
+            "config": {
+                "preprocess": asdict(self.pre),
+                "registration": asdict(self.reg_cfg),
+                "mapper": asdict(self.cfg),
+            },
+        }
+
+    def save(self, out_dir: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Write map.ply, trajectory.tum, report.json into ``out_dir``; returns the report."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        pts = self.map_points()
+        stamps, poses = self.trajectory()
+        write_ply(out / "map.ply", pts, comment="wheelgrid map frame: z up, z=0 floor, metres")
+        write_tum(out / "trajectory.tum", stamps, poses)
+        rep = self.report()
+        if extra:
+            rep.update(extra)
+        (out / "report.json").write_text(json.dumps(rep, indent=2, default=float))
+        return rep

@@ -1,0 +1,270 @@
+"""Frame-to-map registration with failure detection (ROS-free).
+
+KISS-ICP (``kiss-icp`` package) is used piece by piece (its voxel hash map, point-to-point
+registration with a robust kernel, adaptive threshold) instead of ``KissICP.register_frame``,
+because that call always integrates the frame into its map: a chair's map must not absorb a
+frame that failed to register. Here a frame is integrated only after it passed every check:
+
+* too few points (``min_points``) - nothing to register;
+* low overlap (``min_fitness``: fraction of the frame's points that land in an occupied map
+  cell after alignment);
+* an implausible jump for a chair at <= 3 km/h (``max_speed``, ``max_turn_rate``; the default
+  leaves margin for a hand-held capture) or a large disagreement with the pose prior.
+
+A failed frame is reported loudly, integration pauses (state ``relocalising``), and each later
+frame is aligned against the unchanged map from the last good pose (or the prior's guess) with
+a wider search; the first one that passes resumes mapping. Every event is counted.
+
+The Open3D point-to-plane ICP path (``method: open3d``) keeps the same checks and map; it is
+the baseline the benchmarks compare against.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.params import field
+
+from .preprocess import voxel_downsample
+
+
+@dataclass
+class RegistrationConfig:
+    """Registration and failure-detection parameters (YAML section ``registration``)."""
+
+    method: str = field("kiss", "kiss (KISS-ICP) or open3d (point-to-plane ICP baseline)", "")
+    voxel_size: float = field(0.15, "voxel of the registration map (KISS-ICP voxel_size)", "m")
+    max_range: float = field(6.0, "map points farther than this from the sensor are dropped", "m")
+    initial_threshold: float = field(
+        0.3, "initial correspondence threshold of the adaptive estimator", "m"
+    )
+    min_motion_th: float = field(0.02, "motion below this does not adapt the threshold", "m")
+    max_points_per_voxel: int = field(20, "points kept per registration-map voxel", "")
+    max_iterations: int = field(100, "ICP iterations at most", "")
+    min_points: int = field(150, "a frame with fewer points after filtering fails", "points")
+    min_fitness: float = field(
+        0.5, "fraction of frame points that must land on the map after alignment", ""
+    )
+    fitness_cell: float = field(
+        0.05, "map occupancy cell of the overlap check (a match is within 1-2 cells)", "m"
+    )
+    max_speed: float = field(
+        1.5, "faster apparent motion is a failure (chair <= 0.83 m/s + hand-held margin)", "m/s"
+    )
+    max_turn_rate: float = field(120.0, "faster apparent rotation is a failure", "deg/s")
+    min_dt: float = field(0.2, "time floor for the jump check (bag stamps can bunch)", "s")
+    max_prior_deviation: float = field(
+        0.3, "a result this far from the pose prior's guess fails", "m"
+    )
+    max_prior_deviation_deg: float = field(15.0, "same, for rotation", "deg")
+    relocalise_scale: float = field(
+        3.0, "correspondence distance multiplier while relocalising", ""
+    )
+    threads: int = field(2, "registration threads (0 = all cores)", "")
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees."""
+    return math.degrees(math.acos(float(np.clip((np.trace(R[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to ``(N, 3)`` points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+@dataclass
+class RegResult:
+    """Outcome of one frame; ``pose`` is the sensor pose in odom (the first sensor frame)."""
+
+    pose: np.ndarray
+    accepted: bool
+    reason: str = ""
+    fitness: float = 0.0
+    relocalised: bool = False
+    seconds: float = 0.0
+
+
+@dataclass
+class RegCounters:
+    frames: int = 0
+    accepted: int = 0
+    failed: int = 0
+    relocalised: int = 0
+    failure_reasons: dict[str, int] = dc_field(default_factory=dict)
+
+
+class Registrar:
+    """Frame-to-map registration state machine: ``ok`` <-> ``relocalising``."""
+
+    def __init__(self, cfg: RegistrationConfig) -> None:
+        if cfg.method not in ("kiss", "open3d"):
+            raise ValueError(f"registration method must be kiss or open3d, not {cfg.method!r}")
+        from kiss_icp.config import load_config
+        from kiss_icp.mapping import get_voxel_hash_map
+        from kiss_icp.registration import get_registration
+        from kiss_icp.threshold import get_threshold_estimator
+
+        self.cfg = cfg
+        kcfg = load_config(None)
+        kcfg.data.max_range = cfg.max_range
+        kcfg.data.min_range = 0.0
+        kcfg.data.deskew = False
+        kcfg.mapping.voxel_size = cfg.voxel_size
+        kcfg.mapping.max_points_per_voxel = cfg.max_points_per_voxel
+        kcfg.registration.max_num_iterations = cfg.max_iterations
+        kcfg.registration.max_num_threads = cfg.threads
+        kcfg.adaptive_threshold.initial_threshold = cfg.initial_threshold
+        kcfg.adaptive_threshold.min_motion_th = cfg.min_motion_th
+        self._kcfg = kcfg
+        self._map = get_voxel_hash_map(kcfg)
+        self._reg = get_registration(kcfg)
+        self._threshold = get_threshold_estimator(kcfg)
+        self._occupied = np.empty(0, dtype=np.int64)
+        self.state = "ok"
+        self.last_pose = np.eye(4)
+        self.last_delta = np.eye(4)
+        self.last_stamp: float | None = None
+        self.last_prior: np.ndarray | None = None
+        self.counters = RegCounters()
+
+    # -- map occupancy for the overlap check -------------------------------------------------
+    def _keys(self, pts: np.ndarray) -> np.ndarray:
+        ijk = np.floor(pts / self.cfg.fitness_cell).astype(np.int64) + (1 << 20)
+        return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+    def _fitness(self, pts_odom: np.ndarray) -> float:
+        if self._occupied.size == 0 or pts_odom.shape[0] == 0:
+            return 0.0
+        # A point matches when its cell or one of the 26 around it is occupied: the tolerance is
+        # one to two cells, independent of where cell borders fall.
+        keys = self._keys(pts_odom)
+        hit = np.zeros(keys.shape[0], dtype=bool)
+        for a in (-1, 0, 1):
+            for b in (-1, 0, 1):
+                for c in (-1, 0, 1):
+                    k = keys + ((a << 42) + (b << 21) + c)
+                    pos = np.minimum(np.searchsorted(self._occupied, k), self._occupied.size - 1)
+                    hit |= self._occupied[pos] == k
+        return float(np.mean(hit))
+
+    def _integrate(self, pts_sensor: np.ndarray, pose: np.ndarray) -> None:
+        pts_odom = transform(pts_sensor, pose)
+        self._map.update(pts_odom, pose)
+        self._occupied = np.union1d(self._occupied, self._keys(pts_odom))
+
+    # -- alignment -----------------------------------------------------------------------------
+    def _align(self, source: np.ndarray, guess: np.ndarray, max_corr: float, kernel: float) -> Any:
+        if self.cfg.method == "kiss":
+            return self._reg.align_points_to_map(
+                points=source,
+                voxel_map=self._map,
+                initial_guess=guess,
+                max_correspondance_distance=max_corr,
+                kernel=kernel,
+            )
+        import open3d as o3d
+
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self._map.point_cloud()))
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(3 * self.cfg.voxel_size, 20))
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+        res = o3d.pipelines.registration.registration_icp(
+            src,
+            target,
+            max_corr,
+            guess,
+            o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(
+                max_iteration=self.cfg.max_iterations
+            ),
+        )
+        return np.asarray(res.transformation)
+
+    def register(
+        self, points: np.ndarray, stamp: float, prior: np.ndarray | None = None
+    ) -> RegResult:
+        """Register one filtered sensor-frame cloud; integrate it only if it passes the checks.
+
+        ``prior`` is an optional pose of the sensor in ANY fixed frame (e.g. ARKit world); only
+        its motion since the last accepted frame is used, as the initial guess.
+        """
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        self.counters.frames += 1
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        frame_down = voxel_downsample(pts, 0.5 * cfg.voxel_size) if pts.size else pts
+        if frame_down.shape[0] < cfg.min_points // 4 or pts.shape[0] < cfg.min_points:
+            return self._fail(f"too few points ({pts.shape[0]})", t0)
+        first = self.last_stamp is None
+        if first:
+            self._integrate(frame_down, np.eye(4))
+            self.last_stamp = stamp
+            self.last_prior = prior
+            self.counters.accepted += 1
+            return RegResult(np.eye(4), True, fitness=1.0, seconds=time.perf_counter() - t0)
+
+        if prior is not None and self.last_prior is not None:
+            guess = self.last_pose @ np.linalg.inv(self.last_prior) @ prior
+        else:
+            guess = self.last_pose @ self.last_delta
+        source = voxel_downsample(frame_down, 1.5 * cfg.voxel_size)
+        sigma = float(self._threshold.get_threshold())
+        relocalising = self.state == "relocalising"
+        scale = cfg.relocalise_scale if relocalising else 1.0
+        pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
+        fitness = self._fitness(transform(frame_down, pose))
+
+        reason = ""
+        dt = max(float(stamp - self.last_stamp), cfg.min_dt)
+        step = np.linalg.inv(self.last_pose) @ pose
+        if fitness < cfg.min_fitness:
+            reason = f"low overlap (fitness {fitness:.2f} < {cfg.min_fitness:.2f})"
+        elif np.linalg.norm(step[:3, 3]) > cfg.max_speed * dt + cfg.voxel_size:
+            reason = f"implausible jump ({np.linalg.norm(step[:3, 3]):.2f} m in {dt:.2f} s)"
+        elif rotation_angle_deg(step) > cfg.max_turn_rate * dt + 5.0:
+            reason = f"implausible turn ({rotation_angle_deg(step):.0f} deg in {dt:.2f} s)"
+        elif prior is not None and self.last_prior is not None:
+            dev = np.linalg.inv(guess) @ pose
+            if np.linalg.norm(dev[:3, 3]) > cfg.max_prior_deviation:
+                reason = f"disagrees with pose prior by {np.linalg.norm(dev[:3, 3]):.2f} m"
+            elif rotation_angle_deg(dev) > cfg.max_prior_deviation_deg:
+                reason = f"disagrees with pose prior by {rotation_angle_deg(dev):.0f} deg"
+        if reason:
+            return self._fail(reason, t0, fitness, pose)
+
+        if not relocalising:
+            self._threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
+        self._integrate(frame_down, pose)
+        self.last_delta = step if not relocalising else np.eye(4)
+        self.last_pose = pose
+        self.last_stamp = stamp
+        self.last_prior = prior
+        self.counters.accepted += 1
+        if relocalising:
+            self.counters.relocalised += 1
+            self.state = "ok"
+        return RegResult(
+            pose, True, fitness=fitness, relocalised=relocalising, seconds=time.perf_counter() - t0
+        )
+
+    def _fail(
+        self, reason: str, t0: float, fitness: float = 0.0, pose: np.ndarray | None = None
+    ) -> RegResult:
+        self.counters.failed += 1
+        key = reason.split(" (")[0].split(" by ")[0]
+        self.counters.failure_reasons[key] = self.counters.failure_reasons.get(key, 0) + 1
+        if self.last_stamp is not None:
+            self.state = "relocalising"
+        return RegResult(
+            self.last_pose if pose is None else pose,
+            False,
+            reason=reason,
+            fitness=fitness,
+            seconds=time.perf_counter() - t0,
+        )
