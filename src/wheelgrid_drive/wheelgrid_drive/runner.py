@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_drive.actions import Step
+from wheelgrid_drive.actions import Step, moves_from_cells
 from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
 
 # (step, record) -> None; record is the drive_commands JSON object.
@@ -112,3 +112,31 @@ def run_steps(
 
 def dumps_record(rec: dict[str, Any]) -> str:
     return json.dumps(rec, separators=(",", ":"))
+
+
+def cells_from_points(
+    grid: Any, points: Sequence[Sequence[float]], tolerance: float = 0.25
+) -> list[tuple[int, int]]:
+    """Grid cells of a path through cell centres (map-frame x, y), validated.
+
+    Each point must lie within ``tolerance`` cells of its cell's centre (a path that does not
+    go through centres was planned on another grid: a doubt), inside the grid, and consecutive
+    cells must be 4-neighbours. Repeated cells are collapsed. ValueError otherwise.
+    """
+    cells: list[tuple[int, int]] = []
+    for i, p in enumerate(points):
+        x, y = float(p[0]), float(p[1])
+        r, c = grid.cell_of(x, y)
+        if not grid.inside(r, c):
+            raise ValueError(f"path point {i} ({x:.2f}, {y:.2f}) is outside the safe grid")
+        cx, cy = grid.cell_center(r, c)
+        off = float(np.hypot(x - cx, y - cy))
+        if off > tolerance * grid.resolution:
+            raise ValueError(
+                f"path point {i} ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
+                f"{(r, c)}: the plan was not made on this grid"
+            )
+        if not cells or cells[-1] != (r, c):
+            cells.append((r, c))
+    moves_from_cells(cells)  # raises on a diagonal or a jump
+    return cells

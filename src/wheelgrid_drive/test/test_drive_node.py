@@ -1,0 +1,221 @@
+"""The drive node over real DDS on loopback, driving the simulated controller on a pty."""
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import Grid, to_occupancy_grid
+from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+from wheelgrid_common.testing import rclpy_context, spin_until
+from wheelgrid_drive import protocol as proto
+
+pytestmark = pytest.mark.ros
+
+CELLS = [(2, 0), (2, 1), (2, 2), (2, 3), (2, 4), (2, 5), (3, 5), (4, 5), (5, 5), (6, 5)]
+TABLE_II_ACTIONS = ["LEFT_FORWARD"] + ["FORWARD"] * 4 + ["RIGHT_FORWARD"] + ["FORWARD"] * 3
+
+
+class Harness:
+    """A DriveNode and a test node in one executor, with publishers and recorders."""
+
+    def __init__(self, ctx, port, **params):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped, Twist
+        from nav_msgs.msg import OccupancyGrid, Path
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.parameter import Parameter
+        from std_msgs.msg import Bool, String
+
+        from wheelgrid_drive.drive_node import DriveNode
+
+        overrides = [Parameter("port", value=port), Parameter("state_rate", value=20.0)]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.drive = DriveNode(context=ctx, parameter_overrides=overrides)
+        self.node = Node("wg_drive_test", context=ctx)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.drive)
+        self.ex.add_node(self.node)
+        n = self.node
+        self.pub_grid = n.create_publisher(OccupancyGrid, "/wheelgrid/safe_grid", MAP_QOS)
+        self.pub_plan = n.create_publisher(Path, "/wheelgrid/plan", MAP_QOS)
+        self.pub_estop = n.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+        self.pub_twist = n.create_publisher(Twist, "/cmd_vel", RELIABLE_QOS)
+        self.cmds, self.states, self.poses = [], [], []
+        n.create_subscription(
+            String,
+            "/wheelgrid/drive_commands",
+            lambda m: self.cmds.append(json.loads(m.data)),
+            RELIABLE_QOS,
+        )
+        n.create_subscription(
+            DiagnosticArray,
+            "/wheelgrid/drive_state",
+            lambda m: self.states.append(m.status[0]),
+            RELIABLE_QOS,
+        )
+        n.create_subscription(PoseStamped, "/wheelgrid/chair_pose", self.poses.append, RELIABLE_QOS)
+        self.Path, self.PoseStamped, self.Bool, self.Twist = Path, PoseStamped, Bool, Twist
+
+    def spin(self, predicate, timeout=10.0):
+        return spin_until(self.ex, predicate, timeout, step=0.01)
+
+    def matched(self):
+        return self.spin(
+            lambda: (
+                self.pub_plan.get_subscription_count() > 0
+                and self.pub_estop.get_subscription_count() > 0
+                and self.pub_twist.get_subscription_count() > 0
+            ),
+            10.0,
+        )
+
+    def publish_plan(self, grid, cells, heading_yaw=0.0):
+        path = self.Path()
+        path.header.frame_id = "map"
+        for r, c in cells:
+            ps = self.PoseStamped()
+            ps.header.frame_id = "map"
+            x, y = grid.cell_center(r, c)
+            ps.pose.position.x, ps.pose.position.y = float(x), float(y)
+            ps.pose.orientation.z = math.sin(heading_yaw / 2)
+            ps.pose.orientation.w = math.cos(heading_yaw / 2)
+            path.poses.append(ps)
+        self.pub_plan.publish(path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.drive.close()  # stops the chair and the node's threads before the context ends
+        self.ex.shutdown()
+        self.drive.destroy_node()
+        self.node.destroy_node()
+
+
+def free_grid(rows=8, cols=8):
+    return Grid(np.zeros((rows, cols), np.int8), 1.2, origin=(-2.0, 1.0, 0.0))
+
+
+def sim_moves(sim):
+    return [e.detail for e in sim.events if e.what == "move"]
+
+
+def test_node_drives_the_table_ii_route(make_sim):
+    sim = make_sim()
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="down", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, CELLS)
+        assert h.spin(lambda: len(h.cmds) >= 9, 20.0), h.cmds
+        assert [c["action"] for c in h.cmds] == TABLE_II_ACTIONS
+        assert all(c["ack"] == "ACK" for c in h.cmds)
+        assert [tuple(c["from"]) for c in h.cmds] == CELLS[:-1]
+        assert {"from", "to", "heading", "move", "new_heading", "action", "ack", "t"} <= set(
+            h.cmds[0]
+        )
+        assert sim_moves(sim) == TABLE_II_ACTIONS
+        st = sim.status()
+        assert grid.cell_of(st.x, st.y) == CELLS[-1]
+        assert h.spin(lambda: bool(h.poses) and h.poses[-1].header.frame_id == "map", 3.0)
+        assert h.spin(lambda: any("plan done" in s.message for s in h.states), 3.0)
+
+
+def test_estop_stops_the_chair_at_once_and_latches(make_sim):
+    sim = make_sim(time_scale=1.0)
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+        t_pub = time.monotonic()
+        h.pub_estop.publish(h.Bool(data=True))
+        assert h.spin(
+            lambda: any(
+                e.what == "stop" and e.detail == "STOP frame" and e.t > t_pub for e in sim.events
+            ),
+            3.0,
+        )
+        stop = next(e for e in sim.events if e.what == "stop" and e.t > t_pub)
+        print(f"e-stop -> STOP at the controller: {(stop.t - t_pub) * 1000:.1f} ms")
+        assert sim.state == proto.State.IDLE and sim.result == proto.Result.STOPPED
+        assert h.spin(lambda: any(s.message.startswith("e-stop") for s in h.states), 3.0)
+        n_moves = len(sim_moves(sim))
+        # Latched: a new plan is refused until the e-stop is cleared.
+        h.publish_plan(grid, [(3, 0), (3, 1)])
+        assert h.spin(lambda: any("e-stop latched" in s.message for s in h.states), 3.0)
+        h.spin(lambda: False, 0.3)
+        assert len(sim_moves(sim)) == n_moves == 1
+        h.pub_estop.publish(h.Bool(data=False))
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+        assert len(sim_moves(sim)) == n_moves  # clearing does not resume anything by itself
+
+
+def test_step_into_occupied_cell_is_refused(make_sim):
+    sim = make_sim()
+    grid = free_grid()
+    grid.data[2, 3] = 100
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="down", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, CELLS)
+        assert h.spin(lambda: any(c["ack"] == "REFUSED" for c in h.cmds), 10.0)
+        refused = next(c for c in h.cmds if c["ack"] == "REFUSED")
+        assert refused["to"] == [2, 3] and "occupied" in refused["reason"]
+        assert sim_moves(sim) == ["LEFT_FORWARD", "FORWARD"]
+        assert h.spin(
+            lambda: any(
+                s.message.startswith("plan stopped") and s.level == b"\x02" for s in h.states
+            ),
+            3.0,
+        )
+
+
+def test_plan_refused_when_the_chair_is_not_at_its_start(make_sim):
+    sim = make_sim(pose=(50.0, 50.0, 0.0))
+    grid = free_grid()
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path, initial_heading="down") as h:
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, CELLS)
+        assert h.spin(lambda: any("plan refused" in s.message for s in h.states), 5.0)
+        assert sim_moves(sim) == []
+
+
+def test_cmd_vel_steps_and_watchdog_stop(make_sim):
+    grid = free_grid()
+    x, y = grid.cell_center(3, 3)
+    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))  # facing right (+x)
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        tw = h.Twist()
+        tw.linear.x = 0.8
+        for _ in range(5):  # Nav2 asks to go forward for a while, then goes silent
+            h.pub_twist.publish(tw)
+            h.spin(lambda: False, 0.05)
+        assert h.spin(lambda: sim.state != proto.State.IDLE, 3.0)
+        assert sim_moves(sim) == ["FORWARD"]
+        # No Twist for 0.5 s: STOP, although the 1.2 m step needs ~1.5 s.
+        assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
+        assert sim.x < x + 1.2 - 0.1
+        assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)

@@ -1,0 +1,45 @@
+"""ROS-free pieces of plan execution: path -> cells, the free-cell check."""
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import Grid
+from wheelgrid_drive.runner import cells_from_points, grid_cell_check
+
+
+def grid():
+    data = np.zeros((4, 5), np.int8)
+    data[1, 2] = 100
+    data[2, 2] = -1
+    data[3, 4] = 50
+    return Grid(data, 1.2, origin=(10.0, -3.0, 0.0))
+
+
+def test_cells_from_cell_centres_round_trip():
+    g = grid()
+    cells = [(0, 0), (0, 1), (1, 1), (1, 1), (2, 1)]
+    pts = [g.cell_center(r, c) for r, c in cells]
+    assert cells_from_points(g, pts) == [(0, 0), (0, 1), (1, 1), (2, 1)]
+
+
+def test_path_not_through_centres_or_not_neighbours_is_refused():
+    g = grid()
+    x, y = g.cell_center(0, 0)
+    with pytest.raises(ValueError, match="centre"):
+        cells_from_points(g, [(x + 0.5, y)])
+    with pytest.raises(ValueError, match="4-neighbours"):
+        cells_from_points(g, [g.cell_center(0, 0), g.cell_center(1, 1)])
+    with pytest.raises(ValueError, match="outside"):
+        cells_from_points(g, [(0.0, 0.0)])
+
+
+def test_only_free_cells_pass():
+    g = grid()
+    check = grid_cell_check(lambda: g)
+    assert check((0, 0)) is None
+    assert "occupied" in check((1, 2))
+    assert "unknown" in check((2, 2))
+    assert "not free" in check((3, 4))
+    assert "outside" in check((4, 0))
+    assert "outside" in check((0, -1))
+    assert "no safe grid" in grid_cell_check(lambda: None)((0, 0))

@@ -1,0 +1,472 @@
+"""The ``drive`` node: plans and velocity commands in, serial motor commands out.
+
+Thin on purpose: the Table II rule (actions.py), the wire protocol (protocol.py), the link
+(link.py) and the per-step execution with its free-cell check (runner.py) are ROS-free and
+tested on their own. This module translates messages and parameters and owns the threads:
+
+* the executor thread runs callbacks (plan, grid, e-stop, cmd_vel, timers);
+* one worker thread at a time drives a plan or a /cmd_vel step (a new job aborts the old one);
+* the link's heartbeat thread feeds the controller watchdog and publishes /wheelgrid/chair_pose.
+
+Safety: an e-stop sends STOP from its callback at once (it does not wait for the worker) and is
+latched until a ``false`` arrives; every step is checked against the latest safe grid (only
+FREE cells); a stale /cmd_vel (0.5 s) stops the chair; any link trouble stops the chair.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, Twist
+from nav_msgs.msg import OccupancyGrid, Path
+from rclpy.node import Node
+from std_msgs.msg import Bool, String
+
+from wheelgrid_common.map_io import Grid, from_occupancy_grid
+from wheelgrid_common.params import declare_dataclass, field
+from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+from wheelgrid_common.ros_env import spin_node
+from wheelgrid_drive import actions
+from wheelgrid_drive import protocol as proto
+from wheelgrid_drive.link import LinkError, MotorLink
+from wheelgrid_drive.runner import (
+    RunResult,
+    cells_from_points,
+    dumps_record,
+    grid_cell_check,
+    run_steps,
+)
+
+# DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+@dataclass
+class DriveConfig:
+    """Parameters of the drive node (also readable from a params YAML)."""
+
+    port: str = field("", "serial device of the motor controller (or a simulator pty)")
+    baud: int = field(115200, "serial baud rate", "baud")
+    speed: float = field(3.0, "driving speed, hard-capped at 3 km/h", "km/h")
+    cell_size: float = field(1.2, "step length for /cmd_vel steps when no grid is known", "m")
+    reply_timeout: float = field(0.1, "wait for each controller reply before a retry", "s")
+    retries: int = field(3, "resends of an unanswered frame before giving up (and STOP)")
+    heartbeat_period: float = field(0.1, "heartbeat (and pose report) period", "s")
+    reconnect_period: float = field(0.5, "retry period to reopen a vanished port", "s")
+    cmd_vel_timeout: float = field(0.5, "no /cmd_vel Twist for this long -> STOP", "s")
+    initial_heading: str = field(
+        "auto",
+        "chair heading at the plan start: up/down/left/right, or auto = the plan's "
+        "first pose orientation",
+    )
+    check_start_pose: bool = field(
+        True,
+        "refuse a plan unless the controller's pose is in its first cell, facing its start heading",
+    )
+    set_pose_on_plan: bool = field(
+        False, "tell the controller it stands on the plan's start cell (simulator/demo only)"
+    )
+    linear_deadband: float = field(0.05, "|linear.x| below this is no motion", "m/s")
+    angular_deadband: float = field(0.3, "|angular.z| above this is a turn", "rad/s")
+    state_rate: float = field(5.0, "drive_state publishing rate", "Hz")
+
+
+class DriveNode(Node):
+    def __init__(self, cfg: DriveConfig | None = None, **kwargs: Any) -> None:
+        super().__init__("drive", **kwargs)
+        self.cfg = declare_dataclass(self, cfg or DriveConfig())
+        c = self.cfg
+        self.speed = min(c.speed, proto.MAX_SPEED_KMH) if c.speed > 0 else proto.MAX_SPEED_KMH
+        if c.speed > proto.MAX_SPEED_KMH or c.speed <= 0:
+            self.get_logger().warning(f"speed {c.speed} km/h replaced by {self.speed} km/h")
+        self._lock = threading.Lock()
+        self._grid: Grid | None = None
+        self._estop = False
+        self._abort = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._job = "idle"
+        self._progress = (0, 0)
+        self._level = OK
+        self._message = "idle"
+        self._last_twist: Twist | None = None
+        self._last_twist_t = 0.0
+        self._cmd_vel_active = False
+        self._link_note = ""
+
+        pub = self.create_publisher
+        self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
+        self.pub_cmds = pub(String, "/wheelgrid/drive_commands", RELIABLE_QOS)
+        self.pub_pose = pub(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
+        self.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
+        self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, MAP_QOS)
+        self.create_subscription(Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS)
+        self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
+
+        self.link = MotorLink(
+            c.port,
+            c.baud,
+            reply_timeout=c.reply_timeout,
+            retries=c.retries,
+            heartbeat_period=c.heartbeat_period,
+            reconnect_period=c.reconnect_period,
+            on_status=self._on_status,
+            on_event=self._on_link_event,
+        )
+        if not c.port:
+            self._set_state(ERROR, "no port parameter: cannot reach the motor controller")
+        else:
+            try:
+                self.link.open()
+            except LinkError as exc:
+                self._set_state(ERROR, f"{exc}; retrying")
+            self.link.start_heartbeat()  # also reconnects a port that is not there yet
+        self.create_timer(0.05, self._cmd_vel_tick)
+        self.create_timer(1.0 / max(c.state_rate, 0.1), self._publish_state)
+
+    # ---- state reporting ----------------------------------------------------------------------
+
+    def _set_state(self, level: bytes, message: str) -> None:
+        with self._lock:
+            self._level, self._message = level, message
+        # One call site per severity: rclpy refuses a call site that changes severity.
+        logger = self.get_logger()
+        if level == OK:
+            logger.info(message)
+        elif level == WARN:
+            logger.warning(message)
+        else:
+            logger.error(message)
+        self._publish_state()
+
+    def _publish_state(self) -> None:
+        with self._lock:
+            level, message, job, (done, total) = (
+                self._level,
+                self._message,
+                self._job,
+                self._progress,
+            )
+        st = self.link.last_status
+        s = self.link.stats
+        values = {
+            "connected": str(self.link.connected).lower(),
+            "estop": str(self._estop).lower(),
+            "job": job,
+            "step": str(done),
+            "steps": str(total),
+            "speed_kmh": f"{self.speed:g}",
+            "link_note": self._link_note,
+            "sent": str(s.sent),
+            "retries": str(s.retries),
+            "timeouts": str(s.timeouts),
+            "garbled": str(s.garbled),
+            "unexpected": str(s.unexpected),
+            "disconnects": str(s.disconnects),
+            "reconnects": str(s.reconnects),
+        }
+        if st is not None:
+            values.update(
+                x=f"{st.x:.3f}",
+                y=f"{st.y:.3f}",
+                yaw=f"{st.yaw:.3f}",
+                state=st.state.name,
+                result=st.result.name,
+            )
+        if not self.link.connected and self.cfg.port:
+            level, message = ERROR, f"motor controller port {self.cfg.port} not connected"
+        elif self._estop:
+            level, message = ERROR, "e-stop latched (publish false on /wheelgrid/estop to clear)"
+        status = DiagnosticStatus(
+            level=level,
+            name="wheelgrid/drive",
+            message=message,
+            hardware_id=self.cfg.port or "none",
+            values=[KeyValue(key=k, value=v) for k, v in values.items()],
+        )
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        self._publish(self.pub_state, msg)
+
+    def _on_status(self, st: proto.Status) -> None:
+        msg = PoseStamped()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = "map"
+        msg.pose.position.x, msg.pose.position.y = float(st.x), float(st.y)
+        msg.pose.orientation.z = math.sin(st.yaw / 2.0)
+        msg.pose.orientation.w = math.cos(st.yaw / 2.0)
+        self._publish(self.pub_pose, msg)
+
+    def _on_link_event(self, kind: str, message: str) -> None:
+        if kind == "timeout":
+            return
+        self._link_note = f"{kind}: {message}"
+        if kind in ("vanished", "stop", "nak", "garbled", "unexpected"):
+            self.get_logger().warning(self._link_note)
+        elif kind == "reconnected":
+            self.get_logger().info(self._link_note)
+
+    def _publish_record(self, rec: dict[str, Any]) -> None:
+        self._publish(self.pub_cmds, String(data=dumps_record(rec)))
+
+    def _publish(self, pub: Any, msg: Any) -> None:
+        """Publish from any thread; after shutdown the threads' last words are only logged."""
+        if not self.context.ok():
+            return
+        try:
+            pub.publish(msg)
+        except Exception as exc:  # context shut down between the check and the call
+            self.get_logger().debug(f"publish after shutdown dropped: {exc}")
+
+    # ---- inputs -------------------------------------------------------------------------------
+
+    def _on_grid(self, msg: OccupancyGrid) -> None:
+        try:
+            grid = from_occupancy_grid(msg)
+        except ValueError as exc:
+            self._grid = None  # a broken grid is no grid: every cell check now refuses
+            self._set_state(ERROR, f"bad safe grid: {exc}")
+            return
+        self._grid = grid
+
+    def _on_estop(self, msg: Bool) -> None:
+        if msg.data:
+            self._estop = True
+            self._abort.set()
+            self.link.stop()  # now, from this callback: never queued behind the worker
+            self._set_state(ERROR, "e-stop: chair stopped")
+        elif self._estop:
+            self._estop = False
+            self._set_state(OK, "e-stop cleared (nothing resumes by itself)")
+
+    def _on_plan(self, msg: Path) -> None:
+        try:
+            steps, cells = self._steps_from_path(msg)
+        except ValueError as exc:
+            self._stop_job()
+            self._set_state(ERROR, f"plan refused: {exc}")
+            return
+        if self._estop:
+            self._set_state(ERROR, "plan refused: e-stop latched")
+            return
+        if not steps:
+            self._stop_job()
+            self._set_state(OK, "plan has no moves: nothing to do")
+            return
+        self._start_job("plan", lambda abort: self._run_plan(steps, cells, abort))
+
+    def _steps_from_path(self, msg: Path) -> tuple[list[actions.Step], list[tuple[int, int]]]:
+        grid = self._grid
+        if grid is None:
+            raise ValueError("no safe grid received yet")
+        if not msg.poses:
+            raise ValueError("empty path")
+        frame = msg.header.frame_id or (msg.poses[0].header.frame_id if msg.poses else "")
+        if frame and frame != grid.frame_id:
+            raise ValueError(f"path frame {frame!r} is not the grid frame {grid.frame_id!r}")
+        pts = [(p.pose.position.x, p.pose.position.y) for p in msg.poses]
+        cells = cells_from_points(grid, pts)
+        heading = self.cfg.initial_heading.strip().lower()
+        if heading == "auto":
+            q = msg.poses[0].pose.orientation
+            yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+            heading = actions.heading_from_yaw(yaw, grid.origin[2])
+        moves = actions.moves_from_cells(cells)
+        return actions.plan_steps(cells[0], moves, heading), cells
+
+    def _on_twist(self, msg: Twist) -> None:
+        self._last_twist = msg
+        self._last_twist_t = time.monotonic()
+
+    # ---- jobs ---------------------------------------------------------------------------------
+
+    def _busy(self) -> bool:
+        return self._worker is not None and self._worker.is_alive()
+
+    def _stop_job(self) -> None:
+        if self._busy():
+            self._abort.set()
+            self.link.stop()
+            assert self._worker is not None
+            self._worker.join(timeout=5.0)
+
+    def _start_job(self, name: str, fn: Callable[[threading.Event], None]) -> None:
+        self._stop_job()
+        abort = threading.Event()
+        self._abort = abort
+        if self._estop:  # an e-stop may have arrived while we waited for the old job
+            return
+        with self._lock:
+            self._job = name
+
+        def body() -> None:
+            try:
+                fn(abort)
+            except Exception as exc:  # never leave the chair moving after a bug
+                self.link.stop()
+                self._set_state(ERROR, f"{name} failed: {exc!r}; chair stopped")
+            finally:
+                with self._lock:
+                    self._job = "idle"
+
+        self._worker = threading.Thread(target=body, name=f"drive-{name}", daemon=True)
+        self._worker.start()
+
+    def _run_plan(
+        self, steps: list[actions.Step], cells: list[tuple[int, int]], abort: threading.Event
+    ) -> None:
+        grid = self._grid
+        assert grid is not None
+        total = len(steps)
+        with self._lock:
+            self._progress = (0, total)
+        try:
+            st = self.link.status()
+            if st.moving:
+                self.link.stop()
+                raise LinkError("controller reports a move in progress")
+            if self.cfg.set_pose_on_plan:
+                x, y = grid.cell_center(*cells[0])
+                yaw = actions.YAW[steps[0].heading] + grid.origin[2]
+                self.link.set_pose(float(x), float(y), yaw)
+                st = self.link.status()
+            if self.cfg.check_start_pose:
+                self._check_start(grid, st, cells[0], steps[0].heading)
+        except (LinkError, ValueError) as exc:
+            self._set_state(ERROR, f"plan refused: {exc}")
+            return
+        self._set_state(OK, f"driving a plan of {total} step(s) from {cells[0]}")
+
+        def on_step(step: actions.Step, rec: dict[str, Any]) -> None:
+            self._publish_record(rec)
+            if rec["ack"] == "ACK":
+                with self._lock:
+                    self._progress = (self._progress[0] + 1, total)
+
+        result: RunResult = run_steps(
+            self.link,
+            steps,
+            distance_m=grid.resolution,
+            speed_kmh=self.speed,
+            cell_check=grid_cell_check(lambda: self._grid),
+            abort=abort,
+            on_step=on_step,
+        )
+        if result.ok:
+            self._set_state(OK, f"plan done: {result.done}/{result.total} steps")
+        elif result.aborted:
+            self._set_state(WARN if not self._estop else ERROR, f"plan aborted: {result.error}")
+        else:
+            self._set_state(ERROR, f"plan stopped at step {result.done + 1}: {result.error}")
+
+    @staticmethod
+    def _check_start(grid: Grid, st: proto.Status, cell: tuple[int, int], heading: str) -> None:
+        r, c = grid.cell_of(st.x, st.y)
+        if (r, c) != tuple(cell):
+            raise ValueError(
+                f"controller pose ({st.x:.2f}, {st.y:.2f}) is in cell {(r, c)}, "
+                f"the plan starts at {cell}"
+            )
+        here = actions.heading_from_yaw(st.yaw, grid.origin[2])
+        if here != heading:
+            raise ValueError(f"chair faces {here}, the plan assumes {heading}")
+
+    # ---- /cmd_vel -----------------------------------------------------------------------------
+
+    def _cmd_vel_tick(self) -> None:
+        twist = self._last_twist
+        if twist is None:
+            return
+        stale = time.monotonic() - self._last_twist_t > self.cfg.cmd_vel_timeout
+        if stale:
+            self._last_twist = None
+            if self._cmd_vel_active:
+                self._cmd_vel_active = False
+                self._abort.set()
+                self.link.stop()
+                self._set_state(WARN, "no /cmd_vel for too long: chair stopped")
+            return
+        if self._estop:
+            return
+        action = self._twist_action(twist)
+        if self._busy():
+            if self._job == "plan":
+                self.get_logger().warning(
+                    "/cmd_vel ignored while a plan runs", throttle_duration_sec=2.0
+                )
+            elif action is None:
+                self._abort.set()  # the commander asks for zero velocity: stop now
+                self.link.stop()
+            return
+        if action is None:
+            return
+        self._cmd_vel_active = True
+        self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort))
+
+    def _twist_action(self, t: Twist) -> str | None:
+        if abs(t.angular.z) > self.cfg.angular_deadband:
+            return "LEFT_FORWARD" if t.angular.z > 0 else "RIGHT_FORWARD"
+        if t.linear.x > self.cfg.linear_deadband:
+            return "FORWARD"
+        if t.linear.x < -self.cfg.linear_deadband:
+            return "BACKWARD"
+        return None
+
+    def _run_twist_step(self, action: str, twist: Twist, abort: threading.Event) -> None:
+        grid = self._grid
+        try:
+            st = self.link.status()
+            if grid is None:
+                raise ValueError("no safe grid: cannot check the cell ahead")
+            heading = actions.heading_from_yaw(st.yaw, grid.origin[2])
+            here = grid.cell_of(st.x, st.y)
+            move = {
+                "FORWARD": heading,
+                "BACKWARD": actions.opposite(heading),
+                "LEFT_FORWARD": actions.turn_left(heading),
+                "RIGHT_FORWARD": actions.turn_right(heading),
+            }[action]
+            (step,) = actions.plan_steps(here, [move], heading)
+        except (LinkError, ValueError) as exc:
+            self._set_state(ERROR, f"/cmd_vel {action} refused: {exc}")
+            self._publish_record(
+                {"action": action, "ack": "REFUSED", "reason": str(exc), "t": time.time()}
+            )
+            return
+        speed = min(self.speed, max(abs(twist.linear.x) * 3.6, 0.5))
+        result = run_steps(
+            self.link,
+            [step],
+            distance_m=grid.resolution,
+            speed_kmh=speed,
+            cell_check=grid_cell_check(lambda: self._grid),
+            abort=abort,
+            on_step=lambda s, rec: self._publish_record(rec),
+        )
+        if not result.ok and not result.aborted:
+            self._set_state(ERROR, f"/cmd_vel {action}: {result.error}")
+
+    # ---- shutdown -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Stop the chair and the threads; called by spin_node on shutdown."""
+        self._abort.set()
+        self.link.stop()
+        if self._worker is not None:
+            self._worker.join(timeout=3.0)
+        self.link.close(stop=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return spin_node(lambda: DriveNode(), args=argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
