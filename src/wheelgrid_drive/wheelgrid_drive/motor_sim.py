@@ -188,7 +188,7 @@ class MotorSim:
             with self._lock:
                 self._integrate(now)
                 self._watchdog(now)
-                self._flush(now)
+                self._flush(time.monotonic())  # replies go out in this pass unless delayed
                 self._log_pose()
 
     def _flush(self, now: float) -> None:
