@@ -1,0 +1,225 @@
+"""iphone_bridge and depth_to_cloud as real processes over DDS on loopback, fed over real TCP."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.pointcloud2 import read_fields
+from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+
+pytestmark = pytest.mark.ros
+
+BRIDGE = "wheelgrid_mapping.iphone_bridge_node"
+
+
+def _real_capture() -> Path:
+    base = os.environ.get("WHEELGRID_SHARED")
+    root = Path(base) if base else Path(__file__).resolve().parents[3] / "../shared"
+    path = root / "data" / "stray-iphone-room"
+    if not (path / "depth").is_dir():
+        pytest.skip(f"{path}: real Stray capture not present")
+    return path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_listening(port: int, proc: subprocess.Popen[Any], timeout: float = 20.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        assert proc.poll() is None, "bridge exited early"
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return
+        except OSError:
+            time.sleep(0.1)
+    raise AssertionError(f"bridge not listening on {port}")
+
+
+class Counter:
+    def __init__(self, node: Any, topics: dict[str, Any], qos: Any) -> None:
+        self.msgs: dict[str, list[Any]] = {t: [] for t in topics}
+        for topic, typ in topics.items():
+            node.create_subscription(typ, topic, lambda m, t=topic: self.msgs[t].append(m), qos)
+
+    def counts(self) -> dict[str, int]:
+        return {t: len(v) for t, v in self.msgs.items()}
+
+
+def test_stream_stray_through_bridge_loses_no_frame() -> None:
+    """90 real frames (1.5 s) at 1x real time: sent == published == received on every topic."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+
+    from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_mapping.cli_stray import stream_export
+    from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
+    from wheelgrid_mapping.stray import StrayExport
+
+    exp = StrayExport(_real_capture())
+    start, n = 300, 90
+    port = free_port()
+    cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}")
+    with managed_process(cmd) as proc, rclpy_context() as ctx:
+        import rclpy
+
+        node = rclpy.create_node("bridge_test_sub", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        topics = {
+            "/iphone/points": PointCloud2,
+            "/iphone/odometry": Odometry,
+            "/iphone/depth/image": Image,
+            "/iphone/depth/camera_info": CameraInfo,
+            "/iphone/confidence/image": Image,
+        }
+        counter = Counter(node, topics, SENSOR_QOS)
+        status: list[dict[str, str]] = []
+        node.create_subscription(
+            DiagnosticArray,
+            "/iphone/bridge_status",
+            lambda m: status.append({kv.key: kv.value for kv in m.status[0].values}),
+            RELIABLE_QOS,
+        )
+        wait_listening(port, proc)
+        assert spin_until(
+            ex, lambda: all(node.count_publishers(t) == 1 for t in topics) and bool(status), 20
+        )
+        result: dict[str, Any] = {}
+
+        def send() -> None:
+            result["stats"] = stream_export(
+                exp, "127.0.0.1", port, rate=1.0, indices=range(start, start + n)
+            )
+
+        th = threading.Thread(target=send)
+        th.start()
+        spin_until(ex, lambda: not th.is_alive() and min(counter.counts().values()) >= n, 30)
+        th.join()
+        sent = result["stats"].frames_sent
+        spin_until(ex, lambda: status[-1].get("frames_published") == str(n), 5)
+        node.destroy_node()
+        ex.shutdown()
+    assert sent == n
+    assert status[-1]["frames_published"] == str(n) and status[-1]["messages_rejected"] == "0"
+    assert counter.counts() == dict.fromkeys(topics, n), counter.counts()
+
+    # content: odometry in ROS conventions, organised cloud matching the depth, capture spacing
+    odom = counter.msgs["/iphone/odometry"][0]
+    assert odom.header.frame_id == "odom"
+    assert odom.child_frame_id == "iphone_depth_optical_frame"
+    f0 = exp.frame(start)
+    T = arkit_pose_to_ros(f0.pose)  # type: ignore[arg-type]
+    p = odom.pose.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], T[:3, 3], atol=1e-9)
+    from wheelgrid_common.fileio import quat_to_matrix
+
+    o = odom.pose.pose.orientation
+    np.testing.assert_allclose(quat_to_matrix(o.x, o.y, o.z, o.w), T[:3, :3], atol=1e-6)
+    cloud = counter.msgs["/iphone/points"][0]
+    assert (cloud.height, cloud.width, cloud.is_dense) == (192, 256, False)
+    assert cloud.header.frame_id == "iphone_depth_optical_frame"
+    got = read_fields(cloud)
+    want = depth_to_points(f0.depth, f0.K, f0.confidence, min_confidence=1)
+    np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+    np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], atol=1e-5)
+
+    def sec(m: Any) -> float:
+        return m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
+
+    stamps = np.array([sec(m) for m in counter.msgs["/iphone/points"]])
+    capture = np.array([exp.stamp(i) for i in range(start, start + n)])
+    np.testing.assert_allclose(np.diff(stamps), np.diff(capture), atol=2e-6)
+    assert [sec(m) for m in counter.msgs["/iphone/odometry"]] == list(stamps)
+
+
+def test_bridge_refuses_network_bind_without_token() -> None:
+    cmd = python_module(BRIDGE, "--ros-args", "-p", "bind_address:=0.0.0.0", "-p", "port:=0")
+    with managed_process(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT) as proc:
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    assert b"without a token" in out
+
+
+def test_depth_to_cloud_matches_streams_by_stamp() -> None:
+    """16UC1 depth + CameraInfo + confidence arriving in any order -> one cloud per full set;
+    a depth image whose camera info never comes produces nothing."""
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.qos import SENSOR_QOS
+    from wheelgrid_mapping.bridge_protocol import DEPTH_U16_MM, Frame
+    from wheelgrid_mapping.iphone_bridge_node import frame_messages
+
+    rng = np.random.default_rng(1)
+    h, w = 24, 32
+    K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+    frames = []
+    for i in range(4):
+        depth = rng.integers(300, 5000, (h, w)).astype(np.uint16)
+        depth[0, :5] = 0
+        conf = rng.integers(0, 3, (h, w)).astype(np.uint8)
+        frames.append(Frame(100.0 + i / 30, i, K, depth, DEPTH_U16_MM, conf))
+    cmd = python_module(
+        "wheelgrid_mapping.depth_to_cloud_node", "--ros-args", "-p", "min_confidence:=2"
+    )
+    with managed_process(cmd), rclpy_context() as ctx:
+        import rclpy
+
+        node = rclpy.create_node("d2c_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        msgs = [{t: m for t, _, m in frame_messages(f, f.stamp)} for f in frames]
+        pubs = {
+            t: node.create_publisher(type(m), t, SENSOR_QOS)
+            for t, m in msgs[0].items()
+            if t.startswith("/iphone/depth") or t.startswith("/iphone/confidence")
+        }
+        clouds: list[Any] = []
+        node.create_subscription(PointCloud2, "/iphone/points", clouds.append, SENSOR_QOS)
+        assert spin_until(
+            ex,
+            lambda: (
+                all(p.get_subscription_count() == 1 for p in pubs.values())
+                and node.count_publishers("/iphone/points") == 1
+            ),
+            20,
+        )
+        orders = [
+            ["/iphone/depth/image", "/iphone/depth/camera_info", "/iphone/confidence/image"],
+            ["/iphone/confidence/image", "/iphone/depth/camera_info", "/iphone/depth/image"],
+            ["/iphone/depth/image"],  # its camera info is lost: must not become a cloud
+            ["/iphone/depth/camera_info", "/iphone/confidence/image", "/iphone/depth/image"],
+        ]
+        for m, order in zip(msgs, orders, strict=True):
+            for t in order:
+                pubs[t].publish(m[t])
+                ex.spin_once(timeout_sec=0.02)
+        spin_until(ex, lambda: len(clouds) >= 3, 10)
+        spin_until(ex, lambda: False, 0.5)  # would a 4th (wrong) cloud show up?
+        node.destroy_node()
+        ex.shutdown()
+    assert len(clouds) == 3
+    from wheelgrid_mapping.depth import depth_to_points
+
+    for cloud, f in zip(clouds, [frames[0], frames[1], frames[3]], strict=True):
+        assert (cloud.height, cloud.width) == (h, w)
+        assert cloud.header.stamp.sec == int(f.stamp)
+        want = depth_to_points(f.depth_m(), K, f.confidence, 2)
+        got = read_fields(cloud)
+        np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+        np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], atol=1e-6)
