@@ -14,8 +14,9 @@ What the paper leaves out and a wheelchair needs (a person's body rides on this 
 - **Unknown is not free.** A cell is free only where the floor was actually observed (points near
   z = 0) over ``min_observed_fraction`` of its area; otherwise it is unknown (-1).
 - **Thin-obstacle guard.** A 5 cm post or a bar crossing a 1.2 m cell has a density far below any
-  useful δ, yet the chair would hit it. Any obstacle pixel that is part of a continuous obstacle
-  (it has an obstacle neighbour, or many points stacked in it) makes its cell occupied.
+  useful δ, yet the chair would hit it. Any black pixel that is part of a continuous obstacle
+  (its 15 cm neighbourhood holds ``guard_min_points`` points: a bar, a rim, a pole whose points
+  stack over its height) makes its cell occupied; lone noise speckles only count in σ_i.
 - **Drops.** Points well below the floor (a step down, a hole) are obstacles too.
 - **Alignment.** Cells are laid along the dominant wall direction (or the map axes) so that
   1.2 m cells line up with corridors; the 90-degree ambiguity is resolved by taking the rotation
@@ -91,7 +92,7 @@ class GridConfig:
         "m",
     )
     density_threshold: float = field(
-        0.02,
+        0.05,
         "the paper's density threshold δ (eq 10): a cell whose fraction of black pixels exceeds "
         "it is occupied",
         "fraction",
@@ -104,16 +105,12 @@ class GridConfig:
         "mark a cell occupied when a continuous obstacle (a post, a bar, a table edge) lies in "
         "it, whatever its density (off = the paper's eq 10 alone)",
     )
-    guard_min_pixels: int = field(
-        2,
-        "guard: obstacle pixels in a 3x3 neighbourhood (itself included) that make a pixel part "
-        "of a continuous obstacle",
-        "pixels",
-    )
     guard_min_points: int = field(
-        3,
-        "guard: a lone obstacle pixel with at least this many points (a thin pole seen over its "
-        "height) is an obstacle too; fewer is treated as speckle and only counts in the density",
+        6,
+        "guard: points within a black pixel's 3x3 neighbourhood (15 cm square at 5 cm pixels) "
+        "that make it part of a continuous obstacle -- a bar, a table rim, or a pole whose points "
+        "stack up over its height; scattered noise (one or two points) stays below it and only "
+        "counts in the density. Assumes map voxels <= 3 cm; lower it for coarser maps",
         "points",
     )
     min_observed_fraction: float = field(
@@ -184,8 +181,8 @@ class GridConfig:
             raise ValueError("extent_quantile must be in [0, 0.25)")
         if self.boundary_margin < 0 or self.fine_margin < 0 or self.floor_fill < 0:
             raise ValueError("boundary_margin, fine_margin and floor_fill must be >= 0")
-        if self.min_points_per_pixel < 1 or self.guard_min_pixels < 1:
-            raise ValueError("min_points_per_pixel and guard_min_pixels must be >= 1")
+        if self.min_points_per_pixel < 1 or self.guard_min_points < 1:
+            raise ValueError("min_points_per_pixel and guard_min_points must be >= 1")
 
 
 @dataclass
@@ -265,14 +262,10 @@ def classify_density(density: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def _neighbour_count(img: np.ndarray) -> np.ndarray:
-    """Number of true pixels in each 3x3 neighbourhood (itself included), zero padded."""
-    p = np.pad(img.astype(np.int16), 1)
-    h, w = img.shape
-    out = np.zeros((h, w), dtype=np.int16)
-    for dr in (0, 1, 2):
-        for dc in (0, 1, 2):
-            out += p[dr : dr + h, dc : dc + w]
-    return out
+    """Sum over each 3x3 neighbourhood (itself included), zero padded (int32)."""
+    p = np.pad(np.asarray(img).astype(np.int32), 1)
+    rows = p[:-2] + p[1:-1] + p[2:]
+    return rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:]
 
 
 def _dilate(img: np.ndarray, radius: int) -> np.ndarray:
@@ -283,25 +276,24 @@ def _dilate(img: np.ndarray, radius: int) -> np.ndarray:
     return out
 
 
-def continuous_obstacles(
-    obstacles: np.ndarray, counts: np.ndarray, min_pixels: int, min_points: int
-) -> np.ndarray:
-    """Obstacle pixels that belong to a continuous obstacle (the guard's evidence).
+def continuous_obstacles(obstacles: np.ndarray, counts: np.ndarray, min_points: int) -> np.ndarray:
+    """Black pixels that belong to a continuous obstacle (the guard's evidence).
 
-    A pixel counts when its 3x3 neighbourhood holds at least ``min_pixels`` obstacle pixels (a bar,
-    a wall edge, a table rim crossing the cell) or when it holds at least ``min_points`` points
-    (a thin pole whose points stack up over its height). A lone pixel with one or two points is
-    speckle: it still counts in the density of eq 9, but cannot occupy a cell by itself.
+    A black pixel counts when its 3x3 neighbourhood holds at least ``min_points`` points: a bar,
+    a wall edge or a table rim crossing the cell has points along it, a thin pole has its points
+    stacked over its height in one pixel. A lone speckle of one or two noise points does not:
+    it still counts in the density of eq 9, but cannot occupy a cell by itself.
     """
     obs = np.asarray(obstacles, dtype=bool)
-    return obs & ((_neighbour_count(obs) >= min_pixels) | (np.asarray(counts) >= min_points))
+    support = _neighbour_count(np.where(obs, counts, 0))
+    return obs & (support >= min_points)
 
 
 def thin_obstacle_guard(
-    obstacles: np.ndarray, counts: np.ndarray, m: int, n: int, min_pixels: int, min_points: int
+    obstacles: np.ndarray, counts: np.ndarray, m: int, n: int, min_points: int
 ) -> np.ndarray:
     """(rows, cols) bool: cells holding any pixel of a continuous obstacle."""
-    solid = continuous_obstacles(obstacles, counts, min_pixels, min_points)
+    solid = continuous_obstacles(obstacles, counts, min_points)
     h, w = solid.shape
     return solid.reshape(h // m, m, w // n, n).any(axis=(1, 3))
 
@@ -515,9 +507,7 @@ def build_grid(
     density = cell_density(obstacles, k, k)
     occupied = classify_density(density, cfg.density_threshold)
     if cfg.thin_obstacle_guard:
-        guard = thin_obstacle_guard(
-            obstacles, obstacle_counts, k, k, cfg.guard_min_pixels, cfg.guard_min_points
-        )
+        guard = thin_obstacle_guard(obstacles, obstacle_counts, k, k, cfg.guard_min_points)
     else:
         guard = np.zeros_like(occupied)
     guard_only = guard & ~occupied

@@ -1,0 +1,122 @@
+"""The grid node: /wheelgrid/map_cloud -> /wheelgrid/safe_grid (cells) and /map (fine map).
+
+Thin by design: the grid itself is :func:`wheelgrid_nav.grid.build_grid`. Both outputs are
+MAP_QOS (reliable, transient local) so RViz, Nav2 and the planner get the current grid whenever
+they start. The grid is recomputed at most ``max_rate_hz`` times a second while the map keeps
+changing (the newest cloud wins). A cloud that cannot give a safe grid (empty, no floor, all
+points above the safe height, malformed) is reported with a warning and the previous grid stays
+published: an all-free grid from a bad map would send the chair into walls.
+
+``~/save`` (std_srvs/Trigger) writes grid.yaml/pgm, fine.yaml/pgm and grid.png into the
+``output_dir`` parameter.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+
+from wheelgrid_common import params
+from wheelgrid_common.map_io import to_occupancy_grid
+from wheelgrid_common.pointcloud2 import CloudError, read_xyz
+from wheelgrid_common.qos import MAP_QOS
+from wheelgrid_common.ros_env import spin_node
+from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
+
+MAP_CLOUD_TOPIC = "/wheelgrid/map_cloud"
+SAFE_GRID_TOPIC = "/wheelgrid/safe_grid"
+FINE_MAP_TOPIC = "/map"
+
+
+class GridNode(Node):
+    """Subscribes the map cloud, publishes the safe grid and the fine map, saves on request."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("grid", **kwargs)
+        self.cfg = params.declare_dataclass(self, GridNodeConfig())
+        self.grid_cfg = grid_config(self.cfg)
+        try:
+            self.grid_cfg.validate()
+        except ValueError as exc:
+            self.get_logger().fatal(f"invalid parameters: {exc}")
+            raise SystemExit(2) from exc
+        self.period = 1.0 / self.cfg.max_rate_hz if self.cfg.max_rate_hz > 0 else 0.0
+        self.result: GridResult | None = None
+        self._pending: tuple[Any, str] | None = None
+        self._last_compute = -float("inf")
+        self.grid_pub = self.create_publisher(OccupancyGrid, SAFE_GRID_TOPIC, MAP_QOS)
+        self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
+        self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
+        self.create_service(Trigger, "~/save", self._on_save)
+        self.create_timer(max(self.period, 0.05), self._maybe_compute)
+        self.get_logger().info(
+            f"waiting for {MAP_CLOUD_TOPIC}; safe_height {self.cfg.safe_height} m, cell "
+            f"{self.cfg.cell_size} m, density_threshold {self.cfg.density_threshold}"
+        )
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        try:
+            points = read_xyz(msg)
+        except CloudError as exc:
+            self._reject(f"unusable map cloud ({exc})")
+            return
+        self._pending = (points, msg.header.frame_id or "map")
+        self._maybe_compute()
+
+    def _reject(self, why: str) -> None:
+        kept = "kept the previous grid" if self.result is not None else "no grid published yet"
+        self.get_logger().warning(f"{why}; {kept}")
+
+    def _maybe_compute(self) -> None:
+        if self._pending is None or time.monotonic() - self._last_compute < self.period:
+            return
+        points, frame_id = self._pending
+        self._pending = None
+        self._last_compute = time.monotonic()
+        try:
+            result = build_grid(points, self.grid_cfg, frame_id=frame_id)
+        except GridError as exc:
+            self._reject(f"bad map ({exc.cause}): {exc}")
+            return
+        self.result = result
+        stamp = self.get_clock().now().to_msg()
+        self.grid_pub.publish(to_occupancy_grid(result.grid, stamp))
+        self.fine_pub.publish(to_occupancy_grid(result.fine, stamp))
+        st = result.stats
+        self.get_logger().info(
+            f"grid {result.grid.rows} x {result.grid.cols} from {st['points']} points "
+            f"(yaw {st['yaw_deg']:.2f} deg): {st['occupied']} occupied, {st['free']} free, "
+            f"{st['unknown']} unknown, {1000 * (time.monotonic() - self._last_compute):.0f} ms"
+        )
+
+    def _on_save(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+        if self.result is None:
+            resp.success = False
+            resp.message = "no grid yet: nothing received on " + MAP_CLOUD_TOPIC
+            return resp
+        try:
+            from wheelgrid_nav.grid_png import write_outputs
+
+            files = write_outputs(self.result, self.cfg.output_dir)
+        except OSError as exc:
+            resp.success = False
+            resp.message = f"cannot write {self.cfg.output_dir}: {exc}"
+            return resp
+        resp.success = True
+        resp.message = "wrote " + " ".join(str(p) for p in files.values())
+        self.get_logger().info(resp.message)
+        return resp
+
+
+def main(args: list[str] | None = None) -> None:
+    sys.exit(spin_node(lambda: GridNode(), args))
+
+
+if __name__ == "__main__":
+    main()
