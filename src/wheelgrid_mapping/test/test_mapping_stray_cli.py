@@ -1,0 +1,131 @@
+"""wheelgrid import-stray / stream-stray: bags with the bridge's topics, exit codes, streaming."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.bagio import BagReader
+from wheelgrid_common.pointcloud2 import read_fields
+from wheelgrid_mapping import bridge_protocol as bp
+from wheelgrid_mapping.cli_stray import import_main, stream_main
+from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
+from wheelgrid_mapping.stray import StrayExport
+
+TOPICS = {
+    "/iphone/depth/image": "sensor_msgs/msg/Image",
+    "/iphone/depth/camera_info": "sensor_msgs/msg/CameraInfo",
+    "/iphone/confidence/image": "sensor_msgs/msg/Image",
+    "/iphone/points": "sensor_msgs/msg/PointCloud2",
+    "/iphone/odometry": "nav_msgs/msg/Odometry",
+}
+
+
+def _real_capture() -> Path:
+    base = os.environ.get("WHEELGRID_SHARED")
+    root = Path(base) if base else Path(__file__).resolve().parents[3] / "../shared"
+    path = root / "data" / "stray-iphone-room"
+    if not (path / "depth").is_dir():
+        pytest.skip(f"{path}: real Stray capture not present")
+    return path
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_import_stray_writes_bridge_topics(tmp_path: Path, storage: str) -> None:
+    cap = _real_capture()
+    out = tmp_path / "bag"
+    assert (
+        import_main(
+            [str(cap), "--out", str(out), "--storage", storage, "--start", "100", "--frames", "12"]
+        )
+        == 0
+    )
+    exp = StrayExport(cap)
+    with BagReader(out) as bag:
+        infos = {t.name: (t.msgtype, t.count) for t in bag.topics()}
+        assert infos == {t: (m, 12) for t, m in TOPICS.items()}
+        clouds = [(t, m) for _, t, m in bag.messages(["/iphone/points"])]
+        odoms = [(t, m) for _, t, m in bag.messages(["/iphone/odometry"])]
+    stamps = [exp.stamp(i) for i in range(100, 112)]
+    np.testing.assert_allclose([t * 1e-9 for t, _ in clouds], stamps, atol=1e-6)
+    _, c0 = clouds[0]
+    m0 = c0.header.stamp
+    assert m0.sec + 1e-9 * m0.nanosec == pytest.approx(stamps[0], abs=1e-6)
+    f = exp.frame(100)
+    want = depth_to_points(f.depth, f.K, f.confidence, min_confidence=1)
+    got = read_fields(c0)
+    assert (c0.height, c0.width) == (192, 256)
+    np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+    np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], atol=1e-5)
+    p = odoms[0][1].pose.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], arkit_pose_to_ros(f.pose)[:3, 3], atol=1e-9)  # type: ignore[arg-type]
+    assert odoms[0][1].header.frame_id == "odom"
+
+
+def test_import_stray_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert import_main([str(tmp_path), "--out", str(tmp_path / "b")]) == 2
+    assert "not a Stray Scanner export" in capsys.readouterr().err
+    (tmp_path / "exists").mkdir()
+    cap = _real_capture()
+    assert import_main([str(cap), "--out", str(tmp_path / "exists")]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert import_main([str(cap), "--out", str(tmp_path / "c"), "--start", "5000"]) == 2
+    assert "--start" in capsys.readouterr().err
+
+
+def test_stream_stray_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cap = _real_capture()
+    assert stream_main([str(tmp_path), "--to", "127.0.0.1:9"]) == 2
+    assert stream_main([str(cap), "--to", "nohostport"]) == 2
+    assert "HOST:PORT" in capsys.readouterr().err
+    assert stream_main([str(cap), "--rate", "-1"]) == 2
+    with socket.socket() as s:  # a port with nobody listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert stream_main([str(cap), "--to", f"127.0.0.1:{port}", "--frames", "1"]) == 1
+    assert "failed" in capsys.readouterr().err
+
+
+def test_stream_stray_sends_decodable_frames_with_token(capsys: pytest.CaptureFixture[str]) -> None:
+    """--start/--frames/--token over real TCP to a BridgeServer; frames equal the export's."""
+    cap = _real_capture()
+    got: list[bp.Frame] = []
+    srv = bp.BridgeServer(lambda f, c: got.append(f), lambda lv, t: None, port=0, token="tk")
+    srv.start()
+    try:
+        assert stream_main([str(cap), "--to", f"127.0.0.1:{srv.port}", "--frames", "3"]) == 1
+        assert "wrong token" in capsys.readouterr().err
+        args = [
+            str(cap),
+            "--to",
+            f"127.0.0.1:{srv.port}",
+            "--token",
+            "tk",
+            "--start",
+            "40",
+            "--frames",
+            "6",
+            "--rate",
+            "4",
+        ]
+        assert stream_main(args) == 0
+        assert "sent 6 frames" in capsys.readouterr().out
+        deadline = time.monotonic() + 5
+        while len(got) < 6 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        srv.stop()
+    exp = StrayExport(cap)
+    assert [f.seq for f in got] == list(range(6))
+    for f, i in zip(got, range(40, 46), strict=True):
+        sf = exp.frame(i)
+        assert f.stamp == sf.stamp
+        np.testing.assert_array_equal(np.isnan(f.depth_m()), np.isnan(sf.depth))
+        np.testing.assert_allclose(f.depth_m(), sf.depth, atol=1e-6)
+        np.testing.assert_array_equal(f.confidence, sf.confidence)
+        np.testing.assert_allclose(f.pose_optical(), sf.pose, atol=1e-9)
