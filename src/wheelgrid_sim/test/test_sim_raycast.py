@@ -7,7 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from wheelgrid_sim import Box, DepthCamera, Scene, camera_pose, depth_to_points, raycast
+from wheelgrid_sim import (
+    Box,
+    DepthCamera,
+    Scene,
+    camera_pose,
+    depth_to_points,
+    make_trajectory,
+    paper_scene,
+    raycast,
+)
+from wheelgrid_sim.camera import cull_boxes
 from wheelgrid_sim.scene import shell_boxes
 
 
@@ -123,3 +133,18 @@ def test_depth_to_points_keeps_nan_and_reprojects() -> None:
     v, u = np.mgrid[0 : cam.rows, 0 : cam.cols]
     np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], 1)[ok], atol=1e-9)
     np.testing.assert_allclose(pts[ok][:, 2], depth.ravel()[ok], atol=0)
+
+
+def test_frustum_culling_never_changes_an_in_range_depth() -> None:
+    scene = paper_scene()
+    cam = DepthCamera(stride=2)
+    lo, hi = scene.box_arrays()
+    _, poses = make_trajectory(scene, 25, 5.0, 1)
+    culled_any = False
+    for T in poses:
+        culled_any |= len(cull_boxes(cam, T, lo, hi)) < len(lo)
+        got = cam.render(scene, T, noise=False)
+        full = raycast(T[:3, 3], cam.rays() @ T[:3, :3].T, lo, hi).reshape(got.shape)
+        full = np.where((full >= cam.min_range) & (full <= cam.max_range), full, np.nan)
+        np.testing.assert_array_equal(got, full.astype(np.float32))
+    assert culled_any

@@ -89,7 +89,9 @@ class DepthCamera:
         """Depth image ``(rows, cols)`` float32 in metres, NaN where there is no return."""
         T = np.asarray(T_room_optical, dtype=np.float64)
         dirs = self.rays() @ T[:3, :3].T
-        depth = raycast(T[:3, 3], dirs, *scene.box_arrays()).reshape(self.rows, self.cols)
+        lo, hi = scene.box_arrays()
+        keep = cull_boxes(self, T, lo, hi)
+        depth = raycast(T[:3, 3], dirs, lo[keep], hi[keep]).reshape(self.rows, self.cols)
         if noise:
             if rng is None:
                 raise ValueError("render(noise=True) needs an rng (seeded, for reproducibility)")
@@ -99,9 +101,13 @@ class DepthCamera:
 
     def _corrupt(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Flying pixels at depth edges, Gaussian range noise, then ~1 % wild outliers."""
+        depth = np.where(np.isfinite(depth), depth, np.nan)  # misses (inf) -> NaN
         z = depth.copy()
-        valid = np.isfinite(z) & (z <= self.max_range) & (z >= self.min_range)
-        # Flying pixels: mix with the farthest-differing 4-neighbour where the jump is large.
+        with np.errstate(invalid="ignore"):
+            valid = (z <= self.max_range) & (z >= self.min_range)
+        zv = np.where(valid, z, 0.0)
+        # Flying pixels: mix with the farthest-differing 4-neighbour where the jump is large
+        # (a neighbour beyond the range limit still counts: its light mixes in all the same).
         best_nb = np.full_like(z, np.nan)
         best_jump = np.zeros_like(z)
         pad = np.pad(depth, 1, constant_values=np.nan)
@@ -112,12 +118,12 @@ class DepthCamera:
             take = np.isfinite(jump) & (jump > best_jump)
             best_jump = np.where(take, jump, best_jump)
             best_nb = np.where(take, nb, best_nb)
-        edge = valid & (best_jump > self.flying_threshold + 0.03 * np.nan_to_num(depth))
+        edge = valid & (best_jump > self.flying_threshold + 0.03 * zv)
         fly = edge & (rng.random(z.shape) < self.flying_probability)
         w = rng.uniform(0.15, 0.85, z.shape)
-        z = np.where(fly, depth + w * (best_nb - depth), z)
+        z = np.where(fly, zv + w * (np.nan_to_num(best_nb) - zv), z)
         # Range noise.
-        noisy = z + rng.standard_normal(z.shape) * self.sigma(np.nan_to_num(z))
+        noisy = z + rng.standard_normal(z.shape) * self.sigma(np.where(valid, z, 0.0))
         z = np.where(valid, noisy, z)
         # Outliers: wild but in-range values, as real sensors report them.
         out = valid & (rng.random(z.shape) < self.outlier_fraction)
@@ -129,28 +135,83 @@ def raycast(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
     """Ray parameter of the first hit of rays ``origin + t * dirs`` on any box; inf if none.
 
     Vectorised slab test over all rays x all boxes, one axis at a time so peak memory is a
-    few ``(N, M)`` float arrays. Boxes that contain the origin are ignored (a camera inside an
-    obstacle sees out of it, rather than returning depth 0). float64 throughout: ground truth
-    must be exact to well below a millimetre.
+    few ``(N, M)`` arrays. The search runs in float32 (half the memory traffic), then the
+    winning box's entry parameter is recomputed in float64, so ground truth stays exact to
+    far below a millimetre. Boxes that contain the origin are ignored (a camera inside an
+    obstacle sees out of it, rather than returning depth 0).
     """
     o = np.asarray(origin, dtype=np.float64).reshape(3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    lo = np.asarray(lo, dtype=np.float64).reshape(-1, 3)
+    hi = np.asarray(hi, dtype=np.float64).reshape(-1, 3)
+    n, m = d.shape[0], lo.shape[0]
+    if m == 0 or n == 0:
+        return np.full(n, np.inf)
     tiny = 1e-12
     d = np.where(np.abs(d) < tiny, np.where(d < 0, -tiny, tiny), d)
     inv = 1.0 / d
-    n, m = d.shape[0], lo.shape[0]
-    if m == 0:
-        return np.full(n, np.inf)
-    tnear = np.full((n, m), -np.inf)
-    tfar = np.full((n, m), np.inf)
+    inv32 = inv.astype(np.float32)
+    tnear = tfar = None
     for k in range(3):
-        ta = np.multiply.outer(inv[:, k], lo[:, k] - o[k])
-        tb = np.multiply.outer(inv[:, k], hi[:, k] - o[k])
-        np.maximum(tnear, np.minimum(ta, tb), out=tnear)
-        np.minimum(tfar, np.maximum(ta, tb), out=tfar)
-    hit = (tnear <= tfar) & (tnear > 0.0)
-    t = np.where(hit, tnear, np.inf)
-    return t.min(axis=1)
+        ta = np.multiply.outer(inv32[:, k], (lo[:, k] - o[k]).astype(np.float32))
+        tb = np.multiply.outer(inv32[:, k], (hi[:, k] - o[k]).astype(np.float32))
+        lo_t = np.minimum(ta, tb)
+        hi_t = np.maximum(ta, tb, out=ta)
+        if tnear is None:
+            tnear, tfar = lo_t, hi_t
+        else:
+            np.maximum(tnear, lo_t, out=tnear)
+            np.minimum(tfar, hi_t, out=tfar)
+    assert tnear is not None and tfar is not None
+    miss = (tnear > tfar) | (tnear <= 0.0)
+    tnear[miss] = np.inf
+    idx = np.argmin(tnear, axis=1)
+    hit = np.isfinite(tnear[np.arange(n), idx])
+    t = np.full(n, np.inf)
+    if hit.any():
+        b = idx[hit]
+        ta64 = (lo[b] - o) * inv[hit]
+        tb64 = (hi[b] - o) * inv[hit]
+        t[hit] = np.max(np.minimum(ta64, tb64), axis=1)
+    return t
+
+
+def cull_boxes(
+    cam: DepthCamera, T_room_optical: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
+    """Indices of boxes that may be hit within range: the others are behind the camera,
+    wholly outside one side of the view frustum, or farther than any in-range return."""
+    T = np.asarray(T_room_optical, dtype=np.float64)
+    corners = np.stack(
+        [
+            np.stack(
+                [
+                    np.where(c & 1, hi[:, 0], lo[:, 0]),
+                    np.where(c & 2, hi[:, 1], lo[:, 1]),
+                    np.where(c & 4, hi[:, 2], lo[:, 2]),
+                ],
+                axis=1,
+            )
+            for c in range(8)
+        ],
+        axis=1,
+    )  # (M, 8, 3)
+    p = (corners - T[:3, 3]) @ T[:3, :3]  # optical frame
+    k = cam.intrinsics()
+    tx = max(k[0, 2], (cam.cols - 1) - k[0, 2]) / k[0, 0] * 1.02 + 1e-6
+    ty = max(k[1, 2], (cam.rows - 1) - k[1, 2]) / k[1, 1] * 1.02 + 1e-6
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    outside = (
+        (z <= 0).all(axis=1)
+        | (x - tx * z > 0).all(axis=1)
+        | (-x - tx * z > 0).all(axis=1)
+        | (y - ty * z > 0).all(axis=1)
+        | (-y - ty * z > 0).all(axis=1)
+    )
+    # Nearest point of each box to the camera vs the longest in-range ray (+20 % for noise).
+    gap = np.maximum(np.maximum(lo - T[:3, 3], T[:3, 3] - hi), 0.0)
+    far = np.linalg.norm(gap, axis=1) > 1.2 * cam.max_range * math.sqrt(1 + tx * tx + ty * ty)
+    return np.nonzero(~(outside | far))[0]
 
 
 def depth_to_points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
