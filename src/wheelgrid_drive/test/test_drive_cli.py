@@ -151,3 +151,13 @@ def test_silent_controller_exits_1_and_stops(make_sim, tmp_path, capsys):
     rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--retries", "1"])
     assert rc == 1
     assert "chair stopped" in capsys.readouterr().err
+
+
+def test_planner_spelling_of_actions_is_accepted():
+    from wheelgrid_drive.cli import load_plan
+
+    plan = table_ii_plan()
+    for a in plan["actions"]:
+        a["action"] = a["action"].lower()  # wheelgrid_nav writes "left-forward"
+    steps, cells = load_plan(plan)
+    assert cells[0] == (2, 0) and steps[0].action == "LEFT_FORWARD" and steps[0].heading == "down"

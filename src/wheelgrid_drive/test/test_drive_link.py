@@ -161,7 +161,7 @@ def test_vanished_port_is_reported_and_recovered(make_sim, make_link, wait, tmp_
     assert link.status().state == proto.State.IDLE
     sim1.vanish()
     assert wait(lambda: not link.connected, 3.0)
-    assert any(kind == "vanished" for kind, _ in link.events)
+    assert wait(lambda: any(kind == "vanished" for kind, _ in link.events), 1.0)
     with pytest.raises(LinkError):
         link.move("FORWARD", 1.2, 3.0)  # never pretends to move without a controller
     sim2 = make_sim(link=port)  # the adapter comes back under the same name

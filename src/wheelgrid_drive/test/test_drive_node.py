@@ -219,3 +219,58 @@ def test_cmd_vel_steps_and_watchdog_stop(make_sim):
         assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
         assert sim.x < x + 1.2 - 0.1
         assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)
+
+
+def test_vanished_port_is_reported_and_recovered(make_sim, tmp_path):
+    port = str(tmp_path / "ttyWG")
+    sim1 = make_sim(link=port)
+    with rclpy_context() as ctx, Harness(ctx, port, reconnect_period=0.1) as h:
+        assert h.matched()
+        assert h.spin(
+            lambda: any(
+                v.key == "connected" and v.value == "true" for s in h.states[-1:] for v in s.values
+            ),
+            5.0,
+        )
+        sim1.vanish()
+        assert h.spin(
+            lambda: (
+                bool(h.states)
+                and h.states[-1].level == b"\x02"
+                and "not connected" in h.states[-1].message
+            ),
+            5.0,
+        )
+        sim2 = make_sim(link=port)
+        assert h.spin(
+            lambda: h.drive.link.connected and "not connected" not in h.states[-1].message, 5.0
+        )
+        assert h.spin(lambda: any(e.what == "rx" for e in sim2.events), 3.0)
+        assert next(e for e in sim2.events if e.what == "rx").detail == "STOP"
+
+
+def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim):
+    import sys
+
+    from wheelgrid_common.ros_env import child_env
+    from wheelgrid_common.testing import managed_process, stop_process
+
+    sim = make_sim()
+    args = [
+        sys.executable,
+        "-m",
+        "wheelgrid_drive.drive_node",
+        "--ros-args",
+        "-p",
+        f"port:={sim.slave_path}",
+    ]
+    with managed_process(args, env=child_env()) as proc:
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline and not any(
+            e.what == "rx" and e.detail == "HEARTBEAT" for e in sim.events
+        ):
+            time.sleep(0.05)
+        assert any(e.detail == "HEARTBEAT" for e in sim.events), "node never reached the controller"
+        assert stop_process(proc) == 0
+    # Shutting the node down sends STOP before the port closes.
+    assert [e.detail for e in sim.events if e.what == "rx"][-1] == "STOP"
