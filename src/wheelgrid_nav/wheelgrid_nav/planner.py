@@ -1,0 +1,546 @@
+"""Tabular Q-learning route planner on the safe grid (the paper's section III.D), ROS-free.
+
+States are free cells (or, for the heading-aware variant, (cell, heading) pairs); actions are
+the four grid moves up/down/left/right. Training is plain sample-based Q-learning,
+``Q(s,a) += alpha * (r + gamma * max_a' Q(s',a') - Q(s,a))``, vectorised by running many
+epsilon-greedy agents at once (exploring starts from every free cell, as the hint to the issue
+allows), so an 8 x 8 room trains in milliseconds and a 64 x 64 one in well under a second.
+
+A wheelchair must never follow a half-learned route, so the planner is deliberately strict:
+
+* unknown cells and everything outside the grid count as walls;
+* training stops only when the greedy route from the start has been *stable* for
+  ``stable_checks`` consecutive checks and reaches the goal at the optimal cost;
+* the returned route is then *verified* independently of the learner: every cell free,
+  4-connected, ending at the goal, and as cheap as breadth-first search (plain) or Dijkstra
+  over (cell, heading) (heading-aware) says is possible on the same grid;
+* if the budget runs out first, :func:`plan` returns no route and says why.
+
+BFS / Dijkstra only *check* the learned route and decide convergence; the route itself always
+comes from the learned Q-table.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.params import field as pfield
+from wheelgrid_nav.actions import DELTAS, LEFT_OF, MOVES, OPPOSITE, RIGHT_OF, cells_to_moves
+
+METHODS: tuple[str, ...] = ("qlearning", "qlearning-heading")
+_DELTA = np.array([DELTAS[m] for m in MOVES], dtype=np.int64)  # (4, 2) row/col steps
+_HEADING_INDEX = {m: i for i, m in enumerate(MOVES)}
+
+
+@dataclass
+class PlannerConfig:
+    """Q-learning hyper-parameters, rewards and the training budget (one place for all)."""
+
+    learning_rate: float = pfield(
+        1.0,
+        "Q-learning step size alpha in (0, 1]; 1 is exact for the grid's deterministic moves",
+    )
+    discount: float = pfield(
+        1.0,
+        "discount gamma in (0, 1]; 1 keeps the learned route the cheapest one (the task ends at "
+        "the goal) and keeps value differences on long corridors above float precision",
+    )
+    epsilon: float = pfield(0.2, "probability of a random (exploratory) move per step")
+    reward_step: float = pfield(-1.0, "reward for every move to a neighbouring free cell")
+    reward_blocked: float = pfield(
+        -10.0, "reward for trying to enter a wall, occupied or unknown cell (the chair stays)"
+    )
+    reward_goal: float = pfield(100.0, "extra reward on reaching the goal (ends the episode)")
+    reward_turn: float = pfield(
+        -0.5, "heading-aware only: extra reward for a quarter turn (left/right-forward)"
+    )
+    reward_backward: float = pfield(
+        -1.0, "heading-aware only: extra reward for backing up (the costliest manoeuvre)"
+    )
+    q_init: str = pfield(
+        "heuristic",
+        "initial Q values: 'heuristic' = reward_goal + reward_step x Manhattan distance to the "
+        "goal (an upper bound of every true value when discount is 1, so every untried move "
+        "looks worth trying and no half-explored route locks in), 'optimistic' = reward_goal, "
+        "'zero' = 0",
+    )
+    replay: int = pfield(
+        32, "replay the last N steps' transitions newest-first every N steps (0 = off)"
+    )
+    agents: int = pfield(0, "parallel agents; 0 = one per state (exploring starts everywhere)")
+    max_episode_steps: int = pfield(0, "steps before an episode is cut; 0 = 2 x number of states")
+    max_episodes: int = pfield(2_000_000, "training budget in episodes (all agents together)")
+    max_seconds: float = pfield(10.0, "training budget in wall-clock time", "s")
+    check_every: int = pfield(8, "training steps between convergence checks")
+    stable_checks: int = pfield(
+        2, "consecutive checks the greedy route must stay the same and optimal to converge"
+    )
+    seed: int = pfield(0, "random seed; the same seed and grid give the same route")
+
+
+class PlanInputError(ValueError):
+    """Start or goal unusable (outside the grid, occupied, unknown) or bad arguments."""
+
+
+@dataclass
+class PlanResult:
+    """What :func:`plan` found. ``cells`` is empty whenever there is no verified route."""
+
+    cells: list[tuple[int, int]]
+    moves: list[str]
+    converged: bool
+    reason: str  # "ok", "unreachable", "not converged", or a verification failure
+    method: str
+    episodes: int = 0
+    steps: int = 0  # batched training steps (each moves every agent once)
+    updates: int = 0  # individual Q-learning updates
+    seconds: float = 0.0
+    cost: float = math.nan  # route cost in the method's own cost model (moves + manoeuvres)
+    optimal_cost: float = math.nan  # the cheapest possible cost (BFS / Dijkstra)
+    bfs_length: int = -1  # moves of a BFS shortest path, -1 when unreachable
+    heading: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.cells) and self.converged
+
+
+def free_mask(data: np.ndarray) -> np.ndarray:
+    """Cells the chair may enter: only those marked free (0); unknown (-1) is NOT free."""
+    return np.asarray(data) == 0
+
+
+def check_cell(free: np.ndarray, cell: Sequence[int], what: str) -> tuple[int, int]:
+    """Validate a start/goal cell; raises PlanInputError with a one-line reason."""
+    r, c = int(cell[0]), int(cell[1])
+    rows, cols = free.shape
+    if not (0 <= r < rows and 0 <= c < cols):
+        raise PlanInputError(f"{what} cell ({r},{c}) is outside the {rows}x{cols} grid")
+    if not free[r, c]:
+        raise PlanInputError(f"{what} cell ({r},{c}) is not free (occupied or unknown)")
+    return r, c
+
+
+def bfs_distances(free: np.ndarray, source: Sequence[int]) -> np.ndarray:
+    """Moves from ``source`` to every cell over 4-connected free cells; -1 = unreachable."""
+    rows, cols = free.shape
+    dist = np.full((rows, cols), -1, dtype=np.int64)
+    r0, c0 = int(source[0]), int(source[1])
+    if not free[r0, c0]:
+        return dist
+    dist[r0, c0] = 0
+    queue = deque([(r0, c0)])
+    while queue:
+        r, c = queue.popleft()
+        d = dist[r, c] + 1
+        for dr, dc in DELTAS.values():
+            rr, cc = r + dr, c + dc
+            if 0 <= rr < rows and 0 <= cc < cols and free[rr, cc] and dist[rr, cc] < 0:
+                dist[rr, cc] = d
+                queue.append((rr, cc))
+    return dist
+
+
+def astar(free: np.ndarray, start: Sequence[int], goal: Sequence[int]) -> list[tuple[int, int]]:
+    """A* with the Manhattan heuristic: the classic baseline the benchmark compares against."""
+    rows, cols = free.shape
+    s, g = (int(start[0]), int(start[1])), (int(goal[0]), int(goal[1]))
+    if not (free[s] and free[g]):
+        return []
+    gcost = {s: 0}
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+    heap = [(abs(s[0] - g[0]) + abs(s[1] - g[1]), 0, s)]
+    while heap:
+        _, gc, cur = heapq.heappop(heap)
+        if cur == g:
+            path = [cur]
+            while path[-1] in parent:
+                path.append(parent[path[-1]])
+            return path[::-1]
+        if gc > gcost[cur]:
+            continue
+        for dr, dc in DELTAS.values():
+            nb = (cur[0] + dr, cur[1] + dc)
+            if 0 <= nb[0] < rows and 0 <= nb[1] < cols and free[nb]:
+                ng = gc + 1
+                if ng < gcost.get(nb, 1 << 60):
+                    gcost[nb] = ng
+                    parent[nb] = cur
+                    heapq.heappush(heap, (ng + abs(nb[0] - g[0]) + abs(nb[1] - g[1]), ng, nb))
+    return []
+
+
+# ------------------------------------------------------------------------------------------
+# The MDPs: transition and reward tables over state indices.
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Mdp:
+    nxt: np.ndarray  # (S, 4) int64: next state (== s when the move is blocked)
+    rew: np.ndarray  # (S, 4) float64
+    terminal: np.ndarray  # (S,) bool: goal states
+    cost: np.ndarray  # (S, 4) float64: manoeuvre cost of the move (inf when blocked)
+    cell_of_state: np.ndarray  # (S, 2) int64 row, col
+    start: int
+
+
+def _neighbour_index(free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Free-cell numbering and, per free cell and move, the free neighbour's index or -1."""
+    rows, cols = free.shape
+    index = np.full((rows, cols), -1, dtype=np.int64)
+    rc = np.argwhere(free)
+    index[rc[:, 0], rc[:, 1]] = np.arange(len(rc))
+    nb = np.full((len(rc), 4), -1, dtype=np.int64)
+    for a in range(4):
+        rr, cc = rc[:, 0] + _DELTA[a, 0], rc[:, 1] + _DELTA[a, 1]
+        ok = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
+        nb[ok, a] = index[rr[ok], cc[ok]]
+    return index, nb
+
+
+def _build_mdp(
+    free: np.ndarray,
+    start: tuple[int, int],
+    goal: tuple[int, int],
+    cfg: PlannerConfig,
+    heading: str | None,
+) -> _Mdp:
+    index, nb = _neighbour_index(free)
+    rc = np.argwhere(free)
+    n = len(rc)
+    move_cost = -cfg.reward_step
+    if heading is None:  # plain: state = free cell
+        blocked = nb < 0
+        nxt = np.where(blocked, np.arange(n)[:, None], nb)
+        cost = np.where(blocked, np.inf, move_cost)
+        terminal = np.zeros(n, dtype=bool)
+        terminal[index[goal]] = True
+        rew = np.where(blocked, cfg.reward_blocked, cfg.reward_step)
+        rew = rew + np.where(~blocked & terminal[nxt], cfg.reward_goal, 0.0)
+        return _Mdp(nxt, rew, terminal, cost, rc, int(index[start]))
+    # heading-aware: state = cell * 4 + heading; the move's direction becomes the new heading
+    # except when backing up, which keeps it (Table II).
+    extra = np.zeros((4, 4))  # [heading, move] -> extra reward of that manoeuvre
+    new_h = np.zeros((4, 4), dtype=np.int64)
+    for h, hname in enumerate(MOVES):
+        for a, mname in enumerate(MOVES):
+            if mname == OPPOSITE[hname]:
+                extra[h, a], new_h[h, a] = cfg.reward_backward, h
+            elif mname in (LEFT_OF[hname], RIGHT_OF[hname]):
+                extra[h, a], new_h[h, a] = cfg.reward_turn, a
+            else:
+                new_h[h, a] = a
+    cell = np.repeat(np.arange(n), 4)
+    hd = np.tile(np.arange(4), n)
+    states = np.arange(4 * n)
+    ncell = nb[cell]  # (S, 4)
+    blocked = ncell < 0
+    nxt = np.where(blocked, states[:, None], ncell * 4 + new_h[hd])
+    step_rew = cfg.reward_step + extra[hd]
+    cost = np.where(blocked, np.inf, -step_rew)
+    terminal = cell == index[goal]
+    rew = np.where(blocked, cfg.reward_blocked, step_rew)
+    rew = rew + np.where(~blocked & terminal[nxt], cfg.reward_goal, 0.0)
+    return _Mdp(nxt, rew, terminal, cost, rc[cell], int(index[start]) * 4 + _HEADING_INDEX[heading])
+
+
+def _optimal_cost(mdp: _Mdp) -> float:
+    """Dijkstra over the MDP's move costs from the start to any goal state (inf if none).
+
+    For the plain planner every move costs the same, so this is exactly BFS length x cost.
+    """
+    S = len(mdp.terminal)
+    dist = np.full(S, np.inf)
+    dist[mdp.start] = 0.0
+    heap = [(0.0, mdp.start)]
+    nxt, cost, terminal = mdp.nxt.tolist(), mdp.cost.tolist(), mdp.terminal
+    while heap:
+        d, s = heapq.heappop(heap)
+        if d > dist[s]:
+            continue
+        if terminal[s]:
+            return d
+        for a in range(4):
+            c = cost[s][a]
+            if c == math.inf:
+                continue
+            t, nd = nxt[s][a], d + c
+            if nd < dist[t]:
+                dist[t] = nd
+                heapq.heappush(heap, (nd, t))
+    return math.inf
+
+
+def _rowmax(q: np.ndarray) -> np.ndarray:
+    """Row maxima of an (N, 4) array; ~5x faster than ``q.max(axis=1)`` on short rows."""
+    return np.maximum(np.maximum(q[:, 0], q[:, 1]), np.maximum(q[:, 2], q[:, 3]))
+
+
+def _greedy_route(Q: np.ndarray, mdp: _Mdp, tol: float) -> tuple[list[int], float] | None:
+    """States visited by the greedy policy from the start and the route's cost.
+
+    None if the policy loops or bumps into a wall (a blocked move stays in place). Ties
+    (within ``tol``) go to the lowest move index so the route is deterministic.
+    """
+    S = len(Q)
+    floor = _rowmax(Q) - tol
+    greedy = np.argmax(floor[:, None] <= Q, axis=1)
+    go = mdp.nxt[np.arange(S), greedy].tolist()
+    terminal = mdp.terminal.tolist()
+    seen = {mdp.start}
+    route = [mdp.start]
+    s = mdp.start
+    while not terminal[s]:
+        s = go[s]
+        if s in seen:
+            return None
+        seen.add(s)
+        route.append(s)
+    states = np.asarray(route[:-1])
+    return route, float(mdp.cost[states, greedy[states]].sum())
+
+
+def verify_route(
+    free: np.ndarray,
+    cells: Sequence[Sequence[int]],
+    start: Sequence[int],
+    goal: Sequence[int],
+    bfs_length: int | None = None,
+) -> list[str]:
+    """Independent safety check of a route; returns the problems found (empty = verified).
+
+    Checks every cell is inside and free, consecutive cells are 4-neighbours, the route starts
+    at ``start`` and ends at ``goal``, and (given ``bfs_length``) it is no longer than that.
+    """
+    problems = []
+    if not cells:
+        return ["empty route"]
+    rows, cols = free.shape
+    for r, c in cells:
+        if not (0 <= r < rows and 0 <= c < cols) or not free[r, c]:
+            problems.append(f"cell ({r},{c}) is not free")
+    for a, b in itertools.pairwise(cells):
+        if abs(a[0] - b[0]) + abs(a[1] - b[1]) != 1:
+            problems.append(f"cells ({a[0]},{a[1]}) and ({b[0]},{b[1]}) are not 4-neighbours")
+    if tuple(cells[0]) != tuple(start):
+        problems.append("route does not begin at the start")
+    if tuple(cells[-1]) != tuple(goal):
+        problems.append("route does not end at the goal")
+    if len({tuple(c) for c in cells}) != len(cells):
+        problems.append("route visits a cell twice")
+    if bfs_length is not None and len(cells) - 1 > bfs_length:
+        problems.append(f"route has {len(cells) - 1} moves, the shortest has {bfs_length}")
+    return problems
+
+
+def _initial_values(mdp: _Mdp, cfg: PlannerConfig) -> np.ndarray:
+    """Per-state initial Q value (see PlannerConfig.q_init)."""
+    S = len(mdp.terminal)
+    if cfg.q_init == "zero":
+        return np.zeros(S)
+    if cfg.q_init == "optimistic":
+        return np.full(S, cfg.reward_goal)
+    goal_rc = mdp.cell_of_state[np.argmax(mdp.terminal)]
+    manhattan = np.abs(mdp.cell_of_state - goal_rc).sum(axis=1)
+    # every route needs at least Manhattan-many moves, each worth at most reward_step
+    return cfg.reward_goal + cfg.reward_step * (manhattan - 1)
+
+
+def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
+    """Batched epsilon-greedy Q-learning until the greedy route is optimal and stable.
+
+    Every step moves all agents once and applies one Q-learning update per agent; every
+    ``replay`` steps the transitions just experienced are replayed newest-first (reverse-sweep
+    experience replay), which carries the goal's value back along whole trajectories instead
+    of one cell per step. Each replayed update is the same sample-based Q-learning update.
+    """
+    rng = np.random.default_rng(cfg.seed)
+    S = len(mdp.terminal)
+    nonterminal = np.nonzero(~mdp.terminal)[0]
+    B = cfg.agents if cfg.agents > 0 else len(nonterminal)
+    max_ep_steps = cfg.max_episode_steps if cfg.max_episode_steps > 0 else 2 * S
+    check_every = max(1, cfg.check_every)
+    H = max(0, cfg.replay)
+    alpha, gamma, eps = cfg.learning_rate, cfg.discount, cfg.epsilon
+    rewards = [cfg.reward_step, cfg.reward_blocked, cfg.reward_turn, cfg.reward_backward]
+    resolution = min(abs(v) for v in rewards if v != 0.0)
+    # A tiny random offset per (s, a) breaks ties among untried moves in a random order (so
+    # agents do not all try "up" first) without a per-step tie-break draw; it is far below
+    # any real reward difference, and route costs are always judged on the exact cost table.
+    noise = 1e-6 * resolution
+    Q = (_initial_values(mdp, cfg)[:, None] + noise * rng.random((S, 4))).ravel()
+    Q.reshape(S, 4)[mdp.terminal] = 0.0
+    Q2 = Q.reshape(S, 4)
+    nxt, rew = mdp.nxt.ravel(), mdp.rew.ravel()
+    terminal = mdp.terminal
+    tol = 2 * noise
+    # exploring starts: a random permutation of every non-goal state (the start included)
+    pos = rng.permutation(nonterminal)[:B] if len(nonterminal) >= B else rng.choice(nonterminal, B)
+    pos[0] = mdp.start
+    age = np.zeros(B, dtype=np.int64)
+    history = np.zeros((max(H, 1), B), dtype=np.int64)
+    episodes, steps, updates = B, 0, 0
+    prev_route: list[int] | None = None
+    stable = 0
+    t0 = time.perf_counter()
+    route: list[int] | None = None
+    route_cost = math.nan
+    converged = False
+
+    def update(idx: np.ndarray) -> np.ndarray:
+        s2 = nxt[idx]
+        done = terminal[s2]
+        target = rew[idx] + gamma * np.where(done, 0.0, _rowmax(Q2[s2]))
+        # Deterministic moves: duplicate (s, a) pairs in a batch share one target, so a plain
+        # fancy-index write is the same sample-based update as applying them one by one.
+        Q[idx] += alpha * (target - Q[idx])
+        return s2
+
+    while True:
+        q = Q2[pos]
+        # random tie-break among (near-)greedy moves, so agents do not all try "up" first
+        near = q >= (_rowmax(q) - tol)[:, None]
+        act = np.argmax(near * rng.random(q.shape), axis=1)
+        explore = rng.random(B) < eps
+        act[explore] = rng.integers(0, 4, int(explore.sum()))
+        idx = pos * 4 + act
+        s2 = update(idx)
+        steps += 1
+        updates += B
+        if H:
+            history[(steps - 1) % H] = idx
+            if steps % H == 0:
+                for k in range(H - 2, -1, -1):  # newest first; the newest was just applied
+                    update(history[k])
+                updates += (H - 1) * B
+        age += 1
+        restart = terminal[s2] | (age >= max_ep_steps)
+        k = int(restart.sum())
+        if k:
+            s2[restart] = rng.choice(nonterminal, k)
+            age[restart] = 0
+            episodes += k
+        pos = s2
+        if steps % check_every == 0:
+            found = _greedy_route(Q2, mdp, tol)
+            route, route_cost = found if found else (None, math.nan)
+            good = found is not None and abs(found[1] - optimal) <= 1e-9 * max(1.0, optimal)
+            if good and route == prev_route:
+                stable += 1
+            else:
+                stable = 1 if good else 0
+            prev_route = route if good else None
+            if stable >= cfg.stable_checks:
+                converged = True
+                break
+            if episodes >= cfg.max_episodes or time.perf_counter() - t0 > cfg.max_seconds:
+                break
+    return {
+        "Q": Q2,
+        "route": route if converged else None,
+        "cost": route_cost,
+        "converged": converged,
+        "episodes": episodes,
+        "steps": steps,
+        "updates": updates,
+    }
+
+
+def plan(
+    data: np.ndarray,
+    start: Sequence[int],
+    goal: Sequence[int],
+    cfg: PlannerConfig | None = None,
+    method: str = "qlearning",
+    heading: str | None = None,
+) -> PlanResult:
+    """Learn and verify a route from ``start`` to ``goal`` (row, col) on a grid.
+
+    ``data`` is a Grid's ``data`` (0 free, 100 occupied, -1 unknown) or a boolean free mask.
+    ``method`` "qlearning" learns over cells (the paper); "qlearning-heading" over (cell,
+    heading) with turns and backing up costing extra (needs ``heading``), so routes with fewer
+    manoeuvres win. Raises :class:`PlanInputError` for a bad start/goal/method; an unreachable
+    goal or an unconverged training returns a result with no cells and the reason.
+    """
+    cfg = cfg or PlannerConfig()
+    _check_config(cfg)
+    if method not in METHODS:
+        raise PlanInputError(f"unknown method {method!r} (use {' or '.join(METHODS)})")
+    if heading is not None and heading not in DELTAS:
+        raise PlanInputError(f"unknown heading {heading!r} (use {', '.join(MOVES)})")
+    if method == "qlearning-heading" and heading is None:
+        raise PlanInputError("method qlearning-heading needs the start heading")
+    arr = np.asarray(data)
+    free = arr if arr.dtype == bool else free_mask(arr)
+    s = check_cell(free, start, "start")
+    g = check_cell(free, goal, "goal")
+    t0 = time.perf_counter()
+    dist = bfs_distances(free, g)
+    bfs_len = int(dist[s])
+    res = PlanResult([], [], False, "", method, bfs_length=bfs_len, heading=heading)
+    if bfs_len < 0:
+        res.reason = "unreachable"
+        res.seconds = time.perf_counter() - t0
+        return res
+    if s == g:
+        res.cells, res.converged, res.reason, res.cost, res.optimal_cost = [s], True, "ok", 0, 0
+        res.seconds = time.perf_counter() - t0
+        return res
+    mdp = _build_mdp(free, s, g, cfg, heading if method == "qlearning-heading" else None)
+    optimal = _optimal_cost(mdp)
+    out = _learn(mdp, cfg, optimal)
+    res.episodes, res.steps, res.updates = out["episodes"], out["steps"], out["updates"]
+    res.optimal_cost = optimal
+    res.converged = out["converged"]
+    if not res.converged:
+        res.reason = "not converged"
+        res.seconds = time.perf_counter() - t0
+        return res
+    route = out["route"]
+    cells = [(int(r), int(c)) for r, c in mdp.cell_of_state[route]]
+    res.cost = out["cost"]
+    # the plain planner must match BFS exactly; the heading-aware one may trade length for
+    # fewer manoeuvres, and is held to the Dijkstra optimum of its own cost model instead.
+    problems = verify_route(free, cells, s, g, bfs_len if method == "qlearning" else None)
+    if abs(res.cost - optimal) > 1e-9 * max(1.0, optimal):
+        problems.append(f"route cost {res.cost} is not the optimum {optimal}")
+    res.seconds = time.perf_counter() - t0
+    if problems:
+        res.converged = False
+        res.reason = "verification failed: " + "; ".join(problems)
+        return res
+    res.cells = cells
+    res.moves = cells_to_moves(cells)
+    res.reason = "ok"
+    return res
+
+
+def _check_config(cfg: PlannerConfig) -> None:
+    """Reject settings under which the learned optimum would not be the cheapest route."""
+    if not 0.0 < cfg.learning_rate <= 1.0:
+        raise PlanInputError("learning_rate must be in (0, 1]")
+    if not 0.0 < cfg.discount <= 1.0:
+        raise PlanInputError("discount must be in (0, 1]")
+    if not 0.0 <= cfg.epsilon <= 1.0:
+        raise PlanInputError("epsilon must be in [0, 1]")
+    if cfg.reward_step >= 0 or cfg.reward_blocked >= 0:
+        raise PlanInputError("reward_step and reward_blocked must be negative")
+    if cfg.reward_turn > 0 or cfg.reward_backward > 0:
+        raise PlanInputError("reward_turn and reward_backward must not be positive")
+    if cfg.q_init not in ("heuristic", "optimistic", "zero"):
+        raise PlanInputError("q_init must be heuristic, optimistic or zero")
+    if cfg.q_init == "heuristic" and cfg.discount != 1.0:
+        raise PlanInputError("q_init heuristic is an upper bound only with discount 1")
+    if cfg.stable_checks < 1:
+        raise PlanInputError("stable_checks must be at least 1")
