@@ -1,0 +1,274 @@
+"""The safe grid core on hand-made data: height band, eqs 8-10, unknown cells, the thin-obstacle
+guard, drops, wall alignment, extent/phase and the boundary rule, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN
+from wheelgrid_nav.grid import (
+    GridConfig,
+    GridError,
+    build_grid,
+    cell_density,
+    classify_density,
+    continuous_obstacles,
+    height_classes,
+    project,
+    thin_obstacle_guard,
+    wall_yaw,
+)
+from wheelgrid_nav.grid_synth import (
+    Box,
+    paper_like_boxes,
+    paper_like_expected,
+    room_cloud,
+    sample_box,
+    transform,
+)
+
+SPACING = 0.04  # coarse enough to keep each cloud build in milliseconds
+
+
+@pytest.fixture(scope="module")
+def paper_cloud() -> np.ndarray:
+    return room_cloud(paper_like_boxes(), spacing=SPACING)
+
+
+def occupied(result) -> np.ndarray:
+    return result.grid.data == OCCUPIED
+
+
+# --- height band (the paper's safe height δ = 1.5 m) -------------------------------------------
+
+
+def test_height_classes_band_edges():
+    cfg = GridConfig()
+    z = np.array([-0.3, -0.05, 0.0, 0.05, 0.0501, 0.77, 1.5, 1.5116, 2.6])
+    # floor, floor, floor, floor (<= clearance), band, band, band (== safe height), above, above
+    assert height_classes(z, cfg).tolist() == [2, 0, 0, 0, 1, 1, 1, 3, 3]
+
+
+def test_bar_at_77cm_blocks_and_bar_at_151cm_is_removed():
+    # Two 5 cm bars across row 1 of a 3.6 x 3.6 m room: one whose top is at 0.77 m in column 0,
+    # one whose underside is at 1.5116 m in column 2 (the paper's Barriers 1 and 2).
+    boxes = [
+        Box(0.1, 1.1, 1.775, 1.825, 0.72, 0.77),
+        Box(2.5, 3.5, 1.775, 1.825, 1.5116, 1.5616),
+    ]
+    res = build_grid(room_cloud(boxes, size=(3.6, 3.6), spacing=SPACING))
+    assert res.grid.data.shape == (3, 3)
+    assert res.grid.data[1, 0] == OCCUPIED
+    assert res.grid.data[1, 2] == FREE
+    assert np.count_nonzero(occupied(res)) == 1
+    # Raise the safe height above Barrier 2: now it blocks too.
+    res_high = build_grid(
+        room_cloud(boxes, size=(3.6, 3.6), spacing=SPACING), GridConfig(safe_height=1.6)
+    )
+    assert res_high.grid.data[1, 2] == OCCUPIED
+
+
+def test_orthographic_projection_drops_z():
+    pts = np.array([[1.0, 2.0, 3.0], [-4.0, 5.0, 0.0]])
+    np.testing.assert_array_equal(project(pts), [[1.0, 2.0], [-4.0, 5.0]])
+
+
+# --- eqs 9 and 10 on hand-made images -------------------------------------------------------------
+
+
+def test_eq9_density_per_tile():
+    img = np.zeros((4, 6), dtype=bool)
+    img[0, 0] = True  # tile (0,0): 1 of 4
+    img[0:2, 2:4] = True  # tile (0,1): 4 of 4
+    img[3, 5] = img[2, 4] = True  # tile (1,2): 2 of 4
+    np.testing.assert_allclose(cell_density(img, 2, 2), [[0.25, 1.0, 0.0], [0.0, 0.0, 0.5]])
+    # m x n tiles that are not square follow the same sum / (m n)
+    np.testing.assert_allclose(cell_density(img, 4, 3), [[3 / 12, 4 / 12]])
+    with pytest.raises(ValueError):
+        cell_density(img, 3, 3)
+
+
+def test_eq10_threshold_is_strict():
+    density = np.array([[0.0, 0.05, 0.0501, 1.0]])
+    # sigma <= delta -> free (False), sigma > delta -> obstacle (True)
+    assert classify_density(density, 0.05).tolist() == [[False, False, True, True]]
+
+
+# --- the thin-obstacle guard --------------------------------------------------------------------
+
+
+def test_guard_on_hand_made_image():
+    obs = np.zeros((6, 6), dtype=bool)
+    counts = np.zeros((6, 6), dtype=np.int64)
+    obs[1, 0:3] = True  # a short bar, 3 points a pixel, in tile (0,0) of 3x3 tiles
+    counts[1, 0:3] = 3
+    obs[4, 4] = True  # a lone speckle with one point in tile (1,1)
+    counts[4, 4] = 1
+    obs[4, 1] = True  # a thin pole: one pixel, many points, tile (1,0)
+    counts[4, 1] = 12
+    solid = continuous_obstacles(obs, counts, min_points=6)
+    assert solid[1, 0:3].all() and solid[4, 1] and not solid[4, 4]
+    guard = thin_obstacle_guard(obs, counts, 3, 3, min_points=6)
+    assert guard.tolist() == [[True, False], [True, False]]
+    # eq 10 alone misses the bar and the pole: densities 3/9 and 1/9 are below δ = 0.5
+    assert not classify_density(cell_density(obs, 3, 3), 0.5).any()
+
+
+def test_guard_catches_a_thin_bar_that_density_misses():
+    # A 3 cm bar at 0.9 m across the middle cell, inside one pixel row: 21 of 576 pixels,
+    # 3.6 % < δ = 5 %.
+    boxes = [Box(1.3, 2.3, 1.76, 1.79, 0.85, 0.88)]
+    cloud = room_cloud(boxes, size=(3.6, 3.6), spacing=SPACING)
+    res = build_grid(cloud)
+    assert res.density[1, 1] <= res.config.density_threshold
+    assert res.grid.data[1, 1] == OCCUPIED and res.guard[1, 1]
+    assert np.count_nonzero(occupied(res)) == 1
+    paper_only = build_grid(cloud, GridConfig(thin_obstacle_guard=False))
+    assert paper_only.grid.data[1, 1] == FREE  # what eq 10 alone would tell the chair
+
+
+def test_guard_catches_a_lone_5cm_post_and_ignores_a_speckle():
+    post = Box(0.5, 0.55, 0.5, 0.55, 0.0, 1.2)  # cell (2, 0) of a 3.6 m room
+    cloud = room_cloud([post], size=(3.6, 3.6), spacing=SPACING)
+    speckle = np.array([[2.9, 2.9, 0.8]])  # one noise point in cell (0, 2)
+    res = build_grid(np.vstack([cloud, speckle]))
+    assert res.grid.data[2, 0] == OCCUPIED
+    assert res.grid.data[0, 2] == FREE
+    assert np.count_nonzero(occupied(res)) == 1
+
+
+def test_drop_below_the_floor_blocks():
+    floor_hole = sample_box(Box(1.5, 2.1, 1.5, 2.1, -0.4, -0.3), SPACING)  # a pit, cell (1,1)
+    cloud = room_cloud([], size=(3.6, 3.6), spacing=SPACING)
+    res = build_grid(np.vstack([cloud, floor_hole]))
+    assert res.grid.data[1, 1] == OCCUPIED
+    assert np.count_nonzero(occupied(res)) == 1
+
+
+# --- unknown is not free ------------------------------------------------------------------------
+
+
+def test_unobserved_cells_are_unknown_not_free():
+    cloud = room_cloud([], size=(4.8, 2.4), spacing=SPACING, ceiling=True)
+    # The floor of the right half was never seen (only the ceiling above it, and the foot of
+    # the walls, which is what keeps the right half inside the grid).
+    seen = ~((cloud[:, 2] == 0.0) & (cloud[:, 0] > 2.4))
+    res = build_grid(cloud[seen])
+    assert res.grid.data.tolist() == [[FREE, FREE, UNKNOWN, UNKNOWN]] * 2
+    # With the floor of one column of cells half hidden, those cells are unknown.
+    cloud2 = cloud[~((cloud[:, 2] == 0.0) & (cloud[:, 0] > 0.6) & (cloud[:, 0] < 1.2))]
+    res2 = build_grid(cloud2)
+    assert res2.grid.data.shape == (2, 4)
+    assert res2.grid.data[0, 0] == UNKNOWN and res2.grid.data[1, 0] == UNKNOWN
+    assert (res2.grid.data[:, 1:] == FREE).all()
+    assert not (res2.grid.data == OCCUPIED).any()
+
+
+# --- extent, phase and the boundary rule ----------------------------------------------------------
+
+
+def test_paper_room_in_the_mapper_frame(paper_cloud):
+    # The mapper's frame: room shifted by (-0.6, -6.6) and a small heading error.
+    cloud = transform(paper_cloud, math.radians(-2.0), (-0.6, -6.6))
+    res = build_grid(cloud)
+    assert res.grid.data.shape == (8, 8)
+    np.testing.assert_array_equal(occupied(res), paper_like_expected())
+    assert (res.grid.data != UNKNOWN).all()
+    assert res.yaw == pytest.approx(math.radians(-2.0), abs=math.radians(0.05))
+    # The grid's lower-left corner is the room's corner (0, 0) seen in the map frame.
+    corner = transform(np.zeros((1, 3)), math.radians(-2.0), (-0.6, -6.6))[0]
+    assert res.grid.origin[:2] == pytest.approx(tuple(corner[:2]), abs=0.02)
+
+
+def test_walls_do_not_occupy_border_cells_but_near_obstacles_do():
+    near = Box(1.5, 2.0, 0.15, 0.3, 0.0, 0.9)  # 15 cm off the south wall: content of (2, 1)
+    res = build_grid(room_cloud([near], size=(3.6, 3.6), spacing=SPACING))
+    assert res.grid.data.tolist() == [[FREE] * 3, [FREE] * 3, [FREE, OCCUPIED, FREE]]
+    assert res.boundary.any()  # the walls were seen, and taken as the boundary
+
+
+def test_grid_phase_survives_a_missing_floor_strip():
+    # Floor points stop 12 cm short of the east wall (e.g. never scanned there).
+    cloud = room_cloud([Box(0.1, 1.1, 0.1, 1.1, 0.0, 0.75)], size=(3.6, 3.6), spacing=SPACING)
+    cloud = cloud[~((cloud[:, 2] == 0.0) & (cloud[:, 0] > 3.48))]
+    res = build_grid(cloud)
+    assert res.grid.data.shape == (3, 3)
+    assert res.grid.data[2, 0] == OCCUPIED
+    assert np.count_nonzero(occupied(res)) == 1
+
+
+# --- alignment ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("deg", [20.0, -33.0])
+def test_alignment_follows_the_walls(paper_cloud, deg):
+    res = build_grid(transform(paper_cloud, math.radians(deg), (2.0, -1.0)))
+    assert math.degrees(res.yaw) == pytest.approx(deg, abs=0.05)
+    np.testing.assert_array_equal(occupied(res), paper_like_expected())
+
+
+def test_alignment_picks_the_rotation_closest_to_the_map_axes(paper_cloud):
+    # Rotated by 70 degrees the walls are also at -20 degrees: that one is chosen, and the
+    # grid is the room's grid turned by a quarter.
+    res = build_grid(transform(paper_cloud, math.radians(70.0), (0.0, 0.0)))
+    assert math.degrees(res.yaw) == pytest.approx(-20.0, abs=0.05)
+    np.testing.assert_array_equal(occupied(res), np.rot90(paper_like_expected(), k=1))
+
+
+def test_map_alignment_keeps_map_axes(paper_cloud):
+    cloud = transform(paper_cloud, math.radians(10.0), (0.0, 0.0))
+    res = build_grid(cloud, GridConfig(alignment="map"))
+    assert res.yaw == 0.0 and res.grid.origin[2] == 0.0
+    # Misaligned cells straddle the tables: never fewer occupied cells than the truth has.
+    assert np.count_nonzero(occupied(res)) >= np.count_nonzero(paper_like_expected())
+
+
+def test_wall_yaw_without_walls_is_none():
+    flat = np.column_stack([np.random.default_rng(0).uniform(0, 3, (500, 2)), np.zeros(500)])
+    assert wall_yaw(flat, GridConfig()) is None
+
+
+# --- the fine map ----------------------------------------------------------------------------
+
+
+def test_fine_map_is_in_map_axes_with_walls_floor_and_unknown(paper_cloud):
+    cloud = transform(paper_cloud, math.radians(15.0), (1.0, 1.0))
+    res = build_grid(cloud)
+    fine = res.fine
+    assert fine.origin[2] == 0.0 and fine.resolution == pytest.approx(0.05)
+    vals = set(np.unique(fine.data).tolist())
+    assert vals == {FREE, OCCUPIED, UNKNOWN}  # outside the rotated room is unknown
+    # a table-top pixel is occupied, the middle of the room free
+    for x, y, want in ((2.4, 3.0, OCCUPIED), (6.6, 1.8, FREE)):
+        p = transform(np.array([[x, y, 0.0]]), math.radians(15.0), (1.0, 1.0))[0]
+        r, c = fine.cell_of(p[0], p[1])
+        assert fine.data[r, c] == want
+
+
+# --- bad input ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("points", "cause"),
+    [
+        (np.empty((0, 3)), "empty"),
+        (np.full((10, 3), np.nan), "empty"),
+        (np.column_stack([np.zeros(100), np.zeros(100), np.full(100, 2.0)]), "all_above_band"),
+        (np.column_stack([np.arange(100.0), np.zeros(100), np.full(100, 0.8)]), "no_floor"),
+        (np.zeros((5, 2)), "bad_shape"),
+    ],
+)
+def test_bad_maps_raise_grid_error(points, cause):
+    with pytest.raises(GridError) as info:
+        build_grid(points)
+    assert info.value.cause == cause
+    assert str(info.value)
+
+
+def test_invalid_config_is_rejected():
+    cloud = room_cloud([], size=(2.4, 2.4), spacing=SPACING)
+    with pytest.raises(ValueError, match="whole number"):
+        build_grid(cloud, GridConfig(cell_size=1.23))
+    with pytest.raises(ValueError, match="alignment"):
+        build_grid(cloud, GridConfig(alignment="diagonal"))

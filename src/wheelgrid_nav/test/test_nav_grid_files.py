@@ -1,0 +1,139 @@
+"""`wheelgrid grid` and its files: map_server round trip, grid.png, exit codes and messages."""
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from wheelgrid_common.fileio import write_ply
+from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN, read_map
+from wheelgrid_nav.cli_grid import main
+from wheelgrid_nav.grid import build_grid
+from wheelgrid_nav.grid_png import write_outputs
+from wheelgrid_nav.grid_synth import paper_like_boxes, paper_like_expected, room_cloud, transform
+
+
+@pytest.fixture(scope="module")
+def map_ply(tmp_path_factory) -> str:
+    cloud = transform(
+        room_cloud(paper_like_boxes(), spacing=0.04), math.radians(-3.0), (-0.6, -6.6)
+    )
+    path = tmp_path_factory.mktemp("map") / "map.ply"
+    write_ply(path, cloud)
+    return str(path)
+
+
+def test_files_round_trip_like_map_server(tmp_path):
+    cloud = transform(room_cloud(paper_like_boxes(), spacing=0.04), math.radians(12.0), (1.0, 2.0))
+    res = build_grid(cloud)
+    # make sure all three values are exercised in the round trip
+    res.grid.data[7, 7] = UNKNOWN
+    files = write_outputs(res, tmp_path)
+    assert {p.name for p in files.values()} == {
+        "grid.yaml",
+        "grid.pgm",
+        "fine.yaml",
+        "fine.pgm",
+        "grid.png",
+    }
+    for name, original in (("grid.yaml", res.grid), ("fine.yaml", res.fine)):
+        back = read_map(tmp_path / name)  # mirrors nav2_map_server's loader
+        np.testing.assert_array_equal(back.data, original.data)
+        assert back.resolution == pytest.approx(original.resolution)
+        assert back.origin == pytest.approx(original.origin)
+        doc = yaml.safe_load((tmp_path / name).read_text())
+        assert doc["mode"] == "trinary" and doc["image"] == name.replace(".yaml", ".pgm")
+    assert set(np.unique(read_map(tmp_path / "grid.yaml").data).tolist()) == {
+        FREE,
+        OCCUPIED,
+        UNKNOWN,
+    }
+    assert read_map(tmp_path / "grid.yaml").origin[2] == pytest.approx(math.radians(12.0), abs=1e-3)
+
+
+def test_cli_writes_the_paper_grid(map_ply, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main([map_ply, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "8 x 8 cells of 1.2 m" in text
+    grid = read_map(out / "grid.yaml")
+    np.testing.assert_array_equal(grid.data == OCCUPIED, paper_like_expected())
+    assert (grid.data != UNKNOWN).all()
+    # the origin is the room corner (0, 0) in the map frame, the yaw the walls' direction
+    assert grid.origin[2] == pytest.approx(math.radians(-3.0), abs=1e-3)
+    corner = transform(np.zeros((1, 3)), math.radians(-3.0), (-0.6, -6.6))[0]
+    assert grid.origin[:2] == pytest.approx(tuple(corner[:2]), abs=0.02)
+    fine = read_map(out / "fine.yaml")
+    assert fine.resolution == pytest.approx(0.05) and fine.origin[2] == 0.0
+    with Image.open(out / "grid.png") as im:
+        assert im.format == "PNG"
+        w, h = im.size
+        assert w > 3 * h / 2  # three panels side by side
+        # panel (c) holds black (occupied) and white (free) cells
+        colours = {c for _, c in im.convert("RGB").getcolors(maxcolors=1 << 16)}
+        assert (0, 0, 0) in colours and (255, 255, 255) in colours
+
+
+def test_cli_flags_and_config(map_ply, tmp_path):
+    # --safe-height above Barrier 2 makes its row occupied
+    out = tmp_path / "high"
+    assert main([map_ply, "--out", str(out), "--safe-height", "1.6", "-q"]) == 0
+    assert (read_map(out / "grid.yaml").data[4, 4:] == OCCUPIED).all()
+    # a ROS params file for the node works for the CLI too (node-only keys are accepted)
+    cfg = tmp_path / "params.yaml"
+    cfg.write_text(
+        yaml.safe_dump({"grid": {"ros__parameters": {"alignment": "map", "output_dir": "/tmp/x"}}})
+    )
+    out2 = tmp_path / "cfg"
+    assert main([map_ply, "--out", str(out2), "--config", str(cfg), "--no-png", "-q"]) == 0
+    assert read_map(out2 / "grid.yaml").origin[2] == 0.0
+    assert not (out2 / "grid.png").exists()
+
+
+def _ply_points(tmp_path, name, points):
+    path = tmp_path / name
+    write_ply(path, np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("missing", "no such map file"),
+        ("garbage", "not a readable PLY"),
+        ("truncated", "not a readable PLY"),
+        ("empty", "no (finite) points"),
+        ("above", "above the safe height"),
+        ("nofloor", "no floor found"),
+        ("badconfig", "bad config"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
+    args = ["--out", str(tmp_path / "out")]
+    if case == "missing":
+        path = str(tmp_path / "nope.ply")
+    elif case == "garbage":
+        path = str(tmp_path / "garbage.ply")
+        (tmp_path / "garbage.ply").write_bytes(b"\x00\x01 definitely not a ply")
+    elif case == "truncated":
+        path = _ply_points(tmp_path, "t.ply", np.zeros((100, 3)))
+        raw = (tmp_path / "t.ply").read_bytes()
+        (tmp_path / "t.ply").write_bytes(raw[:-50])
+    elif case == "empty":
+        path = _ply_points(tmp_path, "e.ply", np.empty((0, 3)))
+    elif case == "above":
+        path = _ply_points(tmp_path, "a.ply", [[0, 0, 2.0], [1, 0, 2.5]])
+    elif case == "nofloor":
+        path = _ply_points(tmp_path, "n.ply", [[x, 0, 0.8] for x in range(100)])
+    else:
+        path = _ply_points(tmp_path, "ok.ply", [[0, 0, 0]])
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("safe_hieght: 1.5\n")
+        args += ["--config", str(bad)]
+    assert main([path, *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "grid.yaml").exists()
