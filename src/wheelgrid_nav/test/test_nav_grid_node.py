@@ -1,0 +1,111 @@
+"""The grid node over real DDS (loopback): both grids transient-local, bad maps keep the previous
+grid, ~/save writes the files."""
+
+import math
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import OCCUPIED, from_occupancy_grid, read_map
+from wheelgrid_common.pointcloud2 import to_pointcloud2
+from wheelgrid_common.qos import MAP_QOS
+from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+from wheelgrid_nav.grid_synth import paper_like_boxes, paper_like_expected, room_cloud, transform
+
+pytestmark = pytest.mark.ros
+
+
+def _wait_for_log(path, text: str, count: int, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if path.read_text(errors="replace").count(text) >= count:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_grid_node_publishes_keeps_and_saves(tmp_path):
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    out = tmp_path / "saved"
+    log = tmp_path / "node.log"
+    cloud = transform(room_cloud(paper_like_boxes(), spacing=0.05), math.radians(4.0), (-0.6, -6.6))
+    args = python_module(
+        "wheelgrid_nav.grid_node",
+        "--ros-args",
+        "-p",
+        f"output_dir:={out}",
+        "-p",
+        "max_rate_hz:=10.0",
+    )
+    with (
+        open(log, "w") as logf,
+        managed_process(args, stdout=logf, stderr=subprocess.STDOUT) as proc,
+        rclpy_context() as ctx,
+    ):
+        node = Node("grid_node_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        try:
+            save = node.create_client(Trigger, "/grid/save")
+            assert spin_until(ex, save.service_is_ready, timeout=20.0), log.read_text()
+
+            def call_save():
+                fut = save.call_async(Trigger.Request())
+                assert spin_until(ex, fut.done, timeout=20.0)
+                return fut.result()
+
+            early = call_save()
+            assert not early.success and "no grid yet" in early.message
+
+            pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
+            pub.publish(to_pointcloud2(cloud, "map"))
+            # Subscribers created after the grid was computed must still get it (transient local).
+            assert _wait_for_log(log, "grid 8 x 8", 1, 30.0), log.read_text()
+            grids: list = []
+            fines: list = []
+            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", grids.append, MAP_QOS)
+            node.create_subscription(OccupancyGrid, "/map", fines.append, MAP_QOS)
+            assert spin_until(ex, lambda: grids and fines, timeout=20.0)
+            grid = from_occupancy_grid(grids[0])
+            np.testing.assert_array_equal(grid.data == OCCUPIED, paper_like_expected())
+            assert grid.resolution == pytest.approx(1.2) and grid.frame_id == "map"
+            assert grid.origin[2] == pytest.approx(math.radians(4.0), abs=1e-3)
+            fine = from_occupancy_grid(fines[0])
+            assert fine.resolution == pytest.approx(0.05) and fine.origin[2] == 0.0
+            assert set(np.unique(fine.data).tolist()) <= {-1, 0, 100}
+
+            # Bad maps: an empty cloud, everything above the safe height, no floor.
+            bad_clouds = [
+                np.empty((0, 3)),
+                np.column_stack([np.arange(50.0), np.zeros(50), np.full(50, 2.2)]),
+                np.column_stack([np.arange(500.0) / 50, np.zeros(500), np.full(500, 0.9)]),
+            ]
+            for i, bad in enumerate(bad_clouds, start=1):
+                pub.publish(to_pointcloud2(bad, "map"))
+                assert _wait_for_log(log, "kept the previous grid", i, 20.0), log.read_text()
+            text = log.read_text()
+            assert "empty" in text and "all_above_band" in text and "no_floor" in text
+            spin_until(ex, lambda: len(grids) > 1, timeout=1.0)
+            assert len(grids) == 1 and len(fines) == 1  # nothing new was published
+            late: list = []
+            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", late.append, MAP_QOS)
+            assert spin_until(ex, lambda: late, timeout=20.0)
+            np.testing.assert_array_equal(from_occupancy_grid(late[0]).data, grid.data)
+
+            saved = call_save()
+            assert saved.success, saved.message
+            for name in ("grid.yaml", "grid.pgm", "fine.yaml", "fine.pgm", "grid.png"):
+                assert (out / name).is_file(), name
+            np.testing.assert_array_equal(read_map(out / "grid.yaml").data, grid.data)
+            np.testing.assert_array_equal(read_map(out / "fine.yaml").data, fine.data)
+            assert proc.poll() is None  # still running after all of it
+        finally:
+            ex.shutdown()
+            node.destroy_node()
