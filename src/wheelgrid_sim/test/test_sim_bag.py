@@ -12,7 +12,7 @@ from wheelgrid_common.bagio import POINTCLOUD2, BagReader
 from wheelgrid_common.fileio import read_tum
 from wheelgrid_common.map_io import FREE, read_map
 from wheelgrid_common.pointcloud2 import read_fields
-from wheelgrid_sim import FRAME_ID, TOPIC, load_ground_truth, paper_scene, simulate
+from wheelgrid_sim import FRAME_ID, ODOM_TOPIC, TOPIC, load_ground_truth, paper_scene, simulate
 from wheelgrid_sim.cli import main as cli_main
 
 
@@ -38,8 +38,10 @@ def test_bag_reads_back_with_rosbags(fixture: str, request: pytest.FixtureReques
     assert list((root / "scan").glob("*.mcap" if storage == "mcap" else "*.db3"))
     holes = 0
     with BagReader(root / "scan") as reader:
-        [info] = reader.topics()
-        assert (info.name, info.msgtype, info.count) == (TOPIC, POINTCLOUD2, gt.truth["frames"])
+        infos = {t.name: (t.msgtype, t.count) for t in reader.topics()}
+        n = gt.truth["frames"]
+        assert infos == {TOPIC: (POINTCLOUD2, n), ODOM_TOPIC: ("nav_msgs/msg/Odometry", n)}
+        assert reader.pick_topic(None) == TOPIC
         for i, (_, t_ns, msg) in enumerate(reader.messages([TOPIC])):
             assert msg.header.frame_id == FRAME_ID
             stamp_ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
@@ -153,3 +155,32 @@ def test_cli_writes_everything_and_refuses_to_overwrite(
     assert cli_main(["--frames", "0", "--out", str(tmp_path / "x")]) == 2
     assert cli_main(["--stride", "0", "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_odometry_is_arkit_like(sim_clean: Path) -> None:
+    """Gravity-aligned, starts at the first camera pose, drifts about a percent, never zero."""
+    from wheelgrid_common.fileio import quat_to_matrix
+
+    gt = load_ground_truth(sim_clean)
+    odom_from_room = np.asarray(gt.truth["odom_from_room"])
+    true = odom_from_room @ gt.poses
+    est = []
+    with BagReader(sim_clean / "scan") as reader:
+        for _, t_ns, msg in reader.messages([ODOM_TOPIC]):
+            assert (msg.header.frame_id, msg.child_frame_id) == ("odom", FRAME_ID)
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == t_ns
+            assert msg.pose.covariance[0] == -1.0
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            T = np.eye(4)
+            T[:3, :3] = quat_to_matrix(q.x, q.y, q.z, q.w)
+            T[:3, 3] = (p.x, p.y, p.z)
+            est.append(T)
+    est_a = np.array(est)
+    assert len(est_a) == len(true)
+    np.testing.assert_allclose(est_a[0], true[0], atol=1e-6)
+    np.testing.assert_allclose(true[0][:3, 3], 0.0, atol=1e-6)  # origin at the first camera
+    # Gravity is exact: the optical y axis (down) has the same z component as the truth's.
+    np.testing.assert_allclose(est_a[:, 2, :3], true[:, 2, :3], atol=1e-6)
+    path = np.sum(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1))
+    err = np.linalg.norm(est_a[-1, :3, 3] - true[-1, :3, 3])
+    assert 0.0 < err < 0.05 * path + 0.05

@@ -45,6 +45,11 @@ def build_parser() -> argparse.ArgumentParser:
         default="sqlite3",
         help="rosbag2 storage plugin (default sqlite3)",
     )
+    p.add_argument(
+        "--no-odometry",
+        action="store_true",
+        help="leave out /iphone/odometry (the ARKit-like pose with drift)",
+    )
     return p
 
 
@@ -69,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             scene=args.scene,
             stride=args.stride,
             storage=args.storage,
+            odometry=not args.no_odometry,
             on_frame=lambda _i: bar.update(),
         )
     except (BagError, ValueError, OSError) as exc:

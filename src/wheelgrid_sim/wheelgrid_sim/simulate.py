@@ -3,6 +3,7 @@
 Output folder layout (fixed; other stages and tests read it)::
 
     DIR/scan/               rosbag2 bag: /iphone/points (sensor_msgs/PointCloud2, organised)
+                            and /iphone/odometry (nav_msgs/Odometry, ARKit-like, drifting)
     DIR/scene.json          room, boxes, barrier heights, seed, scene name
     DIR/poses.tum           room_from_optical per frame, stamps = message stamps
     DIR/poses_map.tum       the same poses in the levelled MAP frame convention
@@ -27,11 +28,15 @@ from wheelgrid_common.fileio import read_tum, write_tum
 from wheelgrid_common.map_io import OCCUPIED, Grid, read_map, write_map
 from wheelgrid_common.pointcloud2 import to_pointcloud2
 from wheelgrid_sim.camera import DepthCamera, depth_to_points
+from wheelgrid_sim.odometry import arkit_like_odometry
 from wheelgrid_sim.scene import Scene, paper_scene, random_scene
 from wheelgrid_sim.trajectory import STAMP_EPOCH, make_trajectory
 
 TOPIC = "/iphone/points"
 FRAME_ID = "iphone_depth_optical_frame"
+ODOM_TOPIC = "/iphone/odometry"
+ODOM_FRAME = "odom"
+ODOMETRY = "nav_msgs/msg/Odometry"
 SAFE_HEIGHT = 1.5
 FLOOR_CLEARANCE = 0.05
 CELL_SIZE = 1.2
@@ -95,6 +100,28 @@ def canonical_cdr(msg: Any, msgtype: str) -> bytes:
 _STORE: dict[str, Any] = {}
 
 
+def odometry_msg(stamp: Any, T_odom_optical: np.ndarray) -> Any:
+    """nav_msgs/Odometry laid out like the iPhone bridge's: ARKit gives no covariance and no
+    twist, so both covariances carry -1 in element 0 ("unknown"), never a false zero."""
+    from nav_msgs.msg import Odometry
+
+    from wheelgrid_common.fileio import matrix_to_quat
+
+    msg = Odometry()
+    msg.header.stamp = stamp
+    msg.header.frame_id = ODOM_FRAME
+    msg.child_frame_id = FRAME_ID
+    p = msg.pose.pose
+    p.position.x, p.position.y, p.position.z = (float(v) for v in T_odom_optical[:3, 3])
+    q = matrix_to_quat(T_odom_optical[:3, :3])
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
+    cov = [0.0] * 36
+    cov[0] = -1.0
+    msg.pose.covariance = cov
+    msg.twist.covariance = cov
+    return msg
+
+
 @dataclass
 class SimResult:
     """What :func:`simulate` wrote, with counts a summary line can report."""
@@ -129,12 +156,14 @@ def simulate(
     stride: int = 1,
     storage: str = "sqlite3",
     noise: bool = True,
+    odometry: bool = True,
     on_frame: Callable[[int], None] | None = None,
 ) -> SimResult:
     """Render ``frames`` depth frames and write the bag plus ground truth under ``out_dir``.
 
     Raises ``ValueError`` for bad arguments and ``BagError`` when ``out_dir/scan`` exists
     (never overwrite a recording). ``on_frame(i)`` is called after each frame (progress bars).
+    ``odometry`` adds ``/iphone/odometry``: the ARKit-like pose with drift, as a phone gives it.
     """
     t0 = time.monotonic()
     if frames < 1:
@@ -158,7 +187,12 @@ def simulate(
 
     grid = sc.expected_grid(SAFE_HEIGHT, FLOOR_CLEARANCE, CELL_SIZE)
     grid.frame_id = "room"
+    odom_poses, o_from_r = arkit_like_odometry(poses, seed)
     files = _write_truth(out, sc, cam, grid, stamps_s, poses, m_from_r, frames, rate, seed)
+    truth = json.loads(files["truth"].read_text())
+    truth["odometry_topic"] = ODOM_TOPIC if odometry else None
+    truth["odom_from_room"] = o_from_r.tolist()
+    files["truth"].write_text(json.dumps(truth, indent=1) + "\n")
 
     from builtin_interfaces.msg import Time
 
@@ -179,6 +213,9 @@ def simulate(
             )
             msg.is_dense = False  # organised: NaN pixels may appear in any frame
             writer.write(TOPIC, POINTCLOUD2, ns, canonical_cdr(msg, POINTCLOUD2))
+            if odometry:
+                odom = odometry_msg(msg.header.stamp, odom_poses[i])
+                writer.write(ODOM_TOPIC, ODOMETRY, ns, canonical_cdr(odom, ODOMETRY))
             if on_frame is not None:
                 on_frame(i)
     bag_bytes = sum(p.stat().st_size for p in bag.rglob("*") if p.is_file())
