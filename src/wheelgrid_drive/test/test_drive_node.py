@@ -109,12 +109,13 @@ def test_node_drives_the_table_ii_route(make_sim):
     grid = free_grid()
     with (
         rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="down", set_pose_on_plan=True) as h,
+        Harness(ctx, sim.slave_path, set_pose_on_plan=True) as h,
     ):
         assert h.matched()
         h.pub_grid.publish(to_occupancy_grid(grid))
         h.spin(lambda: h.drive._grid is not None, 5.0)
-        h.publish_plan(grid, CELLS)
+        # initial_heading "auto": the first pose's orientation gives the start heading (down).
+        h.publish_plan(grid, CELLS, heading_yaw=-math.pi / 2)
         assert h.spin(lambda: len(h.cmds) >= 9, 20.0), h.cmds
         assert [c["action"] for c in h.cmds] == TABLE_II_ACTIONS
         assert all(c["ack"] == "ACK" for c in h.cmds)

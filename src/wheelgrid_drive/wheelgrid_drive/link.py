@@ -263,6 +263,8 @@ class MotorLink:
                 return str(exc)
             return ""
         if frame.type == proto.MsgType.NAK:
+            if len(frame.payload) != 2 or frame.payload[0] != mtype:
+                return f"NAK payload {frame.payload.hex() or 'empty'} does not name 0x{mtype:02X}"
             return ""  # a well-formed refusal; the caller turns it into an error
         if frame.type != proto.MsgType.ACK:
             return f"expected ACK/NAK, got {frame.type_name}"
