@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
@@ -173,3 +174,56 @@ def test_on_frame_exception_is_logged_not_fatal() -> None:
         assert rec.logged("publisher gone")
     finally:
         srv.stop()
+
+
+# ---- fuzzing the running server over TCP: it must keep serving whatever a client sends ------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def fuzz_server() -> Iterator[tuple[bp.BridgeServer, Recorder]]:
+    with server(max_frame_bytes=20_000, hello_timeout_s=1.0, max_clients=4) as pair:
+        yield pair
+
+
+_HELLO = bp.encode_hello("", "fuzz")
+
+
+@settings(
+    max_examples=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    st.booleans(),
+    st.lists(st.sampled_from([frame(0), frame(1, w=64, h=48), frame(2, w=100, h=100)]), max_size=3),
+    st.lists(st.tuples(st.integers(0, 50_000), st.integers(0, 255)), max_size=6),
+    st.binary(max_size=200),
+)
+def test_fuzz_server_survives_any_stream(
+    fuzz_server: tuple[bp.BridgeServer, Recorder],
+    hello: bool,
+    frames: list[bytes],
+    flips: list[tuple[int, int]],
+    tail: bytes,
+) -> None:
+    srv, _ = fuzz_server
+    data = bytearray((_HELLO if hello else b"") + b"".join(frames) + tail)
+    for pos, val in flips:
+        if data:
+            data[pos % len(data)] = val
+    # the server may close on us before everything is sent: allowed
+    with (
+        socket.create_connection(("127.0.0.1", srv.port), timeout=5) as s,
+        contextlib.suppress(OSError),
+    ):
+        s.sendall(bytes(data))
+    # whatever happened, a well-behaved client is still served
+    before = srv.frames_received
+    with bp.connect("127.0.0.1", srv.port, name="check") as sock:
+        sock.sendall(frame(7))
+        assert wait_for(lambda: srv.frames_received > before)
+    for c in list(srv._clients.values()):
+        assert c.decoder.buffered <= bp.PREFIX.size + srv.max_frame_bytes
