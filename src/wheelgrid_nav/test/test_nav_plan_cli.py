@@ -1,0 +1,163 @@
+"""``wheelgrid plan`` end to end on map_server files: JSON, Table II text, PNG, exit codes."""
+
+import json
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import Grid, write_map
+from wheelgrid_nav.cli_plan import main
+
+PAPER_OCCUPIED = [(3, 0), (3, 1), (3, 2), (3, 3), (3, 4), (5, 0), (5, 1), (5, 2), (5, 3), (4, 4)]
+PAPER_ROUTE = [[2, 0]] + [[2, c] for c in range(1, 6)] + [[r, 5] for r in range(3, 7)]
+
+
+@pytest.fixture
+def paper_yaml(tmp_path):
+    g = np.zeros((8, 8), dtype=np.int8)
+    for r, c in [*PAPER_OCCUPIED, (6, 7)]:
+        g[r, c] = 100
+    g[0, 7] = -1  # an unknown corner
+    # 0.9 m cells (a wheelchair footprint), lower-left corner at (1, 2) in the map frame
+    return write_map(tmp_path / "grid.yaml", Grid(g, 0.9, (1.0, 2.0, 0.0)))
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_json_route_and_table_ii_actions(paper_yaml, capsys):
+    code, out, err = run(
+        capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--heading", "down", "--json"
+    )
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["cells"] == PAPER_ROUTE
+    assert doc["moves"] == ["right"] * 5 + ["down"] * 4
+    assert doc["converged"] is True and doc["episodes"] > 0 and doc["seconds"] > 0
+    acts = doc["actions"]
+    assert [a["action"] for a in acts] == (
+        ["left-forward"] + ["forward"] * 4 + ["right-forward"] + ["forward"] * 3
+    )
+    assert acts[0] == {
+        "from": [2, 0],
+        "to": [2, 1],
+        "heading": "down",
+        "move": "right",
+        "new_heading": "right",
+        "action": "left-forward",
+    }
+
+
+def test_json_without_heading_has_no_actions(paper_yaml, capsys):
+    code, out, _ = run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--json")
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["cells"] == PAPER_ROUTE and "actions" not in doc
+
+
+def test_metres_in_the_map_frame(paper_yaml, capsys):
+    # cell (2, 0) centre: x = 1 + 0.45, y = 2 + (8 - 2 - 0.5) * 0.9; (6, 5): x = 1 + 5.5 * 0.9
+    code, out, err = run(
+        capsys,
+        paper_yaml,
+        "--start-xy",
+        f"{1.45},{2 + 5.5 * 0.9}",
+        "--goal-xy",
+        f"{1 + 5.5 * 0.9 + 0.3},{2 + 1.5 * 0.9 - 0.3}",
+        "--json",
+    )
+    assert code == 0, err
+    assert json.loads(out)["cells"] == PAPER_ROUTE
+
+
+def test_heading_method_table_and_png(paper_yaml, tmp_path, capsys):
+    from PIL import Image
+
+    png = tmp_path / "plan.png"
+    code, out, err = run(
+        capsys,
+        paper_yaml,
+        "--start",
+        "2,0",
+        "--goal",
+        "6,5",
+        "--heading",
+        "down",
+        "--method",
+        "qlearning-heading",
+        "--seed",
+        "5",
+        "--png",
+        png,
+    )
+    assert code == 0, err
+    lines = out.splitlines()
+    assert "Actual action" in lines[0]
+    assert lines[2].split() == ["(2,0)", "to", "(2,1)", "Down", "Right", "Right", "Left-Forward"]
+    assert lines[7].split()[-1] == "Right-Forward"
+    with Image.open(png) as im:
+        img = np.asarray(im.convert("RGB"))
+    px = img.shape[0] // 8
+    assert img.shape[:2] == (8 * px, 8 * px)
+
+    def centre(r, c):
+        return tuple(int(v) for v in img[r * px + 2, c * px + 2])
+
+    assert centre(2, 0) == (40, 180, 60)  # start green
+    assert centre(6, 5) == (220, 40, 40)  # goal red
+    assert centre(3, 0) == (0, 0, 0)  # occupied black
+    assert centre(0, 7) == (150, 150, 150)  # unknown grey
+    # the blue arrow crosses the middle of a route cell
+    mid = img[2 * px + px // 2, 3 * px : 4 * px]
+    assert any(tuple(int(v) for v in p) == (30, 80, 230) for p in mid)
+
+
+@pytest.mark.parametrize(
+    ("start", "goal", "message"),
+    [
+        ("3,0", "6,5", "start cell (3,0) is not free"),
+        ("2,0", "0,7", "goal cell (0,7) is not free"),
+        ("2,0", "8,0", "outside"),
+    ],
+)
+def test_bad_cells_exit_2(paper_yaml, capsys, start, goal, message):
+    code, _, err = run(capsys, paper_yaml, "--start", start, "--goal", goal)
+    assert code == 2 and message in err and "Traceback" not in err
+
+
+def test_unreachable_goal_exit_2(tmp_path, capsys):
+    g = np.zeros((4, 6), dtype=np.int8)
+    g[:, 3] = 100
+    yaml_path = write_map(tmp_path / "split.yaml", Grid(g, 1.0))
+    code, out, err = run(capsys, yaml_path, "--start", "0,0", "--goal", "0,5", "--json")
+    assert code == 2 and "cannot be reached" in err
+    assert json.loads(out)["cells"] == []
+
+
+def test_not_converged_exit_1_and_no_route(paper_yaml, tmp_path, capsys):
+    cfg = tmp_path / "planner.yaml"
+    cfg.write_text("planner:\n  max_episodes: 1\n  check_every: 1\n")
+    code, out, err = run(
+        capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--config", cfg, "--json"
+    )
+    assert code == 1 and "not converged" in err
+    doc = json.loads(out)
+    assert doc["converged"] is False and doc["cells"] == [] and doc["moves"] == []
+
+
+def test_flag_errors_exit_2(paper_yaml, tmp_path, capsys):
+    assert run(capsys, paper_yaml, "--goal", "6,5")[0] == 2
+    assert run(capsys, paper_yaml, "--start", "2,0", "--start-xy", "1,1", "--goal", "6,5")[0] == 2
+    assert run(capsys, paper_yaml, "--start", "2;0", "--goal", "6,5")[0] == 2
+    code, _, err = run(capsys, tmp_path / "missing.yaml", "--start", "2,0", "--goal", "6,5")
+    assert code == 2 and "cannot read grid" in err
+    with pytest.raises(SystemExit) as exc:
+        main([str(paper_yaml), "--start", "2,0", "--goal", "6,5", "--method", "dijkstra"])
+    assert exc.value.code == 2
+    code, _, err = run(
+        capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--method", "qlearning-heading"
+    )
+    assert code == 2 and "heading" in err

@@ -1,0 +1,248 @@
+"""The Q-learning planner core on hand-made grids: optimal, verified, deterministic, safe."""
+
+import math
+
+import numpy as np
+import pytest
+
+from wheelgrid_nav.actions import moves_to_actions
+from wheelgrid_nav.planner import (
+    PlanInputError,
+    PlannerConfig,
+    astar,
+    bfs_distances,
+    plan,
+    verify_route,
+)
+from wheelgrid_nav.planner_node import forward_yaw, heading_from_yaw, path_poses
+
+PAPER_OCCUPIED = [(3, 0), (3, 1), (3, 2), (3, 3), (3, 4), (5, 0), (5, 1), (5, 2), (5, 3), (4, 4)]
+PAPER_ROUTE = [(2, 0)] + [(2, c) for c in range(1, 6)] + [(r, 5) for r in range(3, 7)]
+
+
+def paper_grid() -> np.ndarray:
+    g = np.zeros((8, 8), dtype=np.int8)
+    for r, c in [*PAPER_OCCUPIED, (6, 7)]:  # (6, 7): a pillar off the route
+        g[r, c] = 100
+    return g
+
+
+def random_grid(rng, rows, cols, p):
+    return np.where(rng.random((rows, cols)) < p, 100, 0).astype(np.int8)
+
+
+def maze(n, rng):
+    """A perfect maze (recursive backtracker) on an n x n grid, n odd; cells (1,1)..(n-2,n-2)."""
+    g = np.full((n, n), 100, np.int8)
+    m = (n - 1) // 2
+    seen = np.zeros((m, m), bool)
+    stack = [(0, 0)]
+    seen[0, 0] = True
+    g[1, 1] = 0
+    while stack:
+        r, c = stack[-1]
+        nb = [
+            (r + dr, c + dc)
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))
+            if 0 <= r + dr < m and 0 <= c + dc < m and not seen[r + dr, c + dc]
+        ]
+        if not nb:
+            stack.pop()
+            continue
+        rr, cc = nb[rng.integers(len(nb))]
+        seen[rr, cc] = True
+        g[2 * rr + 1, 2 * cc + 1] = 0
+        g[r + rr + 1, c + cc + 1] = 0
+        stack.append((rr, cc))
+    return g
+
+
+def test_paper_grid_unique_shortest_route():
+    res = plan(paper_grid(), (2, 0), (6, 5))
+    assert res.ok and res.converged and res.reason == "ok"
+    assert res.cells == PAPER_ROUTE
+    assert res.moves == ["right"] * 5 + ["down"] * 4
+    assert res.bfs_length == 9 and res.cost == 9.0 and res.optimal_cost == 9.0
+    assert res.episodes > 0 and res.updates > 0
+    actions = [a["action"] for a in moves_to_actions(res.cells, "down")]
+    assert actions == ["left-forward"] + ["forward"] * 4 + ["right-forward"] + ["forward"] * 3
+
+
+def test_heading_variant_on_the_paper_grid_matches_table_ii():
+    res = plan(paper_grid(), (2, 0), (6, 5), method="qlearning-heading", heading="down")
+    assert res.ok
+    assert res.cells == PAPER_ROUTE
+    # 9 moves + two quarter turns at 0.5 extra each
+    assert res.cost == pytest.approx(10.0) and res.optimal_cost == pytest.approx(10.0)
+
+
+def test_same_seed_same_training_different_seed_same_route():
+    g = paper_grid()
+    a = plan(g, (0, 0), (7, 0), PlannerConfig(seed=3))
+    b = plan(g, (0, 0), (7, 0), PlannerConfig(seed=3))
+    c = plan(g, (0, 0), (7, 0), PlannerConfig(seed=4))
+    assert a.ok and b.ok and c.ok
+    assert (a.cells, a.episodes, a.steps, a.updates) == (b.cells, b.episodes, b.steps, b.updates)
+    assert len(c.cells) == len(a.cells) == a.bfs_length + 1
+
+
+def test_unknown_cells_are_never_free():
+    g = np.zeros((3, 5), dtype=np.int8)
+    g[1, 1:4] = -1  # an unknown strip in the middle: the short way is through it
+    g[0, 2] = 100
+    res = plan(g, (1, 0), (1, 4))
+    assert res.ok
+    assert all(g[r, c] == 0 for r, c in res.cells)
+    assert len(res.cells) - 1 == 6  # around the bottom, not through the unknown cells
+    with pytest.raises(PlanInputError, match="not free"):
+        plan(g, (1, 2), (1, 4))
+    with pytest.raises(PlanInputError, match="not free"):
+        plan(g, (1, 0), (0, 2))
+    with pytest.raises(PlanInputError, match="outside"):
+        plan(g, (1, 0), (3, 0))
+
+
+def test_unreachable_goal_gives_no_route_without_training():
+    g = np.zeros((5, 5), dtype=np.int8)
+    g[:, 2] = 100  # a wall cuts the room in two
+    res = plan(g, (0, 0), (4, 4))
+    assert not res.ok and res.cells == [] and res.moves == []
+    assert res.reason == "unreachable" and res.bfs_length == -1 and res.episodes == 0
+
+
+def test_budget_exhausted_means_no_route():
+    g = maze(21, np.random.default_rng(0))
+    res = plan(g, (1, 1), (19, 19), PlannerConfig(max_episodes=1, check_every=1))
+    assert not res.converged and not res.ok
+    assert res.cells == [] and res.reason == "not converged"
+    assert res.bfs_length > 0
+
+
+def test_random_grids_and_mazes_match_bfs_exactly():
+    """~100 grids: every plan is exactly BFS-short, or there is no path and none is given."""
+    rng = np.random.default_rng(42)
+    found = unreachable = 0
+    for i in range(100):
+        if i % 10 == 9:
+            n = int(rng.choice([9, 11, 15]))
+            g = maze(n, rng)
+        else:
+            g = random_grid(
+                rng, int(rng.integers(4, 16)), int(rng.integers(4, 16)), rng.random() * 0.45
+            )
+        free = np.argwhere(g == 0)
+        if len(free) < 2:
+            continue
+        s, t = (tuple(int(v) for v in free[k]) for k in rng.choice(len(free), 2, replace=False))
+        res = plan(g, s, t, PlannerConfig(seed=i))
+        dist = bfs_distances(g == 0, t)[s]
+        if dist < 0:
+            assert res.cells == [] and res.reason == "unreachable"
+            unreachable += 1
+            continue
+        assert res.ok, (i, res.reason)
+        assert len(res.cells) - 1 == dist
+        assert verify_route(g == 0, res.cells, s, t, int(dist)) == []
+        assert len(astar(g == 0, s, t)) - 1 == dist
+        found += 1
+    assert found >= 60 and unreachable >= 3
+
+
+def test_heading_variant_prefers_fewer_manoeuvres():
+    g = np.zeros((3, 3), dtype=np.int8)
+    # facing right at (0,0) to (2,2): right, right, down, down needs one quarter turn; any
+    # other 4-move route needs two or three.
+    res = plan(g, (0, 0), (2, 2), method="qlearning-heading", heading="right")
+    assert res.ok
+    assert res.moves == ["right", "right", "down", "down"]
+    actions = [a["action"] for a in moves_to_actions(res.cells, "right")]
+    assert actions == ["forward", "forward", "right-forward", "forward"]
+    # the plain planner only promises a shortest route
+    plain = plan(g, (0, 0), (2, 2))
+    assert plain.ok and len(plain.moves) == 4
+
+
+def test_heading_variant_backs_up_a_dead_end_corridor():
+    g = np.full((3, 6), 100, dtype=np.int8)
+    g[1, :] = 0  # a one-cell-wide corridor: no room to turn
+    res = plan(g, (1, 4), (1, 1), method="qlearning-heading", heading="right")
+    assert res.ok and res.moves == ["left"] * 3
+    assert {a["action"] for a in moves_to_actions(res.cells, "right")} == {"backward"}
+    assert res.cost == pytest.approx(3 * 2.0)
+
+
+def test_heading_variant_on_random_grids_hits_the_dijkstra_optimum():
+    rng = np.random.default_rng(7)
+    for i in range(15):
+        g = random_grid(rng, 10, 10, 0.25)
+        free = np.argwhere(g == 0)
+        s, t = (tuple(int(v) for v in free[k]) for k in rng.choice(len(free), 2, replace=False))
+        heading = ["up", "down", "left", "right"][i % 4]
+        res = plan(g, s, t, PlannerConfig(seed=i), method="qlearning-heading", heading=heading)
+        if res.reason == "unreachable":
+            continue
+        assert res.ok, res.reason
+        assert res.cost == pytest.approx(res.optimal_cost)
+        assert verify_route(g == 0, res.cells, s, t) == []
+        assert len(res.moves) >= res.bfs_length
+
+
+def test_verify_route_catches_every_kind_of_bad_route():
+    free = paper_grid() == 0
+    assert verify_route(free, PAPER_ROUTE, (2, 0), (6, 5), 9) == []
+    assert verify_route(free, [], (2, 0), (6, 5)) == ["empty route"]
+    through_wall = [(2, 0), (3, 0), (4, 0)]
+    assert any("not free" in p for p in verify_route(free, through_wall, (2, 0), (4, 0)))
+    jump = [(2, 0), (2, 2)]
+    assert any("4-neighbours" in p for p in verify_route(free, jump, (2, 0), (2, 2)))
+    assert any("end at the goal" in p for p in verify_route(free, PAPER_ROUTE[:-1], (2, 0), (6, 5)))
+    detour = [(2, 0), (1, 0), (1, 1), (2, 1)]
+    assert any("shortest" in p for p in verify_route(free, detour, (2, 0), (2, 1), 1))
+
+
+def test_bad_configs_and_methods_are_rejected():
+    g = paper_grid()
+    with pytest.raises(PlanInputError):
+        plan(g, (2, 0), (6, 5), PlannerConfig(reward_step=1.0))
+    with pytest.raises(PlanInputError):
+        plan(g, (2, 0), (6, 5), PlannerConfig(learning_rate=0.0))
+    with pytest.raises(PlanInputError):
+        plan(g, (2, 0), (6, 5), method="astar")
+    with pytest.raises(PlanInputError, match="heading"):
+        plan(g, (2, 0), (6, 5), method="qlearning-heading")
+
+
+def test_smaller_learning_rate_and_discount_still_verified():
+    g = paper_grid()
+    cfg = PlannerConfig(learning_rate=0.5, discount=0.95, q_init="zero", seed=1)
+    res = plan(g, (2, 0), (6, 5), cfg)
+    assert res.ok and res.cells == PAPER_ROUTE
+
+
+def test_node_helpers_headings_and_path_poses():
+    from wheelgrid_common.map_io import Grid
+
+    assert heading_from_yaw(0.0, 0.0) == "right"
+    assert heading_from_yaw(math.pi / 2, 0.0) == "up"
+    assert heading_from_yaw(-math.pi / 2 + 0.3, 0.0) == "down"
+    assert heading_from_yaw(math.pi - 0.2, 0.0) == "left"
+    # a grid turned by 90 deg: map yaw pi/2 is the grid's "right"
+    assert heading_from_yaw(math.pi / 2, math.pi / 2) == "right"
+
+    class Q:
+        def __init__(self, x, y, z, w):
+            self.x, self.y, self.z, self.w = x, y, z, w
+
+    s = math.sqrt(0.5)
+    assert forward_yaw(Q(0, 0, s, s)) == pytest.approx(math.pi / 2)  # body x -> map +y
+    # optical frame looking along map +x: z_opt = x_map, x_opt = -y_map, y_opt = -z_map
+    assert forward_yaw(Q(-0.5, 0.5, -0.5, 0.5), "iphone_depth_optical_frame") == pytest.approx(0.0)
+
+    grid = Grid(paper_grid(), 0.5, (1.0, 2.0, 0.0))
+    poses = path_poses(grid, PAPER_ROUTE)
+    assert len(poses) == len(PAPER_ROUTE)
+    x, y, yaw = poses[0]
+    assert (x, y) == pytest.approx((1.0 + 0.25, 2.0 + (8 - 2 - 0.5) * 0.5))
+    assert yaw == pytest.approx(0.0)  # first move: right = +x
+    assert poses[5][2] == pytest.approx(-math.pi / 2)  # (2,5) -> (3,5): down = -y
+    assert poses[-1][2] == pytest.approx(-math.pi / 2)
