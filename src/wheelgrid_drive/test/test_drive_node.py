@@ -275,3 +275,23 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim):
         assert stop_process(proc) == 0
     # Shutting the node down sends STOP before the port closes.
     assert [e.detail for e in sim.events if e.what == "rx"][-1] == "STOP"
+
+
+def test_grid_change_under_a_running_move_stops_the_chair(make_sim):
+    sim = make_sim(time_scale=1.0)
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2)])
+        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+        blocked = Grid(grid.data.copy(), grid.resolution, grid.origin)
+        blocked.data[3, 1] = 100  # someone steps into the cell the chair is entering
+        h.pub_grid.publish(to_occupancy_grid(blocked))
+        assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
+        assert sim_moves(sim) == ["FORWARD"]
+        assert h.spin(lambda: any("cell being entered" in s.message for s in h.states), 3.0)

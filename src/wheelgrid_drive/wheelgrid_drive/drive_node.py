@@ -99,6 +99,7 @@ class DriveNode(Node):
         self._last_twist_t = 0.0
         self._cmd_vel_active = False
         self._link_note = ""
+        self._entering: tuple[int, int] | None = None  # destination of the running command
 
         pub = self.create_publisher
         self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
@@ -233,8 +234,21 @@ class DriveNode(Node):
         except ValueError as exc:
             self._grid = None  # a broken grid is no grid: every cell check now refuses
             self._set_state(ERROR, f"bad safe grid: {exc}")
+            self._abort_if_moving("no valid safe grid")
             return
         self._grid = grid
+        dst = self._entering
+        if dst is not None and self._busy():
+            reason = grid_cell_check(lambda: grid)(dst)
+            if reason:
+                # The map changed under a running move (someone stepped in): stop now.
+                self._abort_if_moving(f"the cell being entered changed: {reason}")
+
+    def _abort_if_moving(self, why: str) -> None:
+        if self._busy():
+            self._abort.set()
+            self.link.stop()
+            self._set_state(ERROR, f"chair stopped: {why}")
 
     def _on_estop(self, msg: Bool) -> None:
         if msg.data:
@@ -358,13 +372,18 @@ class DriveNode(Node):
             cell_check=grid_cell_check(lambda: self._grid),
             abort=abort,
             on_step=on_step,
+            on_start=self._on_step_start,
         )
+        self._entering = None
         if result.ok:
             self._set_state(OK, f"plan done: {result.done}/{result.total} steps")
         elif result.aborted:
             self._set_state(WARN if not self._estop else ERROR, f"plan aborted: {result.error}")
         else:
             self._set_state(ERROR, f"plan stopped at step {result.done + 1}: {result.error}")
+
+    def _on_step_start(self, step: actions.Step) -> None:
+        self._entering = step.dst
 
     @staticmethod
     def _check_start(grid: Grid, st: proto.Status, cell: tuple[int, int], heading: str) -> None:
@@ -449,7 +468,9 @@ class DriveNode(Node):
             cell_check=grid_cell_check(lambda: self._grid),
             abort=abort,
             on_step=lambda s, rec: self._publish_record(rec),
+            on_start=self._on_step_start,
         )
+        self._entering = None
         if not result.ok and not result.aborted:
             self._set_state(ERROR, f"/cmd_vel {action}: {result.error}")
 

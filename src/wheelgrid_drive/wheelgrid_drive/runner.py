@@ -77,8 +77,13 @@ def run_steps(
     abort: threading.Event | None = None,
     on_step: StepCallback | None = None,
     timeout: float | None = None,
+    on_start: Callable[[Step], None] | None = None,
 ) -> RunResult:
-    """Drive ``steps`` one by one; stops the chair and returns at the first problem."""
+    """Drive ``steps`` one by one; stops the chair and returns at the first problem.
+
+    ``on_start(step)`` is called after the step's checks and before its command is sent, so an
+    observer (the node) knows which cell the chair is entering and can abort if it changes.
+    """
     total = len(steps)
     for i, step in enumerate(steps):
         if abort is not None and abort.is_set():
@@ -91,6 +96,8 @@ def run_steps(
                 if on_step is not None:
                     on_step(step, command_record(step, "REFUSED", reason=reason))
                 return RunResult(False, i, total, f"refused: {reason}", refused=True)
+        if on_start is not None:
+            on_start(step)
         try:
             seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
         except LinkAbortedError as exc:
