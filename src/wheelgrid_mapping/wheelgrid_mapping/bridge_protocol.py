@@ -27,7 +27,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -109,7 +109,6 @@ class Frame:
     confidence: np.ndarray | None = None  # (H, W) uint8
     pose: np.ndarray | None = None  # (4, 4)
     pose_axes: int = POSE_NONE
-    extra: dict[str, str] = field(default_factory=dict)
 
     @property
     def height(self) -> int:
