@@ -94,7 +94,7 @@ class DriveNode(Node):
         self._job = "idle"
         self._progress = (0, 0)
         self._level = OK
-        self._message = "idle"
+        self._message = "waiting for a plan or /cmd_vel"
         self._last_twist: Twist | None = None
         self._last_twist_t = 0.0
         self._cmd_vel_active = False
@@ -180,6 +180,9 @@ class DriveNode(Node):
                 state=st.state.name,
                 result=st.result.name,
             )
+        # "<job>: <last event>", e.g. "idle: plan done: 9/9 steps" -- the job first, so a
+        # monitor can tell at a glance whether the chair is being driven.
+        message = f"{job}: {message}"
         if not self.link.connected and self.cfg.port:
             level, message = ERROR, f"motor controller port {self.cfg.port} not connected"
         elif self._estop:
