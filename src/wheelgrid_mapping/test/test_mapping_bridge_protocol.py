@@ -163,13 +163,17 @@ def _run_decoder(chunks: list[bytes]) -> None:
             assert isinstance(e, bp.ProtocolError) and e.reason
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(
+    max_examples=300, database=None, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 @given(st.lists(st.binary(max_size=300), max_size=20))
 def test_fuzz_random_bytes(chunks: list[bytes]) -> None:
     _run_decoder(chunks)
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(
+    max_examples=300, database=None, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 @given(
     st.lists(st.sampled_from(range(len(_VALID))), min_size=1, max_size=4),
     st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), max_size=8),
@@ -187,7 +191,7 @@ def test_fuzz_mutated_valid_stream(
     _run_decoder([bytes(data[i : i + chunk]) for i in range(0, len(data), chunk)])
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200, database=None, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(0, 255), st.binary(max_size=64))
 def test_fuzz_claimed_lengths(length: int, mtype: int, tail: bytes) -> None:
     """A peer claiming up to 4 GiB never makes the decoder buffer more than its limit."""

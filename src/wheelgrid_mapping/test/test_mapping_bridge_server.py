@@ -193,6 +193,7 @@ _HELLO = bp.encode_hello("", "fuzz")
 
 @settings(
     max_examples=40,
+    database=None,
     deadline=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
