@@ -1,0 +1,214 @@
+"""The planner node over real DDS (loopback): grid + start + goal -> Path; a grid change under
+the route -> a new route; an unreachable goal -> an EMPTY path (so the drive stops)."""
+
+import math
+import subprocess
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.map_io import Grid, to_occupancy_grid
+from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+
+pytestmark = pytest.mark.ros
+
+PAPER_OCCUPIED = [(3, 0), (3, 1), (3, 2), (3, 3), (3, 4), (5, 0), (5, 1), (5, 2), (5, 3), (4, 4)]
+PAPER_ROUTE = [(2, 0)] + [(2, c) for c in range(1, 6)] + [(r, 5) for r in range(3, 7)]
+RES = 0.9
+ORIGIN = (1.0, 2.0, 0.0)
+
+
+def paper_grid() -> np.ndarray:
+    g = np.zeros((8, 8), dtype=np.int8)
+    for r, c in [*PAPER_OCCUPIED, (6, 7)]:
+        g[r, c] = 100
+    return g
+
+
+def cells_of(path, grid):
+    return [grid.cell_of(p.pose.position.x, p.pose.position.y) for p in path.poses]
+
+
+def yaw_of(pose):
+    q = pose.orientation
+    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+
+
+def goal_msg(grid, cell):
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.frame_id = "map"
+    x, y = grid.cell_center(*cell)
+    msg.pose.position.x, msg.pose.position.y = float(x), float(y)
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+def start_msg(grid, cell, yaw):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = "map"
+    x, y = grid.cell_center(*cell)
+    msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
+    msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return msg
+
+
+class Harness:
+    """A test node with the planner's input publishers and output subscriptions."""
+
+    def __init__(self, ctx):
+        from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+        from nav_msgs.msg import OccupancyGrid, Odometry, Path
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from visualization_msgs.msg import MarkerArray
+
+        from wheelgrid_common.qos import SENSOR_QOS
+
+        self.node = Node("planner_test", context=ctx)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.grid_pub = self.node.create_publisher(OccupancyGrid, "/wheelgrid/safe_grid", MAP_QOS)
+        self.goal_pub = self.node.create_publisher(PoseStamped, "/goal_pose", RELIABLE_QOS)
+        self.init_pub = self.node.create_publisher(
+            PoseWithCovarianceStamped, "/initialpose", RELIABLE_QOS
+        )
+        self.odom_pub = self.node.create_publisher(Odometry, "/wheelgrid/odometry", SENSOR_QOS)
+        self.paths = []
+        self.markers = []
+        self.node.create_subscription(Path, "/wheelgrid/plan", self.paths.append, MAP_QOS)
+        self.node.create_subscription(
+            MarkerArray, "/wheelgrid/plan_markers", self.markers.append, MAP_QOS
+        )
+
+    def wait_matched(self, timeout=15.0):
+        pubs = (self.grid_pub, self.goal_pub, self.init_pub)
+        return spin_until(
+            self.ex, lambda: all(p.get_subscription_count() > 0 for p in pubs), timeout
+        )
+
+    def next_path(self, count_before, timeout=20.0):
+        assert spin_until(self.ex, lambda: len(self.paths) > count_before, timeout)
+        return self.paths[-1]
+
+    def close(self):
+        self.ex.shutdown()
+        self.node.destroy_node()
+
+
+def test_planner_node_plans_replans_and_stops(tmp_path):
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        planner = make_node(
+            context=ctx,
+            parameter_overrides=[Parameter("method", value="qlearning-heading")],
+        )
+        h = Harness(ctx)
+        ex = h.ex
+        ex.add_node(planner)
+        try:
+            assert h.wait_matched()
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))  # facing grid "down"
+            assert spin_until(ex, lambda: planner.grid is not None and planner.start, 10.0)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            path = h.next_path(n)
+            assert path.header.frame_id == "map"
+            assert cells_of(path, grid) == PAPER_ROUTE
+            for pose, cell in zip(path.poses, PAPER_ROUTE, strict=True):
+                x, y = grid.cell_center(*cell)
+                assert pose.pose.position.x == pytest.approx(x)
+                assert pose.pose.position.y == pytest.approx(y)
+            # orientation = direction of travel: right (+x) along row 2, then down (-y)
+            assert yaw_of(path.poses[0].pose) == pytest.approx(0.0, abs=1e-9)
+            assert yaw_of(path.poses[6].pose) == pytest.approx(-math.pi / 2)
+            assert spin_until(ex, lambda: bool(h.markers), 10.0)
+            arrows = [m for m in h.markers[-1].markers if m.action == m.ADD]
+            assert all(m.type == m.ARROW and len(m.points) == 2 for m in arrows)
+            assert h.markers[-1].markers[0].action == h.markers[-1].markers[0].DELETEALL
+            assert len(arrows) == len(PAPER_ROUTE) - 1
+
+            # an obstacle appears on the route (4, 5): the node replans around it
+            blocked = paper_grid()
+            blocked[4, 5] = 100
+            grid2 = Grid(blocked, RES, ORIGIN)
+            n = len(h.paths)
+            h.grid_pub.publish(to_occupancy_grid(grid2))
+            path = h.next_path(n)
+            cells = cells_of(path, grid2)
+            assert cells[0] == (2, 0) and cells[-1] == (6, 5) and (4, 5) not in cells
+            assert all(blocked[r, c] == 0 for r, c in cells)
+            assert len(cells) - 1 == 11  # via column 6: two moves longer
+
+            # a grid change away from the route does not trigger a replan
+            plans = planner.plans
+            far = blocked.copy()
+            far[0, 0] = 100
+            h.grid_pub.publish(to_occupancy_grid(Grid(far, RES, ORIGIN)))
+            assert spin_until(ex, lambda: planner.grid.data[0, 0] == 100, 10.0)
+            assert planner.plans == plans
+
+            # an unreachable goal: a warning and an EMPTY path, so the drive stops
+            walled = far.copy()
+            walled[7, 6] = 100  # with the pillar at (6,7) this seals the corner (7,7)
+            h.grid_pub.publish(to_occupancy_grid(Grid(walled, RES, ORIGIN)))
+            assert spin_until(ex, lambda: planner.grid.data[7, 6] == 100, 10.0)
+            assert planner.plans == plans  # (7,6) is not on the route either
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (7, 7)))
+            path = h.next_path(n)
+            assert path.poses == []
+            assert planner.route == []
+
+            # a goal on an occupied cell: also an empty path
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (3, 0)))
+            assert h.next_path(n).poses == []
+        finally:
+            ex.remove_node(planner)
+            planner.destroy_node()
+            h.close()
+
+
+def test_odometry_start_and_console_entry(tmp_path):
+    """The real entry point as a child process; the start comes from /wheelgrid/odometry in the
+    iPhone's optical frame (looking along the grid's "right")."""
+    from nav_msgs.msg import Odometry
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    log = tmp_path / "planner.log"
+    args = python_module("wheelgrid_nav.planner_node", "--ros-args", "-p", "method:=qlearning")
+    with (
+        open(log, "w") as logf,
+        managed_process(args, stdout=logf, stderr=subprocess.STDOUT),
+        rclpy_context() as ctx,
+    ):
+        h = Harness(ctx)
+        try:
+            assert h.wait_matched(timeout=30.0), log.read_text()
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            odom = Odometry()
+            odom.header.frame_id = "map"
+            odom.child_frame_id = "iphone_depth_optical_frame"
+            x, y = grid.cell_center(6, 0)
+            odom.pose.pose.position.x, odom.pose.pose.position.y = float(x), float(y)
+            q = odom.pose.pose.orientation
+            q.x, q.y, q.z, q.w = -0.5, 0.5, -0.5, 0.5  # optical z along map +x
+            h.goal_pub.publish(goal_msg(grid, (6, 4)))
+            for _ in range(20):  # sensor QoS is best effort: send a few, as a 10 Hz stream would
+                h.odom_pub.publish(odom)
+                if spin_until(h.ex, lambda: bool(h.paths), 0.25):
+                    break
+            path = h.next_path(0)
+            assert cells_of(path, grid) == [(6, c) for c in range(5)], log.read_text()
+        finally:
+            h.close()

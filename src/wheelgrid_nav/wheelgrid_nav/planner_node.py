@@ -1,0 +1,267 @@
+"""The planner node: safe grid + start pose + goal pose -> a verified route as nav_msgs/Path.
+
+Subscribes ``/wheelgrid/safe_grid`` (OccupancyGrid, MAP_QOS), ``/goal_pose`` (PoseStamped,
+as RViz's 2D Goal Pose sends), and the start from ``/wheelgrid/odometry`` (Odometry) or
+``/initialpose`` (PoseWithCovarianceStamped) -- whichever arrived last. Publishes
+``/wheelgrid/plan`` (Path through cell centres, orientation = direction of travel, MAP_QOS) and
+``/wheelgrid/plan_markers`` (MarkerArray of arrows, MAP_QOS).
+
+All the planning is in :mod:`wheelgrid_nav.planner`; this module only translates messages.
+Safety rules: whenever there is no verified route (unreachable goal, start or goal not free,
+training not converged, pose in an unknown frame) an EMPTY Path is published, so a drive that
+follows the old route stops. A new grid that blocks any cell of the current route (or changes
+the grid's geometry) triggers a replan from the newest start.
+
+Parameter ``method`` defaults to ``qlearning-heading`` (the paper uses plain ``qlearning``):
+the node always knows the chair's heading from its pose, and costing turns and backing up the
+way the chair really drives them picks, among equally short routes, the one with the fewest
+manoeuvres -- fewer stops and turns for the person in the chair. Its route is verified against
+Dijkstra over (cell, heading) on the same grid.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.map_io import Grid, from_occupancy_grid
+from wheelgrid_common.params import declare_dataclass
+from wheelgrid_common.params import field as pfield
+from wheelgrid_common.ros_env import spin_node
+from wheelgrid_nav.actions import DELTAS
+from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, plan
+
+# grid direction -> angle in the grid's own frame (x = col + 1 = "right", y = row - 1 = "up")
+_DIR_ANGLE = {"right": 0.0, "up": math.pi / 2, "left": math.pi, "down": -math.pi / 2}
+
+
+@dataclass
+class PlannerNodeConfig:
+    """Node-only settings (the learner's settings are PlannerConfig's, declared alongside)."""
+
+    method: str = pfield(
+        "qlearning-heading",
+        "qlearning (the paper: cells only) or qlearning-heading (turns/backing up cost extra)",
+    )
+
+
+def heading_from_yaw(yaw: float, grid_yaw: float) -> str:
+    """The grid direction closest to a map-frame yaw, taking the grid's origin yaw into account."""
+    rel = yaw - grid_yaw
+    return min(_DIR_ANGLE, key=lambda d: abs(math.remainder(rel - _DIR_ANGLE[d], 2 * math.pi)))
+
+
+def forward_yaw(q: Any, child_frame: str = "") -> float:
+    """Map-frame yaw of a pose's forward axis.
+
+    Optical frames (``*_optical_frame``, e.g. the iPhone odometry's child frame) look along +z;
+    body frames (RViz poses) along +x. The forward axis is projected onto the floor.
+    """
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    if child_frame.endswith("optical_frame"):
+        fx, fy = 2 * (x * z + w * y), 2 * (y * z - w * x)  # third column of R
+    else:
+        fx, fy = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z)  # first column of R
+    return math.atan2(fy, fx)
+
+
+def _quat_from_yaw(yaw: float) -> tuple[float, float]:
+    return math.sin(yaw / 2.0), math.cos(yaw / 2.0)
+
+
+def path_poses(grid: Grid, cells: list[tuple[int, int]]) -> list[tuple[float, float, float]]:
+    """(x, y, yaw) per route cell: cell centre, yaw = direction of the move out of it (the last
+    cell keeps the direction it was entered with)."""
+    if not cells:
+        return []
+    xy = grid.cell_center(np.array([c[0] for c in cells]), np.array([c[1] for c in cells]))
+    out = []
+    yaw = grid.origin[2]
+    for i in range(len(cells)):
+        j = i if i + 1 < len(cells) else i - 1
+        if j >= 0:
+            d = (cells[j + 1][0] - cells[j][0], cells[j + 1][1] - cells[j][1])
+            move = next(m for m, v in DELTAS.items() if v == d)
+            yaw = grid.origin[2] + _DIR_ANGLE[move]
+        out.append((float(xy[i, 0]), float(xy[i, 1]), math.remainder(yaw, 2 * math.pi)))
+    return out
+
+
+def _make_node_class() -> type:
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from nav_msgs.msg import OccupancyGrid, Odometry, Path
+    from rclpy.node import Node
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+
+    class PlannerNode(Node):
+        """Thin ROS wrapper around :func:`wheelgrid_nav.planner.plan`."""
+
+        def __init__(self, **kwargs: Any) -> None:
+            super().__init__("planner", **kwargs)
+            self.node_cfg = declare_dataclass(self, PlannerNodeConfig())
+            self.cfg = declare_dataclass(self, PlannerConfig())
+            if self.node_cfg.method not in METHODS:
+                raise SystemExit(f"planner: unknown method {self.node_cfg.method!r}")
+            self.grid: Grid | None = None
+            self.start: tuple[float, float, float] | None = None  # x, y, yaw in map
+            self.goal: tuple[float, float] | None = None
+            self.route: list[tuple[int, int]] = []
+            self.plans = 0  # planning attempts (for tests and diagnostics)
+            self.path_pub = self.create_publisher(Path, "/wheelgrid/plan", MAP_QOS)
+            self.marker_pub = self.create_publisher(MarkerArray, "/wheelgrid/plan_markers", MAP_QOS)
+            self.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
+            self.create_subscription(PoseStamped, "/goal_pose", self._on_goal, RELIABLE_QOS)
+            self.create_subscription(Odometry, "/wheelgrid/odometry", self._on_odom, SENSOR_QOS)
+            self.create_subscription(
+                PoseWithCovarianceStamped, "/initialpose", self._on_initialpose, RELIABLE_QOS
+            )
+            self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
+
+        # ---- inputs ---------------------------------------------------------------------
+        def _frame_ok(self, frame: str, what: str) -> bool:
+            expected = self.grid.frame_id if self.grid is not None else "map"
+            if frame and frame != expected:
+                self.get_logger().warning(
+                    f"{what} is in frame {frame!r}, the grid in {expected!r}: ignored (no tf)"
+                )
+                return False
+            return True
+
+        def _on_grid(self, msg: Any) -> None:
+            try:
+                grid = from_occupancy_grid(msg)
+            except ValueError as exc:
+                self.get_logger().error(f"bad safe grid ignored: {exc}")
+                return
+            old = self.grid
+            self.grid = grid
+            if self.goal is None or self.start is None:
+                return
+            same_geometry = (
+                old is not None
+                and old.data.shape == grid.data.shape
+                and old.resolution == grid.resolution
+                and old.origin == grid.origin
+            )
+            blocked = not self.route or any(grid.data[r, c] != 0 for r, c in self.route)
+            if not same_geometry or blocked:
+                self.get_logger().info("safe grid changed under the route: replanning")
+                self._plan()
+
+        def _on_goal(self, msg: Any) -> None:
+            if not self._frame_ok(msg.header.frame_id, "goal"):
+                self._publish_route(None, [])
+                return
+            self.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
+            self._plan()
+
+        def _set_start(self, pose: Any, frame: str, child: str) -> bool:
+            if not self._frame_ok(frame, "start pose"):
+                return False
+            self.start = (
+                float(pose.position.x),
+                float(pose.position.y),
+                forward_yaw(pose.orientation, child),
+            )
+            return True
+
+        def _on_odom(self, msg: Any) -> None:
+            had_start = self.start is not None
+            if self._set_start(msg.pose.pose, msg.header.frame_id, msg.child_frame_id) and (
+                not had_start and self.goal is not None
+            ):
+                self._plan()
+
+        def _on_initialpose(self, msg: Any) -> None:
+            # an explicit start from the user (RViz 2D Pose Estimate): plan from it at once
+            if self._set_start(msg.pose.pose, msg.header.frame_id, "") and self.goal is not None:
+                self._plan()
+
+        # ---- planning -------------------------------------------------------------------
+        def _plan(self) -> None:
+            if self.grid is None or self.start is None or self.goal is None:
+                return
+            grid = self.grid
+            self.plans += 1
+            start = grid.cell_of(self.start[0], self.start[1])
+            goal = grid.cell_of(self.goal[0], self.goal[1])
+            heading = heading_from_yaw(self.start[2], grid.origin[2])
+            method = self.node_cfg.method
+            try:
+                res = plan(grid.data, start, goal, self.cfg, method=method, heading=heading)
+            except PlanInputError as exc:
+                self.get_logger().warning(f"no route: {exc}; publishing an empty path")
+                self._publish_route(grid, [])
+                return
+            if not res.ok:
+                self.get_logger().warning(
+                    f"no route from {start} to {goal}: {res.reason}; publishing an empty path"
+                )
+                self._publish_route(grid, [])
+                return
+            self.get_logger().info(
+                f"route {start} -> {goal} facing {heading}: {len(res.moves)} moves "
+                f"({res.episodes} episodes, {res.seconds * 1000:.0f} ms)"
+            )
+            self._publish_route(grid, res.cells)
+
+        def _publish_route(self, grid: Grid | None, cells: list[tuple[int, int]]) -> None:
+            self.route = list(cells)
+            stamp = self.get_clock().now().to_msg()
+            frame = grid.frame_id if grid is not None else "map"
+            path = Path()
+            path.header.frame_id = frame
+            path.header.stamp = stamp
+            poses = path_poses(grid, cells) if grid is not None else []
+            for x, y, yaw in poses:
+                ps = PoseStamped()
+                ps.header = path.header
+                ps.pose.position.x, ps.pose.position.y = x, y
+                ps.pose.orientation.z, ps.pose.orientation.w = _quat_from_yaw(yaw)
+                path.poses.append(ps)
+            self.path_pub.publish(path)
+            markers = MarkerArray()
+            clear = Marker()
+            clear.header = path.header
+            clear.ns = "wheelgrid_plan"
+            clear.action = Marker.DELETEALL
+            markers.markers.append(clear)
+            res = grid.resolution if grid is not None else 1.0
+            for i in range(len(poses) - 1):
+                m = Marker()
+                m.header = path.header
+                m.ns, m.id = "wheelgrid_plan", i
+                m.type, m.action = Marker.ARROW, Marker.ADD
+                for x, y, _ in poses[i : i + 2]:
+                    m.points.append(_point(x, y, 0.05))
+                m.pose.orientation.w = 1.0
+                m.scale.x, m.scale.y, m.scale.z = 0.08 * res, 0.25 * res, 0.3 * res
+                m.color.r, m.color.g, m.color.b, m.color.a = 0.1, 0.3, 0.9, 1.0
+                markers.markers.append(m)
+            self.marker_pub.publish(markers)
+
+    def _point(x: float, y: float, z: float) -> Any:
+        from geometry_msgs.msg import Point
+
+        return Point(x=x, y=y, z=z)
+
+    return PlannerNode
+
+
+def make_node(**kwargs: Any) -> Any:
+    """Build the planner node (after rclpy.init); kwargs go to rclpy's Node (context, ...)."""
+    return _make_node_class()(**kwargs)
+
+
+def main(argv: list[str] | None = None) -> None:
+    sys.exit(spin_node(make_node, argv))
+
+
+if __name__ == "__main__":
+    main()
