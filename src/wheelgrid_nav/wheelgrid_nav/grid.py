@@ -52,7 +52,12 @@ ALIGNMENTS = ("walls", "map")
 # direction search towards 45 degrees, so only vertical pixels vote.
 _VERTICAL_STD = 0.08
 # Points used at most for the wall-direction search (a regular stride keeps it deterministic).
-_ALIGN_MAX_POINTS = 150_000
+_ALIGN_MAX_POINTS = 80_000
+_ALIGN_REFINE_POINTS = 12_000
+_EXTENT_MAX_POINTS = 200_000
+# height_classes: number of thresholds (-drop_depth, floor_clearance, safe_height) below z ->
+# class (drop 2, floor 0, band 1, above 3).
+_CLASS_OF_LEVEL = np.array([2, 0, 1, 3], dtype=np.uint8)
 
 
 class GridError(ValueError):
@@ -227,18 +232,15 @@ def height_classes(z: np.ndarray, cfg: GridConfig) -> np.ndarray:
     """Per-point class: 0 floor, 1 obstacle in the safe band, 2 drop, 3 above the band (ignored).
 
     The band is ``floor_clearance < z <= safe_height``: a point exactly at the safe height still
-    blocks (the chair's user would touch it).
+    blocks (the chair's user would touch it). Floor is ``-drop_depth < z <= floor_clearance``,
+    a drop ``z <= -drop_depth`` (unless ``drop_depth <= 0``: then everything low is floor).
+    Three comparisons summed and a lookup: 3x faster than masked assignments on 1 M points.
     """
-    cls = np.full(z.shape, 3, dtype=np.uint8)
-    band = (z > cfg.floor_clearance) & (z <= cfg.safe_height)
-    cls[band] = 1
-    if cfg.drop_depth > 0:
-        floor = (z <= cfg.floor_clearance) & (z >= -cfg.drop_depth)
-        cls[z < -cfg.drop_depth] = 2
-    else:
-        floor = z <= cfg.floor_clearance
-    cls[floor] = 0
-    return cls
+    zz = np.asarray(z)
+    low = -cfg.drop_depth if cfg.drop_depth > 0 else -np.inf
+    level = (zz > low).view(np.uint8) + (zz > cfg.floor_clearance).view(np.uint8)
+    level += (zz > cfg.safe_height).view(np.uint8)
+    return _CLASS_OF_LEVEL[level]
 
 
 def project(points: np.ndarray) -> np.ndarray:
@@ -381,8 +383,8 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     on_wall = np.zeros(size, dtype=bool)
     on_wall[vertical] = True
     wp = sel[on_wall[flat]]
-    if wp.shape[0] > _ALIGN_MAX_POINTS // 3:
-        wp = wp[:: math.ceil(wp.shape[0] / (_ALIGN_MAX_POINTS // 3))]
+    if wp.shape[0] > _ALIGN_REFINE_POINTS:
+        wp = wp[:: math.ceil(wp.shape[0] / _ALIGN_REFINE_POINTS)]
     wx = wp[:, 0] - x0 - cx
     wy = wp[:, 1] - y0 - cy
     finest = best + np.deg2rad(np.arange(-0.1, 0.1001, 0.01))
@@ -441,7 +443,7 @@ def _raster_classes(
     return counts[1:-1, 1:-1].transpose(2, 0, 1)
 
 
-def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.ndarray]:
+def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Finite float32 points and their height classes, or GridError for unusable maps.
 
     float32 keeps millimetres over kilometres and halves the memory traffic of every pass.
@@ -455,13 +457,14 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
     if pts.shape[0] == 0:
         raise GridError("empty", "the map has no (finite) points")
     cls = height_classes(pts[:, 2], cfg)
-    if not (cls != 3).any():
+    class_counts = np.bincount(cls, minlength=4)
+    if class_counts[3] == pts.shape[0]:
         raise GridError(
             "all_above_band",
             f"all {pts.shape[0]} points are above the safe height {cfg.safe_height} m: the map "
             "is not levelled with z = 0 on the floor, or shows only a ceiling",
         )
-    n_floor = int(np.count_nonzero(cls == 0))
+    n_floor = int(class_counts[0])
     if n_floor < cfg.min_floor_points:
         raise GridError(
             "no_floor",
@@ -469,7 +472,7 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
             f"m of z = 0 (need {cfg.min_floor_points}); is the map levelled with the floor at "
             "z = 0?",
         )
-    return pts, cls
+    return pts, cls, class_counts
 
 
 def build_grid(
@@ -483,17 +486,24 @@ def build_grid(
     """
     cfg = cfg or GridConfig()
     cfg.validate()
-    pts, cls = _check_input(points, cfg)
+    pts, cls, class_counts = _check_input(points, cfg)
     k = cfg.cell_pixels()
     ps = cfg.pixel_size
 
     yaw = 0.0
     if cfg.alignment == "walls":
-        found = wall_yaw(pts, cfg)
+        found = wall_yaw(pts, cfg)  # all heights: walls above the band help here
         yaw = 0.0 if found is None else found
+    if class_counts[3]:
+        # Points above the safe height play no further part (often 30-45 % of a room's map:
+        # ceiling and upper walls); dropping them once saves more than it costs.
+        keep = cls != 3
+        pts, cls = pts[keep], cls[keep]
     u, v = _rotate(project(pts), yaw)
-    floor_pts = cls == 0
-    u0, v0, rows, cols = floor_extent(u[floor_pts], v[floor_pts], cfg)
+    # The extent's quantiles need no more than ~200k floor points: take a regular stride.
+    step = max(1, math.ceil(int(class_counts[0]) / _EXTENT_MAX_POINTS))
+    floor_pts = cls[::step] == 0
+    u0, v0, rows, cols = floor_extent(u[::step][floor_pts], v[::step][floor_pts], cfg)
     h, w = rows * k, cols * k
 
     counts = _raster_classes(u, v, cls, u0, v0, ps, h, w)
@@ -530,10 +540,10 @@ def build_grid(
     fine = _fine_map(pts, cls, grid, cfg, frame_id)
     stats = {
         "points": int(pts.shape[0]),
-        "floor_points": int(np.count_nonzero(floor_pts)),
-        "band_points": int(np.count_nonzero(cls == 1)),
-        "drop_points": int(np.count_nonzero(cls == 2)),
-        "above_points": int(np.count_nonzero(cls == 3)),
+        "floor_points": int(class_counts[0]),
+        "band_points": int(class_counts[1]),
+        "drop_points": int(class_counts[2]),
+        "above_points": int(class_counts[3]),
         "occupied": int(np.count_nonzero(data == OCCUPIED)),
         "free": int(np.count_nonzero(data == FREE)),
         "unknown": int(np.count_nonzero(data == UNKNOWN)),
