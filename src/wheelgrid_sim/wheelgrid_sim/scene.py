@@ -327,7 +327,8 @@ def random_scene(seed: int, cell_size: float = 1.2) -> Scene:
     inwards. The expected grid follows from the boxes exactly, like the paper scene's.
     """
     rng = np.random.default_rng(seed)
-    sizes = [cell_size * k for k in range(1, 20) if 6.0 <= cell_size * k <= 10.0 + 1e-9]
+    # Rounded so that e.g. 6 x 1.2 is 7.2, not 7.199999999999999 (it ends up in scene.json).
+    sizes = [round(cell_size * k, 9) for k in range(1, 20) if 6.0 <= cell_size * k <= 10.0 + 1e-9]
     if not sizes:
         raise ValueError(f"no room size in [6, 10] m is a multiple of {cell_size} m")
     w, h = float(rng.choice(sizes)), float(rng.choice(sizes))
