@@ -180,6 +180,25 @@ class Monitor:
         msg.pose.orientation.w = float(np.cos(yaw / 2))
         self.goal_pub.publish(msg)
 
+    def call_trigger(self, service: str, timeout: float = 10.0) -> tuple[bool, str]:
+        """Call a std_srvs/Trigger service (e.g. /mapper/save_map) from the monitor's thread."""
+        from std_srvs.srv import Trigger
+
+        client = self.node.create_client(Trigger, service)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                return False, f"service {service} not available"
+            future = client.call_async(Trigger.Request())
+            deadline = time.monotonic() + timeout
+            while not future.done() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            if not future.done():
+                return False, f"service {service} timed out"
+            result = future.result()
+            return bool(result.success), str(result.message)
+        finally:
+            self.node.destroy_client(client)
+
     def status_line(self, extra: str = "") -> str:
         s = self.state
         with s.lock:

@@ -1,0 +1,338 @@
+"""``wheelgrid demo``: the paper's Fig. 13 running end to end on the bundled bag.
+
+Replays ``bags/paper_room`` through the running mapper, grid, planner and drive nodes (real DDS
+on loopback), lets the map and grid settle, puts the chair on the start cell (``/initialpose``),
+sends a goal on ``/goal_pose`` and lets the drive node steer the simulated motor controller
+over a pty to the goal. Writes ``out/``: map.ply, trajectory.tum, grid.yaml/pgm, fine.yaml/pgm,
+grid.png (Fig. 12), route.png (planned vs driven, Fig. 14), commands.csv (Table II columns),
+summary.json, and the node logs; ends with a one-screen summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
+from wheelgrid_bringup.route_png import draw_route
+from wheelgrid_bringup.supervisor import Supervisor, default_params_file
+from wheelgrid_common.bagio import BagError, BagReader
+from wheelgrid_common.map_io import Grid
+from wheelgrid_common.ros_env import child_env, configure_ros_env
+
+HEADING_ROW_COL = {"up": (-1, 0), "down": (1, 0), "left": (0, -1), "right": (0, 1)}
+
+
+def repo_root() -> Path:
+    """The checkout (for bags/); falls back to the current directory."""
+    for base in (Path.cwd(), *Path(__file__).resolve().parents):
+        if (base / "bags").is_dir() and (base / "src").is_dir():
+            return base
+    return Path.cwd()
+
+
+def heading_yaw(grid: Grid, heading: str) -> float:
+    """Map-frame yaw of a grid direction ('down' = row + 1 = -y of the grid)."""
+    dr, dc = HEADING_ROW_COL[heading]
+    a = grid.cell_center(0, 0)
+    b = grid.cell_center(dr, dc)
+    return math.atan2(b[1] - a[1], b[0] - a[0])
+
+
+def parse_cell(text: str) -> tuple[int, int]:
+    r, c = (int(v) for v in text.split(","))
+    return r, c
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="wheelgrid demo", description=__doc__.splitlines()[0])
+    p.add_argument("--bag", type=Path, help="simulator output folder (default bags/paper_room)")
+    p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
+    p.add_argument("--params", type=Path, help="parameter YAML (default bringup wheelgrid.yaml)")
+    p.add_argument("--rate", type=float, default=2.0, help="bag replay speed factor (default 2)")
+    p.add_argument("--start", type=parse_cell, help="start cell R,C (default from truth.json)")
+    p.add_argument("--goal", type=parse_cell, help="goal cell R,C (default from truth.json)")
+    p.add_argument(
+        "--heading",
+        choices=sorted(HEADING_ROW_COL),
+        default="down",
+        help="chair heading on the start cell (default down, as in Table II)",
+    )
+    p.add_argument("--timeout", type=float, default=170.0, help="give up after S seconds")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    t_start = time.monotonic()
+    root = repo_root()
+    sim_dir = args.bag or root / "bags" / "paper_room"
+    bag = sim_dir / "scan" if (sim_dir / "scan").is_dir() else sim_dir
+    truth: dict[str, Any] = {}
+    if (sim_dir / "truth.json").exists():
+        truth = json.loads((sim_dir / "truth.json").read_text())
+    start = args.start or tuple(truth.get("start_cell", (2, 0)))
+    goal = args.goal or tuple(truth.get("goal_cell", (6, 5)))
+    try:
+        with BagReader(bag) as reader:
+            topics = reader.topics()
+    except BagError as exc:
+        print(f"wheelgrid demo: {exc}", file=sys.stderr)
+        return 2
+    configure_ros_env()
+    params = args.params or default_params_file()
+    out = args.out.resolve()
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "logs").mkdir(parents=True)
+
+    import rclpy
+    from rclpy.context import Context
+
+    from wheelgrid_bringup.replay import BagPlayer
+
+    interrupted = {"flag": False}
+
+    def on_signal(_s: int, _f: object) -> None:
+        interrupted["flag"] = True
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_signal)
+    sup = Supervisor(out / "logs", child_env())
+    ctx = Context()
+    rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    monitor = Monitor(ctx, "wheelgrid_demo")
+    chain = Chain(sup, monitor)
+    player = None
+    summary: dict[str, Any] = {"bag": str(bag), "start_cell": list(start), "goal_cell": list(goal)}
+    code = 1
+    try:
+        print(f"demo: bag {bag} ({', '.join(f'{t.name} x{t.count}' for t in topics)})")
+        for name in ("mapper", "grid", "planner"):
+            sup.start_node(name, params, {"output_dir": str(out)})
+        n_frames = sum(t.count for t in topics if t.msgtype.endswith("PointCloud2"))
+        player = BagPlayer(monitor.node, bag, rate=args.rate)
+        player.start(delay=2.0)
+        t_map = time.monotonic()
+        print(f"demo: replaying {player.total} messages at {args.rate:g}x ...", flush=True)
+        chain.wait(player.done.is_set, args.timeout, "replay", status_every=3.0)
+        if player.error:
+            raise RuntimeError(f"replay failed: {player.error}")
+
+        def mapper_done() -> bool:
+            with monitor.state.lock:
+                m = dict(monitor.state.mapper)
+            seen = int(m.get("frames_received", -1))
+            busy = m.get("queue", m.get("pending", "0"))
+            return seen >= n_frames and str(busy) in ("0", "0.0", "False", "false")
+
+        chain.wait(mapper_done, 60.0, "mapping", status_every=3.0)
+        map_seconds = time.monotonic() - t_map
+        updates = monitor.state.grid_updates
+        # the grid recomputes at a bounded rate: wait for one made after mapping finished
+        chain.wait(lambda: monitor.state.grid_updates > updates, 15.0, "grid", status_every=3.0)
+        grid = monitor.state.grid
+        if grid is None:
+            raise RuntimeError("no safe grid was published")
+        print(f"demo: {monitor.status_line()}", flush=True)
+        for cell, what in ((start, "start"), (goal, "goal")):
+            if not grid.inside(*cell) or int(grid.data[cell]) != 0:
+                raise RuntimeError(f"{what} cell {cell} is not free in the grid")
+        # place the chair: the motor controller simulator, then the drive node on its pty
+        sx, sy = grid.cell_center(*start)
+        yaw = heading_yaw(grid, args.heading)
+        pty_link = out / "motor.pty"
+        sup.start(
+            "motor_sim",
+            [
+                sys.executable,
+                "-c",
+                "import sys; from wheelgrid_drive.motor_sim import main; sys.exit(main())",
+                "--link",
+                str(pty_link),
+                "--pose-log",
+                str(out / "chair_track.csv"),
+                "--x",
+                f"{sx:.4f}",
+                "--y",
+                f"{sy:.4f}",
+                "--yaw",
+                f"{yaw:.6f}",
+            ],
+        )
+        chain.wait(pty_link.exists, 10.0, "motor")
+        sup.start_node(
+            "drive",
+            params,
+            {"port": str(pty_link), "initial_heading": args.heading, "set_pose_on_plan": True},
+        )
+        time.sleep(1.5)
+        monitor.send_initial_pose(sx, sy, yaw, grid.frame_id)
+        time.sleep(0.5)
+        gx, gy = grid.cell_center(*goal)
+        plans_before = monitor.state.plan_updates
+        monitor.send_goal(gx, gy, 0.0, grid.frame_id)
+        t_plan = time.monotonic()
+        print(f"demo: goal {goal} sent, start {start} heading {args.heading}", flush=True)
+        chain.wait(
+            lambda: monitor.state.plan_updates > plans_before and bool(monitor.state.plan),
+            20.0,
+            "plan",
+        )
+        plan_xy = list(monitor.state.plan)
+        if not plan_xy:
+            raise RuntimeError("the planner published no route")
+        planned = [grid.cell_of(x, y) for x, y in plan_xy]
+        n_moves = len(planned) - 1
+
+        def arrived() -> bool:
+            with monitor.state.lock:
+                done = len(monitor.state.commands) >= n_moves
+                track = list(monitor.state.chair_track)
+            if not done or not track:
+                return False
+            _, x, y, _ = track[-1]
+            return (
+                grid.cell_of(x, y) == tuple(goal) and "idle" in monitor.state.drive_message.lower()
+            )
+
+        remaining = max(10.0, args.timeout - (time.monotonic() - t_start))
+        chain.wait(arrived, remaining, "drive", status_every=3.0)
+        drive_seconds = time.monotonic() - t_plan
+        ok_map, msg_map = monitor.call_trigger("/mapper/save_map")
+        ok_grid, msg_grid = monitor.call_trigger("/grid/save")
+        with monitor.state.lock:
+            commands = list(monitor.state.commands)
+            track = list(monitor.state.chair_track)
+        driven = [(x, y) for _, x, y, _ in track]
+        visited = []
+        for x, y in driven:
+            cell = grid.cell_of(x, y)
+            if not visited or visited[-1] != cell:
+                visited.append(cell)
+        non_free = [c for c in visited if not grid.inside(*c) or int(grid.data[c]) != 0]
+        reached = bool(visited) and visited[-1] == tuple(goal)
+        draw_route(grid, out / "route.png", planned, driven)
+        write_commands_csv(out / "commands.csv", commands)
+        summary.update(
+            {
+                "frames": n_frames,
+                "mapper": dict(monitor.state.mapper),
+                "map_points_published": monitor.state.map_points,
+                "grid": {
+                    "rows": grid.rows,
+                    "cols": grid.cols,
+                    "cell_m": grid.resolution,
+                    "free": int((grid.data == 0).sum()),
+                    "occupied": int((grid.data == 100).sum()),
+                    "unknown": int((grid.data < 0).sum()),
+                },
+                "route_cells": [list(c) for c in planned],
+                "commands": commands,
+                "driven_cells": [list(c) for c in visited],
+                "entered_non_free": [list(c) for c in non_free],
+                "reached_goal": reached,
+                "saved": {"map": [ok_map, msg_map], "grid": [ok_grid, msg_grid]},
+                "seconds": {
+                    "mapping": round(map_seconds, 1),
+                    "drive": round(drive_seconds, 1),
+                    "total": round(time.monotonic() - t_start, 1),
+                },
+            }
+        )
+        code = 0 if reached and not non_free and ok_map and ok_grid else 1
+    except NodeDiedError as exc:
+        print(
+            f"wheelgrid demo: {exc}\n--- last lines of {exc.name} ---\n{exc.tail}", file=sys.stderr
+        )
+        summary["error"] = str(exc)
+    except (RuntimeError, OSError) as exc:
+        print(f"wheelgrid demo: {exc}", file=sys.stderr)
+        summary["error"] = str(exc)
+    except KeyboardInterrupt:
+        print("wheelgrid demo: interrupted", file=sys.stderr)
+        summary["error"] = "interrupted"
+        code = 130
+    finally:
+        if player is not None:
+            player.stop()
+        sup.stop_all()
+        monitor.close()
+        if ctx.ok():
+            rclpy.shutdown(context=ctx)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    print_summary(summary, out, code)
+    return code
+
+
+def write_commands_csv(path: Path, commands: list[dict[str, Any]]) -> None:
+    """Table II columns: state, current direction, predicted action, new direction, action."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(
+            [
+                "step",
+                "from",
+                "to",
+                "current_direction",
+                "predicted_action",
+                "new_direction",
+                "actual_action",
+                "ack",
+            ]
+        )
+        for i, c in enumerate(commands, 1):
+            w.writerow(
+                [
+                    i,
+                    c.get("from"),
+                    c.get("to"),
+                    c.get("heading"),
+                    c.get("move"),
+                    c.get("new_heading"),
+                    c.get("action"),
+                    c.get("ack"),
+                ]
+            )
+
+
+def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
+    g = s.get("grid", {})
+    m = s.get("mapper", {})
+    secs = s.get("seconds", {})
+    lines = [
+        "",
+        "=" * 72,
+        f"wheelgrid demo: {'OK' if code == 0 else 'FAILED'}"
+        + (f" ({s['error']})" if s.get("error") else ""),
+        f"  frames    {s.get('frames', '?')} replayed; mapper used {m.get('frames_used', '?')}, "
+        f"failed {m.get('frames_failed', '?')}",
+        f"  map       {s.get('map_points_published', 0):,} points published (out/map.ply)",
+        f"  grid      {g.get('rows', '?')} x {g.get('cols', '?')} cells of "
+        f"{g.get('cell_m', '?')} m: {g.get('free', '?')} free, {g.get('occupied', '?')} occupied, "
+        f"{g.get('unknown', '?')} unknown (out/grid.png)",
+        f"  route     {len(s.get('route_cells', [])) - 1 if s.get('route_cells') else '?'} moves "
+        f"{s.get('start_cell')} -> {s.get('goal_cell')} (out/route.png)",
+        "  commands  "
+        + ", ".join(str(c.get("action")) for c in s.get("commands", []))
+        + " (out/commands.csv)",
+        f"  chair     reached goal: {s.get('reached_goal')}; entered non-free cells: "
+        f"{s.get('entered_non_free', '?')}",
+        f"  time      mapping {secs.get('mapping', '?')} s, drive {secs.get('drive', '?')} s, "
+        f"total {secs.get('total', '?')} s",
+        f"  output    {out}",
+        "=" * 72,
+    ]
+    print("\n".join(lines), flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
