@@ -83,10 +83,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     bar.close()
     rows, cols = res.grid_shape
+    topics = "/iphone/points" + ("" if args.no_odometry else " + /iphone/odometry")
     print(
         f"wrote {res.frames} frames ({args.rate:g} Hz, {res.frames / args.rate:.1f} s, "
         f"{res.points_per_frame} points/frame, {100 * res.valid_fraction:.0f} % valid) to "
-        f"{res.bag} ({args.storage}, {res.bag_bytes / 1e6:.1f} MB) + ground truth "
+        f"{res.bag} ({args.storage}, {res.bag_bytes / 1e6:.1f} MB, {topics}) + ground truth "
         f"({rows}x{cols} grid of 1.2 m cells, {res.occupied_cells} occupied) in "
         f"{res.seconds:.1f} s"
     )
