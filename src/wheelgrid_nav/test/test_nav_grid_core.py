@@ -188,6 +188,15 @@ def test_walls_do_not_occupy_border_cells_but_near_obstacles_do():
     assert res.boundary.any()  # the walls were seen, and taken as the boundary
 
 
+def test_walls_stay_boundary_when_the_grid_overflows_the_floor():
+    # A 3.4 m wide room snaps to 3 cells (3.6 m): the grid reaches ~10 cm past each side wall,
+    # so the walls lie inside the grid -- still boundary, not obstacles in the border cells.
+    res = build_grid(room_cloud([], size=(3.4, 3.6), spacing=SPACING))
+    assert res.grid.data.shape == (3, 3)
+    assert (res.grid.data == FREE).all(), res.grid.data
+    assert res.boundary[:, :2].any() and res.boundary[:, -2:].any()
+
+
 def test_grid_phase_survives_a_missing_floor_strip():
     # Floor points stop 12 cm short of the east wall (e.g. never scanned there).
     cloud = room_cloud([Box(0.1, 1.1, 0.1, 1.1, 0.0, 0.75)], size=(3.6, 3.6), spacing=SPACING)

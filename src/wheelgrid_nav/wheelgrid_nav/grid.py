@@ -25,10 +25,12 @@ What the paper leaves out and a wheelchair needs (a person's body rides on this 
   points, snapped to whole cells and centred on it, so cells coincide with the room interior.
 - **Boundary rule.** Obstacle pixels within ``boundary_margin`` of the grid's outer edge are the
   room's walls (the boundary), not content of the border cells: the walls lie outside the cells,
-  and a phase error of a pixel or two must not turn the whole border ring into obstacles. Only
-  obstacles lying *entirely* inside that strip are affected; anything reaching further in still
-  occupies its cell. Keep the margin below the clearance between the chair (100 x 80 cm) and its
-  safe cell (120 x 120 cm), i.e. <= 10 cm.
+  and a phase error of a pixel or two must not turn the whole border ring into obstacles. Where
+  the grid reaches past the observed floor (the extent snapped up to whole cells, at most
+  ``extent_tolerance / 2`` a side) that strip is added to the margin, since the walls stand where
+  the floor ends. Only obstacles lying *entirely* inside that strip are affected; anything
+  reaching further in still occupies its cell. Keep the margin below the clearance between the
+  chair (100 x 80 cm) and its safe cell (120 x 120 cm), i.e. <= 10 cm.
 
 Everything is vectorised numpy (bincount rasterisation, reshaped cell sums) so a 1.3 M point
 map becomes a grid in well under 0.2 s on two cores.
@@ -151,8 +153,9 @@ class GridConfig:
     )
     boundary_margin: float = field(
         0.10,
-        "obstacle pixels within this distance of the grid's outer edge are the walls (the "
-        "boundary), not content of the border cells",
+        "obstacle pixels within this distance of the grid's outer edge (plus any strip where the "
+        "grid reaches past the observed floor) are the walls (the boundary), not content of the "
+        "border cells",
         "m",
     )
     fine_margin: float = field(
@@ -300,15 +303,19 @@ def thin_obstacle_guard(
     return solid.reshape(h // m, m, w // n, n).any(axis=(1, 3))
 
 
-def boundary_ring(shape: tuple[int, int], width: int) -> np.ndarray:
-    """(H, W) bool: the outer ``width`` pixels of the image (where the walls are)."""
+def boundary_ring(shape: tuple[int, int], rows_width: int, cols_width: int) -> np.ndarray:
+    """(H, W) bool: the outer pixels of the image where the walls are -- ``rows_width`` pixel
+    rows at the top and bottom, ``cols_width`` pixel columns at the left and right."""
     ring = np.zeros(shape, dtype=bool)
-    if width > 0:
-        w = min(width, (min(shape) + 1) // 2)
-        ring[:w, :] = True
-        ring[-w:, :] = True
-        ring[:, :w] = True
-        ring[:, -w:] = True
+    h, w = shape
+    rw = min(max(rows_width, 0), (h + 1) // 2)
+    cw = min(max(cols_width, 0), (w + 1) // 2)
+    if rw:
+        ring[:rw, :] = True
+        ring[-rw:, :] = True
+    if cw:
+        ring[:, :cw] = True
+        ring[:, -cw:] = True
     return ring
 
 
@@ -397,8 +404,10 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     return yaw
 
 
-def floor_extent(u: np.ndarray, v: np.ndarray, cfg: GridConfig) -> tuple[float, float, int, int]:
-    """Grid lower-left corner (u0, v0) and size (rows, cols), from the observed floor.
+def floor_extent(
+    u: np.ndarray, v: np.ndarray, cfg: GridConfig
+) -> tuple[float, float, int, int, float, float]:
+    """Grid lower-left corner (u0, v0), size (rows, cols) and the floor's spans (m) along u, v.
 
     The robust extent of the floor points (quantiles, so stray points do not stretch it) is
     snapped to a whole number of cells (allowing ``extent_tolerance`` for floor points that stop
@@ -414,7 +423,7 @@ def floor_extent(u: np.ndarray, v: np.ndarray, cfg: GridConfig) -> tuple[float, 
         count = max(1, math.floor((hi - lo + cfg.extent_tolerance) / cfg.cell_size + 1e-9))
         out.append(((lo + hi) / 2.0 - count * cfg.cell_size / 2.0, count))
     (u0, cols), (v0, rows) = out
-    return u0, v0, rows, cols
+    return u0, v0, rows, cols, umax - umin, vmax - vmin
 
 
 def _raster_classes(
@@ -503,13 +512,24 @@ def build_grid(
     # The extent's quantiles need no more than ~200k floor points: take a regular stride.
     step = max(1, math.ceil(int(class_counts[0]) / _EXTENT_MAX_POINTS))
     floor_pts = cls[::step] == 0
-    u0, v0, rows, cols = floor_extent(u[::step][floor_pts], v[::step][floor_pts], cfg)
+    u0, v0, rows, cols, span_u, span_v = floor_extent(
+        u[::step][floor_pts], v[::step][floor_pts], cfg
+    )
     h, w = rows * k, cols * k
 
     counts = _raster_classes(u, v, cls, u0, v0, ps, h, w)
     obstacle_counts = counts[1] + counts[2]
     black = obstacle_counts >= cfg.min_points_per_pixel
-    ring = boundary_ring((h, w), round(cfg.boundary_margin / ps))
+    # The boundary rule: the walls are expected where the observed floor ends. Where the grid
+    # reaches past the floor's extent (snapping up to whole cells, at most extent_tolerance / 2
+    # a side) that overflow is added to the margin, so the walls stay boundary, not content.
+    over_u = max(0.0, (cols * cfg.cell_size - span_u) / 2.0)
+    over_v = max(0.0, (rows * cfg.cell_size - span_v) / 2.0)
+    ring = boundary_ring(
+        (h, w),
+        round((cfg.boundary_margin + over_v) / ps),
+        round((cfg.boundary_margin + over_u) / ps),
+    )
     boundary = black & ring
     obstacles = black & ~ring
     floor = _dilate(counts[0] > 0, cfg.floor_fill) & ~black
