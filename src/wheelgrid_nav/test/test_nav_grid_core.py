@@ -275,6 +275,21 @@ def test_bad_maps_raise_grid_error(points, cause):
     assert str(info.value)
 
 
+def test_far_stray_points_change_nothing(paper_cloud):
+    # A few wild returns hundreds of metres away: same grid, and no giant raster.
+    stray = np.array([[400.0, -300.0, 0.9], [-250.0, 380.0, 0.0], [300.0, 300.0, 2.0]])
+    res = build_grid(np.vstack([paper_cloud, stray]))
+    np.testing.assert_array_equal(occupied(res), paper_like_expected())
+
+
+def test_a_floor_too_large_for_one_map_is_refused():
+    rng = np.random.default_rng(1)
+    floor = np.column_stack([rng.uniform(0, 300, (20000, 2)), np.zeros(20000)])
+    with pytest.raises(GridError) as info:
+        build_grid(floor)
+    assert info.value.cause == "too_large"
+
+
 def test_invalid_config_is_rejected():
     cloud = room_cloud([], size=(2.4, 2.4), spacing=SPACING)
     with pytest.raises(ValueError, match="whole number"):

@@ -57,6 +57,8 @@ _VERTICAL_STD = 0.08
 _ALIGN_MAX_POINTS = 80_000
 _ALIGN_REFINE_POINTS = 12_000
 _EXTENT_MAX_POINTS = 200_000
+# Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels, ~0.5 GB of rasters.
+_MAX_EXTENT = 200.0
 # height_classes: number of thresholds (-drop_depth, floor_clearance, safe_height) below z ->
 # class (drop 2, floor 0, band 1, above 3).
 _CLASS_OF_LEVEL = np.array([2, 0, 1, 3], dtype=np.uint8)
@@ -355,8 +357,17 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     """
     pts = np.asarray(points)
     sub = pts[:: max(1, math.ceil(pts.shape[0] / _ALIGN_MAX_POINTS))]
-    sel = sub[sub[:, 2] > cfg.floor_clearance].astype(np.float64)
-    if sel.shape[0] < 10:
+    up = sub[:, 2] > cfg.floor_clearance
+    sel = sub[up].astype(np.float64)
+    # Only around the observed floor (+1 m): a few wild points far away must not blow the
+    # raster below up to hundreds of megabytes.
+    floor_xy = sub[~up & (sub[:, 2] > -cfg.drop_depth), :2]
+    if floor_xy.shape[0] >= 10:
+        lo = np.quantile(floor_xy, cfg.extent_quantile, axis=0) - 1.0
+        hi = np.quantile(floor_xy, 1.0 - cfg.extent_quantile, axis=0) + 1.0
+        inside = (sel[:, :2] >= lo).all(axis=1) & (sel[:, :2] <= hi).all(axis=1)
+        sel = sel[inside]
+    if sel.shape[0] < 10 or (np.ptp(sel[:, :2], axis=0) > _MAX_EXTENT).any():
         return None
     ps = cfg.pixel_size / 2.0
     x0, y0 = sel[:, 0].min(), sel[:, 1].min()
@@ -489,7 +500,8 @@ def build_grid(
 ) -> GridResult:
     """The safe 2D grid of a levelled map (``(N, 3)`` metres, z up, floor at z = 0).
 
-    Raises :class:`GridError` (cause ``empty``, ``no_floor``, ``all_above_band``, ``bad_shape``)
+    Raises :class:`GridError` (cause ``empty``, ``no_floor``, ``all_above_band``, ``bad_shape``,
+    ``too_large``)
     for maps that cannot give a safe grid, and ValueError for an invalid config. Never returns a
     grid whose cells are free without observed floor.
     """
@@ -516,6 +528,12 @@ def build_grid(
         u[::step][floor_pts], v[::step][floor_pts], cfg
     )
     h, w = rows * k, cols * k
+    if max(rows, cols) * cfg.cell_size > _MAX_EXTENT:
+        raise GridError(
+            "too_large",
+            f"the floor spans {rows * cfg.cell_size:.0f} x {cols * cfg.cell_size:.0f} m, more "
+            f"than {_MAX_EXTENT:.0f} m: not one indoor map (or not levelled)",
+        )
 
     counts = _raster_classes(u, v, cls, u0, v0, ps, h, w)
     obstacle_counts = counts[1] + counts[2]
