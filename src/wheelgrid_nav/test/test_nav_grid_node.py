@@ -105,6 +105,37 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
                 assert (out / name).is_file(), name
             np.testing.assert_array_equal(read_map(out / "grid.yaml").data, grid.data)
             np.testing.assert_array_equal(read_map(out / "fine.yaml").data, fine.data)
+
+            # Parameters at run time: an invalid cell size is refused, a higher safe height
+            # recomputes the grid from the last good map (Barrier 2 now blocks its row).
+            from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+            from rcl_interfaces.srv import SetParameters
+
+            setp = node.create_client(SetParameters, "/grid/set_parameters")
+            assert spin_until(ex, setp.service_is_ready, timeout=20.0)
+
+            def set_double(name: str, value: float):
+                req = SetParameters.Request()
+                req.parameters = [
+                    Parameter(
+                        name=name,
+                        value=ParameterValue(
+                            type=ParameterType.PARAMETER_DOUBLE, double_value=value
+                        ),
+                    )
+                ]
+                fut = setp.call_async(req)
+                assert spin_until(ex, fut.done, timeout=20.0)
+                return fut.result().results[0]
+
+            refused = set_double("cell_size", 1.23)
+            assert not refused.successful and "whole number" in refused.reason
+            assert set_double("safe_height", 1.6).successful
+            assert spin_until(ex, lambda: len(grids) > 1, timeout=20.0), log.read_text()
+            higher = from_occupancy_grid(grids[-1])
+            expected = paper_like_expected().copy()
+            expected[4, 4:] = True
+            np.testing.assert_array_equal(higher.data == OCCUPIED, expected)
             assert proc.poll() is None  # still running after all of it
         finally:
             ex.shutdown()

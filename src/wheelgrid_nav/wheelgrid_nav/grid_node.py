@@ -8,16 +8,19 @@ points above the safe height, malformed) is reported with a warning and the prev
 published: an all-free grid from a bad map would send the chair into walls.
 
 ``~/save`` (std_srvs/Trigger) writes grid.yaml/pgm, fine.yaml/pgm and grid.png into the
-``output_dir`` parameter.
+``output_dir`` parameter. Parameters may be changed at run time (``set_parameters``): invalid
+values are refused, valid ones recompute the grid from the last good map.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from dataclasses import fields
 from typing import Any
 
 from nav_msgs.msg import OccupancyGrid
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -49,12 +52,14 @@ class GridNode(Node):
         self.period = 1.0 / self.cfg.max_rate_hz if self.cfg.max_rate_hz > 0 else 0.0
         self.result: GridResult | None = None
         self._pending: tuple[Any, str] | None = None
+        self._last_good: tuple[Any, str] | None = None
         self._last_compute = -float("inf")
         self.grid_pub = self.create_publisher(OccupancyGrid, SAFE_GRID_TOPIC, MAP_QOS)
         self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
         self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
         self.create_service(Trigger, "~/save", self._on_save)
-        self.create_timer(max(self.period, 0.05), self._maybe_compute)
+        self._timer = self.create_timer(max(self.period, 0.05), self._maybe_compute)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f"waiting for {MAP_CLOUD_TOPIC}; safe_height {self.cfg.safe_height} m, cell "
             f"{self.cfg.cell_size} m, density_threshold {self.cfg.density_threshold}"
@@ -85,6 +90,7 @@ class GridNode(Node):
             self._reject(f"bad map ({exc.cause}): {exc}")
             return
         self.result = result
+        self._last_good = (points, frame_id)
         stamp = self.get_clock().now().to_msg()
         self.grid_pub.publish(to_occupancy_grid(result.grid, stamp))
         self.fine_pub.publish(to_occupancy_grid(result.fine, stamp))
@@ -94,6 +100,25 @@ class GridNode(Node):
             f"(yaw {st['yaw_deg']:.2f} deg): {st['occupied']} occupied, {st['free']} free, "
             f"{st['unknown']} unknown, {1000 * (time.monotonic() - self._last_compute):.0f} ms"
         )
+
+    def _on_set_parameters(self, changed: list[Any]) -> SetParametersResult:
+        """Validate the new values as a whole; if good, recompute from the last good map."""
+        values = {f.name: getattr(self.cfg, f.name) for f in fields(GridNodeConfig)}
+        values.update({p.name: p.value for p in changed if p.name in values})
+        try:
+            cfg = params.from_mapping(GridNodeConfig, values)
+            grid_cfg = grid_config(cfg)
+            grid_cfg.validate()
+        except (TypeError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.cfg, self.grid_cfg = cfg, grid_cfg
+        self.period = 1.0 / cfg.max_rate_hz if cfg.max_rate_hz > 0 else 0.0
+        self.destroy_timer(self._timer)
+        self._timer = self.create_timer(max(self.period, 0.05), self._maybe_compute)
+        if self._pending is None and self._last_good is not None:
+            self._pending = self._last_good
+        self.get_logger().info("parameters changed: " + ", ".join(p.name for p in changed))
+        return SetParametersResult(successful=True)
 
     def _on_save(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
         if self.result is None:
