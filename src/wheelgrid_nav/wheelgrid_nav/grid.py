@@ -365,8 +365,9 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     if floor_xy.shape[0] >= 10:
         lo = np.quantile(floor_xy, cfg.extent_quantile, axis=0) - 1.0
         hi = np.quantile(floor_xy, 1.0 - cfg.extent_quantile, axis=0) + 1.0
-        inside = (sel[:, :2] >= lo).all(axis=1) & (sel[:, :2] <= hi).all(axis=1)
-        sel = sel[inside]
+        x, y = sel[:, 0], sel[:, 1]
+        inside = (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
+        sel = sel.take(np.flatnonzero(inside), axis=0)
     if sel.shape[0] < 10 or (np.ptp(sel[:, :2], axis=0) > _MAX_EXTENT).any():
         return None
     ps = cfg.pixel_size / 2.0
@@ -518,8 +519,8 @@ def build_grid(
     if class_counts[3]:
         # Points above the safe height play no further part (often 30-45 % of a room's map:
         # ceiling and upper walls); dropping them once saves more than it costs.
-        keep = cls != 3
-        pts, cls = pts[keep], cls[keep]
+        keep = np.flatnonzero(cls != 3)  # take() is ~8x faster than boolean row indexing
+        pts, cls = pts.take(keep, axis=0), cls.take(keep)
     u, v = _rotate(project(pts), yaw)
     # The extent's quantiles need no more than ~200k floor points: take a regular stride.
     step = max(1, math.ceil(int(class_counts[0]) / _EXTENT_MAX_POINTS))
