@@ -54,7 +54,7 @@ class PlannerConfig:
         "discount gamma in (0, 1]; 1 keeps the learned route the cheapest one (the task ends at "
         "the goal) and keeps value differences on long corridors above float precision",
     )
-    epsilon: float = pfield(0.2, "probability of a random (exploratory) move per step")
+    epsilon: float = pfield(0.1, "probability of a random (exploratory) move per step")
     reward_step: float = pfield(-1.0, "reward for every move to a neighbouring free cell")
     reward_blocked: float = pfield(
         -10.0, "reward for trying to enter a wall, occupied or unknown cell (the chair stays)"
@@ -70,13 +70,15 @@ class PlannerConfig:
         "heuristic",
         "initial Q values: 'heuristic' = reward_goal + reward_step x Manhattan distance to the "
         "goal (an upper bound of every true value when discount is 1, so every untried move "
-        "looks worth trying and no half-explored route locks in), 'optimistic' = reward_goal, "
-        "'zero' = 0",
+        "looks worth trying and no half-explored route locks in; with discount < 1 it falls "
+        "back to 'optimistic'), 'optimistic' = max(reward_goal, 0), 'zero' = 0",
     )
     replay: int = pfield(
-        32, "replay the last N steps' transitions newest-first every N steps (0 = off)"
+        128, "replay the last N steps' transitions newest-first every N steps (0 = off)"
     )
-    agents: int = pfield(0, "parallel agents; 0 = one per state (exploring starts everywhere)")
+    agents: int = pfield(
+        0, "parallel agents; 0 = one per state (exploring starts from every free cell/heading)"
+    )
     max_episode_steps: int = pfield(0, "steps before an episode is cut; 0 = 2 x number of states")
     max_episodes: int = pfield(2_000_000, "training budget in episodes (all agents together)")
     max_seconds: float = pfield(10.0, "training budget in wall-clock time", "s")
@@ -193,6 +195,7 @@ class _Mdp:
     cost: np.ndarray  # (S, 4) float64: manoeuvre cost of the move (inf when blocked)
     cell_of_state: np.ndarray  # (S, 2) int64 row, col
     start: int
+    heading_of_state: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def _neighbour_index(free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -252,7 +255,8 @@ def _build_mdp(
     terminal = cell == index[goal]
     rew = np.where(blocked, cfg.reward_blocked, step_rew)
     rew = rew + np.where(~blocked & terminal[nxt], cfg.reward_goal, 0.0)
-    return _Mdp(nxt, rew, terminal, cost, rc[cell], int(index[start]) * 4 + _HEADING_INDEX[heading])
+    start_state = int(index[start]) * 4 + _HEADING_INDEX[heading]
+    return _Mdp(nxt, rew, terminal, cost, rc[cell], start_state, hd)
 
 
 def _optimal_cost(mdp: _Mdp) -> float:
@@ -349,12 +353,49 @@ def _initial_values(mdp: _Mdp, cfg: PlannerConfig) -> np.ndarray:
     S = len(mdp.terminal)
     if cfg.q_init == "zero":
         return np.zeros(S)
-    if cfg.q_init == "optimistic":
-        return np.full(S, cfg.reward_goal)
+    if cfg.q_init == "optimistic" or cfg.discount < 1.0:
+        # every reward but the goal's is negative, so no (discounted) return exceeds this
+        return np.full(S, max(cfg.reward_goal, 0.0))
     goal_rc = mdp.cell_of_state[np.argmax(mdp.terminal)]
     manhattan = np.abs(mdp.cell_of_state - goal_rc).sum(axis=1)
-    # every route needs at least Manhattan-many moves, each worth at most reward_step
-    return cfg.reward_goal + cfg.reward_step * (manhattan - 1)
+    # every route needs at least Manhattan-many moves, each worth at most reward_step, so this
+    # bounds Q(s, a) from above for every move a (a blocked move only adds a penalty)
+    bound = cfg.reward_goal + cfg.reward_step * manhattan
+    if len(mdp.heading_of_state):
+        bound = bound - _manoeuvre_lower_bound(mdp, goal_rc, cfg)
+    return bound
+
+
+def _manoeuvre_lower_bound(mdp: _Mdp, goal_rc: np.ndarray, cfg: PlannerConfig) -> np.ndarray:
+    """Least extra manoeuvre cost any route from (cell, heading) to the goal must pay.
+
+    A route must move in every grid direction that points towards the goal. Moving across the
+    heading is a quarter turn; moving against it is backing up (or two quarter turns). So with
+    two needed directions at least one turn is unavoidable, and more when the chair faces away.
+    """
+    turn, back = -cfg.reward_turn, -cfg.reward_backward
+    d = goal_rc - mdp.cell_of_state  # (S, 2) row, col offsets to the goal
+    need_v = np.where(d[:, 0] > 0, 1, np.where(d[:, 0] < 0, 0, -1))  # MOVES index or -1
+    need_h = np.where(d[:, 1] > 0, 3, np.where(d[:, 1] < 0, 2, -1))
+    h = mdp.heading_of_state
+    opposite = np.array([1, 0, 3, 2])[h]
+    lb = np.zeros(len(h))
+    for need, other in ((need_v, need_h), (need_h, need_v)):
+        has = need >= 0
+        ahead = need == h
+        against = need == opposite
+        across = has & ~ahead & ~against
+        alone = other < 0
+        # only this direction is needed: across -> one turn, against -> back up or two turns
+        lb = np.where(alone & across, turn, lb)
+        lb = np.where(alone & against, min(back, 2 * turn), lb)
+    both = (need_v >= 0) & (need_h >= 0)
+    facing_one = (need_v == h) | (need_h == h)
+    # both needed: facing one of them, one turn; facing away from one, a turn for the other
+    # plus backing up or a second turn for the first
+    lb = np.where(both & facing_one, turn, lb)
+    lb = np.where(both & ~facing_one, turn + min(back, turn), lb)
+    return lb
 
 
 def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
@@ -540,7 +581,5 @@ def _check_config(cfg: PlannerConfig) -> None:
         raise PlanInputError("reward_turn and reward_backward must not be positive")
     if cfg.q_init not in ("heuristic", "optimistic", "zero"):
         raise PlanInputError("q_init must be heuristic, optimistic or zero")
-    if cfg.q_init == "heuristic" and cfg.discount != 1.0:
-        raise PlanInputError("q_init heuristic is an upper bound only with discount 1")
     if cfg.stable_checks < 1:
         raise PlanInputError("stable_checks must be at least 1")
