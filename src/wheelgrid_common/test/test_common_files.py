@@ -79,3 +79,11 @@ def test_config_from_yaml_checks_types_and_names(tmp_path):
         from_mapping(Cfg, {"safe_hieght": 1.0})
     with pytest.raises(ValueError, match="integer"):
         from_mapping(Cfg, {"cells": 1.5})
+
+
+def test_long_metadata_stays_one_yaml_comment(tmp_path):
+    grid = Grid(np.zeros((2, 2), np.int8), 1.2, meta={"note": "x" * 300, "cells": list(range(60))})
+    write_map(tmp_path / "g.yaml", grid)
+    text = (tmp_path / "g.yaml").read_text()
+    assert sum(line.startswith("# wheelgrid:") for line in text.splitlines()) == 1
+    assert read_map(tmp_path / "g.yaml").data.tolist() == [[0, 0], [0, 0]]

@@ -165,4 +165,7 @@ class BagWriter:
             from rclpy.serialization import serialize_message
 
             data = serialize_message(msg)
+        # rclpy leaves the alignment padding after strings uninitialised; a rosbags round trip
+        # zeroes it, so the same messages always give the same bag bytes (reproducible bags).
+        data = bytes(self._store.serialize_cdr(self._store.deserialize_cdr(data, msgtype), msgtype))
         self._writer.write(self._conns[topic], int(stamp_ns), data)

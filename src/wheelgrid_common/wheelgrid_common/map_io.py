@@ -88,7 +88,8 @@ def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) 
     }
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
     if grid.meta:
-        text += "# wheelgrid: " + yaml.safe_dump(grid.meta, default_flow_style=True).strip() + "\n"
+        meta = yaml.safe_dump(grid.meta, default_flow_style=True, width=float("inf")).strip()
+        text += "# wheelgrid: " + meta.replace("\n", " ") + "\n"
     yaml_path.write_text(text)
     return yaml_path
 
