@@ -42,7 +42,7 @@ def convention_for_frame(frame_id: str, setting: str = "auto") -> str:
     )
 
 
-class FloorNotFound(RuntimeError):
+class FloorNotFoundError(RuntimeError):
     """No plane in the cloud qualifies as the floor."""
 
 
@@ -69,7 +69,7 @@ def find_floor(
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if pts.shape[0] < min_points:
-        raise FloorNotFound(f"only {pts.shape[0]} points, need {min_points} to find the floor")
+        raise FloorNotFoundError(f"only {pts.shape[0]} points, need {min_points} to find the floor")
     down = np.asarray(down, dtype=np.float64)
     down = down / np.linalg.norm(down)
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=float)
@@ -103,7 +103,7 @@ def find_floor(
                     best = (below, n, d)
         remaining = np.delete(remaining, inl, axis=0)
     if best is None:
-        raise FloorNotFound(
+        raise FloorNotFoundError(
             f"no plane within {max_tilt_deg:.0f} deg of level below the sensor "
             f"({pts.shape[0]} points); check sensor_convention or give mount_xyz_rpy"
         )

@@ -23,7 +23,7 @@ from wheelgrid_common.params import field, from_mapping
 
 from .levelling import (
     DOWN_HINT,
-    FloorNotFound,
+    FloorNotFoundError,
     find_floor,
     map_from_floor,
     map_from_mount,
@@ -43,7 +43,7 @@ class MapperConfig:
     sensor_convention: str = field(
         "auto", "auto (REP-103: frame id ending in _optical_frame = optical), optical or body", ""
     )
-    mount_xyz_rpy: list[float] = field(
+    mount_xyz_rpy: list[float] = field(  # noqa: RUF009 (params.field copies list defaults)
         [], "sensor pose on a levelled base (z=0 floor): x y z roll pitch yaw; [] = from floor", ""
     )
     floor_max_tilt_deg: float = field(40.0, "the floor normal may differ this much from up", "deg")
@@ -204,7 +204,7 @@ class Mapper:
                     "sensor_height_m": float(n @ first[:3, 3] + d),
                     "first_view_tilt_deg": tilt,
                 }
-        except FloorNotFound as exc:
+        except FloorNotFoundError as exc:
             self.level_info = {"method": "none", "error": str(exc)}
         finally:
             self.timings["levelling_s"] += time.perf_counter() - t0

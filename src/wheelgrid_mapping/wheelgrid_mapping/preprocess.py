@@ -37,7 +37,9 @@ class PreprocessConfig:
     """Every preprocessing parameter, one place (YAML section ``preprocess`` / ROS params)."""
 
     min_range: float = field(0.2, "points closer to the sensor are dropped", "m")
-    max_range: float = field(5.0, "points farther from the sensor are dropped", "m")
+    max_range: float = field(
+        6.0, "points farther from the sensor are dropped (iPhone LiDAR: ~5 m spec, 6.3 m seen)", "m"
+    )
     min_confidence: int = field(
         1, "ARKit confidence below this is dropped (0 low, 1 medium, 2 high)", ""
     )
@@ -163,8 +165,8 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     among the candidates searched (a bounded search: enough for SOR and PFC, which only need a
     local neighbourhood, and it is what keeps 1 M points to seconds without a k-d tree). Meant
     for :func:`voxel_downsample` output at the same cell (one point per cell, same lattice); a
-    cell holding more points contributes its first 4. Returns ``(idx (N,k) int64, dist (N,k) float64)``
-    sorted by distance; missing neighbours have index -1 and distance ``inf``.
+    cell holding more points contributes its first 4. Returns ``(idx (N,k) int64,
+    dist (N,k) float64)`` sorted by distance; missing neighbours have index -1 and distance ``inf``.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = pts.shape[0]

@@ -39,17 +39,26 @@ class RegistrationConfig:
     """Registration and failure-detection parameters (YAML section ``registration``)."""
 
     method: str = field("kiss", "kiss (KISS-ICP) or open3d (point-to-plane ICP baseline)", "")
-    voxel_size: float = field(0.15, "voxel of the registration map (KISS-ICP voxel_size)", "m")
+    voxel_size: float = field(0.1, "voxel of the registration map (KISS-ICP voxel_size)", "m")
     max_range: float = field(6.0, "map points farther than this from the sensor are dropped", "m")
     initial_threshold: float = field(
         0.3, "initial correspondence threshold of the adaptive estimator", "m"
+    )
+    fixed_threshold: float = field(
+        0.0, "if > 0, use this KISS-ICP kernel sigma instead of the adaptive one", "m"
+    )
+    prior_threshold: float = field(
+        0.03,
+        "kernel sigma when a pose prior seeds the frame (correspondences within 3 sigma); "
+        "small because wide searches let floor-dominated frames slide",
+        "m",
     )
     min_motion_th: float = field(0.02, "motion below this does not adapt the threshold", "m")
     max_points_per_voxel: int = field(20, "points kept per registration-map voxel", "")
     max_iterations: int = field(100, "ICP iterations at most", "")
     min_points: int = field(150, "a frame with fewer points after filtering fails", "points")
     min_fitness: float = field(
-        0.5, "fraction of frame points that must land on the map after alignment", ""
+        0.25, "fraction of frame points that must land on the map after alignment", ""
     )
     fitness_cell: float = field(
         0.05, "map occupancy cell of the overlap check (a match is within 1-2 cells)", "m"
@@ -60,9 +69,9 @@ class RegistrationConfig:
     max_turn_rate: float = field(120.0, "faster apparent rotation is a failure", "deg/s")
     min_dt: float = field(0.2, "time floor for the jump check (bag stamps can bunch)", "s")
     max_prior_deviation: float = field(
-        0.3, "a result this far from the pose prior's guess fails", "m"
+        0.1, "a result this far from the pose prior's guess fails", "m"
     )
-    max_prior_deviation_deg: float = field(15.0, "same, for rotation", "deg")
+    max_prior_deviation_deg: float = field(3.0, "same, for rotation", "deg")
     relocalise_scale: float = field(
         3.0, "correspondence distance multiplier while relocalising", ""
     )
@@ -155,8 +164,9 @@ class Registrar:
         return float(np.mean(hit))
 
     def _integrate(self, pts_sensor: np.ndarray, pose: np.ndarray) -> None:
+        # KISS-ICP's update() transforms the sensor-frame points by ``pose`` itself.
+        self._map.update(pts_sensor, pose)
         pts_odom = transform(pts_sensor, pose)
-        self._map.update(pts_odom, pose)
         self._occupied = np.union1d(self._occupied, self._keys(pts_odom))
 
     # -- alignment -----------------------------------------------------------------------------
@@ -214,7 +224,13 @@ class Registrar:
         else:
             guess = self.last_pose @ self.last_delta
         source = voxel_downsample(frame_down, 1.5 * cfg.voxel_size)
-        sigma = float(self._threshold.get_threshold())
+        with_prior = prior is not None and self.last_prior is not None
+        if with_prior:
+            sigma = cfg.prior_threshold
+        elif cfg.fixed_threshold > 0:
+            sigma = cfg.fixed_threshold
+        else:
+            sigma = float(self._threshold.get_threshold())
         relocalising = self.state == "relocalising"
         scale = cfg.relocalise_scale if relocalising else 1.0
         pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
@@ -229,7 +245,7 @@ class Registrar:
             reason = f"implausible jump ({np.linalg.norm(step[:3, 3]):.2f} m in {dt:.2f} s)"
         elif rotation_angle_deg(step) > cfg.max_turn_rate * dt + 5.0:
             reason = f"implausible turn ({rotation_angle_deg(step):.0f} deg in {dt:.2f} s)"
-        elif prior is not None and self.last_prior is not None:
+        elif with_prior:
             dev = np.linalg.inv(guess) @ pose
             if np.linalg.norm(dev[:3, 3]) > cfg.max_prior_deviation:
                 reason = f"disagrees with pose prior by {np.linalg.norm(dev[:3, 3]):.2f} m"

@@ -1,0 +1,282 @@
+"""The mapper node: PointCloud2 in, levelled map cloud + odometry + status out.
+
+Thin ROS layer over :class:`wheelgrid_mapping.pipeline.Mapper`. Frames are handed to one worker
+thread through a single slot: if a frame arrives while the previous one is still being
+processed, the waiting frame is replaced by the newest and the dropped one is counted
+(``frames_skipped_busy``), so the subscription never blocks and nothing queues forever.
+
+Malformed clouds (missing x/y/z, bad point_step, truncated, empty) are logged once per cause and
+skipped. Big-endian clouds are valid PointCloud2: ``read_fields`` converts them, and the node
+logs that once and uses them (the data is not wrong, only unusual).
+
+The map cloud is published only once the levelled map frame is known (floor found or mount
+given): a map in an unknown frame would place obstacles wrongly.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
+from wheelgrid_common.params import declare_dataclass
+from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_pointcloud2
+from wheelgrid_common.ros_env import spin_node, tf2_available
+
+from .pipeline import Mapper, MapperConfig
+from .preprocess import PreprocessConfig
+from .registration import RegistrationConfig
+
+try:
+    from rclpy.node import Node
+except ImportError:  # pragma: no cover - only without ROS
+    Node = object  # type: ignore[assignment,misc]
+
+
+def _stamp_seconds(stamp: Any) -> float:
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+
+
+class MapperNode(Node):  # type: ignore[misc]
+    def __init__(self) -> None:
+        super().__init__("mapper")
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import PointCloud2
+        from std_srvs.srv import Trigger
+
+        from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+
+        self.topic = self.declare_parameter("topic", "/iphone/points").value
+        self.prior_topic = self.declare_parameter("pose_prior_topic", "").value
+        self.output_dir = self.declare_parameter("output_dir", "wheelgrid_map").value
+        self.map_frame = self.declare_parameter("map_frame", "map").value
+        self.publish_period = float(self.declare_parameter("publish_period", 2.0).value)
+        pre = declare_dataclass(self, PreprocessConfig(), "preprocess.")
+        reg = declare_dataclass(self, RegistrationConfig(), "registration.")
+        cfg = declare_dataclass(self, MapperConfig(), "mapper.")
+        self.mapper = Mapper(pre, reg, cfg)
+        self._lock = threading.Lock()  # guards self.mapper
+        self._slot_lock = threading.Condition()
+        self._slot: tuple[np.ndarray, float, str, np.ndarray | None] | None = None
+        self._stop = False
+        self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=200)
+        self._logged: set[str] = set()
+        self._map_dirty = False
+        self.counts = {"received": 0, "skipped_busy": 0, "malformed": 0}
+        self._sensor_frame = "iphone_depth_optical_frame"
+
+        self.map_pub = self.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
+        self.odom_pub = self.create_publisher(Odometry, "/wheelgrid/odometry", SENSOR_QOS)
+        self.status_pub = self.create_publisher(
+            DiagnosticArray, "/wheelgrid/mapper_status", RELIABLE_QOS
+        )
+        self.tf_pub = None
+        if tf2_available():
+            from tf2_msgs.msg import TFMessage
+
+            self.tf_pub = self.create_publisher(TFMessage, "/tf", 10)
+        self.create_subscription(PointCloud2, self.topic, self._on_cloud, SENSOR_QOS)
+        if self.prior_topic:
+            self.create_subscription(Odometry, self.prior_topic, self._on_prior, SENSOR_QOS)
+        self.create_service(Trigger, "~/save_map", self._on_save)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_timer(self.publish_period, self._on_timer)
+        self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"mapper: {self.topic} -> /wheelgrid/map_cloud (prior: {self.prior_topic or 'none'}, "
+            f"registration {reg.method} voxel {reg.voxel_size} m)"
+        )
+
+    # -- input -------------------------------------------------------------------------------
+    def _log_once(self, key: str, text: str, warn: bool = True) -> None:
+        if key not in self._logged:
+            self._logged.add(key)
+            # rclpy forbids one call site logging at two severities: two separate calls.
+            if warn:
+                self.get_logger().warning(text)
+            else:
+                self.get_logger().info(text)
+
+    def _on_cloud(self, msg: Any) -> None:
+        self.counts["received"] += 1
+        try:
+            pts = read_fields(msg)
+            conf = read_fields(msg, ("confidence",))[:, 0] if has_field(msg, "confidence") else None
+        except CloudError as exc:
+            self.counts["malformed"] += 1
+            self._log_once(exc.cause, f"skipping malformed PointCloud2 ({exc}); logged once")
+            return
+        if msg.is_bigendian:
+            self._log_once("bigendian", "big-endian PointCloud2 converted to host order", False)
+        frame = (pts, _stamp_seconds(msg.header.stamp), msg.header.frame_id, conf)
+        with self._slot_lock:
+            if self._slot is not None:
+                self.counts["skipped_busy"] += 1
+            self._slot = frame
+            self._slot_lock.notify()
+
+    def _on_prior(self, msg: Any) -> None:
+        p = msg.pose.pose
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(
+            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w
+        )
+        T[:3, 3] = [p.position.x, p.position.y, p.position.z]
+        self._priors.append((_stamp_seconds(msg.header.stamp), T))
+
+    def _prior_for(self, stamp: float) -> np.ndarray | None:
+        if not self._priors:
+            return None
+        best = min(self._priors, key=lambda sp: abs(sp[0] - stamp))
+        return best[1] if abs(best[0] - stamp) <= 0.1 else None
+
+    # -- worker ------------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            with self._slot_lock:
+                while self._slot is None and not self._stop:
+                    self._slot_lock.wait(0.5)
+                if self._stop:
+                    return
+                frame, self._slot = self._slot, None
+            assert frame is not None
+            pts, stamp, frame_id, conf = frame
+            if frame_id:
+                self._sensor_frame = frame_id
+            try:
+                with self._lock:
+                    out = self.mapper.add_frame(pts, stamp, frame_id, conf, self._prior_for(stamp))
+            except Exception as exc:  # a bad frame must never kill the mapper
+                self.get_logger().error(f"frame at {stamp:.3f} s failed: {exc!r}")
+                continue
+            if out.status == "failed":
+                self.get_logger().warning(
+                    f"registration failed at {stamp:.3f} s: {out.reason}; map integration "
+                    "paused, relocalising"
+                )
+            elif out.status == "empty":
+                self._log_once("empty", f"frame without valid points ({out.reason})")
+            if out.relocalised:
+                self.get_logger().info(f"relocalised at {stamp:.3f} s; mapping resumed")
+            if out.status == "used":
+                self._map_dirty = True
+                if out.pose_map is not None:
+                    self._publish_pose(out.pose_map, stamp)
+
+    def _publish_pose(self, T: np.ndarray, stamp: float) -> None:
+        from nav_msgs.msg import Odometry
+
+        msg = Odometry()
+        msg.header.frame_id = self.map_frame
+        msg.header.stamp.sec = int(stamp)
+        msg.header.stamp.nanosec = round((stamp - int(stamp)) * 1e9) % 1_000_000_000
+        msg.child_frame_id = self._sensor_frame
+        qx, qy, qz, qw = matrix_to_quat(T[:3, :3])
+        msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (
+            float(v) for v in T[:3, 3]
+        )
+        msg.pose.pose.orientation.x, msg.pose.pose.orientation.y = qx, qy
+        msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = qz, qw
+        self.odom_pub.publish(msg)
+        if self.tf_pub is not None:
+            from geometry_msgs.msg import TransformStamped
+            from tf2_msgs.msg import TFMessage
+
+            tf = TransformStamped()
+            tf.header = msg.header
+            tf.child_frame_id = msg.child_frame_id
+            tf.transform.translation.x = msg.pose.pose.position.x
+            tf.transform.translation.y = msg.pose.pose.position.y
+            tf.transform.translation.z = msg.pose.pose.position.z
+            tf.transform.rotation = msg.pose.pose.orientation
+            self.tf_pub.publish(TFMessage(transforms=[tf]))
+
+    # -- output ------------------------------------------------------------------------------
+    def _on_timer(self) -> None:
+        if self._map_dirty:
+            with self._lock:
+                try:
+                    pts = self.mapper.published_points()
+                except RuntimeError as exc:
+                    pts = None
+                    self._log_once("nolevel", f"map not published yet: {exc}")
+            if pts is not None:
+                self._map_dirty = False
+                msg = to_pointcloud2(pts.astype(np.float32), self.map_frame)
+                msg.header.stamp = self.get_clock().now().to_msg()
+                self.map_pub.publish(msg)
+        self._publish_status()
+
+    def _publish_status(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        c = self.mapper.registrar.counters
+        state = self.mapper.state
+        st = DiagnosticStatus()
+        st.name = "wheelgrid mapper"
+        st.hardware_id = self._sensor_frame
+        st.level = DiagnosticStatus.OK if state == "ok" else DiagnosticStatus.WARN
+        st.message = state if self.mapper.T_map_odom is not None else f"{state} (map frame unknown)"
+        values = {
+            "state": state,
+            "frames_received": self.counts["received"],
+            "frames_used": c.accepted,
+            "frames_failed": c.failed,
+            "frames_relocalised": c.relocalised,
+            "frames_skipped_busy": self.counts["skipped_busy"],
+            "frames_malformed": self.counts["malformed"],
+            "frames_empty": self.mapper.frames_empty,
+            "levelled": self.mapper.T_map_odom is not None,
+        }
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.status_pub.publish(arr)
+
+    def _on_save(self, request: Any, response: Any) -> Any:
+        out = Path(self.output_dir)
+        try:
+            with self._lock:
+                rep = self.mapper.save(out, {"node_counts": dict(self.counts)})
+            response.success = True
+            response.message = (
+                f"wrote {out}/map.ply ({rep['points']['map']} points), trajectory.tum, report.json"
+            )
+        except (RuntimeError, OSError) as exc:
+            response.success = False
+            response.message = f"cannot save: {exc}"
+        return response
+
+    def _on_reset(self, request: Any, response: Any) -> Any:
+        with self._slot_lock:
+            self._slot = None
+        with self._lock:
+            self.mapper.reset()
+        self._map_dirty = False
+        response.success = True
+        response.message = "map, trajectory and counters cleared"
+        return response
+
+    def close(self) -> None:
+        with self._slot_lock:
+            self._stop = True
+            self._slot_lock.notify()
+        self._worker.join(timeout=10.0)
+
+
+def main() -> None:
+    import sys
+
+    code = spin_node(MapperNode)
+    sys.exit(code)
+
+
+if __name__ == "__main__":
+    main()
