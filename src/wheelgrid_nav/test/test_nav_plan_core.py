@@ -239,10 +239,14 @@ def test_node_helpers_headings_and_path_poses():
     assert forward_yaw(Q(-0.5, 0.5, -0.5, 0.5), "iphone_depth_optical_frame") == pytest.approx(0.0)
 
     grid = Grid(paper_grid(), 0.5, (1.0, 2.0, 0.0))
-    poses = path_poses(grid, PAPER_ROUTE)
+    poses = path_poses(grid, PAPER_ROUTE, "down")
     assert len(poses) == len(PAPER_ROUTE)
     x, y, yaw = poses[0]
     assert (x, y) == pytest.approx((1.0 + 0.25, 2.0 + (8 - 2 - 0.5) * 0.5))
-    assert yaw == pytest.approx(0.0)  # first move: right = +x
-    assert poses[5][2] == pytest.approx(-math.pi / 2)  # (2,5) -> (3,5): down = -y
-    assert poses[-1][2] == pytest.approx(-math.pi / 2)
+    assert yaw == pytest.approx(-math.pi / 2)  # the start heading: grid down = -y
+    assert poses[1][2] == pytest.approx(0.0)  # entered (2,1) moving right = +x
+    assert poses[5][2] == pytest.approx(0.0)  # entered (2,5) moving right
+    assert poses[6][2] == pytest.approx(-math.pi / 2)  # entered (3,5) moving down
+    assert path_poses(grid, PAPER_ROUTE)[0][2] == pytest.approx(0.0)  # no heading: first move
+    turned = Grid(paper_grid(), 0.5, (0.0, 0.0, math.pi / 2))
+    assert path_poses(turned, PAPER_ROUTE)[1][2] == pytest.approx(math.pi / 2)

@@ -128,8 +128,10 @@ def test_planner_node_plans_replans_and_stops(tmp_path):
                 x, y = grid.cell_center(*cell)
                 assert pose.pose.position.x == pytest.approx(x)
                 assert pose.pose.position.y == pytest.approx(y)
-            # orientation = direction of travel: right (+x) along row 2, then down (-y)
-            assert yaw_of(path.poses[0].pose) == pytest.approx(0.0, abs=1e-9)
+            # the start cell carries the chair's heading (grid down = -y), so a follower gets
+            # Table II's left-forward; then the direction of travel: right (+x), then down
+            assert yaw_of(path.poses[0].pose) == pytest.approx(-math.pi / 2)
+            assert yaw_of(path.poses[1].pose) == pytest.approx(0.0, abs=1e-9)
             assert yaw_of(path.poses[6].pose) == pytest.approx(-math.pi / 2)
             assert spin_until(ex, lambda: bool(h.markers), 10.0)
             arrows = [m for m in h.markers[-1].markers if m.action == m.ADD]

@@ -3,7 +3,8 @@
 Subscribes ``/wheelgrid/safe_grid`` (OccupancyGrid, MAP_QOS), ``/goal_pose`` (PoseStamped,
 as RViz's 2D Goal Pose sends), and the start from ``/wheelgrid/odometry`` (Odometry) or
 ``/initialpose`` (PoseWithCovarianceStamped) -- whichever arrived last. Publishes
-``/wheelgrid/plan`` (Path through cell centres, orientation = direction of travel, MAP_QOS) and
+``/wheelgrid/plan`` (Path through cell centres, orientation = direction of travel into each
+cell; the start cell carries the heading planned from; MAP_QOS) and
 ``/wheelgrid/plan_markers`` (MarkerArray of arrows, MAP_QOS).
 
 All the planning is in :mod:`wheelgrid_nav.planner`; this module only translates messages.
@@ -32,7 +33,7 @@ from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import declare_dataclass
 from wheelgrid_common.params import field as pfield
 from wheelgrid_common.ros_env import spin_node
-from wheelgrid_nav.actions import DELTAS
+from wheelgrid_nav.actions import cells_to_moves
 from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, plan
 
 # grid direction -> angle in the grid's own frame (x = col + 1 = "right", y = row - 1 = "up")
@@ -73,22 +74,29 @@ def _quat_from_yaw(yaw: float) -> tuple[float, float]:
     return math.sin(yaw / 2.0), math.cos(yaw / 2.0)
 
 
-def path_poses(grid: Grid, cells: list[tuple[int, int]]) -> list[tuple[float, float, float]]:
-    """(x, y, yaw) per route cell: cell centre, yaw = direction of the move out of it (the last
-    cell keeps the direction it was entered with)."""
+def path_poses(
+    grid: Grid, cells: list[tuple[int, int]], start_heading: str | None = None
+) -> list[tuple[float, float, float]]:
+    """(x, y, yaw) per route cell: the cell centre, and yaw = the direction of travel into it.
+
+    The start cell gets the heading the route was planned from (``start_heading``, a grid
+    direction), so a follower (the drive's ``initial_heading: auto``) converts the first move
+    with the chair's real heading, as in Table II where (2,0)->(2,1) facing down is
+    left-forward; without it the start cell takes the first move's direction.
+    """
     if not cells:
         return []
     xy = grid.cell_center(np.array([c[0] for c in cells]), np.array([c[1] for c in cells]))
-    out = []
-    yaw = grid.origin[2]
-    for i in range(len(cells)):
-        j = i if i + 1 < len(cells) else i - 1
-        if j >= 0:
-            d = (cells[j + 1][0] - cells[j][0], cells[j + 1][1] - cells[j][1])
-            move = next(m for m, v in DELTAS.items() if v == d)
-            yaw = grid.origin[2] + _DIR_ANGLE[move]
-        out.append((float(xy[i, 0]), float(xy[i, 1]), math.remainder(yaw, 2 * math.pi)))
-    return out
+    moves = cells_to_moves(cells)
+    dirs = [start_heading or (moves[0] if moves else "right"), *moves]
+    return [
+        (
+            float(xy[i, 0]),
+            float(xy[i, 1]),
+            math.remainder(grid.origin[2] + _DIR_ANGLE[dirs[i]], 2 * math.pi),
+        )
+        for i in range(len(cells))
+    ]
 
 
 def _make_node_class() -> type:
@@ -209,16 +217,18 @@ def _make_node_class() -> type:
                 f"route {start} -> {goal} facing {heading}: {len(res.moves)} moves "
                 f"({res.episodes} episodes, {res.seconds * 1000:.0f} ms)"
             )
-            self._publish_route(grid, res.cells)
+            self._publish_route(grid, res.cells, heading)
 
-        def _publish_route(self, grid: Grid | None, cells: list[tuple[int, int]]) -> None:
+        def _publish_route(
+            self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
+        ) -> None:
             self.route = list(cells)
             stamp = self.get_clock().now().to_msg()
             frame = grid.frame_id if grid is not None else "map"
             path = Path()
             path.header.frame_id = frame
             path.header.stamp = stamp
-            poses = path_poses(grid, cells) if grid is not None else []
+            poses = path_poses(grid, cells, heading) if grid is not None else []
             for x, y, yaw in poses:
                 ps = PoseStamped()
                 ps.header = path.header
