@@ -214,3 +214,13 @@ def test_odometry_start_and_console_entry(tmp_path):
             assert cells_of(path, grid) == [(6, c) for c in range(5)], log.read_text()
         finally:
             h.close()
+
+
+@pytest.mark.parametrize("param", ["method:=dijkstra", "reward_step:=1.0"])
+def test_bad_parameters_stop_the_node_with_exit_2(param):
+    from wheelgrid_common.ros_env import child_env
+
+    args = python_module("wheelgrid_nav.planner_node", "--ros-args", "-p", param)
+    proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "FATAL" in proc.stderr + proc.stdout

@@ -515,7 +515,7 @@ def plan(
     goal or an unconverged training returns a result with no cells and the reason.
     """
     cfg = cfg or PlannerConfig()
-    _check_config(cfg)
+    check_config(cfg)
     if method not in METHODS:
         raise PlanInputError(f"unknown method {method!r} (use {' or '.join(METHODS)})")
     if heading is not None and heading not in DELTAS:
@@ -567,7 +567,7 @@ def plan(
     return res
 
 
-def _check_config(cfg: PlannerConfig) -> None:
+def check_config(cfg: PlannerConfig) -> None:
     """Reject settings under which the learned optimum would not be the cheapest route."""
     if not 0.0 < cfg.learning_rate <= 1.0:
         raise PlanInputError("learning_rate must be in (0, 1]")

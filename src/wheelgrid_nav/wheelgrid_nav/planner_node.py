@@ -34,7 +34,7 @@ from wheelgrid_common.params import declare_dataclass
 from wheelgrid_common.params import field as pfield
 from wheelgrid_common.ros_env import spin_node
 from wheelgrid_nav.actions import cells_to_moves
-from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, plan
+from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, check_config, plan
 
 # grid direction -> angle in the grid's own frame (x = col + 1 = "right", y = row - 1 = "up")
 _DIR_ANGLE = {"right": 0.0, "up": math.pi / 2, "left": math.pi, "down": -math.pi / 2}
@@ -115,7 +115,15 @@ def _make_node_class() -> type:
             self.node_cfg = declare_dataclass(self, PlannerNodeConfig())
             self.cfg = declare_dataclass(self, PlannerConfig())
             if self.node_cfg.method not in METHODS:
-                raise SystemExit(f"planner: unknown method {self.node_cfg.method!r}")
+                self.get_logger().fatal(
+                    f"unknown method {self.node_cfg.method!r} (use {' or '.join(METHODS)})"
+                )
+                raise SystemExit(2)
+            try:
+                check_config(self.cfg)
+            except PlanInputError as exc:
+                self.get_logger().fatal(f"bad planner parameters: {exc}")
+                raise SystemExit(2) from None
             self.grid: Grid | None = None
             self.start: tuple[float, float, float] | None = None  # x, y, yaw in map
             self.goal: tuple[float, float] | None = None
