@@ -95,7 +95,7 @@ def test_unknown_cells_are_never_free():
     assert all(g[r, c] == 0 for r, c in res.cells)
     assert len(res.cells) - 1 == 6  # around the bottom, not through the unknown cells
     with pytest.raises(PlanInputError, match="not free"):
-        plan(g, (1, 2), (1, 4))
+        plan(g, (1, 2), (1, 4), PlannerConfig(allow_unknown_start=False))
     with pytest.raises(PlanInputError, match="not free"):
         plan(g, (1, 0), (0, 2))
     with pytest.raises(PlanInputError, match="outside"):

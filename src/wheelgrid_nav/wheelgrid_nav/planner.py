@@ -87,6 +87,11 @@ class PlannerConfig:
         2, "consecutive checks the greedy route must stay the same and optimal to converge"
     )
     seed: int = pfield(0, "random seed; the same seed and grid give the same route")
+    allow_unknown_start: bool = pfield(
+        True,
+        "the chair's own cell may be unknown (a sensor on the chair never sees the floor under "
+        "it); an occupied start is still refused and every other cell must be free",
+    )
 
 
 class PlanInputError(ValueError):
@@ -524,6 +529,11 @@ def plan(
         raise PlanInputError("method qlearning-heading needs the start heading")
     arr = np.asarray(data)
     free = arr if arr.dtype == bool else free_mask(arr)
+    if cfg.allow_unknown_start and arr.dtype != bool:
+        r0, c0 = int(start[0]), int(start[1])
+        if 0 <= r0 < arr.shape[0] and 0 <= c0 < arr.shape[1] and arr[r0, c0] < 0:
+            free = free.copy()
+            free[r0, c0] = True  # the chair stands there; a shortest route never returns to it
     s = check_cell(free, start, "start")
     g = check_cell(free, goal, "goal")
     t0 = time.perf_counter()

@@ -1,0 +1,36 @@
+"""The chair's own cell: unknown is allowed (the sensor on the chair never sees under it),
+occupied never is, and no other unknown cell becomes usable."""
+
+import numpy as np
+import pytest
+
+from wheelgrid_nav.planner import PlanInputError, PlannerConfig, plan
+
+
+def _grid():
+    g = np.zeros((3, 4), dtype=np.int8)
+    g[1, 1] = -1
+    return g
+
+
+def test_unknown_start_cell_is_allowed_by_default():
+    g = _grid()
+    g[0, 0] = -1
+    res = plan(g, (0, 0), (2, 3))
+    assert res.ok and res.cells[0] == (0, 0) and (1, 1) not in res.cells
+    assert len(res.cells) - 1 == 5
+
+
+def test_unknown_start_can_be_refused_and_occupied_start_always_is():
+    g = _grid()
+    g[0, 0] = -1
+    with pytest.raises(PlanInputError, match="not free"):
+        plan(g, (0, 0), (2, 3), PlannerConfig(allow_unknown_start=False))
+    g[0, 0] = 100
+    with pytest.raises(PlanInputError, match="not free"):
+        plan(g, (0, 0), (2, 3))
+
+
+def test_unknown_goal_is_still_refused():
+    with pytest.raises(PlanInputError, match="not free"):
+        plan(_grid(), (0, 0), (1, 1))
