@@ -62,8 +62,35 @@ def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
     return len(export), gen()
 
 
-def bag_frames(path: Path, topic: str | None) -> tuple[int, Iterator[Frame], list[str]]:
-    """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause."""
+ODOMETRY = "nav_msgs/msg/Odometry"
+
+
+def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, 4x4 poses) of an Odometry topic: the pose prior for bags."""
+    from wheelgrid_common.fileio import quat_to_matrix
+
+    stamps, poses = [], []
+    for _, t_ns, msg in reader.messages([topic]):  # type: ignore[attr-defined]
+        p = msg.pose.pose
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(
+            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w
+        )
+        T[:3, 3] = [p.position.x, p.position.y, p.position.z]
+        st = msg.header.stamp
+        stamps.append(st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9)
+        poses.append(T)
+    return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
+
+
+def bag_frames(
+    path: Path, topic: str | None, prior: bool = False
+) -> tuple[int, Iterator[Frame], list[str]]:
+    """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause.
+
+    With ``prior`` the bag's only nav_msgs/Odometry topic (the bridge's /iphone/odometry, i.e.
+    ARKit) gives each frame a pose prior: the odometry message nearest in time (<= 0.1 s).
+    """
     from wheelgrid_common.bagio import BagError, BagReader
     from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields
 
@@ -72,8 +99,22 @@ def bag_frames(path: Path, topic: str | None) -> tuple[int, Iterator[Frame], lis
         reader = BagReader(path).__enter__()
         name = reader.pick_topic(topic)
         total = reader.count([name])
+        prior_stamps, prior_poses = np.empty(0), np.empty((0, 4, 4))
+        if prior:
+            odom = reader.pick_topic(None, ODOMETRY)
+            prior_stamps, prior_poses = _odometry_poses(reader, odom)
     except BagError as exc:
-        raise InputError(str(exc)) from exc
+        reader.__exit__()
+        raise InputError(
+            f"{exc}" + (" (--prior arkit needs one nav_msgs/Odometry topic)" if prior else "")
+        ) from exc
+
+    def prior_for(stamp: float) -> np.ndarray | None:
+        if prior_stamps.size == 0:
+            return None
+        i = int(np.argmin(np.abs(prior_stamps - stamp)))
+        return prior_poses[i] if abs(prior_stamps[i] - stamp) <= 0.1 else None
+
     if total == 0:
         reader.__exit__()
         raise InputError(f"{path}: topic {name} has no messages")
@@ -94,7 +135,7 @@ def bag_frames(path: Path, topic: str | None) -> tuple[int, Iterator[Frame], lis
                 )
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
-                yield pts, stamp, msg.header.frame_id, conf, None
+                yield pts, stamp, msg.header.frame_id, conf, prior_for(stamp)
         except BagError as exc:
             raise InputError(str(exc)) from exc
         finally:
@@ -118,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--prior",
         choices=["none", "arkit"],
         default="none",
-        help="pose prior: arkit = the Stray export's odometry.csv as initial guess",
+        help="pose prior as initial guess: arkit = a Stray export's odometry.csv, or a bag's "
+        "only nav_msgs/Odometry topic (the bridge's /iphone/odometry)",
     )
     p.add_argument("--method", choices=["kiss", "open3d"], help="override registration.method")
     p.add_argument("--max-frames", type=int, default=0, help="stop after this many frames")
@@ -148,9 +190,7 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError("--topic applies to bags, not to a Stray export")
         total, frames = stray_frames(path, args.prior == "arkit")
     else:
-        if args.prior == "arkit":
-            raise InputError("--prior arkit needs a Stray export (odometry.csv)")
-        total, frames, bad = bag_frames(path, args.topic)
+        total, frames, bad = bag_frames(path, args.topic, args.prior == "arkit")
     if args.max_frames > 0:
         total = min(total, args.max_frames)
     mapper = Mapper(pre, reg, cfg)

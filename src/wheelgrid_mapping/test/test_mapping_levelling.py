@@ -1,0 +1,116 @@
+"""Levelled map frame from the floor (optical and body conventions, pitched/rolled) or a mount."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from wheelgrid_mapping.levelling import (
+    FloorNotFoundError,
+    convention_for_frame,
+    find_floor,
+    map_from_floor,
+    map_from_mount,
+    rpy_matrix,
+)
+
+# optical (x right, y down, z forward) expressed in body (x forward, y left, z up)
+BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def room_points(rng: np.random.Generator) -> np.ndarray:
+    """World (z up, floor z=0): floor 6x6 m, a table top at 0.72 m, two walls."""
+    floor = np.column_stack([rng.random((20000, 2)) * 6 - 3, np.zeros(20000)])
+    table = np.column_stack(
+        [rng.random(6000) * 1.5 + 0.5, rng.random(6000) * 1.0 - 0.5, np.full(6000, 0.72)]
+    )
+    wall = np.column_stack([np.full(8000, 3.0), rng.random(8000) * 6 - 3, rng.random(8000) * 2.5])
+    wall2 = np.column_stack([rng.random(8000) * 6 - 3, np.full(8000, 3.0), rng.random(8000) * 2.5])
+    return np.vstack([floor, table, wall, wall2]) + rng.normal(0, 0.004, (42000, 3))
+
+
+def sensor_pose(yaw: float, pitch: float, roll: float, conv: str, height: float) -> np.ndarray:
+    """world_from_sensor for a sensor at (0.3, -0.2, height), body rpy, in ``conv`` axes."""
+    T = np.eye(4)
+    R_body = rpy_matrix(roll, pitch, yaw)
+    T[:3, :3] = R_body @ BODY_FROM_OPTICAL if conv == "optical" else R_body
+    T[:3, 3] = [0.3, -0.2, height]
+    return T
+
+
+@pytest.mark.parametrize("conv", ["optical", "body"])
+@pytest.mark.parametrize(
+    ("pitch_deg", "roll_deg"), [(0.0, 0.0), (25.0, 0.0), (-20.0, 10.0), (10.0, -30.0)]
+)
+def test_floor_levelling_meets_the_convention(conv: str, pitch_deg: float, roll_deg: float) -> None:
+    rng = np.random.default_rng(5)
+    world = room_points(rng)
+    yaw = 0.4
+    T = sensor_pose(yaw, math.radians(pitch_deg), math.radians(roll_deg), conv, 1.1)
+    inv = np.linalg.inv(T)
+    pts = world @ inv[:3, :3].T + inv[:3, 3]  # sensor frame = odom at the first pose
+    down = {"optical": np.array([0, 1.0, 0]), "body": np.array([0, 0, -1.0])}[conv]
+    n, d = find_floor(pts, down)
+    M = map_from_floor(n, d, conv)
+    # The map frame of the convention: rotation about z by -yaw, origin below the sensor.
+    expect = np.eye(4)
+    expect[:3, :3] = rpy_matrix(0, 0, -yaw)
+    expect[:3, 3] = expect[:3, :3] @ -np.array([0.3, -0.2, 0.0])
+    expect = expect @ T  # map_from_sensor0
+    got = M
+    ang = math.degrees(
+        math.acos(np.clip((np.trace(expect[:3, :3].T @ got[:3, :3]) - 1) / 2, -1, 1))
+    )
+    assert ang < 1.0, ang
+    assert np.linalg.norm(expect[:3, 3] - got[:3, 3]) < 0.03
+    levelled = pts @ M[:3, :3].T + M[:3, 3]
+    floor_z = levelled[:20000, 2]
+    assert abs(np.median(floor_z)) < 0.01
+    # Origin is below the sensor: the sensor sits at (0, 0, 1.1) in the map.
+    assert np.allclose(M[:3, 3], [0, 0, 1.1], atol=0.03)
+
+
+def test_table_top_is_not_taken_for_the_floor() -> None:
+    rng = np.random.default_rng(6)
+    world = room_points(rng)
+    # Much more table than floor in view.
+    extra = np.column_stack(
+        [rng.random(40000) * 1.5 + 0.5, rng.random(40000) - 0.5, np.full(40000, 0.72)]
+    )
+    world = np.vstack([world, extra])
+    T = sensor_pose(0.0, math.radians(20), 0.0, "optical", 1.2)
+    inv = np.linalg.inv(T)
+    pts = world @ inv[:3, :3].T + inv[:3, 3]
+    n, d = find_floor(pts, np.array([0, 1.0, 0]))
+    assert n @ np.zeros(3) + d == pytest.approx(1.2, abs=0.02)  # sensor 1.2 m above floor
+
+
+def test_no_floor_raises() -> None:
+    rng = np.random.default_rng(7)
+    wall = np.column_stack([np.full(5000, 3.0), rng.random(5000), rng.random(5000)])
+    with pytest.raises(FloorNotFoundError):
+        find_floor(wall, np.array([0, 0, -1.0]))
+
+
+def test_mount_transform_gives_the_same_frame() -> None:
+    # Sensor 0.9 m above the floor, body convention, pitched 20 deg down.
+    M = map_from_mount([0.1, 0.0, 0.9, 0.0, math.radians(20), 0.0], "body")
+    sensor_in_map = M[:3, 3]
+    assert np.allclose(sensor_in_map, [0, 0, 0.9], atol=1e-9)
+    # A floor point straight ahead of the sensor lands on z = 0.
+    ahead = np.array([0.9 / math.tan(math.radians(20)), 0, 0])
+    R = rpy_matrix(0, math.radians(20), 0)
+    p_sensor = R.T @ (ahead - np.array([0, 0, 0.9]))
+    assert (M[:3, :3] @ p_sensor + M[:3, 3])[2] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError):
+        map_from_mount([1, 2, 3], "body")
+
+
+def test_convention_from_frame_id() -> None:
+    assert convention_for_frame("iphone_depth_optical_frame") == "optical"
+    assert convention_for_frame("base_link") == "body"
+    assert convention_for_frame("base_link", "optical") == "optical"
+    with pytest.raises(ValueError):
+        convention_for_frame("x", "sideways")
