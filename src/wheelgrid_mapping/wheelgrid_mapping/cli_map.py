@@ -9,6 +9,7 @@ map frame) and DIR/report.json. Exit codes: 0 ok, 2 bad input (one clear line on
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from collections.abc import Iterator
@@ -95,8 +96,9 @@ def bag_frames(
     from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields
 
     bad: list[str] = []
+    holder = BagReader(path)
     try:
-        reader = BagReader(path).__enter__()
+        reader = holder.__enter__()
         name = reader.pick_topic(topic)
         total = reader.count([name])
         prior_stamps, prior_poses = np.empty(0), np.empty((0, 4, 4))
@@ -104,7 +106,9 @@ def bag_frames(
             odom = reader.pick_topic(None, ODOMETRY)
             prior_stamps, prior_poses = _odometry_poses(reader, odom)
     except BagError as exc:
-        reader.__exit__()
+        # BagReader.__exit__ raises when open() itself failed (common bug): ignore that.
+        with contextlib.suppress(Exception):
+            holder.__exit__()
         raise InputError(
             f"{exc}" + (" (--prior arkit needs one nav_msgs/Odometry topic)" if prior else "")
         ) from exc

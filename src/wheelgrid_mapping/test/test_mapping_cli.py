@@ -1,0 +1,139 @@
+"""`wheelgrid map` and `wheelgrid measure` end to end, and every bad input -> exit 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.fileio import read_ply, read_tum, write_ply
+from wheelgrid_mapping import cli_map, cli_measure
+
+SHARED = Path(os.environ.get("WHEELGRID_SHARED", Path(__file__).resolve().parents[3] / "../shared"))
+STRAY = SHARED / "data" / "stray-iphone-room"
+
+
+BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
+
+
+@pytest.fixture(scope="module")
+def sim_dir() -> Path:
+    """The bundled simulated bag (wheelgrid_sim output at the paper's 0.8 m/s, 5 Hz)."""
+    if not (BUNDLED / "scan" / "metadata.yaml").exists():
+        pytest.skip("bags/paper_room: not present")
+    return BUNDLED
+
+
+def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "map"
+    argv = [str(sim_dir / "scan"), "--out", str(out), "--prior", "arkit", "--max-frames", "10"]
+    assert cli_map.main(argv) == 0
+    summary = capsys.readouterr().out
+    assert "frames read" in summary and "points" in summary
+    pts = read_ply(out / "map.ply")
+    assert pts.shape[0] > 1000 and np.isfinite(pts).all()
+    stamps, poses = read_tum(out / "trajectory.tum")
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"]["read"] == 10
+    assert len(stamps) == rep["frames"]["used"] >= 8
+    assert rep["points"]["input"] >= rep["points"]["valid"] >= rep["points"]["after_pfc"]
+    # Levelled: the floor is the most common height, at z = 0; the first pose sits above the
+    # origin, matching the simulator's own map-frame poses.
+    assert abs(np.median(pts[pts[:, 2] < 0.3, 2])) < 0.02
+    truth_stamps, truth = read_tum(sim_dir / "poses_map.tum")
+    assert np.linalg.norm(poses[0][:3, 3] - truth[0][:3, 3]) < 0.05
+    cos = (np.trace(poses[0][:3, :3].T @ truth[0][:3, :3]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
+
+
+def test_topic_choice_and_listing(sim_dir: Path, tmp_path: Path, capsys) -> None:
+    code = cli_map.main([str(sim_dir / "scan"), "--out", str(tmp_path), "--topic", "/nope"])
+    assert code == 2
+    assert "/iphone/points" in capsys.readouterr().err  # lists what there is
+    code = cli_map.main(
+        [str(sim_dir / "scan"), "--out", str(tmp_path), "--topic", "/iphone/odometry"]
+    )
+    assert code == 2
+    assert "not sensor_msgs/msg/PointCloud2" in capsys.readouterr().err
+
+
+def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, capsys) -> None:
+    missing = tmp_path / "nothing"
+    assert cli_map.main([str(missing), "--out", str(tmp_path / "o")]) == 2
+    empty_dir = tmp_path / "empty"
+    empty_dir.mkdir()
+    assert cli_map.main([str(empty_dir), "--out", str(tmp_path / "o")]) == 2
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(sim_dir / "scan", corrupt)
+    for db in corrupt.glob("*.db3"):
+        db.write_bytes(b"this is not sqlite" * 10)
+    assert cli_map.main([str(corrupt), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("wheelgrid map:") == 3
+
+
+def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:
+    from wheelgrid_common.bagio import BagWriter
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+
+    bag = tmp_path / "nan"
+    with BagWriter(bag) as w:
+        for i in range(3):
+            msg = to_pointcloud2(np.full((64, 3), np.nan), "iphone_depth_optical_frame", height=8)
+            msg.header.stamp.sec = 100 + i
+            w.write("/iphone/points", "sensor_msgs/msg/PointCloud2", (100 + i) * 10**9, msg)
+    assert cli_map.main([str(bag), "--out", str(tmp_path / "o")]) == 2
+    assert "no valid points" in capsys.readouterr().err
+
+
+def test_two_cloud_topics_need_topic(tmp_path: Path, capsys) -> None:
+    from wheelgrid_common.bagio import BagWriter
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+
+    bag = tmp_path / "two"
+    with BagWriter(bag) as w:
+        for t in ("/a/points", "/b/points"):
+            w.write(t, "sensor_msgs/msg/PointCloud2", 10**9, to_pointcloud2(np.ones((4, 3)), "f"))
+    assert cli_map.main([str(bag), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "/a/points" in err and "/b/points" in err and "--topic" in err
+
+
+def test_map_from_the_real_stray_export(tmp_path: Path) -> None:
+    if not STRAY.exists():
+        pytest.skip("stray-iphone-room: not present")
+    out = tmp_path / "stray"
+    code = cli_map.main([str(STRAY), "--out", str(out), "--prior", "arkit", "--max-frames", "6"])
+    assert code == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"]["read"] == 6 and rep["frames"]["used"] >= 5
+    pts = read_ply(out / "map.ply")
+    # SOURCE.md: floor, a table top ~0.7 m above it, ceiling ~2.65 m. All at their heights.
+    z = pts[:, 2]
+    assert np.mean(np.abs(z) < 0.05) > 0.03  # floor at z = 0
+    assert np.mean((z > 0.6) & (z < 0.8)) > 0.03  # table top
+    assert np.mean(np.abs(z - 2.6) < 0.15) > 0.03  # ceiling
+    assert np.mean(z < -0.1) < 0.01  # nothing under the floor
+
+
+def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
+    rng = np.random.default_rng(0)
+    a = np.column_stack([np.full(2000, 1.0), rng.random(2000), rng.random(2000)])
+    b = np.column_stack([np.full(2000, 2.2), rng.random(2000), rng.random(2000)])
+    pts = np.vstack([a, b]) + rng.normal(0, 0.003, (4000, 3))
+    ply = tmp_path / "m.ply"
+    write_ply(ply, pts)
+    box_a = ["0.9", "0", "0", "1.1", "1", "1"]
+    box_b = ["2.1", "0", "0", "2.3", "1", "1"]
+    argv = [str(ply), "--box-a", *box_a, "--box-b", *box_b, "--true", "1.2", "--json"]
+    assert cli_measure.main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["distance"] == pytest.approx(1.2, abs=0.005)
+    assert out["deviation_pct"] < 0.5 and out["angle_deg"] < 2.0
+    empty = ["5", "5", "5", "6", "6", "6"]
+    assert cli_measure.main([str(ply), "--box-a", *box_a, "--box-b", *empty]) == 2
+    assert cli_measure.main([str(tmp_path / "none.ply"), "--box-a", *box_a, "--box-b", *box_b]) == 2
