@@ -44,7 +44,7 @@ def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None
     # Levelled: the floor is the most common height, at z = 0; the first pose sits above the
     # origin, matching the simulator's own map-frame poses.
     assert abs(np.median(pts[pts[:, 2] < 0.3, 2])) < 0.02
-    truth_stamps, truth = read_tum(sim_dir / "poses_map.tum")
+    _, truth = read_tum(sim_dir / "poses_map.tum")
     assert np.linalg.norm(poses[0][:3, 3] - truth[0][:3, 3]) < 0.05
     cos = (np.trace(poses[0][:3, :3].T @ truth[0][:3, :3]) - 1) / 2
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
