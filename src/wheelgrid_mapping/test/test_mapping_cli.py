@@ -137,3 +137,15 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
     empty = ["5", "5", "5", "6", "6", "6"]
     assert cli_measure.main([str(ply), "--box-a", *box_a, "--box-b", *empty]) == 2
     assert cli_measure.main([str(tmp_path / "none.ply"), "--box-a", *box_a, "--box-b", *box_b]) == 2
+
+
+def test_measure_along_an_axis_for_a_thin_bar(tmp_path: Path, capsys) -> None:
+    rng = np.random.default_rng(1)
+    floor = np.column_stack([rng.random((3000, 2)) * 2, np.zeros(3000)])
+    bar = np.column_stack([rng.random(300) * 2, np.full(300, 1.0), 1.50 + rng.random(300) * 0.05])
+    ply = tmp_path / "bar.ply"
+    write_ply(ply, np.vstack([floor, bar]))
+    argv = [str(ply), "--box-a", "0", "0", "-0.1", "2", "2", "0.1",
+            "--box-b", "0", "0.9", "1.4", "2", "1.1", "1.6", "--axis", "z", "--json"]  # fmt: skip
+    assert cli_measure.main(argv) == 0
+    assert json.loads(capsys.readouterr().out)["distance"] == pytest.approx(1.525, abs=0.005)

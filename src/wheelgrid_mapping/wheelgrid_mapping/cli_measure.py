@@ -69,8 +69,22 @@ def fit_plane(points: np.ndarray, trim: float = 0.1) -> Plane:
     return Plane(n, c, int(points.shape[0]), rms)
 
 
-def measure(points: np.ndarray, box_a: list[float], box_b: list[float]) -> Measurement:
-    """Distance between the surfaces inside ``box_a`` and ``box_b`` (each x0 y0 z0 x1 y1 z1)."""
+def measure(
+    points: np.ndarray, box_a: list[float], box_b: list[float], axis: int | None = None
+) -> Measurement:
+    """Distance between the surfaces inside ``box_a`` and ``box_b`` (each x0 y0 z0 x1 y1 z1).
+
+    ``axis`` (0/1/2) measures instead the difference of the two point sets' median coordinate
+    along that axis: for thin objects (a bar seen from below) whose faces are too small for a
+    plane fit.
+    """
+    if axis is not None:
+        a, b = points_in_box(points, box_a), points_in_box(points, box_b)
+        if a.shape[0] < 3 or b.shape[0] < 3:
+            raise ValueError(f"boxes hold {a.shape[0]} and {b.shape[0]} points, need >= 3 each")
+        dist = abs(float(np.median(b[:, axis]) - np.median(a[:, axis])))
+        return Measurement(dist, 0.0, a.shape[0], b.shape[0], float(a[:, axis].std()),
+                           float(b[:, axis].std()))  # fmt: skip
     pa = fit_plane(points_in_box(points, box_a))
     pb = fit_plane(points_in_box(points, box_b))
     d_ab = abs(float((pb.centroid - pa.centroid) @ pa.normal))
@@ -88,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("map", type=Path, help="map.ply from `wheelgrid map`")
     p.add_argument("--box-a", nargs=6, type=float, required=True, metavar="V")
     p.add_argument("--box-b", nargs=6, type=float, required=True, metavar="V")
+    p.add_argument(
+        "--axis", choices=["x", "y", "z"], help="median-coordinate distance along this axis"
+    )
     p.add_argument("--true", type=float, help="the real distance (m): prints the deviation %%")
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     args = p.parse_args(argv)
@@ -97,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2
     try:
-        m = measure(pts, args.box_a, args.box_b)
+        axis = None if args.axis is None else "xyz".index(args.axis)
+        m = measure(pts, args.box_a, args.box_b, axis)
     except ValueError as exc:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2

@@ -261,6 +261,20 @@ def statistical_outlier_mask(
     return mu_i < t  # eq. 4: outlier when mu_i >= t
 
 
+def neighbourhood_normals(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normal (smallest-eigenvalue axis) and centroid of each point's neighbours."""
+    pts = np.asarray(points, dtype=np.float64)
+    valid = idx >= 0
+    nb = pts[np.maximum(idx, 0)]
+    w = valid[:, :, None].astype(np.float64)
+    cnt = np.maximum(valid.sum(axis=1), 1)[:, None]
+    centroid = (nb * w).sum(axis=1) / cnt
+    cen = (nb - centroid[:, None, :]) * w
+    cov = np.einsum("nki,nkj->nij", cen, cen) / cnt[:, :, None]
+    _, vecs = np.linalg.eigh(cov)
+    return vecs[:, :, 0], centroid
+
+
 def plane_fit_criterion(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """PFC per point and its offset from the neighbours' plane.
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from wheelgrid_common.params import field
 
-from .preprocess import voxel_downsample
+from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
 
 
 @dataclass
@@ -72,10 +72,67 @@ class RegistrationConfig:
         0.1, "a result this far from the pose prior's guess fails", "m"
     )
     max_prior_deviation_deg: float = field(3.0, "same, for rotation", "deg")
+    degeneracy_ratio: float = field(
+        0.03,
+        "with a prior, ICP corrections along directions constrained by less than this share of "
+        "the points (e.g. sliding along a floor) are dropped and the prior kept",
+        "",
+    )
     relocalise_scale: float = field(
         3.0, "correspondence distance multiplier while relocalising", ""
     )
     threads: int = field(2, "registration threads (0 = all cores)", "")
+
+
+def _exp_se3(x: np.ndarray) -> np.ndarray:
+    """Small-motion [t, omega] -> 4x4 (Rodrigues for the rotation)."""
+    T = np.eye(4)
+    w = x[3:]
+    th = float(np.linalg.norm(w))
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if th < 1e-12:
+        T[:3, :3] = np.eye(3) + K
+    else:
+        K = K / th
+        T[:3, :3] = np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+    T[:3, 3] = x[:3]
+    return T
+
+
+def _log_se3(T: np.ndarray) -> np.ndarray:
+    """4x4 -> [t, omega] (rotation vector), the inverse of :func:`_exp_se3` for small motions."""
+    R = T[:3, :3]
+    th = math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    w = v * (0.5 if th < 1e-9 else th / (2 * math.sin(th)))
+    return np.concatenate([T[:3, 3], w])
+
+
+def constrain_to_observable(
+    points: np.ndarray, cell: float, correction: np.ndarray, ratio: float
+) -> tuple[np.ndarray, int]:
+    """Keep only the part of an ICP ``correction`` (4x4, sensor frame) the geometry observes.
+
+    Point-to-plane information ``H = sum J^T J`` with ``J = [n, p x n]`` (normals of the frame's
+    own points) says which of the 6 motion directions the scene constrains. A floor-dominated
+    view constrains height, roll and pitch but not sliding or yaw; ICP "corrections" along such
+    directions are bias (points pulled back to where they were), so with a pose prior they are
+    dropped and the prior kept. Returns the filtered correction and the number of degenerate
+    directions.
+    """
+    if points.shape[0] < 10:
+        return correction, 0
+    idx, _ = grid_knn(points, 8, cell)
+    normals, _ = neighbourhood_normals(points, idx)
+    ok = (idx >= 0).sum(axis=1) >= 3
+    n, p = normals[ok], points[ok]
+    J = np.hstack([n, np.cross(p, n)])
+    H = J.T @ J
+    vals, vecs = np.linalg.eigh(H)
+    keep = vals >= ratio * max(int(ok.sum()), 1)
+    x = _log_se3(correction)
+    x_kept = vecs @ (keep * (vecs.T @ x))
+    return _exp_se3(x_kept), int((~keep).sum())
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
@@ -234,6 +291,11 @@ class Registrar:
         relocalising = self.state == "relocalising"
         scale = cfg.relocalise_scale if relocalising else 1.0
         pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
+        if with_prior and cfg.degeneracy_ratio > 0:
+            corr, _ = constrain_to_observable(
+                frame_down, 0.5 * cfg.voxel_size, np.linalg.inv(guess) @ pose, cfg.degeneracy_ratio
+            )
+            pose = guess @ corr
         fitness = self._fitness(transform(frame_down, pose))
 
         reason = ""

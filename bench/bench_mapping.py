@@ -1,0 +1,266 @@
+"""Mapping benchmark: the paper's Table I on simulated scenes, real-data agreement, speed.
+
+Figures (printed, and with ``--json FILE`` as ``{"rows": [...]}``):
+
+* Fidelity on the simulated paper room (``bags/paper_room`` or a fresh ``wheelgrid simulate``):
+  Table-I-style deviations (table gap, floor-to-barrier, row gap) measured on the map with
+  ``wheelgrid measure``'s plane fits, the share of map points within 5 cm of a true surface,
+  the trajectory error against the simulator's poses, and the map frame against the convention.
+* Real data (``../shared/data/stray-iphone-room``): the ICP map (no prior) and the ICP+ARKit
+  map against the map fused from ARKit's own poses (share of points within 5 cm).
+* Speed on this machine: frames/s on 256x192 depth frames (KISS-ICP vs the Open3D
+  point-to-plane baseline, same frames, same run), and preprocessing of ~7 M points against
+  Open3D's voxel + statistical-outlier pipeline; peak memory.
+
+Run: ``python bench/bench_mapping.py [--quick] [--json out.json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.fileio import read_tum
+from wheelgrid_mapping.cli_map import bag_frames, stray_frames
+from wheelgrid_mapping.cli_measure import measure
+from wheelgrid_mapping.pipeline import Mapper, MapperConfig
+from wheelgrid_mapping.preprocess import (
+    PreprocessConfig,
+    PreprocessStats,
+    cell_for_target,
+    filter_cloud,
+    voxel_downsample,
+)
+from wheelgrid_mapping.registration import RegistrationConfig, rotation_angle_deg, transform
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT / ".." / "shared"
+ROWS: list[dict[str, Any]] = []
+
+
+def row(figure: str, value: float, unit: str, baseline: float | None = None) -> None:
+    ratio = None if baseline in (None, 0) else value / baseline
+    ROWS.append(
+        {"figure": figure, "value": value, "unit": unit, "baseline": baseline, "ratio": ratio}
+    )
+    extra = "" if baseline is None else f"   (baseline {baseline:.4g}, ratio {ratio:.3g})"
+    print(f"{figure:58s} {value:10.4g} {unit}{extra}", flush=True)
+
+
+def run_mapper(frames: Any, total: int, reg: RegistrationConfig, cfg: MapperConfig) -> Mapper:
+    m = Mapper(PreprocessConfig(), reg, cfg)
+    for n, (pts, stamp, frame_id, conf, prior) in enumerate(frames):
+        if n >= total:
+            break
+        if pts.shape[0]:
+            m.add_frame(pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior)
+    return m
+
+
+def box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest box surface (inside points: to the nearest face)."""
+    d = np.full(points.shape[0], np.inf)
+    for a, b in zip(lo, hi, strict=True):
+        q = np.maximum(np.maximum(a - points, points - b), 0.0)
+        dd = np.linalg.norm(q, axis=1)
+        inside = (points >= a).all(axis=1) & (points <= b).all(axis=1)
+        dd[inside] = np.minimum((points[inside] - a).min(axis=1), (b - points[inside]).min(axis=1))
+        d = np.minimum(d, dd)
+    return d
+
+
+# Table I analogues in the paper scene (room frame boxes around each surface, true distance).
+TABLE_I: list[tuple[str, list[float], list[float], str, int | None]] = [
+    (
+        "9(a) table A to table B",
+        [1.07, 5.0, 0.3, 1.15, 5.8, 0.76],
+        [2.25, 5.0, 0.3, 2.33, 5.8, 0.76],
+        "table_gap",
+        None,
+    ),
+    (
+        "9(b) floor to barrier 2 centre",
+        [5.0, 3.4, -0.05, 8.0, 4.0, 0.05],
+        [5.5, 4.1, 1.45, 9.0, 4.3, 1.6],
+        "barrier2",
+        2,
+    ),
+    (
+        "9(c) row of tables to row",
+        [0.3, 3.30, 0.3, 3.4, 3.40, 0.76],
+        [0.3, 4.95, 0.3, 3.4, 5.05, 0.76],
+        "rows_gap",
+        None,
+    ),
+]
+
+
+def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str) -> Mapper:
+    scene = json.loads((sim / "scene.json").read_text())
+    truth = json.loads((sim / "truth.json").read_text())
+    map_from_room = np.asarray(truth["map_from_room"])
+    total, frames, _ = bag_frames(sim / "scan", None, prior)
+    total = min(total, frames_limit)
+    t0 = time.perf_counter()
+    m = run_mapper(frames, total, RegistrationConfig(method=method), MapperConfig())
+    wall = time.perf_counter() - t0
+    row(f"{label}: frames/s", total / wall, "frames/s")
+    c = m.registrar.counters
+    row(f"{label}: frames failed", c.failed, "frames")
+    stamps, poses = m.trajectory()
+    gt_stamps, gt = read_tum(sim / "poses_map.tum")
+    idx = np.clip(np.searchsorted(gt_stamps, stamps - 1e-4), 0, len(gt_stamps) - 1)
+    err = np.linalg.norm(poses[:, :3, 3] - gt[idx, :3, 3], axis=1)
+    row(f"{label}: trajectory error RMSE", float(np.sqrt(np.mean(err**2))), "m")
+    first = np.linalg.inv(gt[idx[0]]) @ poses[0]
+    row(f"{label}: map frame offset (first pose)", float(np.linalg.norm(first[:3, 3])), "m")
+    row(f"{label}: map frame rotation (first pose)", rotation_angle_deg(first), "deg")
+    pts_map = m.map_points()
+    room_from_map = np.linalg.inv(map_from_room)
+    pts_room = transform(pts_map, room_from_map)
+    lo = np.array([b["min"] for b in scene["boxes"]])
+    hi = np.array([b["max"] for b in scene["boxes"]])
+    row(f"{label}: map points within 5 cm of a true surface",
+        100.0 * float(np.mean(box_distance(pts_room, lo, hi) < 0.05)), "%")  # fmt: skip
+    bars = scene.get("barriers", {})
+    true = {
+        "table_gap": bars.get("table_gap"),
+        "rows_gap": bars.get("rows_gap"),
+        "barrier2": 0.5 * (bars["barrier2"]["bottom"] + bars["barrier2"]["top"])
+        if "barrier2" in bars
+        else None,
+    }
+    for name, a, b, key, axis in TABLE_I:
+        if true.get(key) is None:
+            continue
+        try:
+            meas = measure(pts_room, a, b, axis)
+        except ValueError as exc:
+            print(f"{label}: {name}: not measurable ({exc})")
+            continue
+        dev = 100.0 * abs(meas.distance - true[key]) / true[key]
+        row(f"{label}: Table I {name} ({true[key] * 100:.2f} cm)", meas.distance * 100, "cm")
+        row(f"{label}: Table I {name} deviation", dev, "%")
+    return m
+
+
+def real_data(limit: int, interval: float) -> None:
+    stray = SHARED / "data" / "stray-iphone-room"
+    if not stray.exists():
+        print("real data: ../shared/data/stray-iphone-room not present, skipped")
+        return
+    cfg = MapperConfig(min_frame_interval=interval)
+    # The ARKit-fused reference map: every used frame placed with ARKit's pose, same filters.
+    total, frames = stray_frames(stray, True)
+    total = min(total, limit)
+    ref_chunks, last = [], None
+    pre = PreprocessConfig()
+    from wheelgrid_mapping.preprocess import preprocess
+
+    T0 = None
+    for n, (pts, stamp, _, conf, pose) in enumerate(frames):
+        if n >= total:
+            break
+        if last is not None and stamp - last < interval:
+            continue
+        last = stamp
+        T0 = pose if T0 is None else T0
+        ref_chunks.append(transform(preprocess(pts, pre, conf), np.linalg.inv(T0) @ pose))
+    ref = voxel_downsample(np.vstack(ref_chunks), cfg.map_voxel)
+    import open3d as o3d
+
+    ref_pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref))
+    for label, prior in (("real ICP only", False), ("real ICP + ARKit prior", True)):
+        total, frames = stray_frames(stray, prior)
+        t0 = time.perf_counter()
+        m = run_mapper(frames, min(total, limit), RegistrationConfig(), cfg)
+        wall = time.perf_counter() - t0
+        pts = m.map_odom()  # odom = the first camera frame, like the reference
+        d = np.asarray(
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).compute_point_cloud_distance(
+                ref_pc
+            )
+        )
+        row(f"{label}: points within 5 cm of the ARKit map", 100.0 * float(np.mean(d < 0.05)), "%")
+        row(f"{label}: frames failed", m.registrar.counters.failed, "frames")
+        row(f"{label}: frames/s (every {interval:.2f} s)", m.frames_read / wall, "frames/s")
+
+
+def speed(limit: int, big: int) -> None:
+    stray = SHARED / "data" / "stray-iphone-room"
+    if not stray.exists():
+        print("speed: real frames not present, skipped")
+        return
+    res = {}
+    for method in ("kiss", "open3d"):
+        total, frames = stray_frames(stray, False)
+        t0 = time.perf_counter()
+        m = run_mapper(frames, min(total, limit), RegistrationConfig(method=method), MapperConfig())
+        res[method] = m.frames_read / (time.perf_counter() - t0)
+    row("every 256x192 frame: frames/s, KISS-ICP", res["kiss"], "frames/s", res["open3d"])
+    # ~7 M real points: ARKit-fused frames, then eq. 5 downsampling to 1.3 M + SOR + PFC.
+    total, frames = stray_frames(stray, True)
+    chunks, count = [], 0
+    T0 = None
+    for pts, _, _, _, pose in frames:
+        ok = np.isfinite(pts).all(axis=1)
+        T0 = pose if T0 is None else T0
+        chunks.append(transform(pts[ok].astype(np.float64), np.linalg.inv(T0) @ pose))
+        count += int(ok.sum())
+        if count >= big:
+            break
+    cloud = np.vstack(chunks)[:big]
+    target = round(big * 1.3 / 7.0)
+    t0 = time.perf_counter()
+    cell = cell_for_target(cloud, target)
+    down = voxel_downsample(cloud, cell)
+    st = PreprocessStats()
+    out = filter_cloud(down, PreprocessConfig(), cell, st)
+    ours = time.perf_counter() - t0
+    import open3d as o3d
+
+    t0 = time.perf_counter()
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+    pc = pc.voxel_down_sample(cell)
+    pc, _ = pc.remove_statistical_outlier(8, 2.5)
+    base = time.perf_counter() - t0
+    label = f"preprocess {cloud.shape[0] / 1e6:.1f} M -> {out.shape[0] / 1e6:.2f} M points"
+    row(label + " (eq.5 + SOR + PFC)", ours, "s", base)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="CI-size run (fewer frames/points)")
+    ap.add_argument("--json", type=Path, help="write the rows as JSON")
+    ap.add_argument("--sim", type=Path, default=ROOT / "bags" / "paper_room")
+    ap.add_argument("--fresh-seed", type=int, help="simulate a fresh scene with this seed too")
+    args = ap.parse_args(argv)
+    frames = 40 if args.quick else 10_000
+    fidelity(args.sim, frames, "sim paper room, ARKit-like prior", True, "kiss")
+    fidelity(args.sim, frames, "sim paper room, no prior", False, "kiss")
+    if not args.quick:
+        fidelity(args.sim, frames, "sim paper room, prior, Open3D baseline", True, "open3d")
+    if args.fresh_seed is not None:
+        from wheelgrid_sim import simulate
+
+        with tempfile.TemporaryDirectory() as tmp:
+            simulate(Path(tmp) / "s", seed=args.fresh_seed, frames=210, rate=5.0, stride=3)
+            fidelity(Path(tmp) / "s", frames, f"sim seed {args.fresh_seed}, prior", True, "kiss")
+    real_data(60 if args.quick else 10_000, 0.1)
+    speed(30 if args.quick else 120, 1_000_000 if args.quick else 7_000_000)
+    row("peak memory (RSS)", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "MiB")
+    if args.json:
+        args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
