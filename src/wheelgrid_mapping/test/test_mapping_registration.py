@@ -144,3 +144,28 @@ def test_open3d_baseline_tracks_too(world: np.ndarray) -> None:
         assert reg.register(view(world, T, rng), i * 0.2).accepted
     truth = np.linalg.inv(poses[0]) @ poses[-1]
     assert np.linalg.norm((np.linalg.inv(truth) @ reg.last_pose)[:3, 3]) < 0.05
+
+
+def test_unobservable_corrections_are_dropped_on_a_bare_floor() -> None:
+    from wheelgrid_mapping.preprocess import voxel_downsample
+    from wheelgrid_mapping.registration import _exp_se3, constrain_to_observable
+
+    rng = np.random.default_rng(17)
+    floor = np.column_stack([rng.random((20000, 2)) * 4 - 2, np.full(20000, -1.0)])
+    floor = voxel_downsample(floor, 0.05)
+    # A correction sliding 10 cm along x/y, 5 deg of yaw (unobservable) and 3 cm in z (observable).
+    corr = _exp_se3(np.array([0.10, 0.10, 0.03, 0.0, 0.0, np.radians(5)]))
+    kept, degenerate = constrain_to_observable(floor, 0.05, corr, 0.03)
+    assert degenerate == 3
+    assert np.allclose(kept[:3, 3], [0, 0, 0.03], atol=1e-3)
+    assert rotation_angle_deg(kept) < 0.1
+    # With walls in view every direction is observable and the correction is kept whole.
+    wall_x = np.column_stack(
+        [np.full(5000, 2.0), rng.random(5000) * 4 - 2, rng.random(5000) * 2 - 1]
+    )
+    wall_y = np.column_stack(
+        [rng.random(5000) * 4 - 2, np.full(5000, 2.0), rng.random(5000) * 2 - 1]
+    )
+    room = voxel_downsample(np.vstack([floor, wall_x, wall_y]), 0.05)
+    kept, degenerate = constrain_to_observable(room, 0.05, corr, 0.03)
+    assert degenerate == 0 and np.allclose(kept, corr, atol=1e-6)
