@@ -48,7 +48,7 @@ class RegistrationConfig:
         0.0, "if > 0, use this KISS-ICP kernel sigma instead of the adaptive one", "m"
     )
     prior_threshold: float = field(
-        0.03,
+        0.015,
         "kernel sigma when a pose prior seeds the frame (correspondences within 3 sigma); "
         "small because wide searches let floor-dominated frames slide",
         "m",
@@ -73,7 +73,7 @@ class RegistrationConfig:
     )
     max_prior_deviation_deg: float = field(3.0, "same, for rotation", "deg")
     degeneracy_ratio: float = field(
-        0.03,
+        0.1,
         "with a prior, ICP corrections along directions constrained by less than this share of "
         "the points (e.g. sliding along a floor) are dropped and the prior kept",
         "",
