@@ -166,7 +166,14 @@ class Mapper:
         self.poses_odom.append(res.pose)
         self._chunks.append(transform(pts, res.pose))
         self._dirty += pts.shape[0]
-        if self.T_map_odom is None and len(self.poses_odom) >= self.cfg.level_min_frames:
+        used = len(self.poses_odom)
+        # Look for the floor after level_min_frames, then every 5th frame until found (each
+        # attempt consolidates the map, which costs more as it grows).
+        if (
+            self.T_map_odom is None
+            and used >= self.cfg.level_min_frames
+            and (used - self.cfg.level_min_frames) % 5 == 0
+        ):
             self.try_level()
         return FrameOutcome(
             "used", pose_map=self.pose_in_map(res.pose), relocalised=res.relocalised

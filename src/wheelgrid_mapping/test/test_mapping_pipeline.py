@@ -1,0 +1,66 @@
+"""Mapper core: levelling gate (no floor -> no map), body-convention input, save and reset."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wheelgrid_mapping.pipeline import Mapper, MapperConfig, load_configs
+
+
+def body_frame_room(rng: np.random.Generator, with_floor: bool) -> np.ndarray:
+    """Body-convention sensor at 1 m height looking +x into a furnished corner."""
+    parts = [
+        np.column_stack([np.full(6000, 4.0), rng.random(6000) * 6 - 3, rng.random(6000) * 2.5 - 1]),
+        np.column_stack([rng.random(4000) * 4, np.full(4000, 3.0), rng.random(4000) * 2.5 - 1]),
+        np.column_stack(
+            [2 + rng.random(3000) * 0.5, -1 + rng.random(3000) * 0.5, -1 + rng.random(3000) * 0.8]
+        ),
+    ]
+    if with_floor:
+        parts.append(
+            np.column_stack([rng.random((15000, 2)) * [4, 6] - [0, 3], np.full(15000, -1.0)])
+        )
+    return np.vstack(parts) + rng.normal(0, 0.003, (sum(len(p) for p in parts), 3))
+
+
+def test_no_floor_no_map() -> None:
+    rng = np.random.default_rng(21)
+    m = Mapper()
+    for i in range(4):
+        m.add_frame(body_frame_room(rng, False), i * 0.2, "base_link")
+    with pytest.raises(RuntimeError, match="no plane"):
+        m.map_points()
+    assert m.report()["levelling"]["method"] == "none"
+
+
+def test_body_convention_levelled_saved_and_reset(tmp_path: Path) -> None:
+    rng = np.random.default_rng(22)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+    for i in range(3):
+        out = m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link")
+        assert out.status == "used"
+    assert m.convention == "body"
+    pts = m.map_points()
+    assert np.mean(np.abs(pts[:, 2]) < 0.03) > 0.3  # the floor is at z = 0
+    assert m.report()["levelling"]["sensor_height_m"] == pytest.approx(1.0, abs=0.03)
+    rep = m.save(tmp_path)
+    assert json.loads((tmp_path / "report.json").read_text())["frames"] == rep["frames"]
+    assert rep["frames"]["used"] == 3 and (tmp_path / "map.ply").stat().st_size > 1000
+    m.reset()
+    assert m.report()["frames"]["read"] == 0 and m.T_map_odom is None
+
+
+def test_config_yaml_sections(tmp_path: Path) -> None:
+    y = tmp_path / "c.yaml"
+    y.write_text(
+        "preprocess: {voxel_size: 0.05}\nregistration: {method: open3d}\nmapper: {map_voxel: 0.04}\n"
+    )
+    pre, reg, cfg = load_configs(y)
+    assert (pre.voxel_size, reg.method, cfg.map_voxel) == (0.05, "open3d", 0.04)
+    y.write_text("mapping: {}\n")
+    with pytest.raises(ValueError, match="unknown section"):
+        load_configs(y)
