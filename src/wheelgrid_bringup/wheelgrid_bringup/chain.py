@@ -38,6 +38,8 @@ class ChainState:
     grid: Grid | None = None
     grid_msg: Any = None
     grid_updates: int = 0
+    last_grid_t: float = 0.0
+    last_cloud_t: float = 0.0
     plan: list[tuple[float, float]] = field(default_factory=list)
     plan_updates: int = 0
     drive: dict[str, str] = field(default_factory=dict)
@@ -122,6 +124,7 @@ class Monitor:
         with self.state.lock:
             self.state.map_points = int(msg.width) * int(msg.height)
             self.state.map_cloud = msg
+            self.state.last_cloud_t = time.monotonic()
 
     def _on_grid(self, msg: Any) -> None:
         grid = from_occupancy_grid(msg)
@@ -129,6 +132,7 @@ class Monitor:
             self.state.grid = grid
             self.state.grid_msg = msg
             self.state.grid_updates += 1
+            self.state.last_grid_t = time.monotonic()
 
     def _on_plan(self, msg: Any) -> None:
         with self.state.lock:

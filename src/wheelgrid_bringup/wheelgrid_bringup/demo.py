@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bag", type=Path, help="simulator output folder (default bags/paper_room)")
     p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
     p.add_argument("--params", type=Path, help="parameter YAML (default bringup wheelgrid.yaml)")
-    p.add_argument("--rate", type=float, default=2.0, help="bag replay speed factor (default 2)")
+    p.add_argument("--rate", type=float, default=1.0, help="bag replay speed factor (default 1)")
     p.add_argument("--start", type=parse_cell, help="start cell R,C (default from truth.json)")
     p.add_argument("--goal", type=parse_cell, help="goal cell R,C (default from truth.json)")
     p.add_argument(
@@ -127,25 +127,45 @@ def main(argv: list[str] | None = None) -> int:
         if player.error:
             raise RuntimeError(f"replay failed: {player.error}")
 
+        last = {"snap": None, "since": time.monotonic()}
+
         def mapper_done() -> bool:
+            """All frames received and the mapper's counters unchanged for 4 s (worker idle)."""
             with monitor.state.lock:
                 m = dict(monitor.state.mapper)
+            snap = tuple(sorted(m.items()))
+            if snap != last["snap"]:
+                last["snap"], last["since"] = snap, time.monotonic()
             seen = int(m.get("frames_received", -1))
-            busy = m.get("queue", m.get("pending", "0"))
-            return seen >= n_frames and str(busy) in ("0", "0.0", "False", "false")
+            quiet = time.monotonic() - last["since"]
+            # best-effort delivery may lose a frame: then a longer quiet period also ends it
+            return (seen >= n_frames and quiet >= 4.0) or quiet >= 10.0
 
         chain.wait(mapper_done, 60.0, "mapping", status_every=3.0)
         map_seconds = time.monotonic() - t_map
-        updates = monitor.state.grid_updates
-        # the grid recomputes at a bounded rate: wait for one made after mapping finished
-        chain.wait(lambda: monitor.state.grid_updates > updates, 15.0, "grid", status_every=3.0)
+
+        def grid_settled() -> bool:
+            """A grid newer than the last map cloud, and nothing new for 3 s."""
+            s = monitor.state
+            with s.lock:
+                now = time.monotonic()
+                return (
+                    s.grid is not None
+                    and s.last_grid_t >= s.last_cloud_t
+                    and now - s.last_grid_t >= 3.0
+                )
+
+        chain.wait(grid_settled, 20.0, "grid", status_every=3.0)
         grid = monitor.state.grid
         if grid is None:
             raise RuntimeError("no safe grid was published")
         print(f"demo: {monitor.status_line()}", flush=True)
-        for cell, what in ((start, "start"), (goal, "goal")):
-            if not grid.inside(*cell) or int(grid.data[cell]) != 0:
-                raise RuntimeError(f"{what} cell {cell} is not free in the grid")
+        # the goal must be known free; the start may be unknown (the chair stands on it, and
+        # a camera on the chair never sees the floor under it) but never occupied
+        if not grid.inside(*goal) or int(grid.data[goal]) != 0:
+            raise RuntimeError(f"goal cell {goal} is not free in the grid")
+        if not grid.inside(*start) or int(grid.data[start]) == 100:
+            raise RuntimeError(f"start cell {start} is occupied or outside the grid")
         # place the chair: the motor controller simulator, then the drive node on its pty
         sx, sy = grid.cell_center(*start)
         yaw = heading_yaw(grid, args.heading)
@@ -262,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         summary["error"] = "interrupted"
         code = 130
     finally:
+        fill_partial(summary, monitor)
         if player is not None:
             player.stop()
         sup.stop_all()
@@ -271,6 +292,25 @@ def main(argv: list[str] | None = None) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     print_summary(summary, out, code)
     return code
+
+
+def fill_partial(summary: dict[str, Any], monitor: Monitor) -> None:
+    """On failure, keep whatever the chain had reached in the summary."""
+    st = monitor.state
+    with st.lock:
+        summary.setdefault("mapper", dict(st.mapper))
+        summary.setdefault("map_points_published", st.map_points)
+        summary.setdefault("commands", list(st.commands))
+        if "grid" not in summary and st.grid is not None:
+            d = st.grid.data
+            summary["grid"] = {
+                "rows": st.grid.rows,
+                "cols": st.grid.cols,
+                "cell_m": st.grid.resolution,
+                "free": int((d == 0).sum()),
+                "occupied": int((d == 100).sum()),
+                "unknown": int((d < 0).sum()),
+            }
 
 
 def write_commands_csv(path: Path, commands: list[dict[str, Any]]) -> None:
