@@ -169,3 +169,14 @@ def test_unobservable_corrections_are_dropped_on_a_bare_floor() -> None:
     room = voxel_downsample(np.vstack([floor, wall_x, wall_y]), 0.05)
     kept, degenerate = constrain_to_observable(room, 0.05, corr, 0.03)
     assert degenerate == 0 and np.allclose(kept, corr, atol=1e-6)
+
+
+def test_bare_floor_without_prior_is_refused_not_guessed() -> None:
+    rng = np.random.default_rng(18)
+    floor = np.column_stack([rng.random((30000, 2)) * [4, 4] + [0.5, -2], np.full(30000, -1.0)])
+    reg = Registrar(RegistrationConfig())
+    assert reg.register(floor, 0.0).accepted  # the first frame anchors the map
+    shifted = floor + np.array([0.05, 0.0, 0.0])
+    res = reg.register(shifted[rng.random(len(shifted)) < 0.8], 0.2)
+    assert not res.accepted and "degenerate" in res.reason
+    assert reg.counters.failure_reasons.get("degenerate geometry") == 1

@@ -10,6 +10,10 @@ frame that failed to register. Here a frame is integrated only after it passed e
   cell after alignment);
 * an implausible jump for a chair at <= 3 km/h (``max_speed``, ``max_turn_rate``; the default
   leaves margin for a hand-held capture) or a large disagreement with the pose prior.
+* degenerate geometry without a prior: point-to-plane information (normals of the frame's
+  points) leaves a motion direction unconstrained, e.g. a view of bare floor cannot fix sliding
+  or yaw, so the ICP pose would be a guess (``reject_degenerate_ratio``). With a prior the
+  unconstrained directions are taken from the prior instead (:func:`constrain_to_observable`).
 
 A failed frame is reported loudly, integration pauses (state ``relocalising``), and each later
 frame is aligned against the unchanged map from the last good pose (or the prior's guess) with
@@ -76,6 +80,12 @@ class RegistrationConfig:
         0.1,
         "with a prior, ICP corrections along directions constrained by less than this share of "
         "the points (e.g. sliding along a floor) are dropped and the prior kept",
+        "",
+    )
+    reject_degenerate_ratio: float = field(
+        0.02,
+        "without a prior, a frame whose geometry constrains some motion direction with less "
+        "than this share of its points is a failure: its pose would be a guess (0 = off)",
         "",
     )
     relocalise_scale: float = field(
@@ -291,17 +301,22 @@ class Registrar:
         relocalising = self.state == "relocalising"
         scale = cfg.relocalise_scale if relocalising else 1.0
         pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
-        if with_prior and cfg.degeneracy_ratio > 0:
-            corr, _ = constrain_to_observable(
-                frame_down, 0.5 * cfg.voxel_size, np.linalg.inv(guess) @ pose, cfg.degeneracy_ratio
+        degenerate = 0
+        ratio = cfg.degeneracy_ratio if with_prior else cfg.reject_degenerate_ratio
+        if ratio > 0:
+            corr, degenerate = constrain_to_observable(
+                frame_down, 0.5 * cfg.voxel_size, np.linalg.inv(guess) @ pose, ratio
             )
-            pose = guess @ corr
+            if with_prior:
+                pose = guess @ corr
         fitness = self._fitness(transform(frame_down, pose))
 
         reason = ""
         dt = max(float(stamp - self.last_stamp), cfg.min_dt)
         step = np.linalg.inv(self.last_pose) @ pose
-        if fitness < cfg.min_fitness:
+        if degenerate and not with_prior:
+            reason = f"degenerate geometry ({degenerate} unconstrained motion directions, no prior)"
+        elif fitness < cfg.min_fitness:
             reason = f"low overlap (fitness {fitness:.2f} < {cfg.min_fitness:.2f})"
         elif np.linalg.norm(step[:3, 3]) > cfg.max_speed * dt + cfg.voxel_size:
             reason = f"implausible jump ({np.linalg.norm(step[:3, 3]):.2f} m in {dt:.2f} s)"
