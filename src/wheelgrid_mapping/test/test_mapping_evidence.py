@@ -1,0 +1,46 @@
+"""Frame evidence keeps what is seen again and again (walls, a 5 cm bar) and drops what lands
+somewhere new in every frame (wild returns, flying pixels)."""
+
+import numpy as np
+import pytest
+
+from wheelgrid_mapping.evidence import EvidenceMap, voxel_keys
+
+
+def _bar(rng, n=200):
+    """A 5 cm thick horizontal bar at 0.77 m, 2 m long."""
+    x = rng.uniform(0, 2, n)
+    y = 1.0 + rng.uniform(-0.025, 0.025, n)
+    z = 0.77 + rng.uniform(-0.025, 0.025, n)
+    return np.c_[x, y, z]
+
+
+def test_repeated_surfaces_stay_and_one_frame_noise_goes():
+    rng = np.random.default_rng(0)
+    m = EvidenceMap(voxel=0.02, evidence_voxel=0.1, min_frames=3)
+    wild = []
+    for _ in range(6):
+        wall = np.c_[rng.uniform(0, 3, 500), np.full(500, 2.0), rng.uniform(0, 2, 500)]
+        noise = rng.uniform([0, 0, 0], [3, 2, 2], (20, 3))
+        wild.append(noise)
+        m.add(np.vstack([wall + rng.normal(0, 0.003, wall.shape), _bar(rng, 60), noise]))
+    kept = m.points()
+    assert m.frames == 6
+    near_wall = np.abs(kept[:, 1] - 2.0) < 0.1  # within its evidence voxels
+    near_bar = (np.abs(kept[:, 1] - 1.0) < 0.1) & (np.abs(kept[:, 2] - 0.77) < 0.1)
+    assert near_bar.sum() >= 30  # the thin bar survives
+    assert near_wall.sum() >= 400
+    stray = kept[~near_wall & ~near_bar]
+    assert stray.shape[0] <= 2  # 120 wild points in, (almost) none out
+    assert m.all_points().shape[0] > kept.shape[0]
+
+
+def test_min_frames_one_keeps_every_voxel_and_bad_input_is_refused():
+    m = EvidenceMap(0.05, 0.1, 1)
+    m.add(np.array([[0.0, 0.0, 0.0], [np.nan, 1.0, 1.0], [1.0, 1.0, 1.0]]))
+    m.add(np.empty((0, 3)))
+    assert m.points().shape == (2, 3)
+    with pytest.raises(ValueError):
+        EvidenceMap(0.0, 0.1, 1)
+    with pytest.raises(ValueError, match="too far"):
+        voxel_keys(np.array([[1e9, 0.0, 0.0]]), 0.01)

@@ -1,0 +1,157 @@
+"""A voxel map that remembers how many frames saw each place.
+
+Per-frame filters (eqs 1-4, PFC) cannot tell a flying pixel or a wild depth from a real surface
+when it has neighbours in its own frame. Across frames they can: a real surface -- a wall, a
+table leg, a 5 cm bar -- is seen again and again as the chair moves, while a flying pixel at a
+depth edge or a ~1 % wild return lands somewhere new in every frame. So the map keeps, for
+every coarse *evidence voxel*, the number of distinct frames that put a point in it, and only
+voxels seen by ``min_frames`` frames reach the map. This is the hit-count half of an occupancy
+map (OctoMap's). With the sensor origin given, :meth:`EvidenceMap.add` also casts each ray
+(a bounded random subset of them) and counts a *miss* in every evidence voxel the ray crossed
+before its hit: a place some frames saw through is free, whatever a few others returned there.
+A voxel reaches the map when ``hits >= min_frames`` and ``hits >= hit_fraction * (hits +
+misses)``, counting each frame at most once per voxel. A thin bar keeps a high hit share (rays
+that miss it still pass its voxel, but so do the rays that hit it); a flying pixel gets one hit
+and many misses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
+    """Pack the integer voxel coordinates of ``points`` into one int64 per point."""
+    ijk = np.floor(np.asarray(points, dtype=np.float64) / size).astype(np.int64) + _OFFSET
+    if ijk.size and (ijk.min() < 0 or ijk.max() > _MASK):
+        raise ValueError(f"points too far from the origin for {size} m voxels")
+    return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+
+
+class EvidenceMap:
+    """Centroid voxel map (``voxel``) filtered by frame evidence (``evidence_voxel``)."""
+
+    def __init__(
+        self,
+        voxel: float,
+        evidence_voxel: float,
+        min_frames: int,
+        hit_fraction: float = 0.0,
+        max_rays: int = 4000,
+        seed: int = 0,
+    ) -> None:
+        if voxel <= 0 or evidence_voxel <= 0 or min_frames < 1:
+            raise ValueError("voxel sizes must be > 0 and min_frames >= 1")
+        if not 0.0 <= hit_fraction <= 1.0:
+            raise ValueError("hit_fraction must be in [0, 1]")
+        self.voxel = voxel
+        self.evidence_voxel = evidence_voxel
+        self.min_frames = min_frames
+        self.hit_fraction = hit_fraction
+        self.max_rays = max_rays
+        self._rng = np.random.default_rng(seed)
+        self._miss_keys = np.empty(0, np.int64)
+        self._miss_frames = np.empty(0, np.int64)
+        self._pending_miss: list[np.ndarray] = []
+        self.frames = 0
+        self._keys = np.empty(0, np.int64)  # map voxels, sorted
+        self._sums = np.empty((0, 3))
+        self._counts = np.empty(0, np.int64)
+        self._ev_keys = np.empty(0, np.int64)  # evidence voxels, sorted
+        self._ev_frames = np.empty(0, np.int64)
+        self._pending: list[np.ndarray] = []
+        self._pending_ev: list[np.ndarray] = []
+
+    def add(self, points: np.ndarray, origin: np.ndarray | None = None) -> None:
+        """Add one frame's points (already in the map's frame), seen from ``origin``."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        self.frames += 1
+        if pts.shape[0] == 0:
+            return
+        self._pending.append(pts)
+        # one vote per frame and evidence voxel, however many points the frame put there
+        hits = np.unique(voxel_keys(pts, self.evidence_voxel))
+        self._pending_ev.append(hits)
+        if origin is not None and self.hit_fraction > 0:
+            misses = self._ray_misses(pts, np.asarray(origin, dtype=np.float64).reshape(3))
+            self._pending_miss.append(np.setdiff1d(misses, hits, assume_unique=True))
+
+    def _ray_misses(self, pts: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        """Evidence voxels crossed by the rays before their last two voxels (unique keys)."""
+        if pts.shape[0] > self.max_rays:
+            pts = pts[self._rng.choice(pts.shape[0], self.max_rays, replace=False)]
+        d = pts - origin
+        length = np.linalg.norm(d, axis=1)
+        step = 0.5 * self.evidence_voxel
+        # stop two evidence voxels short of the hit: range noise must not carve the surface
+        reach = length - 2.0 * self.evidence_voxel
+        n_steps = int(np.ceil(max(float(reach.max(initial=0.0)), 0.0) / step))
+        if n_steps == 0:
+            return np.empty(0, np.int64)
+        t = np.arange(1, n_steps + 1) * step
+        unit = d / np.maximum(length, 1e-9)[:, None]
+        ok = t[None, :] < reach[:, None]
+        samples = origin + unit[:, None, :] * t[None, :, None]
+        return np.unique(voxel_keys(samples[ok], self.evidence_voxel))
+
+    def _consolidate(self) -> None:
+        if not self._pending:
+            return
+        pts = np.vstack(self._pending)
+        keys = np.concatenate([self._keys, voxel_keys(pts, self.voxel)])
+        sums = np.vstack([self._sums, pts])
+        counts = np.concatenate([self._counts, np.ones(pts.shape[0], np.int64)])
+        order = np.argsort(keys, kind="stable")
+        keys, sums, counts = keys[order], sums[order], counts[order]
+        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        self._keys = keys[starts]
+        self._sums = np.add.reduceat(sums, starts, axis=0)
+        self._counts = np.add.reduceat(counts, starts)
+        ev = np.concatenate([self._ev_keys, *self._pending_ev])
+        ev_frames = np.concatenate(
+            [self._ev_frames, np.ones(ev.shape[0] - self._ev_keys.shape[0], np.int64)]
+        )
+        order = np.argsort(ev, kind="stable")
+        ev, ev_frames = ev[order], ev_frames[order]
+        starts = np.flatnonzero(np.r_[True, ev[1:] != ev[:-1]])
+        self._ev_keys = ev[starts]
+        self._ev_frames = np.add.reduceat(ev_frames, starts)
+        self._pending, self._pending_ev = [], []
+        if self._pending_miss:
+            mk = np.concatenate([self._miss_keys, *self._pending_miss])
+            mf = np.concatenate(
+                [self._miss_frames, np.ones(mk.shape[0] - self._miss_keys.shape[0], np.int64)]
+            )
+            order = np.argsort(mk, kind="stable")
+            mk, mf = mk[order], mf[order]
+            starts = np.flatnonzero(np.r_[True, mk[1:] != mk[:-1]])
+            self._miss_keys = mk[starts]
+            self._miss_frames = np.add.reduceat(mf, starts)
+            self._pending_miss = []
+
+    def points(self, min_frames: int | None = None) -> np.ndarray:
+        """Centroids of the map voxels whose evidence voxel was seen by enough frames."""
+        self._consolidate()
+        if self._keys.size == 0:
+            return np.empty((0, 3))
+        need = self.min_frames if min_frames is None else min_frames
+        centroids = self._sums / self._counts[:, None]
+        ev_of = voxel_keys(centroids, self.evidence_voxel)
+        pos = np.searchsorted(self._ev_keys, ev_of)
+        pos = np.clip(pos, 0, self._ev_keys.size - 1)
+        seen = np.where(self._ev_keys[pos] == ev_of, self._ev_frames[pos], 0)
+        keep = seen >= need
+        if self.hit_fraction > 0 and self._miss_keys.size and min_frames != 0:
+            mpos = np.clip(np.searchsorted(self._miss_keys, ev_of), 0, self._miss_keys.size - 1)
+            missed = np.where(self._miss_keys[mpos] == ev_of, self._miss_frames[mpos], 0)
+            keep &= seen >= self.hit_fraction * (seen + missed)
+        return centroids[keep]
+
+    def all_points(self) -> np.ndarray:
+        """Every map voxel's centroid, evidence ignored (for diagnostics)."""
+        return self.points(min_frames=0)
