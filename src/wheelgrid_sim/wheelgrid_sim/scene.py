@@ -274,30 +274,32 @@ def paper_scene() -> Scene:
     ty0, ty1 = 5.0, 5.8
     boxes += table_boxes("table_A", 0.1, ty0, 1.1, ty1)
     boxes += table_boxes("table_B", 1.1 + PAPER_TABLE_GAP, ty0, 3.5, ty1)
-    # Barrier 1: a bar whose top is at 0.77 m on two posts, x 3.5 .. 5.9, y ~ 5.4.
+    # Barrier 1: a bar whose top is at 0.77 m on two posts, x 3.5 .. 5.55, y ~ 5.4. Every
+    # obstacle edge stays >= 0.2 m from a cell boundary it must not cross: a map that is good
+    # to a few cm must not make the route cells (3,5), (4,3) or row 6 look occupied.
     b1y0, b1y1 = 5.375, 5.425
     boxes.append(
         _box(
-            "barrier1_bar", "bar", 3.5, b1y0, BARRIER1_TOP - BAR_THICKNESS, 5.9, b1y1, BARRIER1_TOP
+            "barrier1_bar", "bar", 3.5, b1y0, BARRIER1_TOP - BAR_THICKNESS, 5.55, b1y1, BARRIER1_TOP
         )
     )
     boxes.append(
         _box("barrier1_post_w", "post", 3.5, b1y0, 0.0, 3.55, b1y1, BARRIER1_TOP - BAR_THICKNESS)
     )
     boxes.append(
-        _box("barrier1_post_e", "post", 5.85, b1y0, 0.0, 5.9, b1y1, BARRIER1_TOP - BAR_THICKNESS)
+        _box("barrier1_post_e", "post", 5.5, b1y0, 0.0, 5.55, b1y1, BARRIER1_TOP - BAR_THICKNESS)
     )
     # Row 5 (y in [2.4, 3.6]): four tables side by side, x 0.1 .. 4.7, 165.72 cm from row 3.
     r5y1 = ty0 - PAPER_ROWS_GAP  # 3.3428
-    r5y0 = 2.54
+    r5y0 = 2.64
     edges = np.linspace(0.1, 4.7, 5)
     for i in range(4):
         boxes += table_boxes(f"table_row5_{i}", float(edges[i]), r5y0, float(edges[i + 1]), r5y1)
-    # Barrier 2: underside at 1.5116 m, y ~ 4.2, post at x 4.85 (cell (4,4)), anchored east.
+    # Barrier 2: underside at 1.5116 m, y ~ 4.2, post at x 5.1 (cell (4,4)), anchored east.
     b2y0, b2y1 = 4.175, 4.225
     b2z0, b2z1 = BARRIER2_CLEARANCE, BARRIER2_CLEARANCE + BAR_THICKNESS
-    boxes.append(_box("barrier2_bar", "bar", 4.85, b2y0, b2z0, PAPER_ROOM, b2y1, b2z1))
-    boxes.append(_box("barrier2_post", "post", 4.85, b2y0, 0.0, 4.9, b2y1, b2z0))
+    boxes.append(_box("barrier2_bar", "bar", 5.1, b2y0, b2z0, PAPER_ROOM, b2y1, b2z1))
+    boxes.append(_box("barrier2_post", "post", 5.1, b2y0, 0.0, 5.15, b2y1, b2z0))
     # A floor-to-ceiling pillar in cell (0,6), away from the route.
     boxes.append(_box("pillar", "pillar", 7.6, 8.8, 0.0, 8.0, 9.2, CEILING))
     return Scene(
