@@ -142,17 +142,21 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
     extent = pts.max(axis=0) - pts.min(axis=0)
     cell = subdivision_cell(pts.shape[0], extent, pts.shape[0] / target)
     origin = pts.min(axis=0)
+
+    def count_full(c: float) -> int:
+        return int(np.unique(_cell_keys(pts, c, origin)).shape[0])
+
     prev: tuple[float, int] | None = None
     for _ in range(iterations):
-        count = int(np.unique(_cell_keys(pts, cell, origin)).shape[0])
-        if abs(count - target) <= 0.02 * target:
+        n = count_full(cell)
+        if abs(n - target) <= 0.02 * target:
             break
         slope = 2.0
-        if prev is not None and prev[1] != count and prev[0] != cell:
-            slope = -math.log(count / prev[1]) / math.log(cell / prev[0])
+        if prev is not None and prev[1] != n and prev[0] != cell:
+            slope = -math.log(n / prev[1]) / math.log(cell / prev[0])
             slope = min(max(slope, 0.5), 3.0)
-        prev = (cell, count)
-        cell *= (count / target) ** (1.0 / slope)
+        prev = (cell, n)
+        cell *= (n / target) ** (1.0 / slope)
     return cell
 
 
@@ -180,14 +184,35 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     lin = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     order = np.argsort(lin, kind="stable")
     lin_sorted = lin[order]
-    ucells, starts, counts = np.unique(lin_sorted, return_index=True, return_counts=True)
+    # Runs of equal keys in the sorted order = occupied cells (cheaper than np.unique).
+    starts = np.flatnonzero(np.r_[True, lin_sorted[1:] != lin_sorted[:-1]])
+    ucells = lin_sorted[starts]
+    counts = np.diff(np.r_[starts, n])
     cap = int(min(4, counts.max()))
-    table = np.full((ucells.shape[0], cap), -1, dtype=np.int64)
+    # Row U is a sentinel (-1) so that "empty cell" (-1) indexes it directly.
+    table = np.full((ucells.shape[0] + 1, cap), -1, dtype=np.int64)
     for r in range(cap):
-        has = counts > r
+        has = np.flatnonzero(counts > r)
         table[has, r] = order[starts[has] + r]
-    cell_of_point = np.searchsorted(ucells, lin)
-    pts32 = (pts - origin).astype(np.float32)  # half the memory traffic; cm-exact here
+    cell_of_point = np.empty(n, dtype=np.int64)
+    cell_of_point[order] = np.repeat(np.arange(ucells.shape[0]), counts)
+    # Occupied-cell lookup: a dense table when the lattice is small enough (one gather per
+    # query), else a binary search in the sorted cell list.
+    n_cells = int(dims.prod())
+    dense: np.ndarray | None = None
+    if n_cells <= 64_000_000:
+        dense = np.full(n_cells, -1, dtype=np.int32)
+        dense[ucells] = np.arange(ucells.shape[0], dtype=np.int32)
+
+    def lookup(keys: np.ndarray) -> np.ndarray:
+        if dense is not None:
+            inside = (keys >= 0) & (keys < n_cells)
+            return np.where(inside, dense[np.clip(keys, 0, n_cells - 1)], -1)
+        pos = np.minimum(np.searchsorted(ucells, keys), ucells.shape[0] - 1)
+        return np.where(ucells[pos] == keys, pos, -1)
+
+    # float32 halves the memory traffic (cm-exact here); the sentinel last row is far away.
+    pts32 = np.vstack([(pts - origin), np.full((1, 3), 1e9)]).astype(np.float32)
 
     def search(sel: np.ndarray, reach: int) -> None:
         offs = np.array(
@@ -200,20 +225,23 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
             dtype=np.int64,
         )
         # Look neighbours up once per occupied cell, not per point.
-        my_cells = np.unique(cell_of_point[sel])
+        my_cells = (
+            np.arange(ucells.shape[0]) if sel.shape[0] == n else np.unique(cell_of_point[sel])
+        )
         neigh = ucells[my_cells][:, None] + offs[None, :]
-        pos = np.searchsorted(ucells, neigh)
-        pos = np.minimum(pos, ucells.shape[0] - 1)
-        found = ucells[pos] == neigh
-        cand_cells = np.where(found, pos, -1)  # (C, len(offs))
-        local = np.searchsorted(my_cells, cell_of_point[sel])
+        cand_cells = lookup(neigh)  # (C, len(offs)), -1 = empty
+        local = (
+            cell_of_point[sel]
+            if sel.shape[0] == n
+            else np.searchsorted(my_cells, cell_of_point[sel])
+        )
         chunk = max(1, 2_000_000 // (len(offs) * cap))
         for s in range(0, sel.shape[0], chunk):
             q = sel[s : s + chunk]
             cc = cand_cells[local[s : s + chunk]]
-            cand = np.where(cc[:, :, None] >= 0, table[np.maximum(cc, 0)], -1).reshape(len(q), -1)
-            cand = np.where(cand == q[:, None], -1, cand)
-            diff = pts32[np.maximum(cand, 0)] - pts32[q][:, None, :]
+            cand = table[cc].reshape(len(q), -1)  # cc = -1 -> sentinel row -> -1
+            cand[cand == q[:, None]] = -1
+            diff = pts32[cand] - pts32[q][:, None, :]  # cand = -1 -> sentinel point, far away
             d = np.einsum("nci,nci->nc", diff, diff)
             d[cand < 0] = np.inf
             kk = min(k, d.shape[1])
