@@ -115,7 +115,7 @@ class GridConfig:
         "it, whatever its density (off = the paper's eq 10 alone)",
     )
     guard_min_points: int = field(
-        6,
+        12,
         "guard: points within a black pixel's 3x3 neighbourhood (15 cm square at 5 cm pixels) "
         "that make it part of a continuous obstacle -- a bar, a table rim, or a pole whose points "
         "stack up over its height; scattered noise (one or two points) stays below it and only "
@@ -154,7 +154,7 @@ class GridConfig:
         "m",
     )
     boundary_margin: float = field(
-        0.10,
+        0.15,
         "obstacle pixels within this distance of the grid's outer edge (plus any strip where the "
         "grid reaches past the observed floor) are the walls (the boundary), not content of the "
         "border cells",
@@ -416,8 +416,32 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     return yaw
 
 
+def wall_near(coord: np.ndarray, end: float, reach: float = 0.3, bin_size: float = 0.02) -> float:
+    """Position of the wall closest to ``end`` along one grid axis, or NaN if none stands out.
+
+    ``coord`` holds that axis' coordinate of the points above the floor (all heights: upper
+    walls carry no furniture). A wall is a sharp peak of their histogram; the floor's own
+    extent stops short of it (the floor at a wall's foot is often unseen), so the walls place
+    the cells more exactly than the floor does.
+    """
+    sel = coord[(coord > end - reach) & (coord < end + reach)]
+    if sel.size < 50:
+        return math.nan
+    edges = np.arange(end - reach, end + reach + bin_size, bin_size)
+    hist, _ = np.histogram(sel, bins=edges)
+    i = int(np.argmax(hist))
+    if hist[i] < max(25, 4.0 * float(np.median(hist)) + 1.0):
+        return math.nan
+    near = sel[np.abs(sel - (edges[i] + bin_size / 2)) <= 1.5 * bin_size]
+    return float(np.median(near))
+
+
 def floor_extent(
-    u: np.ndarray, v: np.ndarray, cfg: GridConfig
+    u: np.ndarray,
+    v: np.ndarray,
+    cfg: GridConfig,
+    walls_u: np.ndarray | None = None,
+    walls_v: np.ndarray | None = None,
 ) -> tuple[float, float, int, int, float, float]:
     """Grid lower-left corner (u0, v0), size (rows, cols) and the floor's spans (m) along u, v.
 
@@ -431,7 +455,12 @@ def floor_extent(
     umin, umax = (float(a) for a in np.quantile(u, qs))
     vmin, vmax = (float(a) for a in np.quantile(v, qs))
     out = []
-    for lo, hi in ((umin, umax), (vmin, vmax)):
+    for lo, hi, walls in ((umin, umax, walls_u), (vmin, vmax, walls_v)):
+        if walls is not None and walls.size:
+            # walls a little beyond the floor's ends (never inside by more than 10 cm) win
+            wl, wh = wall_near(walls, lo), wall_near(walls, hi)
+            if wl <= lo + 0.1 and wh >= hi - 0.1:
+                lo, hi = wl, wh
         count = max(1, math.floor((hi - lo + cfg.extent_tolerance) / cfg.cell_size + 1e-9))
         out.append(((lo + hi) / 2.0 - count * cfg.cell_size / 2.0, count))
     (u0, cols), (v0, rows) = out
@@ -516,6 +545,10 @@ def build_grid(
     if cfg.alignment == "walls":
         found = wall_yaw(pts, cfg)  # all heights: walls above the band help here
         yaw = 0.0 if found is None else found
+    # Points above the floor, for placing the cells between the walls (a regular subsample).
+    above = np.flatnonzero(cls % 2 == 1)  # classes 1 (band) and 3 (above the band)
+    above = above[:: max(1, math.ceil(above.size / _EXTENT_MAX_POINTS))]
+    wu, wv = _rotate(project(pts.take(above, axis=0)), yaw)
     if class_counts[3]:
         # Points above the safe height play no further part (often 30-45 % of a room's map:
         # ceiling and upper walls); dropping them once saves more than it costs.
@@ -526,7 +559,7 @@ def build_grid(
     step = max(1, math.ceil(int(class_counts[0]) / _EXTENT_MAX_POINTS))
     floor_pts = cls[::step] == 0
     u0, v0, rows, cols, span_u, span_v = floor_extent(
-        u[::step][floor_pts], v[::step][floor_pts], cfg
+        u[::step][floor_pts], v[::step][floor_pts], cfg, wu, wv
     )
     h, w = rows * k, cols * k
     if max(rows, cols) * cfg.cell_size > _MAX_EXTENT:
