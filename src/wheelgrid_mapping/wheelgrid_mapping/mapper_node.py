@@ -16,6 +16,7 @@ given): a map in an unknown frame would place obstacles wrongly.
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -133,7 +134,7 @@ class MapperNode(Node):  # type: ignore[misc]
     def _prior_for(self, stamp: float) -> np.ndarray | None:
         if not self._priors:
             return None
-        best = min(self._priors, key=lambda sp: abs(sp[0] - stamp))
+        best = min(list(self._priors), key=lambda sp: abs(sp[0] - stamp))
         return best[1] if abs(best[0] - stamp) <= 0.1 else None
 
     # -- worker ------------------------------------------------------------------------------
@@ -149,9 +150,19 @@ class MapperNode(Node):  # type: ignore[misc]
             pts, stamp, frame_id, conf = frame
             if frame_id:
                 self._sensor_frame = frame_id
+            prior = self._prior_for(stamp)
+            if self.prior_topic and prior is None:
+                # The pose may arrive just after its cloud: wait a moment rather than register
+                # without it (a frame without its prior is judged by the stricter rules).
+                deadline = time.monotonic() + 0.25
+                while prior is None and time.monotonic() < deadline and not self._stop:
+                    time.sleep(0.01)
+                    prior = self._prior_for(stamp)
+                if prior is None:
+                    self._log_once("noprior", f"no pose on {self.prior_topic} near a frame")
             try:
                 with self._lock:
-                    out = self.mapper.add_frame(pts, stamp, frame_id, conf, self._prior_for(stamp))
+                    out = self.mapper.add_frame(pts, stamp, frame_id, conf, prior)
             except Exception as exc:  # a bad frame must never kill the mapper
                 self.get_logger().error(f"frame at {stamp:.3f} s failed: {exc!r}")
                 continue
