@@ -105,6 +105,12 @@ def bag_frames(
         if prior:
             odom = reader.pick_topic(None, ODOMETRY)
             prior_stamps, prior_poses = _odometry_poses(reader, odom)
+        elif any(t.msgtype == ODOMETRY for t in reader.topics()):
+            print(
+                "wheelgrid map: hint: the bag has a nav_msgs/Odometry topic; --prior arkit uses "
+                "it as the pose prior (geometry-only registration drifts on floor-dominated views)",
+                file=sys.stderr,
+            )
     except BagError as exc:
         # BagReader.__exit__ raises when open() itself failed (common bug): ignore that.
         with contextlib.suppress(Exception):
