@@ -121,8 +121,19 @@ def voxel_downsample(points: np.ndarray, cell: float) -> np.ndarray:
     span = (pts.max(axis=0) - origin) / cell
     if (span >= (1 << 21) - 1).any():
         raise ValueError(f"cloud too large for cell {cell} m (span {span.max():.0f} cells)")
-    keys = _cell_keys(pts, cell, origin)
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    ijk = np.floor((pts - origin) / cell).astype(np.int64)
+    dims = ijk.max(axis=0) + 1
+    if int(dims.prod()) <= 256_000_000:
+        # Dense lattice: cell index by a bitmap + cumulative sum instead of a sort.
+        lin = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        occ = np.zeros(int(dims.prod()), dtype=bool)
+        occ[lin] = True
+        rank = np.cumsum(occ, dtype=np.int64) - 1
+        inverse = rank[lin]
+        counts = np.bincount(inverse)
+    else:
+        keys = _cell_keys(pts, cell, origin)
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
     out = np.zeros((counts.shape[0], 3))
     for axis in range(3):
         out[:, axis] = np.bincount(inverse, weights=pts[:, axis], minlength=counts.shape[0])
@@ -144,6 +155,13 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
     origin = pts.min(axis=0)
 
     def count_full(c: float) -> int:
+        # Occupied-cell count without sorting when the lattice fits a bitmap (O(N)).
+        ijk = np.floor((pts - origin) / c).astype(np.int64)
+        dims = ijk.max(axis=0) + 1
+        if int(dims.prod()) <= 256_000_000:
+            occ = np.zeros(int(dims.prod()), dtype=bool)
+            occ[(ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]] = True
+            return int(np.count_nonzero(occ))
         return int(np.unique(_cell_keys(pts, c, origin)).shape[0])
 
     prev: tuple[float, int] | None = None
