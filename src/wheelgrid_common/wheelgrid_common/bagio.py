@@ -53,8 +53,9 @@ class BagReader:
 
         _check_path(self.path)
         try:
-            self._reader = AnyReader([self.path], default_typestore=typestore())
-            self._reader.open()
+            reader = AnyReader([self.path], default_typestore=typestore())
+            reader.open()
+            self._reader = reader  # only an opened reader is ever closed in __exit__
         except Exception as exc:  # rosbags raises several unrelated types for corrupt bags
             raise BagError(f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})") from exc
         return self

@@ -44,3 +44,21 @@ def test_min_frames_one_keeps_every_voxel_and_bad_input_is_refused():
         EvidenceMap(0.0, 0.1, 1)
     with pytest.raises(ValueError, match="too far"):
         voxel_keys(np.array([[1e9, 0.0, 0.0]]), 0.01)
+
+
+def test_floor_correction_levels_a_slightly_tilted_floor_and_keeps_the_origin():
+    from wheelgrid_mapping.pipeline import floor_correction
+
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1, 9, (20000, 2))
+    tilt = np.radians(0.4)
+    floor = np.c_[xy, np.tan(tilt) * xy[:, 0] + 0.01 + rng.normal(0, 0.005, len(xy))]
+    table = np.c_[rng.uniform(2, 3, (3000, 2)), np.full(3000, 0.75)]
+    corr = floor_correction(np.vstack([floor, table]))
+    assert corr is not None
+    fixed = floor @ corr[:3, :3].T + corr[:3, 3]
+    assert abs(np.median(fixed[:, 2])) < 0.002
+    assert np.percentile(np.abs(fixed[:, 2]), 99) < 0.02  # the far end is no longer 6 cm high
+    assert np.linalg.norm(corr[:2, 3]) < 1e-9  # no sideways shift of the origin
+    steep = np.c_[xy, np.tan(np.radians(10)) * xy[:, 0]]
+    assert floor_correction(steep) is None  # not a small refinement: leave it alone

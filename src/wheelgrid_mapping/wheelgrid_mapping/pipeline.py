@@ -21,6 +21,7 @@ import numpy as np
 from wheelgrid_common.fileio import write_ply, write_tum
 from wheelgrid_common.params import field, from_mapping
 
+from .evidence import EvidenceMap
 from .levelling import (
     DOWN_HINT,
     FloorNotFoundError,
@@ -51,6 +52,61 @@ class MapperConfig:
     min_frame_interval: float = field(
         0.0, "frames closer in time than this to the last processed one are skipped", "s"
     )
+    evidence_voxel: float = field(
+        0.1, "voxel in which frame evidence (hits, ray misses) is counted", "m"
+    )
+    evidence_min_frames: int = field(
+        2, "a place reaches the map only when this many frames put points there", "frames"
+    )
+    evidence_hit_fraction: float = field(
+        0.5,
+        "and only when at least this share of the frames that looked at it saw something there "
+        "(rays of the others passed through: flying pixels, wild returns); 0 = no ray casting",
+        "",
+    )
+    relevel: bool = field(
+        True,
+        "refine the floor plane from the whole map as it grows (the first floor fit sees only a "
+        "few frames; 0.3 deg of tilt lifts a floor 5 cm across a 10 m room)",
+        "",
+    )
+
+
+def floor_correction(
+    pts: np.ndarray, band: float = 0.08, gate: float = 0.03, max_tilt_deg: float = 3.0
+) -> np.ndarray | None:
+    """Small rigid correction making the map's floor exactly z = 0 (None if not confident).
+
+    Least-squares plane through the points within ``band`` of z = 0, refit twice on the points
+    within ``gate`` of it (table legs and wall feet drop out); rotated about the map origin so
+    the origin stays below the first pose and x keeps its direction.
+    """
+    sel = np.abs(pts[:, 2]) < band
+    if sel.sum() < 500:
+        return None
+    coef = np.zeros(3)
+    for _ in range(3):
+        a = np.c_[pts[sel, 0], pts[sel, 1], np.ones(int(sel.sum()))]
+        coef, *_ = np.linalg.lstsq(a, pts[sel, 2], rcond=None)
+        resid = pts[:, 2] - (coef[0] * pts[:, 0] + coef[1] * pts[:, 1] + coef[2])
+        sel = (np.abs(resid) < gate) & (np.abs(pts[:, 2]) < band)
+        if sel.sum() < 500:
+            return None
+    n = np.array([-coef[0], -coef[1], 1.0])
+    n /= np.linalg.norm(n)
+    tilt = float(np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))))
+    if tilt > max_tilt_deg:
+        return None
+    axis = np.cross(n, [0.0, 0.0, 1.0])
+    s = float(np.linalg.norm(axis))
+    rot = np.eye(3)
+    if s > 1e-12:
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rot = np.eye(3) + k + k @ k * ((1.0 - n[2]) / s**2)
+    corr = np.eye(4)
+    corr[:3, :3] = rot
+    corr[2, 3] = -float(np.median((pts[sel] @ rot.T)[:, 2]))
+    return corr
 
 
 def load_configs(
@@ -106,9 +162,15 @@ class Mapper:
         self.convention: str | None = None
         self.T_map_odom: np.ndarray | None = None
         self.level_info: dict[str, Any] = {}
-        self._chunks: list[np.ndarray] = []
+        self._evidence = EvidenceMap(
+            self.cfg.map_voxel,
+            self.cfg.evidence_voxel,
+            self.cfg.evidence_min_frames,
+            self.cfg.evidence_hit_fraction,
+        )
         self._map_odom = np.empty((0, 3))
         self._dirty = 0
+        self._relevelled_at = -1
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self.frames_read = 0
@@ -164,7 +226,7 @@ class Mapper:
             return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
         self.stamps.append(float(stamp))
         self.poses_odom.append(res.pose)
-        self._chunks.append(transform(pts, res.pose))
+        self._evidence.add(transform(pts, res.pose), res.pose[:3, 3])
         self._dirty += pts.shape[0]
         used = len(self.poses_odom)
         # Look for the floor after level_min_frames, then every 5th frame until found (each
@@ -182,10 +244,8 @@ class Mapper:
     # -- map -----------------------------------------------------------------------------------
     def map_odom(self) -> np.ndarray:
         """Global map in odom, voxelised at ``map_voxel`` (consolidated lazily)."""
-        if self._chunks:
-            allp = np.vstack([self._map_odom, *self._chunks])
-            self._chunks = []
-            self._map_odom = voxel_downsample(allp, self.cfg.map_voxel)
+        if self._dirty:
+            self._map_odom = self._evidence.points()
             self._dirty = 0
         return self._map_odom
 
@@ -225,7 +285,23 @@ class Mapper:
         if not self.try_level():
             raise RuntimeError(self.level_info.get("error", "map frame unknown"))
         assert self.T_map_odom is not None
-        return transform(self.map_odom(), self.T_map_odom)
+        pts = transform(self.map_odom(), self.T_map_odom)
+        used = len(self.poses_odom)
+        if (
+            self.cfg.relevel
+            and self.level_info.get("method") == "floor"
+            and used != self._relevelled_at
+        ):
+            self._relevelled_at = used
+            corr = floor_correction(pts)
+            if corr is not None:
+                self.T_map_odom = corr @ self.T_map_odom
+                self.level_info["relevelled_tilt_deg"] = float(
+                    np.degrees(np.arccos(np.clip(corr[2, 2], -1.0, 1.0)))
+                )
+                self.level_info["relevelled_at_frames"] = used
+                pts = transform(pts, corr)
+        return pts
 
     def published_points(self) -> np.ndarray:
         """``map_points`` coarsened until it fits ``max_published_points``."""
