@@ -88,6 +88,7 @@ class DriveNode(Node):
             self.get_logger().warning(f"speed {c.speed} km/h replaced by {self.speed} km/h")
         self._lock = threading.Lock()
         self._grid: Grid | None = None
+        self._pending_plan: Path | None = None  # a plan that came before any grid
         self._estop = False
         self._abort = threading.Event()
         self._worker: threading.Thread | None = None
@@ -144,16 +145,15 @@ class DriveNode(Node):
             logger.warning(message)
         else:
             logger.error(message)
-        self._publish_state()
+        self._publish_state(level, message)
 
-    def _publish_state(self) -> None:
+    def _publish_state(self, level: bytes | None = None, message: str | None = None) -> None:
+        """Publish the state; a caller's own (level, message) wins over a newer one, so no
+        event is lost when another thread sets the next state in between."""
         with self._lock:
-            level, message, job, (done, total) = (
-                self._level,
-                self._message,
-                self._job,
-                self._progress,
-            )
+            job, (done, total) = self._job, self._progress
+            if level is None or message is None:
+                level, message = self._level, self._message
         st = self.link.last_status
         s = self.link.stats
         values = {
@@ -240,6 +240,9 @@ class DriveNode(Node):
             self._abort_if_moving("no valid safe grid")
             return
         self._grid = grid
+        pending, self._pending_plan = self._pending_plan, None
+        if pending is not None and not self._busy():
+            self._on_plan(pending)
         dst = self._entering
         if dst is not None and self._busy():
             reason = grid_cell_check(lambda: grid)(dst)
@@ -264,6 +267,13 @@ class DriveNode(Node):
             self._set_state(OK, "e-stop cleared (nothing resumes by itself)")
 
     def _on_plan(self, msg: Path) -> None:
+        if self._grid is None and msg.poses:
+            # Latched plan and grid arrive in any order at start-up: keep the plan until the grid
+            # is here (it is checked against it then), never run it unchecked.
+            self._pending_plan = msg
+            self._set_state(OK, "plan waiting for the safe grid")
+            return
+        self._pending_plan = None
         try:
             steps, cells = self._steps_from_path(msg)
         except ValueError as exc:
