@@ -238,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
             cell = grid.cell_of(x, y)
             if not visited or visited[-1] != cell:
                 visited.append(cell)
-        non_free = [c for c in visited if not grid.inside(*c) or int(grid.data[c]) != 0]
+        # cells the chair ENTERED (not the one it stood on at the start) must all be free
+        non_free = [c for c in visited[1:] if not grid.inside(*c) or int(grid.data[c]) != 0]
         reached = bool(visited) and visited[-1] == tuple(goal)
         draw_route(grid, out / "route.png", planned, driven)
         write_commands_csv(out / "commands.csv", commands)
@@ -250,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
                 "grid": {
                     "rows": grid.rows,
                     "cols": grid.cols,
-                    "cell_m": grid.resolution,
+                    "cell_m": round(grid.resolution, 4),
                     "free": int((grid.data == 0).sum()),
                     "occupied": int((grid.data == 100).sum()),
                     "unknown": int((grid.data < 0).sum()),
@@ -306,7 +307,7 @@ def fill_partial(summary: dict[str, Any], monitor: Monitor) -> None:
             summary["grid"] = {
                 "rows": st.grid.rows,
                 "cols": st.grid.cols,
-                "cell_m": st.grid.resolution,
+                "cell_m": round(st.grid.resolution, 4),
                 "free": int((d == 0).sum()),
                 "occupied": int((d == 100).sum()),
                 "unknown": int((d < 0).sum()),

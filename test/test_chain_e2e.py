@@ -1,0 +1,203 @@
+"""The whole chain (paper Fig. 13) over real DDS on loopback, and the offline CLI chain.
+
+Frames -> mapper -> grid -> planner -> drive -> simulated motor controller on a real pty.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, run_wheelgrid  # type: ignore[import-not-found]
+from wheelgrid_common.map_io import read_map
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+
+def test_demo_drives_the_chair_to_the_goal_through_free_cells_only(live_demo):
+    s = live_demo["summary"]
+    assert live_demo["code"] == 0, live_demo["stdout"][-3000:] + live_demo["stderr"][-3000:]
+    assert s["reached_goal"] is True
+    assert s["entered_non_free"] == []
+    out = live_demo["out"]
+    for name in (
+        "map.ply",
+        "grid.yaml",
+        "grid.pgm",
+        "grid.png",
+        "route.png",
+        "commands.csv",
+        "summary.json",
+        "fine.yaml",
+        "trajectory.tum",
+    ):
+        assert (out / name).exists(), name
+    grid = read_map(out / "grid.yaml")
+    assert grid.data.shape == (8, 8)
+    # the route is the paper's Table II route, and every driven cell is free in the saved grid
+    assert [tuple(c) for c in s["route_cells"]] == [(2, c) for c in range(6)] + [
+        (r, 5) for r in range(3, 7)
+    ]
+    actions = [c["action"].lower().replace("_", "-") for c in s["commands"]]
+    assert actions == ["left-forward"] + ["forward"] * 4 + ["right-forward"] + ["forward"] * 3
+    for r, c in s["driven_cells"][1:]:
+        assert grid.data[r, c] == 0
+
+
+def test_offline_cli_chain_gives_the_same_grid_and_route(live_demo, bag_dir, tmp_path):
+    """`map` -> `grid` -> `plan` -> `drive` on files gives what the live chain gave."""
+    assert live_demo["code"] == 0
+    m = run_wheelgrid(["map", str(bag_dir / "scan"), "--out", str(tmp_path / "map")], 300)
+    assert m.returncode == 0, m.stderr[-2000:]
+    g = run_wheelgrid(["grid", str(tmp_path / "map" / "map.ply"), "--out", str(tmp_path / "g")], 60)
+    assert g.returncode == 0, g.stderr[-2000:]
+    live = read_map(live_demo["out"] / "grid.yaml")
+    offline = read_map(tmp_path / "g" / "grid.yaml")
+    assert offline.data.tolist() == live.data.tolist()
+    p = run_wheelgrid(
+        [
+            "plan",
+            str(tmp_path / "g" / "grid.yaml"),
+            "--start",
+            "2,0",
+            "--goal",
+            "6,5",
+            "--heading",
+            "down",
+            "--method",
+            "qlearning-heading",
+            "--json",
+        ],
+        60,
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    plan = json.loads(p.stdout)
+    assert [list(c) for c in plan["cells"]] == live_demo["summary"]["route_cells"]
+    (tmp_path / "plan.json").write_text(p.stdout)
+    from wheelgrid_drive.motor_sim import MotorSim, MotorSimConfig
+
+    x, y = offline.cell_center(2, 0)
+    yaw = float(np.arctan2(-1.0, 0.0)) + offline.origin[2]  # facing "down" = -y of the grid
+    with MotorSim(MotorSimConfig(pose=(x, y, yaw), time_scale=4.0)) as sim:
+        d = run_wheelgrid(
+            [
+                "drive",
+                str(tmp_path / "plan.json"),
+                "--port",
+                sim.slave_path,
+                "--grid",
+                str(tmp_path / "g" / "grid.yaml"),
+            ],
+            120,
+        )
+        assert d.returncode == 0, d.stdout[-2000:] + d.stderr[-2000:]
+        final = sim.status()
+    assert offline.cell_of(final.x, final.y) == (6, 5)
+
+
+def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_path):
+    """Kill the grid node while the chair drives: the launcher names it, exits 1, chair stops."""
+    import os
+    import threading
+
+    import yaml
+
+    from wheelgrid_bringup.chain import Monitor
+    from wheelgrid_bringup.demo import heading_yaw
+    from wheelgrid_common.testing import rclpy_context, stop_process
+    from wheelgrid_drive.motor_sim import MotorSim
+
+    params = yaml.safe_load((ROOT / "src/wheelgrid_bringup/config/wheelgrid.yaml").read_text())
+    params["drive"]["ros__parameters"].update({"initial_heading": "down", "set_pose_on_plan": True})
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    lines: list[str] = []
+    with MotorSim() as sim, rclpy_context() as ctx:
+        monitor = Monitor(ctx, "e2e_user")
+        cmd = [
+            sys.executable,
+            "-c",
+            "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
+            "launch",
+            "--bag",
+            str(bag_dir / "scan"),
+            "--params",
+            str(tmp_path / "params.yaml"),
+            "--motor-port",
+            sim.slave_path,
+            "--log-dir",
+            str(tmp_path / "logs"),
+        ]
+        proc = subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        reader = threading.Thread(
+            target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True
+        )
+        reader.start()
+        try:
+            _wait(
+                lambda: any(re.search(r"replay (\d+)/\1\b", ln) for ln in lines),
+                120,
+                "bag replayed",
+                proc,
+                lines,
+            )
+            _wait(
+                lambda: (
+                    monitor.state.grid is not None
+                    and time.monotonic() - monitor.state.last_grid_t > 3.0
+                    and time.monotonic() - monitor.state.last_cloud_t > 3.0
+                ),
+                60,
+                "grid settled",
+                proc,
+                lines,
+            )
+            grid = monitor.state.grid
+            x, y = grid.cell_center(2, 0)
+            monitor.send_initial_pose(x, y, heading_yaw(grid, "down"), grid.frame_id)
+            time.sleep(0.5)
+            monitor.send_goal(*grid.cell_center(6, 5), 0.0, grid.frame_id)
+            _wait(lambda: sim.status().state.name != "IDLE", 30, "chair moving", proc, lines)
+            pid = _pid_of(lines, "grid")
+            os.kill(pid, signal.SIGKILL)
+            t_kill = time.monotonic()
+            _, err = proc.communicate(timeout=60)
+        finally:
+            stop_process(proc)
+            monitor.close()
+        assert proc.returncode == 1, "".join(lines[-20:])
+        assert "node 'grid' died" in err
+        _wait(lambda: sim.status().state.name == "IDLE", 3.0, "chair stopped", None, lines)
+        assert any(e.what == "stop" and e.t >= t_kill for e in sim.events)
+
+
+def _wait(pred, timeout: float, what: str, proc, lines: list[str]) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        if proc is not None and proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    assert pred(), f"timed out waiting for {what}; launcher said:\n" + "".join(lines[-15:])
+
+
+def _pid_of(lines: list[str], name: str) -> int:
+    for ln in lines:
+        m = re.search(rf"started {name} \(pid (\d+)", ln)
+        if m:
+            return int(m.group(1))
+    raise AssertionError(f"no pid for {name} in the launcher output")
