@@ -28,6 +28,17 @@ def run_wheelgrid(args: list[str], timeout: float, **kw) -> subprocess.Completed
 
 
 @pytest.fixture(scope="session")
+def run_wg():
+    """The ``wheelgrid`` command as a function: run_wg(args, timeout) -> CompletedProcess."""
+    return run_wheelgrid
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return ROOT
+
+
+@pytest.fixture(scope="session")
 def bag_dir() -> Path:
     if not (BAG_DIR / "scan" / "metadata.yaml").exists():
         pytest.skip("bundled bag bags/paper_room is missing")

@@ -15,7 +15,6 @@ import time
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_wheelgrid  # type: ignore[import-not-found]
 from wheelgrid_common.map_io import read_map
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -51,17 +50,20 @@ def test_demo_drives_the_chair_to_the_goal_through_free_cells_only(live_demo):
         assert grid.data[r, c] == 0
 
 
-def test_offline_cli_chain_gives_the_same_grid_and_route(live_demo, bag_dir, tmp_path):
+def test_offline_cli_chain_gives_the_same_grid_and_route(live_demo, bag_dir, tmp_path, run_wg):
     """`map` -> `grid` -> `plan` -> `drive` on files gives what the live chain gave."""
     assert live_demo["code"] == 0
-    m = run_wheelgrid(["map", str(bag_dir / "scan"), "--out", str(tmp_path / "map")], 300)
+    # the live mapper uses the bag's /iphone/odometry as its prior; so does the offline one
+    m = run_wg(
+        ["map", str(bag_dir / "scan"), "--out", str(tmp_path / "map"), "--prior", "arkit"], 300
+    )
     assert m.returncode == 0, m.stderr[-2000:]
-    g = run_wheelgrid(["grid", str(tmp_path / "map" / "map.ply"), "--out", str(tmp_path / "g")], 60)
+    g = run_wg(["grid", str(tmp_path / "map" / "map.ply"), "--out", str(tmp_path / "g")], 60)
     assert g.returncode == 0, g.stderr[-2000:]
     live = read_map(live_demo["out"] / "grid.yaml")
     offline = read_map(tmp_path / "g" / "grid.yaml")
     assert offline.data.tolist() == live.data.tolist()
-    p = run_wheelgrid(
+    p = run_wg(
         [
             "plan",
             str(tmp_path / "g" / "grid.yaml"),
@@ -86,7 +88,7 @@ def test_offline_cli_chain_gives_the_same_grid_and_route(live_demo, bag_dir, tmp
     x, y = offline.cell_center(2, 0)
     yaw = float(np.arctan2(-1.0, 0.0)) + offline.origin[2]  # facing "down" = -y of the grid
     with MotorSim(MotorSimConfig(pose=(x, y, yaw), time_scale=4.0)) as sim:
-        d = run_wheelgrid(
+        d = run_wg(
             [
                 "drive",
                 str(tmp_path / "plan.json"),
@@ -102,7 +104,7 @@ def test_offline_cli_chain_gives_the_same_grid_and_route(live_demo, bag_dir, tmp
     assert offline.cell_of(final.x, final.y) == (6, 5)
 
 
-def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_path):
+def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_path, repo_root):
     """Kill the grid node while the chair drives: the launcher names it, exits 1, chair stops."""
     import os
     import threading
@@ -114,7 +116,7 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
     from wheelgrid_common.testing import rclpy_context, stop_process
     from wheelgrid_drive.motor_sim import MotorSim
 
-    params = yaml.safe_load((ROOT / "src/wheelgrid_bringup/config/wheelgrid.yaml").read_text())
+    params = yaml.safe_load((repo_root / "src/wheelgrid_bringup/config/wheelgrid.yaml").read_text())
     params["drive"]["ros__parameters"].update({"initial_heading": "down", "set_pose_on_plan": True})
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     lines: list[str] = []
@@ -136,7 +138,7 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
         ]
         proc = subprocess.Popen(
             cmd,
-            cwd=ROOT,
+            cwd=repo_root,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -117,7 +117,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         print(f"demo: bag {bag} ({', '.join(f'{t.name} x{t.count}' for t in topics)})")
         for name in ("mapper", "grid", "planner"):
-            sup.start_node(name, params, {"output_dir": str(out)})
+            over: dict[str, object] = {"output_dir": str(out)}
+            if name == "mapper":
+                over["max_queue"] = 1000  # a replay: map every frame, as `wheelgrid map` does
+            elif name == "planner":
+                over = {}
+            sup.start_node(name, params, over)
         n_frames = sum(t.count for t in topics if t.msgtype.endswith("PointCloud2"))
         player = BagPlayer(monitor.node, bag, rate=args.rate)
         player.start(delay=2.0)

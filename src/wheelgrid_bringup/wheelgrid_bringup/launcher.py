@@ -80,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
             overrides: dict[str, object] = {}
             if name == "drive" and args.motor_port:
                 overrides["port"] = args.motor_port
+            if name == "mapper" and args.bag:
+                overrides["max_queue"] = 1000  # a replay: map every frame, never the newest only
             sup.start_node(name, params, overrides)
             print(
                 f"launch: started {name} (pid {sup.procs[name].proc.pid}, log "

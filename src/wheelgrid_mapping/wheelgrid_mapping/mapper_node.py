@@ -1,9 +1,9 @@
 """The mapper node: PointCloud2 in, levelled map cloud + odometry + status out.
 
 Thin ROS layer over :class:`wheelgrid_mapping.pipeline.Mapper`. Frames are handed to one worker
-thread through a single slot: if a frame arrives while the previous one is still being
-processed, the waiting frame is replaced by the newest and the dropped one is counted
-(``frames_skipped_busy``), so the subscription never blocks and nothing queues forever.
+thread through a bounded queue (``max_queue``, default 1): when it is full the oldest waiting
+frame is dropped and counted (``frames_skipped_busy``), so the subscription never blocks and
+nothing queues forever. A live sensor wants 1 (map the newest); a bag replay wants every frame.
 
 Malformed clouds (missing x/y/z, bad point_step, truncated, empty) are logged once per cause and
 skipped. Big-endian clouds are valid PointCloud2: ``read_fields`` converts them, and the node
@@ -18,13 +18,14 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
-from wheelgrid_common.params import declare_dataclass
+from wheelgrid_common.params import declare_dataclass, field
 from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_pointcloud2
 from wheelgrid_common.ros_env import spin_node, tf2_available
 
@@ -36,6 +37,26 @@ try:
     from rclpy.node import Node
 except ImportError:  # pragma: no cover - only without ROS
     Node = object  # type: ignore[assignment,misc]
+
+
+@dataclass
+class MapperNodeConfig:
+    """The node's own parameters (the pipeline's are ``preprocess.*``, ``registration.*``,
+    ``mapper.*``)."""
+
+    topic: str = field("/iphone/points", "sensor_msgs/PointCloud2 input (sensor-data QoS)")
+    pose_prior_topic: str = field(
+        "", "nav_msgs/Odometry pose prior (ARKit: /iphone/odometry); empty = register without"
+    )
+    output_dir: str = field("wheelgrid_map", "where ~/save_map writes map.ply etc.")
+    map_frame: str = field("map", "frame id of the levelled map")
+    publish_period: float = field(2.0, "period of /wheelgrid/map_cloud and status updates", "s")
+    max_queue: int = field(
+        1,
+        "frames waiting for the worker; when full the OLDEST is dropped and counted. 1 = live "
+        "sensor (always map the newest frame); large (e.g. 1000) = bag replay (map every frame)",
+        "frames",
+    )
 
 
 def _stamp_seconds(stamp: Any) -> float:
@@ -52,18 +73,20 @@ class MapperNode(Node):  # type: ignore[misc]
 
         from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
 
-        self.topic = self.declare_parameter("topic", "/iphone/points").value
-        self.prior_topic = self.declare_parameter("pose_prior_topic", "").value
-        self.output_dir = self.declare_parameter("output_dir", "wheelgrid_map").value
-        self.map_frame = self.declare_parameter("map_frame", "map").value
-        self.publish_period = float(self.declare_parameter("publish_period", 2.0).value)
+        node_cfg = declare_dataclass(self, MapperNodeConfig())
+        self.topic = node_cfg.topic
+        self.prior_topic = node_cfg.pose_prior_topic
+        self.output_dir = node_cfg.output_dir
+        self.map_frame = node_cfg.map_frame
+        self.publish_period = node_cfg.publish_period
+        self.max_queue = max(1, node_cfg.max_queue)
         pre = declare_dataclass(self, PreprocessConfig(), "preprocess.")
         reg = declare_dataclass(self, RegistrationConfig(), "registration.")
         cfg = declare_dataclass(self, MapperConfig(), "mapper.")
         self.mapper = Mapper(pre, reg, cfg)
         self._lock = threading.Lock()  # guards self.mapper
         self._slot_lock = threading.Condition()
-        self._slot: tuple[np.ndarray, float, str, np.ndarray | None] | None = None
+        self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None]] = deque()
         self._stop = False
         self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=200)
         self._logged: set[str] = set()
@@ -117,9 +140,10 @@ class MapperNode(Node):  # type: ignore[misc]
             self._log_once("bigendian", "big-endian PointCloud2 converted to host order", False)
         frame = (pts, _stamp_seconds(msg.header.stamp), msg.header.frame_id, conf)
         with self._slot_lock:
-            if self._slot is not None:
+            if len(self._queue) >= self.max_queue:
+                self._queue.popleft()
                 self.counts["skipped_busy"] += 1
-            self._slot = frame
+            self._queue.append(frame)
             self._slot_lock.notify()
 
     def _on_prior(self, msg: Any) -> None:
@@ -141,11 +165,11 @@ class MapperNode(Node):  # type: ignore[misc]
     def _work(self) -> None:
         while True:
             with self._slot_lock:
-                while self._slot is None and not self._stop:
+                while not self._queue and not self._stop:
                     self._slot_lock.wait(0.5)
                 if self._stop:
                     return
-                frame, self._slot = self._slot, None
+                frame = self._queue.popleft()
             assert frame is not None
             pts, stamp, frame_id, conf = frame
             if frame_id:
@@ -267,7 +291,7 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_reset(self, request: Any, response: Any) -> Any:
         with self._slot_lock:
-            self._slot = None
+            self._queue.clear()
         with self._lock:
             self.mapper.reset()
         self._map_dirty = False
