@@ -176,7 +176,9 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
             pid = _pid_of(lines, "grid")
             os.kill(pid, signal.SIGKILL)
             t_kill = time.monotonic()
-            _, err = proc.communicate(timeout=60)
+            proc.wait(timeout=60)
+            reader.join(timeout=5)  # the stdout reader owns stdout; read stderr only
+            err = proc.stderr.read()
         finally:
             stop_process(proc)
             monitor.close()
