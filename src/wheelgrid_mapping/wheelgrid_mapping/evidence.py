@@ -112,27 +112,13 @@ class EvidenceMap:
         self._keys = keys[starts]
         self._sums = np.add.reduceat(sums, starts, axis=0)
         self._counts = np.add.reduceat(counts, starts)
-        ev = np.concatenate([self._ev_keys, *self._pending_ev])
-        ev_frames = np.concatenate(
-            [self._ev_frames, np.ones(ev.shape[0] - self._ev_keys.shape[0], np.int64)]
+        self._ev_keys, self._ev_frames = _merge_counts(
+            self._ev_keys, self._ev_frames, self._pending_ev
         )
-        order = np.argsort(ev, kind="stable")
-        ev, ev_frames = ev[order], ev_frames[order]
-        starts = np.flatnonzero(np.r_[True, ev[1:] != ev[:-1]])
-        self._ev_keys = ev[starts]
-        self._ev_frames = np.add.reduceat(ev_frames, starts)
-        self._pending, self._pending_ev = [], []
-        if self._pending_miss:
-            mk = np.concatenate([self._miss_keys, *self._pending_miss])
-            mf = np.concatenate(
-                [self._miss_frames, np.ones(mk.shape[0] - self._miss_keys.shape[0], np.int64)]
-            )
-            order = np.argsort(mk, kind="stable")
-            mk, mf = mk[order], mf[order]
-            starts = np.flatnonzero(np.r_[True, mk[1:] != mk[:-1]])
-            self._miss_keys = mk[starts]
-            self._miss_frames = np.add.reduceat(mf, starts)
-            self._pending_miss = []
+        self._miss_keys, self._miss_frames = _merge_counts(
+            self._miss_keys, self._miss_frames, self._pending_miss
+        )
+        self._pending, self._pending_ev, self._pending_miss = [], [], []
 
     def points(self, min_frames: int | None = None) -> np.ndarray:
         """Centroids of the map voxels whose evidence voxel was seen by enough frames."""
@@ -155,3 +141,17 @@ class EvidenceMap:
     def all_points(self) -> np.ndarray:
         """Every map voxel's centroid, evidence ignored (for diagnostics)."""
         return self.points(min_frames=0)
+
+
+def _merge_counts(
+    keys: np.ndarray, counts: np.ndarray, new: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique keys with counts, after adding one vote per key of each array in ``new``."""
+    if not new:
+        return keys, counts
+    allk = np.concatenate([keys, *new])
+    allc = np.concatenate([counts, np.ones(allk.shape[0] - keys.shape[0], np.int64)])
+    order = np.argsort(allk, kind="stable")
+    allk, allc = allk[order], allc[order]
+    starts = np.flatnonzero(np.r_[True, allk[1:] != allk[:-1]])
+    return allk[starts], np.add.reduceat(allc, starts)
