@@ -1,0 +1,88 @@
+"""The bringup's one parameter file, the launch file and the command table stay in step with
+the nodes: a misspelt parameter would otherwise be ignored silently by ROS."""
+
+import ast
+import dataclasses
+from pathlib import Path
+
+import yaml
+
+from wheelgrid_bringup.cli import COMMANDS, main
+from wheelgrid_bringup.supervisor import NODES, default_params_file, node_argv
+
+PKG = Path(__file__).resolve().parents[1]
+
+
+def _declared() -> dict[str, set[str]]:
+    from wheelgrid_drive.drive_node import DriveConfig
+    from wheelgrid_mapping.iphone_bridge_node import BridgeConfig
+    from wheelgrid_mapping.mapper_node import MapperNodeConfig
+    from wheelgrid_mapping.pipeline import MapperConfig
+    from wheelgrid_mapping.preprocess import PreprocessConfig
+    from wheelgrid_mapping.registration import RegistrationConfig
+    from wheelgrid_nav.grid import GridNodeConfig
+    from wheelgrid_nav.planner import PlannerConfig
+    from wheelgrid_nav.planner_node import PlannerNodeConfig
+
+    def names(cls, prefix=""):
+        return {prefix + f.name for f in dataclasses.fields(cls)}
+
+    return {
+        "mapper": names(MapperNodeConfig)
+        | names(PreprocessConfig, "preprocess.")
+        | names(RegistrationConfig, "registration.")
+        | names(MapperConfig, "mapper."),
+        "grid": names(GridNodeConfig),
+        "planner": names(PlannerNodeConfig) | names(PlannerConfig),
+        "drive": names(DriveConfig),
+        "iphone_bridge": names(BridgeConfig),
+    }
+
+
+def _flatten(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _flatten(v, f"{prefix}{k}.")
+        else:
+            yield prefix + k
+
+
+def test_every_parameter_in_the_yaml_is_declared_by_its_node():
+    params = yaml.safe_load(default_params_file().read_text())
+    declared = _declared()
+    assert set(params) == set(declared)
+    for node, section in params.items():
+        keys = set(_flatten(section["ros__parameters"]))
+        assert keys <= declared[node], f"{node}: undeclared {sorted(keys - declared[node])}"
+
+
+def test_launch_file_starts_the_same_nodes_as_the_launcher():
+    tree = ast.parse((PKG / "launch" / "wheelgrid.launch.py").read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Tuple) and len(node.elts) == 3:
+            vals = [e.value for e in node.elts if isinstance(e, ast.Constant)]
+            if len(vals) == 3 and vals[0].startswith("wheelgrid_"):
+                names.add(vals[2])
+        if isinstance(node, ast.Call) and getattr(node.func, "id", "") == "Node":
+            for kw in node.keywords:
+                if kw.arg == "name" and isinstance(kw.value, ast.Constant):
+                    names.add(kw.value.value)
+    assert names == {"mapper", "grid", "planner", "drive", "iphone_bridge"}
+    assert names <= set(NODES)
+
+
+def test_node_argv_passes_params_file_and_overrides():
+    argv = node_argv("grid", Path("/p.yaml"), {"safe_height": 1.4, "thin_obstacle_guard": False})
+    assert argv[argv.index("--params-file") + 1] == "/p.yaml"
+    assert "safe_height:=1.4" in argv and "thin_obstacle_guard:=false" in argv
+    assert "__node:=grid" in argv
+
+
+def test_help_lists_every_command_and_unknown_commands_exit_2(capsys):
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    for name in COMMANDS:
+        assert name in out
+    assert main(["no-such-command"]) == 2
+    assert main([]) == 2
