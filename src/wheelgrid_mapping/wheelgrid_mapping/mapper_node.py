@@ -68,6 +68,7 @@ class MapperNode(Node):  # type: ignore[misc]
         super().__init__("mapper")
         from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile
         from sensor_msgs.msg import PointCloud2
         from std_srvs.srv import Trigger
 
@@ -104,7 +105,15 @@ class MapperNode(Node):  # type: ignore[misc]
             from tf2_msgs.msg import TFMessage
 
             self.tf_pub = self.create_publisher(TFMessage, "/tf", 10)
-        self.create_subscription(PointCloud2, self.topic, self._on_cloud, SENSOR_QOS)
+        # Sensor-data QoS (best effort, volatile); its history grows with max_queue so that a
+        # replay or a 60 Hz phone stream is not dropped by DDS while the worker holds the GIL.
+        cloud_qos = QoSProfile(
+            history=SENSOR_QOS.history,
+            depth=min(max(SENSOR_QOS.depth, self.max_queue), 200),
+            reliability=SENSOR_QOS.reliability,
+            durability=SENSOR_QOS.durability,
+        )
+        self.create_subscription(PointCloud2, self.topic, self._on_cloud, cloud_qos)
         if self.prior_topic:
             self.create_subscription(Odometry, self.prior_topic, self._on_prior, SENSOR_QOS)
         self.create_service(Trigger, "~/save_map", self._on_save)
