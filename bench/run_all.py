@@ -75,8 +75,11 @@ def table(results: dict[str, list[dict]], quick: bool) -> str:
         for r in rows:
             value = f"{fmt(r.get('value'))} {r.get('unit', '')}".strip()
             base = r.get("baseline")
-            base_s = (f"{fmt(base)} {r.get('unit', '')}".strip() if isinstance(base, int | float)
-                      else fmt(base))
+            base_s = (
+                f"{fmt(base)} {r.get('unit', '')}".strip()
+                if isinstance(base, int | float)
+                else fmt(base)
+            )
             ratio = r.get("ratio")
             ratio_s = f"{ratio:.2f}x" if isinstance(ratio, int | float) else fmt(ratio)
             lines.append(

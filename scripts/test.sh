@@ -8,6 +8,6 @@ export ROS_LOG_DIR=$(mktemp -d /tmp/wheelgrid-test-log.XXXXXX)
 export ROS_DOMAIN_ID=$(( (RANDOM % 100) + 1 ))
 . scripts/env.sh
 echo "test: ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE ROS_LOG_DIR=$ROS_LOG_DIR"
-ruff check src test bench
-ruff format --check src test bench
+ruff check src test bench conftest.py
+ruff format --check src test bench conftest.py
 python -m pytest -p no:dash -p no:cacheprovider "$@"
