@@ -8,6 +8,7 @@ returning an exit code (0 ok, 2 bad input, 1 failure).
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 # name -> (module:function, one-line help). Order is the order of the paper's pipeline.
@@ -100,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"wheelgrid {name}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # `wheelgrid plan --json | head`: the reader left; not an error of ours
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":
