@@ -89,7 +89,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._slot_lock = threading.Condition()
         self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None]] = deque()
         self._stop = False
-        self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=200)
+        self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
         self._logged: set[str] = set()
         self._map_dirty = False
         self.counts = {"received": 0, "skipped_busy": 0, "malformed": 0}
@@ -115,7 +115,14 @@ class MapperNode(Node):  # type: ignore[misc]
         )
         self.create_subscription(PointCloud2, self.topic, self._on_cloud, cloud_qos)
         if self.prior_topic:
-            self.create_subscription(Odometry, self.prior_topic, self._on_prior, SENSOR_QOS)
+            # deep history too: a pose lost while the worker holds the GIL costs a whole frame
+            prior_qos = QoSProfile(
+                history=SENSOR_QOS.history,
+                depth=max(cloud_qos.depth, 100),
+                reliability=SENSOR_QOS.reliability,
+                durability=SENSOR_QOS.durability,
+            )
+            self.create_subscription(Odometry, self.prior_topic, self._on_prior, prior_qos)
         self.create_service(Trigger, "~/save_map", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_timer(self.publish_period, self._on_timer)
