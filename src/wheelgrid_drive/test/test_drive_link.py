@@ -176,3 +176,16 @@ def test_vanished_port_is_reported_and_recovered(make_sim, make_link, wait, tmp_
 def test_unopenable_port_is_an_error(tmp_path):
     with pytest.raises(LinkError, match="cannot open"):
         MotorLink(str(tmp_path / "nothing")).open()
+
+
+def test_a_new_move_is_never_taken_for_a_retry_after_the_seq_wraps(make_sim, make_link):
+    """Identical FORWARDs whose SEQ comes round again (256 requests later) both run."""
+    sim = make_sim(time_scale=50.0)
+    link = make_link(sim.slave_path, heartbeat=False)
+    first, _ = link.execute("FORWARD", 0.05, 3.0)
+    while (link._seq + 1) & 0xFF != first:  # the next request would reuse the move's SEQ
+        link.status()
+    second, _ = link.execute("FORWARD", 0.05, 3.0)
+    assert second != first
+    assert [e.detail for e in sim.events if e.what == "move"] == ["FORWARD", "FORWARD"]
+    assert abs(sim.status().x - 0.10) < 0.01

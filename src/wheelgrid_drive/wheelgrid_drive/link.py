@@ -111,6 +111,7 @@ class MotorLink:
         self._state_lock = threading.Lock()
         self._pending: dict[int, _Waiter] = {}
         self._seq = 0
+        self._last_move_seq: int | None = None
         self._closing = threading.Event()
         self._reader: threading.Thread | None = None
         self._heartbeat: threading.Thread | None = None
@@ -234,9 +235,13 @@ class MotorLink:
 
     # ---- requests -----------------------------------------------------------------------------
 
-    def _next_seq(self) -> int:
+    def _next_seq(self, avoid: int | None = None) -> int:
+        """Next sequence number; never ``avoid`` (the last move's: protocol rule 4 treats a
+        move with the last move's SEQ, type and payload as a retry, so a NEW move must differ)."""
         with self._state_lock:
             self._seq = (self._seq + 1) & 0xFF
+            if self._seq == avoid:
+                self._seq = (self._seq + 1) & 0xFF
             return self._seq
 
     def _write(self, data: bytes) -> None:
@@ -273,13 +278,17 @@ class MotorLink:
         return ""
 
     def request(
-        self, mtype: proto.MsgType, payload: bytes = b"", retries: int | None = None
+        self,
+        mtype: proto.MsgType,
+        payload: bytes = b"",
+        retries: int | None = None,
+        avoid_seq: int | None = None,
     ) -> proto.Frame:
         """Send one request and return its valid reply (ACK, NAK or STATUS), retrying on failure.
 
         Raises LinkError when no valid reply came after all attempts or the port is lost.
         """
-        seq = self._next_seq()
+        seq = self._next_seq(avoid_seq)
         data = proto.encode(seq, mtype, payload)
         attempts = 1 + (self.retries if retries is None else retries)
         last = ""
@@ -351,10 +360,11 @@ class MotorLink:
         payload = proto.pack_move(distance_m, min(speed_kmh, proto.MAX_SPEED_KMH))
         mtype = proto.MOVE_TYPES[action]
         try:
-            frame = self.request(mtype, payload)
+            frame = self.request(mtype, payload, avoid_seq=self._last_move_seq)
         except LinkError:
             self.stop()
             raise
+        self._last_move_seq = frame.seq
         if frame.type == proto.MsgType.NAK:
             self.stats.naks += 1
             why = _nak_reason(frame)

@@ -93,7 +93,8 @@ class MotorSim:
         self.drop_tx_next = 0  # lose the next N replies
         self.corrupt_tx_next = 0  # damage the next N replies
         self._segments: list[_Segment] = []
-        self._dedup: dict[int, tuple[int, bytes, bytes]] = {}
+        # the last accepted move (seq, type, payload, reply): the only one a retry can repeat
+        self._last_move: tuple[int, int, bytes, bytes] | None = None
         self._rng = random.Random(self.cfg.seed)
         self._decoder = proto.FrameDecoder()
         self._outbox: list[_Pending] = []
@@ -266,11 +267,13 @@ class MotorSim:
         self._send(f.seq, proto.MsgType.NAK, bytes([f.type & 0xFF, int(reason)]))
 
     def _move(self, f: proto.Frame, now: float) -> None:
-        cached = self._dedup.get(f.seq)
-        if cached is not None and cached[0] == f.type and cached[1] == f.payload:
-            # A retry of a move already handled (its reply was lost): answer again, never
+        cached = self._last_move
+        if cached is not None and cached[:3] == (f.seq, f.type, f.payload):
+            # A retry of the move just handled (its reply was lost): answer again, never
             # execute twice -- a duplicated FORWARD would drive the chair one cell too far.
-            self._queue(cached[2])
+            # Only the LAST move can be retried (the host waits for each move), so an older
+            # move whose SEQ came round again after the 256-value wrap is never mistaken.
+            self._queue(cached[3])
             return
         if len(f.payload) != 4:
             self._nak(f, proto.Nak.BAD_LENGTH)
@@ -307,9 +310,7 @@ class MotorSim:
         self._last_tick = now
         self._event("move", f.seq, name, t=now)
         reply = self._send(f.seq, proto.MsgType.ACK, bytes([f.type]))
-        self._dedup[f.seq] = (f.type, f.payload, reply)
-        while len(self._dedup) > 32:
-            self._dedup.pop(next(iter(self._dedup)))
+        self._last_move = (f.seq, f.type, f.payload, reply)
         self._log_pose(force=True)
 
     def status(self) -> proto.Status:
