@@ -47,6 +47,37 @@ def heading_yaw(grid: Grid, heading: str) -> float:
     return math.atan2(b[1] - a[1], b[0] - a[0])
 
 
+def room_cells_in_grid(
+    sim_dir: Path,
+    truth: dict[str, Any],
+    grid: Grid,
+    start: tuple[int, ...],
+    goal: tuple[int, ...],
+    heading: str,
+) -> tuple[tuple[int, int], tuple[int, int], str]:
+    """Truth start/goal cells and heading (room frame) as cells and heading of ``grid``."""
+    import numpy as np
+
+    from wheelgrid_common.map_io import read_map
+
+    room = read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+    m = np.asarray(truth["map_from_room"], dtype=float)
+
+    def to_map(cell: tuple[int, ...]) -> np.ndarray:
+        x, y = room.cell_center(cell[0], cell[1])
+        return (m @ np.array([x, y, 0.0, 1.0]))[:2]
+
+    dr, dc = HEADING_ROW_COL[heading]
+    d = to_map((start[0] + dr, start[1] + dc)) - to_map(start)
+    want = math.atan2(d[1], d[0])
+
+    def gap(h: str) -> float:
+        return abs(math.remainder(heading_yaw(grid, h) - want, math.tau))
+
+    s, g = grid.cell_of(*to_map(start)), grid.cell_of(*to_map(goal))
+    return (int(s[0]), int(s[1])), (int(g[0]), int(g[1])), min(HEADING_ROW_COL, key=gap)
+
+
 def parse_cell(text: str) -> tuple[int, int]:
     r, c = (int(v) for v in text.split(","))
     return r, c
@@ -125,7 +156,11 @@ def main(argv: list[str] | None = None) -> int:
             sup.start_node(name, params, over)
         n_frames = sum(t.count for t in topics if t.msgtype.endswith("PointCloud2"))
         player = BagPlayer(monitor.node, bag, rate=args.rate)
-        player.start(delay=2.0)
+        # The first frame defines the map frame: start only once the mapper listens to every
+        # replayed topic (its start-up, importing Open3D and KISS-ICP, takes seconds).
+        if not chain.wait(lambda: not player.unsubscribed(), 60.0, "nodes"):
+            raise RuntimeError(f"nobody subscribes to {player.unsubscribed()}")
+        player.start(delay=0.5)
         t_map = time.monotonic()
         print(f"demo: replaying {player.total} messages at {args.rate:g}x ...", flush=True)
         chain.wait(player.done.is_set, args.timeout, "replay", status_every=3.0)
@@ -165,6 +200,12 @@ def main(argv: list[str] | None = None) -> int:
         if grid is None:
             raise RuntimeError("no safe grid was published")
         print(f"demo: {monitor.status_line()}", flush=True)
+        heading = args.heading
+        if truth and not (args.start or args.goal):
+            # The ground truth names the cells in the ROOM; find where they are in this grid
+            # (whose cells follow the map, i.e. the first frame's view and the walls).
+            start, goal, heading = room_cells_in_grid(sim_dir, truth, grid, start, goal, heading)
+            summary["start_cell"], summary["goal_cell"] = list(start), list(goal)
         # the goal must be known free; the start may be unknown (the chair stands on it, and
         # a camera on the chair never sees the floor under it) but never occupied
         if not grid.inside(*goal) or int(grid.data[goal]) != 0:
@@ -173,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f"start cell {start} is occupied or outside the grid")
         # place the chair: the motor controller simulator, then the drive node on its pty
         sx, sy = grid.cell_center(*start)
-        yaw = heading_yaw(grid, args.heading)
+        yaw = heading_yaw(grid, heading)
         pty_link = out / "motor.pty"
         sup.start(
             "motor_sim",
@@ -197,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         sup.start_node(
             "drive",
             params,
-            {"port": str(pty_link), "initial_heading": args.heading, "set_pose_on_plan": True},
+            {"port": str(pty_link), "initial_heading": heading, "set_pose_on_plan": True},
         )
         time.sleep(1.5)
         monitor.send_initial_pose(sx, sy, yaw, grid.frame_id)
@@ -206,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         plans_before = monitor.state.plan_updates
         monitor.send_goal(gx, gy, 0.0, grid.frame_id)
         t_plan = time.monotonic()
-        print(f"demo: goal {goal} sent, start {start} heading {args.heading}", flush=True)
+        print(f"demo: goal {goal} sent, start {start} heading {heading}", flush=True)
         chain.wait(
             lambda: monitor.state.plan_updates > plans_before and bool(monitor.state.plan),
             20.0,

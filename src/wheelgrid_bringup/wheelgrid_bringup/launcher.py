@@ -94,7 +94,18 @@ def main(argv: list[str] | None = None) -> int:
             except BagError as exc:
                 print(f"wheelgrid launch: {exc}", file=sys.stderr)
                 return 2
-            player.start(delay=2.0)  # let the nodes' subscriptions match first
+            # let the nodes' subscriptions match first: a frame sent before is lost
+            deadline = time.monotonic() + 30.0
+            while player.unsubscribed() and time.monotonic() < deadline and not stop["flag"]:
+                chain.check()
+                time.sleep(0.1)
+            if player.unsubscribed():
+                print(
+                    f"launch: no subscriber for {', '.join(player.unsubscribed())}; "
+                    "replaying anyway",
+                    flush=True,
+                )
+            player.start(delay=0.5)
         t0 = time.monotonic()
         last = 0.0
         while not stop["flag"]:

@@ -59,6 +59,10 @@ class BagPlayer:
         }
         self._thread = threading.Thread(target=self._run, name="bag-replay", daemon=True)
 
+    def unsubscribed(self) -> list[str]:
+        """Replayed topics nobody subscribes to yet (a frame sent now would be lost)."""
+        return [t for t, pub in self._pubs.items() if pub.get_subscription_count() == 0]
+
     def start(self, delay: float = 0.0) -> None:
         self._delay = delay
         self._thread.start()
