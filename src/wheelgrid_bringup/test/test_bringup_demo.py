@@ -1,0 +1,40 @@
+"""The demo names the truth's room cells in whatever grid the chain published."""
+
+import math
+
+import numpy as np
+
+from wheelgrid_bringup.demo import heading_yaw, room_cells_in_grid
+from wheelgrid_common.map_io import Grid, write_map
+
+
+def _truth(tmp_path, map_from_room):
+    write_map(tmp_path / "expected_grid.yaml", Grid(np.zeros((8, 8), np.int8), 1.2))
+    return {"expected_grid": "expected_grid.yaml", "map_from_room": map_from_room.tolist()}
+
+
+def test_aligned_grid_keeps_the_cells_and_heading(tmp_path):
+    m = np.eye(4)
+    m[:2, 3] = [-0.6, -6.6]  # map origin below the first pose, at room (0.6, 6.6)
+    grid = Grid(np.zeros((8, 8), np.int8), 1.2, (-0.6, -6.6, 0.0))
+    assert room_cells_in_grid(tmp_path, _truth(tmp_path, m), grid, (2, 0), (6, 5), "down") == (
+        (2, 0),
+        (6, 5),
+        "down",
+    )
+
+
+def test_a_grid_turned_by_90_degrees_gets_other_labels_for_the_same_places(tmp_path):
+    m = np.eye(4)
+    m[:2, 3] = [-0.6, -6.6]
+    # the same room, but the grid's axes turned +90 deg: its origin is the room's south-east corner
+    grid = Grid(np.zeros((8, 8), np.int8), 1.2, (9.0, -6.6, math.pi / 2))
+    start, goal, heading = room_cells_in_grid(
+        tmp_path, _truth(tmp_path, m), grid, (2, 0), (6, 5), "down"
+    )
+    room = Grid(np.zeros((8, 8), np.int8), 1.2)
+    for room_cell, cell in (((2, 0), start), ((6, 5), goal)):
+        want = room.cell_center(*room_cell) + np.array([-0.6, -6.6])
+        np.testing.assert_allclose(grid.cell_center(*cell), want, atol=1e-9)
+    # "down" in the room is -y in the map; find it among the turned grid's directions
+    assert abs(math.remainder(heading_yaw(grid, heading) + math.pi / 2, math.tau)) < 1e-9
