@@ -44,18 +44,7 @@ def make_cloud(target: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray | Non
         from wheelgrid_sim.scene import paper_scene
 
         scene = paper_scene()
-        pts = scene.sample_surface_points(spacing, include_structure=True)
-        x0, y0, x1, y1 = scene.room
-        e = 1e-9
-        keep = (
-            (pts[:, 0] >= x0 - e)
-            & (pts[:, 0] <= x1 + e)
-            & (pts[:, 1] >= y0 - e)
-            & (pts[:, 1] <= y1 + e)
-            & (pts[:, 2] >= -e)
-            & (pts[:, 2] <= scene.ceiling + e)
-        )
-        pts = pts[keep]
+        pts = scene.interior_surface_points(spacing)
         expected = scene.expected_grid().data == OCCUPIED
         what = "wheelgrid_sim paper scene"
     except ImportError:

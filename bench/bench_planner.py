@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wheelgrid_nav.grid_synth import maze
 from wheelgrid_nav.planner import PlannerConfig, astar, bfs_distances, plan
 
 PAPER_OCCUPIED = [(3, 0), (3, 1), (3, 2), (3, 3), (3, 4), (5, 0), (5, 1), (5, 2), (5, 3), (4, 4)]
@@ -32,32 +33,6 @@ def paper_grid() -> np.ndarray:
     g = np.zeros((8, 8), dtype=np.int8)
     for r, c in [*PAPER_OCCUPIED, (6, 7)]:
         g[r, c] = 100
-    return g
-
-
-def maze(n: int, rng: np.random.Generator) -> np.ndarray:
-    """Perfect maze (recursive backtracker), n odd; passages on odd rows/cols."""
-    g = np.full((n, n), 100, np.int8)
-    m = (n - 1) // 2
-    seen = np.zeros((m, m), bool)
-    stack = [(0, 0)]
-    seen[0, 0] = True
-    g[1, 1] = 0
-    while stack:
-        r, c = stack[-1]
-        nb = [
-            (r + dr, c + dc)
-            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))
-            if 0 <= r + dr < m and 0 <= c + dc < m and not seen[r + dr, c + dc]
-        ]
-        if not nb:
-            stack.pop()
-            continue
-        rr, cc = nb[rng.integers(len(nb))]
-        seen[rr, cc] = True
-        g[2 * rr + 1, 2 * cc + 1] = 0
-        g[r + rr + 1, c + cc + 1] = 0
-        stack.append((rr, cc))
     return g
 
 

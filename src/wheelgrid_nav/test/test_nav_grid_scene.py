@@ -23,20 +23,7 @@ SPACING = 0.04
 
 
 def interior_points(scene, spacing: float = SPACING) -> np.ndarray:
-    """Exact surface points a scanner inside the room could see: obstacles, the floor's top, the
-    walls' inner faces and the ceiling's underside (nothing under the floor or behind walls)."""
-    pts = scene.sample_surface_points(spacing, include_structure=True)
-    x0, y0, x1, y1 = scene.room
-    e = 1e-9
-    keep = (
-        (pts[:, 0] >= x0 - e)
-        & (pts[:, 0] <= x1 + e)
-        & (pts[:, 1] >= y0 - e)
-        & (pts[:, 1] <= y1 + e)
-        & (pts[:, 2] >= -e)
-        & (pts[:, 2] <= scene.ceiling + e)
-    )
-    return pts[keep]
+    return scene.interior_surface_points(spacing)
 
 
 def apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:

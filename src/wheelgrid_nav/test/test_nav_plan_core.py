@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_nav.actions import moves_to_actions
+from wheelgrid_nav.grid_synth import maze
 from wheelgrid_nav.planner import (
     PlanInputError,
     PlannerConfig,
@@ -29,32 +30,6 @@ def paper_grid() -> np.ndarray:
 
 def random_grid(rng, rows, cols, p):
     return np.where(rng.random((rows, cols)) < p, 100, 0).astype(np.int8)
-
-
-def maze(n, rng):
-    """A perfect maze (recursive backtracker) on an n x n grid, n odd; cells (1,1)..(n-2,n-2)."""
-    g = np.full((n, n), 100, np.int8)
-    m = (n - 1) // 2
-    seen = np.zeros((m, m), bool)
-    stack = [(0, 0)]
-    seen[0, 0] = True
-    g[1, 1] = 0
-    while stack:
-        r, c = stack[-1]
-        nb = [
-            (r + dr, c + dc)
-            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))
-            if 0 <= r + dr < m and 0 <= c + dc < m and not seen[r + dr, c + dc]
-        ]
-        if not nb:
-            stack.pop()
-            continue
-        rr, cc = nb[rng.integers(len(nb))]
-        seen[rr, cc] = True
-        g[2 * rr + 1, 2 * cc + 1] = 0
-        g[r + rr + 1, c + cc + 1] = 0
-        stack.append((rr, cc))
-    return g
 
 
 def test_paper_grid_unique_shortest_route():

@@ -119,3 +119,30 @@ def transform(points: np.ndarray, yaw: float, shift: tuple[float, float]) -> np.
     out[:, 0] = c * x - s * y + shift[0]
     out[:, 1] = s * x + c * y + shift[1]
     return out
+
+
+def maze(n: int, rng: np.random.Generator) -> np.ndarray:
+    """A perfect maze (recursive backtracker) as grid data (0 free, 100 occupied), n odd:
+    passages on odd rows/cols, cells (1,1)..(n-2,n-2) all connected; for planner tests and bench."""
+    g = np.full((n, n), 100, np.int8)
+    m = (n - 1) // 2
+    seen = np.zeros((m, m), bool)
+    stack = [(0, 0)]
+    seen[0, 0] = True
+    g[1, 1] = 0
+    while stack:
+        r, c = stack[-1]
+        nb = [
+            (r + dr, c + dc)
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))
+            if 0 <= r + dr < m and 0 <= c + dc < m and not seen[r + dr, c + dc]
+        ]
+        if not nb:
+            stack.pop()
+            continue
+        rr, cc = nb[rng.integers(len(nb))]
+        seen[rr, cc] = True
+        g[2 * rr + 1, 2 * cc + 1] = 0
+        g[r + rr + 1, c + cc + 1] = 0
+        stack.append((rr, cc))
+    return g

@@ -171,6 +171,23 @@ class Scene:
             return np.empty((0, 3))
         return np.unique(np.concatenate(out), axis=0)
 
+    def interior_surface_points(self, spacing: float) -> np.ndarray:
+        """Exact surface points a scanner inside the room could see: obstacles, the floor's top,
+        the walls' inner faces and the ceiling's underside (nothing under the floor or behind
+        the walls) -- a perfect map cloud for grid tests and benchmarks."""
+        pts = self.sample_surface_points(spacing, include_structure=True)
+        x0, y0, x1, y1 = self.room
+        e = 1e-9
+        keep = (
+            (pts[:, 0] >= x0 - e)
+            & (pts[:, 0] <= x1 + e)
+            & (pts[:, 1] >= y0 - e)
+            & (pts[:, 1] <= y1 + e)
+            & (pts[:, 2] >= -e)
+            & (pts[:, 2] <= self.ceiling + e)
+        )
+        return pts[keep]
+
     def distance_to_surfaces(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance of each point to the nearest box SURFACE (any box), metres."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
