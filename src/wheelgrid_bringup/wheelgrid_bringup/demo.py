@@ -294,14 +294,7 @@ def main(argv: list[str] | None = None) -> int:
                 "frames": n_frames,
                 "mapper": dict(monitor.state.mapper),
                 "map_points_published": monitor.state.map_points,
-                "grid": {
-                    "rows": grid.rows,
-                    "cols": grid.cols,
-                    "cell_m": round(grid.resolution, 4),
-                    "free": int((grid.data == 0).sum()),
-                    "occupied": int((grid.data == 100).sum()),
-                    "unknown": int((grid.data < 0).sum()),
-                },
+                "grid": grid_stats(grid),
                 "route_cells": [list(c) for c in planned],
                 "commands": commands,
                 "driven_cells": [list(c) for c in visited],
@@ -341,6 +334,18 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
+def grid_stats(grid: Grid) -> dict[str, Any]:
+    d = grid.data
+    return {
+        "rows": grid.rows,
+        "cols": grid.cols,
+        "cell_m": round(grid.resolution, 4),
+        "free": int((d == 0).sum()),
+        "occupied": int((d == 100).sum()),
+        "unknown": int((d < 0).sum()),
+    }
+
+
 def fill_partial(summary: dict[str, Any], monitor: Monitor) -> None:
     """On failure, keep whatever the chain had reached in the summary."""
     st = monitor.state
@@ -349,15 +354,7 @@ def fill_partial(summary: dict[str, Any], monitor: Monitor) -> None:
         summary.setdefault("map_points_published", st.map_points)
         summary.setdefault("commands", list(st.commands))
         if "grid" not in summary and st.grid is not None:
-            d = st.grid.data
-            summary["grid"] = {
-                "rows": st.grid.rows,
-                "cols": st.grid.cols,
-                "cell_m": round(st.grid.resolution, 4),
-                "free": int((d == 0).sum()),
-                "occupied": int((d == 100).sum()),
-                "unknown": int((d < 0).sum()),
-            }
+            summary["grid"] = grid_stats(st.grid)
 
 
 def write_commands_csv(path: Path, commands: list[dict[str, Any]]) -> None:
