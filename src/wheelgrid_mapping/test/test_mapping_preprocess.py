@@ -12,6 +12,7 @@ from wheelgrid_mapping.preprocess import (
     grid_knn,
     plane_fit_criterion,
     preprocess,
+    smallest_eigenvector,
     statistical_outlier_mask,
     subdivision_cell,
     valid_mask,
@@ -73,6 +74,39 @@ def test_grid_knn_matches_brute_force_within_one_cell() -> None:
     lonely = np.vstack([pts, [[5.0, 5.0, 5.0]]])
     idx2, dist2 = grid_knn(lonely, 3, cell)
     assert (idx2[-1] == -1).all() and np.isinf(dist2[-1]).all()
+
+
+def test_grid_knn_shell_search_merges_with_the_inner_cells() -> None:
+    # A sparse row of points 1.5 cells apart: the 3x3x3 search finds 2 neighbours, the 5x5x5
+    # shell adds the next ones; together they must be the brute-force nearest.
+    cell = 0.1
+    pts = np.column_stack([np.arange(12) * 0.15 + 0.01, np.full(12, 0.05), np.full(12, 0.05)])
+    idx, dist = grid_knn(pts, 4, cell)
+    full = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    np.fill_diagonal(full, np.inf)
+    brute = np.sort(full, axis=1)[:, :4]
+    reach = brute <= 2 * cell  # all within the 5x5x5 block
+    assert np.allclose(dist[reach], brute[reach])
+    assert np.isinf(dist[~reach]).all() and (idx[~reach] == -1).all()
+
+
+def test_smallest_eigenvector_matches_eigh() -> None:
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(2000, 3, 3))
+    mats = np.einsum("nij,nkj->nik", a, a)  # symmetric positive semi-definite
+    # Plane-like (one tiny eigenvalue), line-like and exactly flat neighbourhoods too.
+    flat = rng.normal(size=(200, 10, 3)) * [1.0, 0.5, 1e-9]
+    mats = np.vstack([mats, np.einsum("nki,nkj->nij", flat, flat)])
+    cov = {(i, j): mats[:, i, j] for i in range(3) for j in range(i, 3)}
+    v = smallest_eigenvector(cov)
+    vals, vecs = np.linalg.eigh(mats)
+    assert np.allclose(np.linalg.norm(v, axis=1), 1.0)
+    separated = (vals[:, 1] - vals[:, 0]) > 1e-6 * vals[:, 2]
+    dots = np.abs(np.einsum("ni,ni->n", v, vecs[:, :, 0]))
+    assert separated.sum() > 2000 and np.all(dots[separated] > 1 - 1e-6)
+    # Wherever it is, it is an eigenvector of the smallest eigenvalue: |A v| ~ lambda_min.
+    av = np.linalg.norm(np.einsum("nij,nj->ni", mats, v), axis=1)
+    assert np.all(av <= vals[:, 0] + 1e-6 * vals[:, 2])
 
 
 def test_statistical_outlier_mask_is_equations_1_to_4() -> None:

@@ -152,17 +152,20 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
         return 0.0
     extent = pts.max(axis=0) - pts.min(axis=0)
     cell = subdivision_cell(pts.shape[0], extent, pts.shape[0] / target)
-    origin = pts.min(axis=0)
+    # Offsets from the minimum once, in float32: the count only steers the search, so 1e-6 m
+    # rounding at a cell border does not matter, and every pass then reads half the bytes.
+    rel = (pts - pts.min(axis=0)).astype(np.float32)
 
     def count_full(c: float) -> int:
-        # Occupied-cell count without sorting when the lattice fits a bitmap (O(N)).
-        ijk = np.floor((pts - origin) / c).astype(np.int64)
-        dims = ijk.max(axis=0) + 1
+        # Occupied-cell count without sorting when the lattice fits a bitmap (O(N)); offsets
+        # are >= 0, so truncation is floor.
+        ijk = (rel * np.float32(1.0 / c)).astype(np.int32)
+        dims = ijk.max(axis=0).astype(np.int64) + 1
         if int(dims.prod()) <= 256_000_000:
             occ = np.zeros(int(dims.prod()), dtype=bool)
             occ[(ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]] = True
             return int(np.count_nonzero(occ))
-        return int(np.unique(_cell_keys(pts, c, origin)).shape[0])
+        return int(np.unique(_cell_keys(pts, c, pts.min(axis=0))).shape[0])
 
     prev: tuple[float, int] | None = None
     for _ in range(iterations):
@@ -182,13 +185,18 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     """K nearest neighbours (self excluded) through the space subdivision (text after eq. 5).
 
     Candidates are the points of the 3x3x3 cells around the point's cell; where fewer than
-    ``k`` are found the point is searched again in the 5x5x5 block (the paper's "expand the
-    search area"). Neighbours closer than one cell are exact; farther ones are the nearest
-    among the candidates searched (a bounded search: enough for SOR and PFC, which only need a
-    local neighbourhood, and it is what keeps 1 M points to seconds without a k-d tree). Meant
-    for :func:`voxel_downsample` output at the same cell (one point per cell, same lattice); a
-    cell holding more points contributes its first 4. Returns ``(idx (N,k) int64,
-    dist (N,k) float64)`` sorted by distance; missing neighbours have index -1 and distance ``inf``.
+    ``k`` are found the point is searched again in the surrounding 5x5x5 shell (the paper's
+    "expand the search area"). Neighbours closer than one cell are exact; farther ones are the
+    nearest among the candidates searched (a bounded search: enough for SOR and PFC, which only
+    need a local neighbourhood, and it is what keeps 1 M points to seconds without a k-d tree).
+    Meant for :func:`voxel_downsample` output at the same cell (one point per cell, same
+    lattice); a cell holding more points contributes its first 4. Returns ``(idx (N,k) int64,
+    dist (N,k) float64)`` sorted by distance; missing neighbours have index -1 and distance
+    ``inf``.
+
+    The search runs offset by offset over chunks of queries, so each step is one gather of a
+    cache-sized column instead of an (N, 27, 3) temporary; that, and one packed sort key per
+    candidate, is what made it 1.5x faster than the first per-point version.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = pts.shape[0]
@@ -196,7 +204,8 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     dist_out = np.full((n, k), np.inf)
     if n < 2 or k < 1:
         return idx_out, dist_out
-    origin = (np.floor(pts.min(axis=0) / cell) - 2.0) * cell  # same lattice as voxel_downsample
+    # Same lattice as voxel_downsample, padded by 2 cells so that keys +-2 cells never wrap.
+    origin = (np.floor(pts.min(axis=0) / cell) - 2.0) * cell
     ijk = np.floor((pts - origin) / cell).astype(np.int64)
     dims = ijk.max(axis=0) + 3
     lin = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
@@ -207,76 +216,88 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     ucells = lin_sorted[starts]
     counts = np.diff(np.r_[starts, n])
     cap = int(min(4, counts.max()))
-    # Row U is a sentinel (-1) so that "empty cell" (-1) indexes it directly.
-    table = np.full((ucells.shape[0] + 1, cap), -1, dtype=np.int32)  # int32: half the traffic
+    # table[r, u] = r-th point of occupied cell u; column U (-1 lookups land there) is empty.
+    table = np.full((cap, ucells.shape[0] + 1), -1, dtype=np.int32)
     for r in range(cap):
         has = np.flatnonzero(counts > r)
-        table[has, r] = order[starts[has] + r]
-    cell_of_point = np.empty(n, dtype=np.int64)
-    cell_of_point[order] = np.repeat(np.arange(ucells.shape[0]), counts)
+        table[r, has] = order[starts[has] + r]
     # Occupied-cell lookup: a dense table when the lattice is small enough (one gather per
-    # query), else a binary search in the sorted cell list.
+    # query; with one point per cell it maps straight to the point), else a binary search.
     n_cells = int(dims.prod())
     dense: np.ndarray | None = None
     if n_cells <= 64_000_000:
         dense = np.full(n_cells, -1, dtype=np.int32)
-        dense[ucells] = np.arange(ucells.shape[0], dtype=np.int32)
+        dense[ucells] = table[0, :-1] if cap == 1 else np.arange(ucells.shape[0], dtype=np.int32)
+    direct = dense is not None and cap == 1
 
-    def lookup(keys: np.ndarray) -> np.ndarray:
+    def cell_rows(keys: np.ndarray) -> np.ndarray:
         if dense is not None:
-            inside = (keys >= 0) & (keys < n_cells)
-            return np.where(inside, dense[np.clip(keys, 0, n_cells - 1)], -1)
+            return dense[keys]
         pos = np.minimum(np.searchsorted(ucells, keys), ucells.shape[0] - 1)
-        return np.where(ucells[pos] == keys, pos, -1)
+        return np.where(ucells[pos] == keys, pos, -1).astype(np.int32)
 
-    # float32 halves the memory traffic (cm-exact here); the sentinel last row is far away.
-    pts32 = np.vstack([(pts - origin), np.full((1, 3), 1e9)]).astype(np.float32)
+    # float32 halves the memory traffic (cm-exact here); the sentinel last point is far away.
+    rel = (pts - origin).astype(np.float32)
+    xs, ys, zs = (np.r_[rel[:, a], np.float32(1e9)] for a in range(3))
 
-    def search(sel: np.ndarray, reach: int) -> None:
-        offs = np.array(
-            [
-                (a * dims[1] + b) * dims[2] + c
-                for a in range(-reach, reach + 1)
-                for b in range(-reach, reach + 1)
-                for c in range(-reach, reach + 1)
-            ],
-            dtype=np.int64,
-        )
-        # Look neighbours up once per occupied cell, not per point.
-        my_cells = (
-            np.arange(ucells.shape[0]) if sel.shape[0] == n else np.unique(cell_of_point[sel])
-        )
-        neigh = ucells[my_cells][:, None] + offs[None, :]
-        cand_cells = lookup(neigh)  # (C, len(offs)), -1 = empty
-        local = (
-            cell_of_point[sel]
-            if sel.shape[0] == n
-            else np.searchsorted(my_cells, cell_of_point[sel])
-        )
-        chunk = max(1, 2_000_000 // (len(offs) * cap))
-        for s in range(0, sel.shape[0], chunk):
-            q = sel[s : s + chunk]
-            cc = cand_cells[local[s : s + chunk]]
-            cand = table[cc].reshape(len(q), -1)  # cc = -1 -> sentinel row -> -1
-            cand[cand == q[:, None]] = -1
-            diff = pts32[cand] - pts32[q][:, None, :]  # cand = -1 -> sentinel point, far away
-            d = np.einsum("nci,nci->nc", diff, diff)
+    def offsets(inner: int, reach: int) -> list[int]:
+        return [
+            int((a * dims[1] + b) * dims[2] + c)
+            for a in range(-reach, reach + 1)
+            for b in range(-reach, reach + 1)
+            for c in range(-reach, reach + 1)
+            if max(abs(a), abs(b), abs(c)) >= inner
+        ]
+
+    def search(sel: np.ndarray, offs: list[int], keep_found: bool) -> None:
+        ncol = len(offs) * cap + (k if keep_found else 0)
+        for s in range(0, sel.shape[0], 65_536):
+            q = sel[s : s + 65_536]
+            qkey = lin[q]
+            qx, qy, qz = xs[q], ys[q], zs[q]
+            cand = np.empty((q.shape[0], ncol), dtype=np.int32)
+            d = np.empty((q.shape[0], ncol), dtype=np.float32)
+            col = 0
+            for off in offs:
+                rows = cell_rows(qkey + off)
+                if direct:
+                    slots = [rows] if off != 0 else []  # own cell: only the query itself
+                else:
+                    slots = [table[r, rows] for r in range(cap)]
+                    if off == 0:
+                        slots = [np.where(c == q, -1, c) for c in slots]
+                for c in slots:
+                    cand[:, col] = c
+                    dx = xs[c] - qx
+                    dd = dx * dx
+                    dx = ys[c] - qy
+                    dd += dx * dx
+                    dx = zs[c] - qz
+                    dd += dx * dx
+                    d[:, col] = dd
+                    col += 1
+            if keep_found:  # merge with what the inner search found
+                cand[:, col : col + k] = idx_out[q]
+                d[:, col : col + k] = np.square(dist_out[q])
+                col += k
+            cand, d = cand[:, :col], d[:, :col]
             d[cand < 0] = np.inf
-            kk = min(k, d.shape[1])
-            part = np.argpartition(d, kk - 1, axis=1)[:, :kk]
-            dd = np.take_along_axis(d, part, axis=1)
-            ii = np.take_along_axis(cand, part, axis=1)
-            srt = np.argsort(dd, axis=1)
-            dd = np.take_along_axis(dd, srt, axis=1)
-            ii = np.take_along_axis(ii, srt, axis=1)
+            kk = min(k, col)
+            # One sortable int64 per candidate: float32 bits (monotonic for d >= 0) | column.
+            key = (d.view(np.int32).astype(np.int64) << 12) | np.arange(col, dtype=np.int64)
+            if kk < col:
+                key = np.partition(key, kk - 1, axis=1)[:, :kk]
+            key.sort(axis=1)
+            dd = (key >> 12).astype(np.int32).view(np.float32)
+            ii = np.take_along_axis(cand, key & 4095, axis=1).astype(np.int64)
             ii[~np.isfinite(dd)] = -1
             dist_out[q, :kk] = np.sqrt(dd)
             idx_out[q, :kk] = ii
 
-    search(np.arange(n), 1)
+    search(np.arange(n), offsets(0, 1), False)
     short = np.flatnonzero(~np.isfinite(dist_out[:, -1]))
     if short.size:
-        search(short, 2)
+        search(short, offsets(2, 2), True)
     return idx_out, dist_out
 
 
@@ -307,46 +328,107 @@ def statistical_outlier_mask(
     return mu_i < t  # eq. 4: outlier when mu_i >= t
 
 
+def _neighbour_moments(
+    points: np.ndarray, idx: np.ndarray
+) -> tuple[list[np.ndarray], list[np.ndarray], dict[tuple[int, int], np.ndarray], np.ndarray]:
+    """Per point: neighbour offsets, their mean and covariance (``idx`` -1 = no neighbour).
+
+    Everything is relative to the point itself: cm-scale numbers, so no cancellation when the
+    cloud sits metres from the origin, and the point-to-centroid vector is just ``-mean``.
+    Returns ``(rel[axis] (N,k), mean[axis] (N,), cov[(i, j)] (N,), count (N,))``.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    valid = idx >= 0
+    cnt = valid.sum(axis=1)
+    safe = np.where(valid, idx, np.arange(pts.shape[0])[:, None])  # missing -> self: offset 0
+    n = np.maximum(cnt, 1).astype(np.float64)
+    rel, mean = [], []
+    for a in range(3):
+        c = np.ascontiguousarray(pts[:, a])
+        r = c[safe]
+        r -= c[:, None]
+        rel.append(r)
+        mean.append(r.sum(axis=1) / n)
+    cov = {
+        (i, j): np.einsum("nk,nk->n", rel[i], rel[j]) / n - mean[i] * mean[j]
+        for i in range(3)
+        for j in range(i, 3)
+    }
+    return rel, mean, cov, cnt
+
+
+def smallest_eigenvector(cov: dict[tuple[int, int], np.ndarray]) -> np.ndarray:
+    """Unit eigenvector of the smallest eigenvalue of many symmetric 3x3 matrices, (N, 3).
+
+    Closed form (trigonometric eigenvalue, then the longest cross product of two rows of
+    ``A - lambda I``), 2-3x faster than a batched ``eigh``. Where the smallest eigenvalue is
+    not unique (a line or a single point) any vector of its eigenspace is as good; a zero
+    matrix gets +z.
+    """
+    a00, a01, a02 = cov[0, 0], cov[0, 1], cov[0, 2]
+    a11, a12, a22 = cov[1, 1], cov[1, 2], cov[2, 2]
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = np.sqrt(
+        (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0
+    )
+    det = (
+        b00 * (b11 * b22 - a12 * a12)
+        - a01 * (a01 * b22 - a12 * a02)
+        + a02 * (a01 * a12 - b11 * a02)
+    ) / np.where(p > 0, p, 1.0) ** 3
+    lam = q + 2.0 * p * np.cos(np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0 + 2.0 * np.pi / 3.0)
+    d0, d1, d2 = a00 - lam, a11 - lam, a22 - lam
+    best: list[np.ndarray] = []
+    for (ux, uy, uz), (vx, vy, vz) in (
+        ((d0, a01, a02), (a01, d1, a12)),
+        ((d0, a01, a02), (a02, a12, d2)),
+        ((a01, d1, a12), (a02, a12, d2)),
+    ):
+        cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        nn = cx * cx + cy * cy + cz * cz
+        if not best:
+            best = [cx, cy, cz, nn]
+        else:
+            longer = nn > best[3]
+            best = [np.where(longer, v, b) for v, b in zip((cx, cy, cz, nn), best, strict=True)]
+    cx, cy, cz, nn = best
+    ok = nn > 1e-60
+    inv = np.where(ok, 1.0 / np.sqrt(np.where(ok, nn, 1.0)), 0.0)
+    return np.column_stack([cx * inv, cy * inv, np.where(ok, cz * inv, 1.0)])
+
+
 def neighbourhood_normals(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normal (smallest-eigenvalue axis) and centroid of each point's neighbours."""
-    pts = np.asarray(points, dtype=np.float64)
-    valid = idx >= 0
-    nb = pts[np.maximum(idx, 0)]
-    w = valid[:, :, None].astype(np.float64)
-    cnt = np.maximum(valid.sum(axis=1), 1)[:, None]
-    centroid = (nb * w).sum(axis=1) / cnt
-    cen = (nb - centroid[:, None, :]) * w
-    cov = np.einsum("nki,nkj->nij", cen, cen) / cnt[:, :, None]
-    _, vecs = np.linalg.eigh(cov)
-    return vecs[:, :, 0], centroid
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    _, mean, cov, _ = _neighbour_moments(pts, idx)
+    return smallest_eigenvector(cov), pts + np.column_stack(mean)
 
 
 def plane_fit_criterion(points: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """PFC per point and its offset from the neighbours' plane.
 
-    For each point an SVD (eigen-decomposition of the 3x3 covariance, the same thing) fits a
-    plane to its neighbours ``idx (N, k)`` (-1 = none). ``d_p`` = distance of the point to that
-    plane, ``d_avg`` = mean distance of the neighbours to it; ``PFC = d_p / (d_p + d_avg)``: it
-    tends to 1 when the neighbourhood is flat and the point is off it, to 0 when the point lies on
-    the plane. Points with fewer than 3 neighbours get PFC 0 (no evidence, keep).
+    For each point a plane is fitted to its neighbours ``idx (N, k)`` (-1 = none) by the SVD of
+    their centred coordinates, i.e. the smallest eigenvector of their 3x3 covariance (same
+    thing, computed in closed form). ``d_p`` = distance of the point to that plane, ``d_avg`` =
+    mean distance of the neighbours to it; ``PFC = d_p / (d_p + d_avg)``: it tends to 1 when
+    the neighbourhood is flat and the point is off it, to 0 when the point lies on the plane.
+    Points with fewer than 3 neighbours get PFC 0 (no evidence, keep).
     Returns ``(pfc (N,), d_p (N,))``.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    valid = idx >= 0
-    nvalid = valid.sum(axis=1)
-    nb = pts[np.maximum(idx, 0)]  # (N, k, 3)
-    w = valid[:, :, None].astype(np.float64)
-    cnt = np.maximum(nvalid, 1)[:, None]
-    centroid = (nb * w).sum(axis=1) / cnt
-    cen = (nb - centroid[:, None, :]) * w
-    cov = np.einsum("nki,nkj->nij", cen, cen) / cnt[:, :, None]
-    _, vecs = np.linalg.eigh(cov)
-    normal = vecs[:, :, 0]  # smallest eigenvalue = plane normal
-    d_p = np.abs(np.einsum("ni,ni->n", pts - centroid, normal))
-    d_nb = np.abs(np.einsum("nki,ni->nk", cen, normal))
-    d_avg = (d_nb * valid).sum(axis=1) / np.maximum(nvalid, 1)
+    rel, mean, cov, cnt = _neighbour_moments(points, idx)
+    normal = smallest_eigenvector(cov)
+    along = mean[0] * normal[:, 0] + mean[1] * normal[:, 1] + mean[2] * normal[:, 2]
+    d_p = np.abs(along)
+    proj = rel[0] * normal[:, :1]
+    proj += rel[1] * normal[:, 1:2]
+    proj += rel[2] * normal[:, 2:]
+    proj -= along[:, None]
+    np.abs(proj, out=proj)
+    proj[idx < 0] = 0.0
+    d_avg = proj.sum(axis=1) / np.maximum(cnt, 1)
     pfc = d_p / np.maximum(d_p + d_avg, 1e-12)
-    pfc[nvalid < 3] = 0.0
+    pfc[cnt < 3] = 0.0
     return pfc, d_p
 
 
