@@ -78,11 +78,13 @@ def box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
 
 
 # Table I analogues in the paper scene (room frame boxes around each surface, true distance).
+# The boxes hold the facing sides of the tables and their legs, from 10 cm above the floor to
+# just below the top surface (which would otherwise dominate the plane fit).
 TABLE_I: list[tuple[str, list[float], list[float], str, int | None]] = [
     (
         "9(a) table A to table B",
-        [1.07, 5.0, 0.3, 1.15, 5.8, 0.76],
-        [2.25, 5.0, 0.3, 2.33, 5.8, 0.76],
+        [1.08, 4.95, 0.1, 1.16, 5.85, 0.745],
+        [2.24, 4.95, 0.1, 2.32, 5.85, 0.745],
         "table_gap",
         None,
     ),
@@ -95,8 +97,8 @@ TABLE_I: list[tuple[str, list[float], list[float], str, int | None]] = [
     ),
     (
         "9(c) row of tables to row",
-        [0.3, 3.30, 0.3, 3.4, 3.40, 0.76],
-        [0.3, 4.95, 0.3, 3.4, 5.05, 0.76],
+        [0.3, 3.30, 0.1, 4.8, 3.40, 0.745],
+        [0.0, 4.95, 0.1, 3.6, 5.03, 0.745],
         "rows_gap",
         None,
     ),
@@ -241,9 +243,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="CI-size run (fewer frames/points)")
     ap.add_argument("--json", type=Path, help="write the rows as JSON")
     ap.add_argument("--sim", type=Path, default=ROOT / "bags" / "paper_room")
-    ap.add_argument("--fresh-seed", type=int, help="simulate a fresh scene with this seed too")
+    ap.add_argument(
+        "--fresh-seed",
+        type=int,
+        help="simulate a fresh scene with this seed too (full runs: 11, so the figures are not "
+        "only those of the bundled bag the defaults were tuned on)",
+    )
     args = ap.parse_args(argv)
     frames = 40 if args.quick else 10_000
+    if args.fresh_seed is None and not args.quick:
+        args.fresh_seed = 11
     fidelity(args.sim, frames, "sim paper room, ARKit-like prior", True, "kiss")
     fidelity(args.sim, frames, "sim paper room, no prior", False, "kiss")
     if not args.quick:

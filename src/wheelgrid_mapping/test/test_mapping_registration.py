@@ -9,6 +9,7 @@ from wheelgrid_mapping.levelling import rpy_matrix
 from wheelgrid_mapping.registration import (
     Registrar,
     RegistrationConfig,
+    blend_correction,
     rotation_angle_deg,
     transform,
 )
@@ -180,3 +181,16 @@ def test_bare_floor_without_prior_is_refused_not_guessed() -> None:
     res = reg.register(shifted[rng.random(len(shifted)) < 0.8], 0.2)
     assert not res.accepted and "degenerate" in res.reason
     assert reg.counters.failure_reasons.get("degenerate geometry") == 1
+
+
+def test_blend_correction_scales_rotation_and_translation_apart() -> None:
+    corr = np.eye(4)
+    corr[:3, :3] = rpy_matrix(0.0, 0.0, np.radians(2.0))
+    corr[:3, 3] = [0.04, -0.02, 0.01]
+    assert np.allclose(blend_correction(corr, 1.0, 1.0), corr)  # ICP as it is
+    assert np.allclose(blend_correction(corr, 0.0, 0.0), np.eye(4))  # the prior as it is
+    half = blend_correction(corr, 1.0, 0.5)
+    assert rotation_angle_deg(half) == pytest.approx(1.0, abs=1e-9)
+    assert np.allclose(half[:3, 3], corr[:3, 3])
+    assert np.allclose(half[:3, :3], rpy_matrix(0.0, 0.0, np.radians(1.0)))
+    assert np.allclose(blend_correction(corr, 0.25, 1.0)[:3, 3], 0.25 * corr[:3, 3])

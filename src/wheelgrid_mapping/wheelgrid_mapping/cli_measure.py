@@ -1,9 +1,9 @@
 """``wheelgrid measure MAP.ply``: distance between two surfaces of a map (the paper's Table I).
 
 The paper measured obstacle-to-obstacle distances on its 3D map by hand in MATLAB. Here each
-surface is chosen by an axis-aligned box (map frame, metres) around it; a plane is fitted to
-the map points inside each box (SVD, after trimming the 10 % of points farthest from a first
-fit, so a stray neighbour surface does not tilt it), and the distance is the mean of the
+surface is chosen by an axis-aligned box (map frame, metres) around it; in each box the plane
+most points agree with is found (RANSAC, 1.5 cm) and refitted by SVD on its inliers, so a
+neighbouring surface the box clips does not tilt or shift it; the distance is the mean of the
 centroid-to-other-plane distances both ways. With ``--true`` the deviation in % is printed, as
 in Table I.
 """
@@ -46,27 +46,46 @@ def points_in_box(points: np.ndarray, box: list[float] | np.ndarray) -> np.ndarr
     return points[((points >= lo) & (points <= hi)).all(axis=1)]
 
 
-def fit_plane(points: np.ndarray, trim: float = 0.1) -> Plane:
-    """Least-squares plane (SVD), refitted once without the ``trim`` share of worst points."""
-    if points.shape[0] < 3:
-        raise ValueError(f"a plane needs >= 3 points, the box holds {points.shape[0]}")
-    pts = points
-    for _ in range(2):
-        c = pts.mean(axis=0)
-        _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-        n = vt[2]
-        d = np.abs((pts - c) @ n)
-        if trim <= 0 or pts.shape[0] < 10:
+def fit_plane(points: np.ndarray, inlier: float = 0.015, trials: int = 300) -> Plane:
+    """The plane most points of the box agree with (RANSAC), refitted by SVD on its inliers.
+
+    A box drawn around a table's edge face also catches the rim of its top and the sides of
+    its legs; a least-squares fit through all of them is tilted and pulled inwards by
+    centimetres (the first version of this tool was: +1.3 % on a 1.66 m gap with perfect
+    poses). The plane with the largest support within ``inlier`` metres is the surface the box
+    was drawn for; the refit on its inliers removes the sampling noise. Seeded: the same map
+    always measures the same.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if pts.shape[0] < 3:
+        raise ValueError(f"a plane needs >= 3 points, the box holds {pts.shape[0]}")
+    rng = np.random.default_rng(0)
+    best = np.ones(pts.shape[0], dtype=bool)
+    if pts.shape[0] > 10:
+        best_count = 0
+        sample = pts if pts.shape[0] <= 20_000 else pts[rng.choice(pts.shape[0], 20_000, False)]
+        tri = rng.integers(0, sample.shape[0], size=(trials, 3))
+        a, b, c = sample[tri[:, 0]], sample[tri[:, 1]], sample[tri[:, 2]]
+        normals = np.cross(b - a, c - a)
+        norm = np.linalg.norm(normals, axis=1)
+        for i in np.flatnonzero(norm > 1e-9):
+            n = normals[i] / norm[i]
+            inl = np.abs((pts - a[i]) @ n) <= inlier
+            count = int(inl.sum())
+            if count > best_count:
+                best, best_count = inl, count
+    sel = pts[best]
+    for _ in range(3):  # refit, re-select: converges to the least-squares plane of the inliers
+        c = sel.mean(axis=0)
+        n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
+        inl = np.abs((pts - c) @ n) <= inlier
+        if inl.sum() < 3:
             break
-        keep = d <= np.quantile(d, 1.0 - trim)
-        if keep.sum() < 3:
-            break
-        pts = pts[keep]
-    c = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-    n = vt[2]
-    rms = float(np.sqrt(np.mean(((pts - c) @ n) ** 2)))
-    return Plane(n, c, int(points.shape[0]), rms)
+        sel = pts[inl]
+    c = sel.mean(axis=0)
+    n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
+    rms = float(np.sqrt(np.mean(((sel - c) @ n) ** 2)))
+    return Plane(n, c, int(sel.shape[0]), rms)
 
 
 def measure(
