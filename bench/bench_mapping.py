@@ -148,6 +148,11 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
         except ValueError as exc:
             print(f"{label}: {name}: not measurable ({exc})")
             continue
+        if meas.angle_deg > 10.0:
+            # The box did not catch two facing surfaces (not seen from this trajectory, or a
+            # neighbour dominates): a distance between non-parallel planes means nothing.
+            row(f"{label}: Table I {name}: NOT measurable, planes apart", meas.angle_deg, "deg")
+            continue
         dev = 100.0 * abs(meas.distance - true[key]) / true[key]
         row(f"{label}: Table I {name} ({true[key] * 100:.2f} cm)", meas.distance * 100, "cm")
         row(f"{label}: Table I {name} deviation", dev, "%")

@@ -139,6 +139,24 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
     assert cli_measure.main([str(tmp_path / "none.ply"), "--box-a", *box_a, "--box-b", *box_b]) == 2
 
 
+def test_measure_keeps_to_the_face_when_the_box_clips_a_table_top() -> None:
+    # Two tables 1.20 m apart; each box around an edge face also catches 4 cm of the top's rim
+    # (3x denser: seen from above, close): a least-squares fit through both reads ~1 cm wide.
+    rng = np.random.default_rng(2)
+
+    def table_edge(x_face: float, inward: float) -> np.ndarray:
+        face = np.column_stack([np.full(600, x_face), rng.random(600), 0.3 + 0.4 * rng.random(600)])
+        rim = np.column_stack(
+            [x_face + inward * rng.random(180), rng.random(180), np.full(180, 0.7)]
+        )
+        return np.vstack([face, rim]) + rng.normal(0, 0.003, (780, 3))
+
+    pts = np.vstack([table_edge(1.0, -0.04), table_edge(2.2, 0.04)])
+    m = cli_measure.measure(pts, [0.95, 0, 0.25, 1.05, 1, 0.75], [2.15, 0, 0.25, 2.25, 1, 0.75])
+    assert m.distance == pytest.approx(1.2, abs=0.003)
+    assert m.angle_deg < 1.0
+
+
 def test_measure_along_an_axis_for_a_thin_bar(tmp_path: Path, capsys) -> None:
     rng = np.random.default_rng(1)
     floor = np.column_stack([rng.random((3000, 2)) * 2, np.zeros(3000)])

@@ -137,6 +137,6 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         assert reset.wait_for_service(timeout_sec=10.0)
         fut = reset.call_async(Trigger.Request())
         assert spin_until(ex, fut.done, 10.0) and fut.result().success
-        assert spin_until(ex, lambda: values().get("frames_used") == "0", 10.0)
+        assert spin_until(ex, lambda: values().get("frames_used") == "0", 10.0), values()
         ex.shutdown()
         node.destroy_node()

@@ -86,6 +86,7 @@ class MapperNode(Node):  # type: ignore[misc]
         cfg = declare_dataclass(self, MapperConfig(), "mapper.")
         self.mapper = Mapper(pre, reg, cfg)
         self._lock = threading.Lock()  # guards self.mapper
+        self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()
         self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None]] = deque()
         self._stop = False
@@ -186,6 +187,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 if self._stop:
                     return
                 frame = self._queue.popleft()
+                generation = self._generation
             assert frame is not None
             pts, stamp, frame_id, conf = frame
             if frame_id:
@@ -202,6 +204,9 @@ class MapperNode(Node):  # type: ignore[misc]
                     self._log_once("noprior", f"no pose on {self.prior_topic} near a frame")
             try:
                 with self._lock:
+                    if generation != self._generation:  # ~/reset came while it was in hand
+                        self.counts["skipped_busy"] += 1
+                        continue
                     out = self.mapper.add_frame(pts, stamp, frame_id, conf, prior)
             except Exception as exc:  # a bad frame must never kill the mapper
                 self.get_logger().error(f"frame at {stamp:.3f} s failed: {exc!r}")
@@ -306,9 +311,10 @@ class MapperNode(Node):  # type: ignore[misc]
         return response
 
     def _on_reset(self, request: Any, response: Any) -> Any:
-        with self._slot_lock:
+        with self._slot_lock, self._lock:
+            self.counts["skipped_busy"] += len(self._queue)
             self._queue.clear()
-        with self._lock:
+            self._generation += 1
             self.mapper.reset()
         self._map_dirty = False
         response.success = True

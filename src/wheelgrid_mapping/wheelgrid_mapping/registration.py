@@ -79,7 +79,7 @@ class RegistrationConfig:
     )
     max_prior_deviation_deg: float = field(3.0, "same, for rotation", "deg")
     degeneracy_ratio: float = field(
-        0.1,
+        0.2,
         "with a prior, ICP corrections along directions constrained by less than this share of "
         "the points (e.g. sliding along a floor) are dropped and the prior kept",
         "",
