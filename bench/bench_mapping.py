@@ -159,6 +159,53 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     return m
 
 
+def largest_planes(pc: Any, count: int = 6, min_share: float = 0.02) -> list[np.ndarray]:
+    """Inlier sets of the largest planes of a cloud (RANSAC, 3 cm), biggest first."""
+    rest, out = pc, []
+    total = len(pc.points)
+    for _ in range(count):
+        if len(rest.points) < 1000:
+            break
+        _, inl = rest.segment_plane(0.03, 3, 500, probability=0.9999)
+        if len(inl) < min_share * total:
+            break
+        out.append(np.asarray(rest.points)[inl])
+        rest = rest.select_by_index(inl, invert=True)
+    return out
+
+
+def plane_alignment(
+    ref: np.ndarray, pts: np.ndarray, planes: list[np.ndarray]
+) -> list[tuple[str, float, float]]:
+    """Worst angle and offset between the reference's large planes and the same surfaces in
+    ``pts`` (points within 4 cm of the reference plane, inside its extent), grouped into walls
+    and horizontal surfaces (floor, table tops) by their angle to the largest plane."""
+    if not planes:
+        return []
+
+    def fit(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = p.mean(axis=0)
+        return np.linalg.svd(p - c, full_matrices=False)[2][2], c
+
+    up, _ = fit(planes[0])  # the floor: the largest plane of an indoor scan
+    worst: dict[str, list[float]] = {}
+    for inl in planes:
+        n, c = fit(inl)
+        lo, hi = inl.min(axis=0) - 0.05, inl.max(axis=0) + 0.05
+        near = pts[
+            (np.abs((pts - c) @ n) < 0.04) & (pts >= lo).all(axis=1) & (pts <= hi).all(axis=1)
+        ]
+        if near.shape[0] < 100:
+            continue
+        n2, c2 = fit(near)
+        angle = float(np.degrees(np.arccos(min(1.0, abs(float(n @ n2))))))
+        offset = abs(float((c - c2) @ n2))
+        kind = "horizontal" if abs(float(n @ up)) > 0.9 else "wall"
+        w = worst.setdefault(kind, [0.0, 0.0])
+        w[0], w[1] = max(w[0], angle), max(w[1], offset)
+    return [(k, v[0], v[1]) for k, v in sorted(worst.items())]
+
+
 def real_data(limit: int, interval: float) -> None:
     stray = SHARED / "data" / "stray-iphone-room"
     if not stray.exists():
@@ -185,6 +232,7 @@ def real_data(limit: int, interval: float) -> None:
     import open3d as o3d
 
     ref_pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref))
+    planes = largest_planes(ref_pc)
     for label, prior in (("real ICP only", False), ("real ICP + ARKit prior", True)):
         total, frames = stray_frames(stray, prior)
         t0 = time.perf_counter()
@@ -197,6 +245,9 @@ def real_data(limit: int, interval: float) -> None:
             )
         )
         row(f"{label}: points within 5 cm of the ARKit map", 100.0 * float(np.mean(d < 0.05)), "%")
+        for kind, angle, offset in plane_alignment(ref, pts, planes):
+            row(f"{label}: {kind} planes vs the ARKit map, worst angle", angle, "deg")
+            row(f"{label}: {kind} planes vs the ARKit map, worst offset", offset * 100, "cm")
         row(f"{label}: frames failed", m.registrar.counters.failed, "frames")
         row(f"{label}: frames/s (every {interval:.2f} s)", m.frames_read / wall, "frames/s")
 
