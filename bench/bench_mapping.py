@@ -77,6 +77,13 @@ def box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
     return d
 
 
+def near_surface_pct(pts_room: np.ndarray, scene: dict[str, Any]) -> float:
+    """Share (%) of map points (room frame) within 5 cm of a surface of the scene's boxes."""
+    lo = np.array([b["min"] for b in scene["boxes"]])
+    hi = np.array([b["max"] for b in scene["boxes"]])
+    return 100.0 * float(np.mean(box_distance(pts_room, lo, hi) < 0.05))
+
+
 # Table I analogues in the paper scene (room frame boxes around each surface, true distance).
 # The boxes hold the facing sides of the tables and their legs, from 10 cm above the floor to
 # just below the top surface (which would otherwise dominate the plane fit).
@@ -125,13 +132,10 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     first = np.linalg.inv(gt[idx[0]]) @ poses[0]
     row(f"{label}: map frame offset (first pose)", float(np.linalg.norm(first[:3, 3])), "m")
     row(f"{label}: map frame rotation (first pose)", rotation_angle_deg(first), "deg")
-    pts_map = m.map_points()
-    room_from_map = np.linalg.inv(map_from_room)
-    pts_room = transform(pts_map, room_from_map)
-    lo = np.array([b["min"] for b in scene["boxes"]])
-    hi = np.array([b["max"] for b in scene["boxes"]])
-    row(f"{label}: map points within 5 cm of a true surface",
-        100.0 * float(np.mean(box_distance(pts_room, lo, hi) < 0.05)), "%")  # fmt: skip
+    pts_room = transform(m.map_points(), np.linalg.inv(map_from_room))
+    row(
+        f"{label}: map points within 5 cm of a true surface", near_surface_pct(pts_room, scene), "%"
+    )
     bars = scene.get("barriers", {})
     true = {
         "table_gap": bars.get("table_gap"),
@@ -209,16 +213,12 @@ def plane_alignment(
 def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     """The same filtered frames placed at the simulator's true poses, through the same evidence
     map: what the map's points could reach with perfect registration."""
-    from wheelgrid_mapping.evidence import EvidenceMap
     from wheelgrid_mapping.preprocess import preprocess
 
     scene = json.loads((sim / "scene.json").read_text())
     truth = json.loads((sim / "truth.json").read_text())
     gt_stamps, gt = read_tum(sim / "poses_map.tum")
-    cfg, pre = MapperConfig(), PreprocessConfig()
-    ev = EvidenceMap(
-        cfg.map_voxel, cfg.evidence_voxel, cfg.evidence_min_frames, cfg.evidence_hit_fraction
-    )
+    pre, ev = PreprocessConfig(), MapperConfig().evidence_map()
     total, frames, _ = bag_frames(sim / "scan", None, False)
     for n, (pts, stamp, _, conf, _) in enumerate(frames):
         if n >= min(total, frames_limit):
@@ -226,10 +226,9 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
         pose = gt[int(np.argmin(np.abs(gt_stamps - stamp)))]
         ev.add(transform(preprocess(pts, pre, conf), pose), pose[:3, 3])
     pts_room = transform(ev.points(), np.linalg.inv(np.asarray(truth["map_from_room"])))
-    lo = np.array([b["min"] for b in scene["boxes"]])
-    hi = np.array([b["max"] for b in scene["boxes"]])
-    row(f"{label}: map points within 5 cm of a true surface",
-        100.0 * float(np.mean(box_distance(pts_room, lo, hi) < 0.05)), "%")  # fmt: skip
+    row(
+        f"{label}: map points within 5 cm of a true surface", near_surface_pct(pts_room, scene), "%"
+    )
 
 
 def real_data(limit: int, interval: float) -> None:

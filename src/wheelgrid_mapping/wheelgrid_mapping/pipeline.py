@@ -71,6 +71,15 @@ class MapperConfig:
         "",
     )
 
+    def evidence_map(self) -> EvidenceMap:
+        """An empty map with these settings (the mapper's, and the benchmark's true-pose run)."""
+        return EvidenceMap(
+            self.map_voxel,
+            self.evidence_voxel,
+            self.evidence_min_frames,
+            self.evidence_hit_fraction,
+        )
+
 
 def floor_correction(
     pts: np.ndarray, band: float = 0.08, gate: float = 0.03, max_tilt_deg: float = 3.0
@@ -162,12 +171,7 @@ class Mapper:
         self.convention: str | None = None
         self.T_map_odom: np.ndarray | None = None
         self.level_info: dict[str, Any] = {}
-        self._evidence = EvidenceMap(
-            self.cfg.map_voxel,
-            self.cfg.evidence_voxel,
-            self.cfg.evidence_min_frames,
-            self.cfg.evidence_hit_fraction,
-        )
+        self._evidence = self.cfg.evidence_map()
         self._map_odom = np.empty((0, 3))
         self._dirty = 0
         self._relevelled_at = -1

@@ -329,17 +329,18 @@ class Registrar:
         relocalising = self.state == "relocalising"
         scale = cfg.relocalise_scale if relocalising else 1.0
         pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
+        corr = np.linalg.inv(guess) @ pose  # ICP's correction of the guess (sensor frame)
         degenerate = 0
         ratio = cfg.degeneracy_ratio if with_prior else cfg.reject_degenerate_ratio
         if ratio > 0:
-            corr, degenerate = constrain_to_observable(
-                frame_down, 0.5 * cfg.voxel_size, np.linalg.inv(guess) @ pose, ratio
+            observed, degenerate = constrain_to_observable(
+                frame_down, 0.5 * cfg.voxel_size, corr, ratio
             )
             if with_prior:
-                pose = guess @ corr
+                corr = observed
         if with_prior:
             pose = guess @ blend_correction(
-                np.linalg.inv(guess) @ pose, cfg.prior_translation_gain, cfg.prior_rotation_gain
+                corr, cfg.prior_translation_gain, cfg.prior_rotation_gain
             )
         fitness = self._fitness(transform(frame_down, pose))
 
