@@ -6,8 +6,22 @@ scripts/test.sh already exports these; this also covers a bare `pytest` run by a
 import os
 import random
 import tempfile
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="wheelgrid-test-log."))
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+
+
+@pytest.fixture
+def stray_capture() -> Path:
+    """The real iPhone capture (../shared/data/stray-iphone-room); skips when it is absent."""
+    from wheelgrid_common.testing import shared_data
+
+    path = shared_data("stray-iphone-room", Path(__file__).resolve().parent)
+    if not (path / "depth").is_dir():
+        pytest.skip(f"{path}: the real Stray capture is not present")
+    return path

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import sys
 import threading
 import time
@@ -27,7 +26,14 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.ros_env import child_env, configure_ros_env
-from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+from wheelgrid_common.testing import (
+    free_port,
+    managed_process,
+    python_module,
+    rclpy_context,
+    shared_data,
+    spin_until,
+)
 
 TOPICS = [
     "/iphone/points",
@@ -39,15 +45,7 @@ TOPICS = [
 
 
 def _capture() -> Path:
-    base = os.environ.get("WHEELGRID_SHARED")
-    root = Path(base) if base else Path(__file__).resolve().parents[1] / "../shared"
-    return root / "data" / "stray-iphone-room"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return shared_data("stray-iphone-room", Path(__file__).resolve().parents[1])
 
 
 def _cpu_s(pid: int) -> float:
@@ -66,7 +64,7 @@ def run(indices: range, profile: bool) -> dict[str, float]:
     from wheelgrid_mapping.stray import StrayExport
 
     exp = StrayExport(_capture())
-    port = _free_port()
+    port = free_port()
     env = child_env()
     env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
     if not profile:

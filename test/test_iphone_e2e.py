@@ -4,10 +4,8 @@ compared with the map fused from ARKit's own poses. No frame may be lost at 1x r
 
 from __future__ import annotations
 
-import os
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,38 +13,21 @@ import pytest
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
-def _capture(repo_root: Path) -> Path:
-    base = os.environ.get("WHEELGRID_SHARED")
-    root = Path(base) if base else repo_root.parent / "shared"
-    path = root / "data" / "stray-iphone-room"
-    if not (path / "depth").is_dir():
-        pytest.skip(f"{path}: the real Stray capture is not present")
-    return path
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path):
+def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray_capture):
     import open3d as o3d
 
     from wheelgrid_bringup.chain import Monitor
     from wheelgrid_bringup.supervisor import Supervisor, node_argv
     from wheelgrid_common.fileio import read_ply, read_tum
     from wheelgrid_common.ros_env import child_env
-    from wheelgrid_common.testing import rclpy_context
+    from wheelgrid_common.testing import free_port, rclpy_context
     from wheelgrid_mapping.cli_stray import stream_export
     from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
     from wheelgrid_mapping.stray import StrayExport
 
-    exp = StrayExport(_capture(repo_root))
+    exp = StrayExport(stray_capture)
     start, n = 300, 120  # 2 s of the capture at 60 fps
-    port = _free_port()
+    port = free_port()
     sup = Supervisor(tmp_path / "logs", child_env())
     with rclpy_context() as ctx:
         monitor = Monitor(ctx, "iphone_e2e")

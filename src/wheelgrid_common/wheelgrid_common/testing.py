@@ -8,14 +8,30 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from wheelgrid_common.ros_env import child_env, configure_ros_env
+
+
+def shared_data(name: str, repo_root: Path) -> Path:
+    """Where a real data set lives: ``$WHEELGRID_SHARED/data/NAME``, else the checkout's sibling
+    ``../shared/data/NAME``. It may be absent: callers skip with a reason (never copy it in)."""
+    base = os.environ.get("WHEELGRID_SHARED")
+    return (Path(base) if base else repo_root.parent / "shared") / "data" / name
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nobody listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 @contextmanager

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import socket
 import subprocess
 import threading
@@ -14,26 +13,17 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.pointcloud2 import read_fields
-from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+from wheelgrid_common.testing import (
+    free_port,
+    managed_process,
+    python_module,
+    rclpy_context,
+    spin_until,
+)
 
 pytestmark = pytest.mark.ros
 
 BRIDGE = "wheelgrid_mapping.iphone_bridge_node"
-
-
-def _real_capture() -> Path:
-    base = os.environ.get("WHEELGRID_SHARED")
-    root = Path(base) if base else Path(__file__).resolve().parents[3] / "../shared"
-    path = root / "data" / "stray-iphone-room"
-    if not (path / "depth").is_dir():
-        pytest.skip(f"{path}: real Stray capture not present")
-    return path
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_listening(port: int, proc: subprocess.Popen[Any], timeout: float = 20.0) -> None:
@@ -58,7 +48,7 @@ class Counter:
         return {t: len(v) for t, v in self.msgs.items()}
 
 
-def test_stream_stray_through_bridge_loses_no_frame() -> None:
+def test_stream_stray_through_bridge_loses_no_frame(stray_capture: Path) -> None:
     """90 real frames (1.5 s) at 1x real time: sent == published == received on every topic."""
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
@@ -70,7 +60,7 @@ def test_stream_stray_through_bridge_loses_no_frame() -> None:
     from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
     from wheelgrid_mapping.stray import StrayExport
 
-    exp = StrayExport(_real_capture())
+    exp = StrayExport(stray_capture)
     start, n = 300, 90
     port = free_port()
     cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}")

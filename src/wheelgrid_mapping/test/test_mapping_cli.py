@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -12,10 +11,6 @@ import pytest
 
 from wheelgrid_common.fileio import read_ply, read_tum, write_ply
 from wheelgrid_mapping import cli_map, cli_measure
-
-SHARED = Path(os.environ.get("WHEELGRID_SHARED", Path(__file__).resolve().parents[3] / "../shared"))
-STRAY = SHARED / "data" / "stray-iphone-room"
-
 
 BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
 
@@ -103,11 +98,11 @@ def test_two_cloud_topics_need_topic(tmp_path: Path, capsys) -> None:
     assert "/a/points" in err and "/b/points" in err and "--topic" in err
 
 
-def test_map_from_the_real_stray_export(tmp_path: Path) -> None:
-    if not STRAY.exists():
-        pytest.skip("stray-iphone-room: not present")
+def test_map_from_the_real_stray_export(tmp_path: Path, stray_capture: Path) -> None:
     out = tmp_path / "stray"
-    code = cli_map.main([str(STRAY), "--out", str(out), "--prior", "arkit", "--max-frames", "6"])
+    code = cli_map.main(
+        [str(stray_capture), "--out", str(out), "--prior", "arkit", "--max-frames", "6"]
+    )
     assert code == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["read"] == 6 and rep["frames"]["used"] >= 5

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,19 +15,6 @@ from wheelgrid_mapping.depth import (
     transform_points,
 )
 from wheelgrid_mapping.stray import StrayExport
-
-
-def _shared_data() -> Path:
-    base = os.environ.get("WHEELGRID_SHARED")
-    root = Path(base) if base else Path(__file__).resolve().parents[3] / "../shared"
-    return root / "data"
-
-
-def _real_capture() -> Path:
-    path = _shared_data() / "stray-iphone-room"
-    if not (path / "depth").is_dir():
-        pytest.skip(f"{path}: real Stray capture not present")
-    return path
 
 
 def make_export(root: Path, n: int = 3, *, odometry: bool = True) -> Path:
@@ -99,8 +85,8 @@ def _world_cloud(exp: StrayExport, i: int, arkit_camera_axes: bool = False) -> n
     return transform_points(arkit_pose_to_ros(T), pts)
 
 
-def test_real_capture_reads() -> None:
-    exp = StrayExport(_real_capture())
+def test_real_capture_reads(stray_capture: Path) -> None:
+    exp = StrayExport(stray_capture)
     assert len(exp) == 942 and exp.has_poses
     f = exp.frame(0)
     assert f.depth.shape == (192, 256)
@@ -113,9 +99,9 @@ def test_real_capture_reads() -> None:
     assert stamps[-1] - stamps[0] == pytest.approx(15.7, abs=0.1)
 
 
-def test_real_capture_floor_is_flat_and_level_in_ros_frame() -> None:
+def test_real_capture_floor_is_flat_and_level_in_ros_frame(stray_capture: Path) -> None:
     """Fused with ARKit poses and turned z-up, the floor is one level plane below the camera."""
-    exp = StrayExport(_real_capture())
+    exp = StrayExport(stray_capture)
     P = np.concatenate([_world_cloud(exp, i) for i in range(0, len(exp), 30)])
     z = P[:, 2]
     hist, edges = np.histogram(z, bins=np.arange(z.min(), z.max() + 0.02, 0.02))
@@ -139,11 +125,11 @@ def test_real_capture_floor_is_flat_and_level_in_ros_frame() -> None:
     assert 2.3 < top - floor_z < 3.0
 
 
-def test_real_capture_walls_of_different_frames_line_up() -> None:
+def test_real_capture_walls_of_different_frames_line_up(stray_capture: Path) -> None:
     """Frames 1-2 s apart overlap to a few cm with the optical convention, not with ARKit axes."""
     import open3d as o3d
 
-    exp = StrayExport(_real_capture())
+    exp = StrayExport(stray_capture)
 
     def pcd(p: np.ndarray) -> o3d.geometry.PointCloud:
         return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).voxel_down_sample(0.03)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import socket
 import time
 from pathlib import Path
 
@@ -12,6 +10,7 @@ import pytest
 
 from wheelgrid_common.bagio import BagReader
 from wheelgrid_common.pointcloud2 import read_fields
+from wheelgrid_common.testing import free_port
 from wheelgrid_mapping import bridge_protocol as bp
 from wheelgrid_mapping.cli_stray import import_main, stream_main
 from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
@@ -26,18 +25,11 @@ TOPICS = {
 }
 
 
-def _real_capture() -> Path:
-    base = os.environ.get("WHEELGRID_SHARED")
-    root = Path(base) if base else Path(__file__).resolve().parents[3] / "../shared"
-    path = root / "data" / "stray-iphone-room"
-    if not (path / "depth").is_dir():
-        pytest.skip(f"{path}: real Stray capture not present")
-    return path
-
-
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
-def test_import_stray_writes_bridge_topics(tmp_path: Path, storage: str) -> None:
-    cap = _real_capture()
+def test_import_stray_writes_bridge_topics(
+    tmp_path: Path, storage: str, stray_capture: Path
+) -> None:
+    cap = stray_capture
     out = tmp_path / "bag"
     assert (
         import_main(
@@ -67,33 +59,42 @@ def test_import_stray_writes_bridge_topics(tmp_path: Path, storage: str) -> None
     assert odoms[0][1].header.frame_id == "odom"
 
 
-def test_import_stray_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_import_stray_not_an_export_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert import_main([str(tmp_path), "--out", str(tmp_path / "b")]) == 2
     assert "not a Stray Scanner export" in capsys.readouterr().err
+
+
+def test_import_stray_bad_input_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
     (tmp_path / "exists").mkdir()
-    cap = _real_capture()
+    cap = stray_capture
     assert import_main([str(cap), "--out", str(tmp_path / "exists")]) == 2
     assert "already exists" in capsys.readouterr().err
     assert import_main([str(cap), "--out", str(tmp_path / "c"), "--start", "5000"]) == 2
     assert "--start" in capsys.readouterr().err
 
 
-def test_stream_stray_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    cap = _real_capture()
+def test_stream_stray_exit_codes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    cap = stray_capture
     assert stream_main([str(tmp_path), "--to", "127.0.0.1:9"]) == 2
     assert stream_main([str(cap), "--to", "nohostport"]) == 2
     assert "HOST:PORT" in capsys.readouterr().err
     assert stream_main([str(cap), "--rate", "-1"]) == 2
-    with socket.socket() as s:  # a port with nobody listening
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # nobody listening
     assert stream_main([str(cap), "--to", f"127.0.0.1:{port}", "--frames", "1"]) == 1
     assert "failed" in capsys.readouterr().err
 
 
-def test_stream_stray_sends_decodable_frames_with_token(capsys: pytest.CaptureFixture[str]) -> None:
+def test_stream_stray_sends_decodable_frames_with_token(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
     """--start/--frames/--token over real TCP to a BridgeServer; frames equal the export's."""
-    cap = _real_capture()
+    cap = stray_capture
     got: list[bp.Frame] = []
     srv = bp.BridgeServer(lambda f, c: got.append(f), lambda lv, t: None, port=0, token="tk")
     srv.start()
