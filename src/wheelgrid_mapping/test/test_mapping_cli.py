@@ -67,8 +67,14 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
     for db in corrupt.glob("*.db3"):
         db.write_bytes(b"this is not sqlite" * 10)
     assert cli_map.main([str(corrupt), "--out", str(tmp_path / "o")]) == 2
+    bad_cfg = tmp_path / "bad.yaml"
+    bad_cfg.write_text("registration:\n  prior_rotation_gain: 2.0\n")
+    out = tmp_path / "o2"
+    argv = [str(sim_dir / "scan"), "--out", str(out), "--config", str(bad_cfg)]
+    assert cli_map.main(argv) == 2 and not out.exists()
     err = capsys.readouterr().err
-    assert "Traceback" not in err and err.count("wheelgrid map:") == 3
+    assert "Traceback" not in err and err.count("wheelgrid map:") == 4
+    assert "prior_rotation_gain must be in [0, 1]" in err
 
 
 def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:

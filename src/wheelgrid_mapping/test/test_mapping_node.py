@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import array
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -140,3 +141,15 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         assert spin_until(ex, lambda: values().get("frames_used") == "0", 10.0), values()
         ex.shutdown()
         node.destroy_node()
+
+
+@pytest.mark.parametrize(
+    "param", ["registration.prior_rotation_gain:=2.0", "registration.method:=ndt"]
+)
+def test_bad_parameters_stop_the_mapper_with_exit_2(param: str) -> None:
+    from wheelgrid_common.ros_env import child_env
+
+    args = python_module("wheelgrid_mapping.mapper_node", "--ros-args", "-p", param)
+    proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "FATAL" in proc.stderr + proc.stdout and "Traceback" not in proc.stderr

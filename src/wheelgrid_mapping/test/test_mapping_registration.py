@@ -194,3 +194,14 @@ def test_blend_correction_scales_rotation_and_translation_apart() -> None:
     assert np.allclose(half[:3, 3], corr[:3, 3])
     assert np.allclose(half[:3, :3], rpy_matrix(0.0, 0.0, np.radians(1.0)))
     assert np.allclose(blend_correction(corr, 0.25, 1.0)[:3, 3], 0.25 * corr[:3, 3])
+
+
+def test_bad_registration_settings_are_refused() -> None:
+    with pytest.raises(ValueError, match="prior_rotation_gain"):
+        RegistrationConfig(prior_rotation_gain=1.5)
+    with pytest.raises(ValueError, match="prior_translation_gain"):
+        RegistrationConfig(prior_translation_gain=-0.1)
+    cfg = RegistrationConfig()
+    cfg.method = "ndt"  # changed after construction: the Registrar checks again
+    with pytest.raises(ValueError, match="kiss or open3d"):
+        Registrar(cfg)

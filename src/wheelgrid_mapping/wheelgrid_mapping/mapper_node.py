@@ -81,10 +81,14 @@ class MapperNode(Node):  # type: ignore[misc]
         self.map_frame = node_cfg.map_frame
         self.publish_period = node_cfg.publish_period
         self.max_queue = max(1, node_cfg.max_queue)
-        pre = declare_dataclass(self, PreprocessConfig(), "preprocess.")
-        reg = declare_dataclass(self, RegistrationConfig(), "registration.")
-        cfg = declare_dataclass(self, MapperConfig(), "mapper.")
-        self.mapper = Mapper(pre, reg, cfg)
+        try:
+            pre = declare_dataclass(self, PreprocessConfig(), "preprocess.")
+            reg = declare_dataclass(self, RegistrationConfig(), "registration.")
+            cfg = declare_dataclass(self, MapperConfig(), "mapper.")
+            self.mapper = Mapper(pre, reg, cfg)
+        except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
+            self.get_logger().fatal(f"invalid parameters: {exc}")
+            raise SystemExit(2) from exc
         self._lock = threading.Lock()  # guards self.mapper
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()

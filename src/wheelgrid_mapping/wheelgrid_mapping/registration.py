@@ -106,6 +106,21 @@ class RegistrationConfig:
     )
     threads: int = field(2, "registration threads (0 = all cores)", "")
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """ValueError for settings that cannot work (checked again when a Registrar starts,
+        because a caller may change a field after construction)."""
+        if self.method not in ("kiss", "open3d"):
+            raise ValueError(f"registration method must be kiss or open3d, not {self.method!r}")
+        for name in ("prior_rotation_gain", "prior_translation_gain"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(
+                    f"registration {name} must be in [0, 1] (0 = the prior, 1 = ICP), "
+                    f"not {getattr(self, name)}"
+                )
+
 
 def _exp_se3(x: np.ndarray) -> np.ndarray:
     """Small-motion [t, omega] -> 4x4 (Rodrigues for the rotation)."""
@@ -208,8 +223,7 @@ class Registrar:
     """Frame-to-map registration state machine: ``ok`` <-> ``relocalising``."""
 
     def __init__(self, cfg: RegistrationConfig) -> None:
-        if cfg.method not in ("kiss", "open3d"):
-            raise ValueError(f"registration method must be kiss or open3d, not {cfg.method!r}")
+        cfg.validate()
         from kiss_icp.config import load_config
         from kiss_icp.mapping import get_voxel_hash_map
         from kiss_icp.registration import get_registration
