@@ -17,7 +17,52 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from wheelgrid_common.ros_env import child_env, configure_ros_env
+
+
+def box_surface(lo: Sequence[float], hi: Sequence[float], spacing: float, rng: Any) -> np.ndarray:
+    """Random points on the six faces of an axis-aligned box, about one per ``spacing**2``."""
+    lo_, hi_ = np.asarray(lo, float), np.asarray(hi, float)
+    out = []
+    for ax in range(3):
+        o = [a for a in range(3) if a != ax]
+        area = (hi_[o[0]] - lo_[o[0]]) * (hi_[o[1]] - lo_[o[1]])
+        n = max(int(area / spacing**2), 4)
+        for side in (lo_[ax], hi_[ax]):
+            p = np.empty((n, 3))
+            p[:, ax] = side
+            p[:, o[0]] = lo_[o[0]] + rng.random(n) * (hi_[o[0]] - lo_[o[0]])
+            p[:, o[1]] = lo_[o[1]] + rng.random(n) * (hi_[o[1]] - lo_[o[1]])
+            out.append(p)
+    return np.vstack(out)
+
+
+def room_world(seed: int) -> np.ndarray:
+    """A 6 x 5 x 2.6 m room shell with four boxes (a table, a cupboard, a post, a crate): enough
+    structure for ICP in every direction, small enough for unit tests."""
+    rng = np.random.default_rng(seed)
+    parts = [box_surface([0, 0, 0], [6, 5, 2.6], 0.04, rng)]
+    for lo, hi in (
+        ([1.0, 3.5, 0], [2.2, 4.3, 0.75]),
+        ([4.0, 0.5, 0], [4.5, 1.5, 1.8]),
+        ([3.0, 3.0, 0], [3.4, 3.4, 1.2]),
+        ([0.5, 0.5, 0], [1.0, 1.2, 0.5]),
+    ):
+        parts.append(box_surface(lo, hi, 0.03, rng))
+    return np.vstack(parts)
+
+
+def sensor_view(world: np.ndarray, T: np.ndarray, rng: Any) -> np.ndarray:
+    """Sensor-frame points (body convention) of ``world`` seen from pose ``T``: within 5 m and
+    a 100 deg cone ahead, half of them, with 5 mm noise."""
+    inv = np.linalg.inv(T)
+    p = world @ inv[:3, :3].T + inv[:3, 3]
+    r = np.linalg.norm(p, axis=1)
+    p = p[(r < 5.0) & (p[:, 0] > 0.3 * r)]
+    p = p[rng.random(len(p)) < 0.5]
+    return p + rng.normal(0, 0.005, p.shape)
 
 
 def shared_data(name: str, repo_root: Path) -> Path:

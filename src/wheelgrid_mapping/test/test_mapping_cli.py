@@ -45,6 +45,25 @@ def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
 
 
+def test_loop_closure_runs_and_is_reported(sim_dir: Path, tmp_path: Path, capsys) -> None:
+    y = tmp_path / "c.yaml"
+    y.write_text("loop_closure: {submap_frames: 5}\n")
+    base = [str(sim_dir / "scan"), "--prior", "arkit", "--max-frames", "30", "--config", str(y)]
+    assert cli_map.main([*base, "--out", str(tmp_path / "lc")]) == 0
+    assert "loop closure:" in capsys.readouterr().err
+    rep = json.loads((tmp_path / "lc" / "report.json").read_text())
+    lc = rep["loop_closure"]
+    assert lc["nodes"] == 6 and lc["loop_edges"] >= 1, lc
+    assert lc["max_pose_shift_m"] < 0.1  # 6 s of a slow chair: drift, not a jump
+    stamps, poses = read_tum(tmp_path / "lc" / "trajectory.tum")
+    assert len(stamps) == rep["frames"]["used"]
+    assert cli_map.main([*base, "--out", str(tmp_path / "no"), "--no-loop-closure"]) == 0
+    rep = json.loads((tmp_path / "no" / "report.json").read_text())
+    assert rep["loop_closure"] == {"run": False}
+    _, online = read_tum(tmp_path / "no" / "trajectory.tum")
+    assert np.allclose(online[0], poses[0], atol=0.02)  # the first pose anchors both
+
+
 def test_topic_choice_and_listing(sim_dir: Path, tmp_path: Path, capsys) -> None:
     code = cli_map.main([str(sim_dir / "scan"), "--out", str(tmp_path), "--topic", "/nope"])
     assert code == 2

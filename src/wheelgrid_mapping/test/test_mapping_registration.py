@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from wheelgrid_common.testing import room_world
+from wheelgrid_common.testing import sensor_view as view
 from wheelgrid_mapping.levelling import rpy_matrix
 from wheelgrid_mapping.registration import (
     Registrar,
@@ -15,45 +17,9 @@ from wheelgrid_mapping.registration import (
 )
 
 
-def box_surface(lo, hi, spacing: float, rng: np.random.Generator) -> np.ndarray:
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    out = []
-    for ax in range(3):
-        o = [a for a in range(3) if a != ax]
-        area = (hi[o[0]] - lo[o[0]]) * (hi[o[1]] - lo[o[1]])
-        n = max(int(area / spacing**2), 4)
-        for side in (lo[ax], hi[ax]):
-            p = np.empty((n, 3))
-            p[:, ax] = side
-            p[:, o[0]] = lo[o[0]] + rng.random(n) * (hi[o[0]] - lo[o[0]])
-            p[:, o[1]] = lo[o[1]] + rng.random(n) * (hi[o[1]] - lo[o[1]])
-            out.append(p)
-    return np.vstack(out)
-
-
 @pytest.fixture(scope="module")
 def world() -> np.ndarray:
-    rng = np.random.default_rng(11)
-    parts = [box_surface([0, 0, 0], [6, 5, 2.6], 0.04, rng)]  # room shell
-    for lo, hi in (
-        ([1.0, 3.5, 0], [2.2, 4.3, 0.75]),
-        ([4.0, 0.5, 0], [4.5, 1.5, 1.8]),
-        ([3.0, 3.0, 0], [3.4, 3.4, 1.2]),
-        ([0.5, 0.5, 0], [1.0, 1.2, 0.5]),
-    ):
-        parts.append(box_surface(lo, hi, 0.03, rng))
-    return np.vstack(parts)
-
-
-def view(world: np.ndarray, T: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Sensor-frame points (body convention) within 5 m and a 100 deg cone ahead."""
-    inv = np.linalg.inv(T)
-    p = world @ inv[:3, :3].T + inv[:3, 3]
-    r = np.linalg.norm(p, axis=1)
-    keep = (r < 5.0) & (p[:, 0] > 0.3 * r)
-    p = p[keep]
-    p = p[rng.random(len(p)) < 0.5]
-    return p + rng.normal(0, 0.005, p.shape)
+    return room_world(11)
 
 
 def pose(x: float, y: float, yaw: float) -> np.ndarray:

@@ -164,7 +164,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", type=Path, help="rosbag2 folder, ROS 1 .bag, or Stray export folder")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--topic", help="PointCloud2 topic (default: the only one in the bag)")
-    p.add_argument("--config", type=Path, help="YAML with preprocess/registration/mapper sections")
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="YAML with preprocess/registration/mapper/loop_closure sections",
+    )
+    p.add_argument(
+        "--no-loop-closure",
+        action="store_true",
+        help="keep the online trajectory (skip the pose-graph refinement at the end)",
+    )
     p.add_argument(
         "--prior",
         choices=["none", "arkit"],
@@ -188,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     try:
-        pre, reg, cfg = load_configs(args.config)
+        pre, reg, cfg, loop = load_configs(args.config)
     except (OSError, ValueError) as exc:
         raise InputError(f"config: {exc}") from exc
     if args.method:
@@ -203,7 +212,9 @@ def _run(args: argparse.Namespace) -> int:
         total, frames, bad = bag_frames(path, args.topic, args.prior == "arkit")
     if args.max_frames > 0:
         total = min(total, args.max_frames)
-    mapper = Mapper(pre, reg, cfg)
+    if args.no_loop_closure:
+        loop.enabled = False
+    mapper = Mapper(pre, reg, cfg, keep_frames=loop.enabled)
     t0 = time.perf_counter()
     n = 0
     with Progress(total, "mapping", "frames") as bar:
@@ -236,6 +247,21 @@ def _run(args: argparse.Namespace) -> int:
     if mapper.registrar.counters.accepted == 0:
         print("wheelgrid map: no frame could be registered", file=sys.stderr)
         return 1
+    if loop.enabled:
+        with Progress(0, "loop closure", "submaps") as lbar:
+
+            def tick(done: int, total: int) -> None:
+                lbar.total = total
+                lbar.update(done - lbar.count)
+
+            lc = mapper.close_loops(loop, tick)
+        print(
+            f"loop closure: {lc['loop_edges']} loop edges over {lc['nodes']} submaps "
+            f"({lc['loop_edges_pruned']} pruned), poses moved <= "
+            f"{lc['max_pose_shift_m'] * 100:.1f} cm / {lc['max_pose_turn_deg']:.2f} deg "
+            f"in {lc['seconds']:.1f} s",
+            file=sys.stderr,
+        )
     try:
         rep = mapper.save(
             args.out,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from .levelling import (
     map_from_floor,
     map_from_mount,
 )
+from .loop_closure import LoopClosureConfig, close_loops
 from .preprocess import PreprocessConfig, PreprocessStats, preprocess, voxel_downsample
 from .registration import Registrar, RegistrationConfig, transform
 
@@ -120,25 +122,27 @@ def floor_correction(
 
 def load_configs(
     path: str | Path | None,
-) -> tuple[PreprocessConfig, RegistrationConfig, MapperConfig]:
-    """Read ``preprocess:``, ``registration:``, ``mapper:`` sections from one YAML file."""
+) -> tuple[PreprocessConfig, RegistrationConfig, MapperConfig, LoopClosureConfig]:
+    """Read ``preprocess:``, ``registration:``, ``mapper:``, ``loop_closure:`` from one YAML."""
     import yaml
 
     if path is None:
-        return PreprocessConfig(), RegistrationConfig(), MapperConfig()
+        return PreprocessConfig(), RegistrationConfig(), MapperConfig(), LoopClosureConfig()
     data = yaml.safe_load(Path(path).read_text()) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping with preprocess/registration/mapper")
-    unknown = sorted(set(data) - {"preprocess", "registration", "mapper"})
+    unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
-        raise ValueError(
-            f"{path}: unknown section(s) {unknown}; use preprocess/registration/mapper"
-        )
+        raise ValueError(f"{path}: unknown section(s) {unknown}; use {'/'.join(SECTIONS)}")
     return (
         from_mapping(PreprocessConfig, data.get("preprocess") or {}),
         from_mapping(RegistrationConfig, data.get("registration") or {}),
         from_mapping(MapperConfig, data.get("mapper") or {}),
+        from_mapping(LoopClosureConfig, data.get("loop_closure") or {}),
     )
+
+
+SECTIONS = ("preprocess", "registration", "mapper", "loop_closure")
 
 
 @dataclass
@@ -152,17 +156,24 @@ class FrameOutcome:
 
 
 class Mapper:
-    """Incremental map builder; one instance per mapping session."""
+    """Incremental map builder; one instance per mapping session.
+
+    ``keep_frames`` keeps every accepted frame's filtered points (float32, ~12 bytes a point)
+    so that :meth:`close_loops` can rebuild the map at the end of an offline run; a live node
+    leaves it off, its memory would grow without bound.
+    """
 
     def __init__(
         self,
         pre: PreprocessConfig | None = None,
         reg: RegistrationConfig | None = None,
         cfg: MapperConfig | None = None,
+        keep_frames: bool = False,
     ) -> None:
         self.pre = pre or PreprocessConfig()
         self.reg_cfg = reg or RegistrationConfig()
         self.cfg = cfg or MapperConfig()
+        self.keep_frames = keep_frames
         self.reset()
 
     def reset(self) -> None:
@@ -177,6 +188,8 @@ class Mapper:
         self._relevelled_at = -1
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
+        self._frames: list[np.ndarray] = []
+        self.loop_info: dict[str, Any] = {}
         self.frames_read = 0
         self.frames_skipped = 0
         self.frames_empty = 0
@@ -230,6 +243,8 @@ class Mapper:
             return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
         self.stamps.append(float(stamp))
         self.poses_odom.append(res.pose)
+        if self.keep_frames:
+            self._frames.append(pts.astype(np.float32))
         self._evidence.add(transform(pts, res.pose), res.pose[:3, 3])
         self._dirty += pts.shape[0]
         used = len(self.poses_odom)
@@ -244,6 +259,27 @@ class Mapper:
         return FrameOutcome(
             "used", pose_map=self.pose_in_map(res.pose), relocalised=res.relocalised
         )
+
+    def close_loops(
+        self, cfg: LoopClosureConfig, progress: Callable[[int, int], None] | None = None
+    ) -> dict[str, Any]:
+        """Optimise the trajectory as a pose graph and rebuild the map from the kept frames.
+
+        For the end of an offline run: the registration map is not rebuilt, so frames added
+        afterwards would register against the old one. Returns the report's ``loop_closure``.
+        """
+        if not self.keep_frames:
+            raise RuntimeError("close_loops needs a Mapper made with keep_frames=True")
+        res = close_loops(self._frames, self.poses_odom, cfg, progress)
+        self.poses_odom = res.poses
+        self._evidence = self.cfg.evidence_map()
+        for pts, pose in zip(self._frames, self.poses_odom, strict=True):
+            self._evidence.add(transform(pts.astype(np.float64), pose), pose[:3, 3])
+        self._dirty = 1
+        self._relevelled_at = -1
+        self.timings["loop_closure_s"] = res.seconds
+        self.loop_info = res.summary()
+        return self.loop_info
 
     # -- map -----------------------------------------------------------------------------------
     def map_odom(self) -> np.ndarray:
@@ -344,6 +380,7 @@ class Mapper:
             "points": dict(self.points, map=int(self.map_odom().shape[0])),
             "timings": {k: round(v, 3) for k, v in self.timings.items()},
             "levelling": self.level_info,
+            "loop_closure": self.loop_info or {"run": False},
             "map_frame": "z up, z=0 floor, origin below first sensor pose, x = first view on floor",
             "config": {
                 "preprocess": asdict(self.pre),

@@ -1,0 +1,102 @@
+"""Pose-graph loop closure on a hand-made room: it undoes drift, leaves good poses alone, keeps
+the first pose fixed, and takes no correction along a direction the geometry cannot see."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.testing import room_world, sensor_view
+from wheelgrid_mapping.levelling import rpy_matrix
+from wheelgrid_mapping.loop_closure import LoopClosureConfig, close_loops, observable_part
+from wheelgrid_mapping.pipeline import Mapper
+from wheelgrid_mapping.registration import _exp_se3, rotation_angle_deg
+
+
+def pose(x: float, y: float, yaw: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rpy_matrix(0.0, 0.15, yaw)
+    T[:3, 3] = [x, y, 1.1]
+    return T
+
+
+@pytest.fixture(scope="module")
+def lap() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """40 views on a 1.2 m circle round the room's middle, looking outwards, back to the start."""
+    world = room_world(5)
+    rng = np.random.default_rng(6)
+    truth = []
+    for k in range(40):
+        a = 2 * math.pi * k / 40
+        truth.append(pose(3.0 + 1.2 * math.cos(a), 2.5 + 1.2 * math.sin(a), a))
+    frames = [sensor_view(world, T, rng) for T in truth]
+    return frames, truth
+
+
+def drifted(truth: list[np.ndarray], yaw_deg: float, step_m: float) -> list[np.ndarray]:
+    """Odometry that turns ``yaw_deg`` and slides ``step_m`` too far per frame (compounding)."""
+    out = [truth[0]]
+    err = _exp_se3(np.r_[step_m, 0.0, 0.0, 0.0, 0.0, math.radians(yaw_deg)])
+    for k in range(1, len(truth)):
+        rel = np.linalg.inv(truth[k - 1]) @ truth[k]
+        out.append(out[-1] @ rel @ err)
+    return out
+
+
+def worst(poses: list[np.ndarray], truth: list[np.ndarray]) -> tuple[float, float]:
+    d = [np.linalg.inv(t) @ p for p, t in zip(poses, truth, strict=True)]
+    return max(float(np.linalg.norm(e[:3, 3])) for e in d), max(rotation_angle_deg(e) for e in d)
+
+
+def test_closing_the_lap_undoes_drift(lap) -> None:
+    frames, truth = lap
+    odo = drifted(truth, 0.08, 0.008)
+    before_m, before_deg = worst(odo, truth)
+    assert before_m > 0.05 and before_deg > 2.5  # the drift is real
+    cfg = LoopClosureConfig(submap_frames=5, odometry_sigma=0.04, odometry_sigma_deg=0.4)
+    res = close_loops(frames, odo, cfg)  # sigmas: this odometry drifts 4 cm, 0.4 deg a submap
+    after_m, after_deg = worst(res.poses, truth)
+    assert res.loop_edges >= 3
+    assert after_m < 0.5 * before_m and after_deg < 0.5 * before_deg, (after_m, after_deg)
+    np.testing.assert_allclose(res.poses[0], odo[0], atol=1e-9)  # the reference stays
+    assert res.max_shift_m > 0.05
+
+
+def test_consistent_poses_stay_put(lap) -> None:
+    frames, truth = lap
+    res = close_loops(frames, truth, LoopClosureConfig(submap_frames=5))
+    assert res.loop_edges >= 3
+    moved_m, moved_deg = worst(res.poses, truth)
+    assert moved_m < 0.02 and moved_deg < 0.3
+
+
+def test_short_runs_and_bad_settings() -> None:
+    frames = [np.zeros((10, 3))] * 5
+    poses = [np.eye(4)] * 5
+    res = close_loops(frames, poses, LoopClosureConfig(submap_frames=5))  # 1 submap: no graph
+    assert res.nodes == 1 and res.loop_edges == 0
+    assert all(np.array_equal(p, np.eye(4)) for p in res.poses)
+    with pytest.raises(ValueError, match="submap_frames"):
+        LoopClosureConfig(submap_frames=1)
+    with pytest.raises(ValueError, match="min_overlap"):
+        LoopClosureConfig(min_overlap=0.0)
+    with pytest.raises(RuntimeError, match="keep_frames"):
+        Mapper().close_loops(LoopClosureConfig())
+
+
+def test_no_correction_along_what_a_floor_cannot_see() -> None:
+    """Two views of bare floor fix height, roll and pitch; sliding and yaw must stay as they
+    were, and carry no weight in the graph."""
+    rng = np.random.default_rng(3)
+    q = np.c_[rng.uniform(-2, 2, (500, 2)), np.zeros(500)]
+    n = np.tile([0.0, 0.0, 1.0], (500, 1))
+    J = np.hstack([np.cross(q, n), n])
+    H = J.T @ J / 500
+    x = np.r_[0.01, -0.02, math.radians(2.0), 0.3, 0.2, 0.05]  # [omega, t]
+    kept, H_kept = observable_part(H, x, radius=2.0, ratio=0.05)
+    np.testing.assert_allclose(kept[[2, 3, 4]], 0.0, atol=1e-9)  # yaw, x, y dropped
+    np.testing.assert_allclose(kept[[0, 1, 5]], x[[0, 1, 5]], atol=1e-9)  # roll, pitch, z kept
+    for k in (2, 3, 4):
+        assert abs(H_kept[k, k]) < 1e-9

@@ -1,0 +1,271 @@
+"""Offline loop closure: a pose graph over submaps, optimised once the whole scan is in (ROS-free).
+
+Frame-to-map ICP (:mod:`.registration`) follows its own map: where the chair comes back to a
+place it saw long ago along another row, the map it registers against already carries the
+drift of the way there, and the narrow iPhone view rarely constrains enough directions to pull
+it back. A pose graph is the standard cure (Open3D's multiway registration, rtabmap's graph):
+
+* the accepted frames are cut into consecutive *submaps* of ``submap_frames`` frames, each a
+  small cloud in the frame of its first sensor pose (the node);
+* *odometry edges* join consecutive nodes with the online relative pose, trusted to
+  ``odometry_sigma`` / ``odometry_sigma_deg`` per step;
+* *loop edges* join every other pair of submaps that overlap: multi-scale point-to-plane ICP
+  from the current relative pose. An edge keeps only the part of its correction that the
+  overlap's geometry observes (point-to-plane information, as in
+  :func:`.registration.constrain_to_observable`: two views of a floor and one wall cannot fix
+  sliding along the wall), its information matrix is zero along the rest, and it is refused
+  when the overlap is small or the correction larger than drift can explain;
+* Open3D's Levenberg-Marquardt global optimisation with a line process (loop edges are
+  "uncertain", so a wrong one is switched off instead of bending the map);
+* every frame's pose is corrected by its node's correction, interpolated between nodes.
+
+Measured on three simulated runs (``make bench``, README): the map share within 5 cm of a true
+surface went 80.9 -> 94 % on the run with the largest drift and stayed within a point on the
+others; see the README for the figures of the current code.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import Any
+
+import numpy as np
+
+from wheelgrid_common.params import field
+
+from .preprocess import voxel_downsample
+from .registration import _exp_se3, _log_se3, rotation_angle_deg, transform
+
+
+@dataclass
+class LoopClosureConfig:
+    """Pose-graph refinement after mapping (YAML section ``loop_closure``; ``wheelgrid map``)."""
+
+    enabled: bool = field(True, "optimise a pose graph with loop edges once all frames are in", "")
+    submap_frames: int = field(10, "accepted frames per submap (one pose-graph node each)", "")
+    submap_voxel: float = field(0.04, "voxel of the submap clouds the loop ICP aligns", "m")
+    normal_radius: float = field(0.15, "radius of the submap normals (point-to-plane ICP)", "m")
+    min_overlap: float = field(
+        0.2, "share of a submap's points within 3 cm of the other after ICP for a loop edge", ""
+    )
+    max_correction: float = field(
+        0.3, "a loop edge that moves its pair more than this is refused (not drift)", "m"
+    )
+    max_correction_deg: float = field(5.0, "same, for rotation", "deg")
+    observable_ratio: float = field(
+        0.05,
+        "motion directions the overlap constrains with less than this share of the best "
+        "constrained one (rotations scaled by the submap radius) get no correction and no "
+        "weight",
+        "",
+    )
+    odometry_sigma: float = field(
+        0.01, "trust in the online relative pose between consecutive nodes", "m"
+    )
+    odometry_sigma_deg: float = field(0.1, "same, for rotation", "deg")
+    loop_sigma: float = field(
+        0.005,
+        "a loop edge weighs like a measurement this precise along each direction it observes",
+        "m",
+    )
+    edge_prune_threshold: float = field(
+        0.25, "Open3D line-process weight under which a loop edge is dropped", ""
+    )
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """ValueError for settings that cannot work."""
+        if self.submap_frames < 2:
+            raise ValueError("loop_closure submap_frames must be >= 2")
+        for name in ("submap_voxel", "normal_radius", "odometry_sigma", "loop_sigma"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"loop_closure {name} must be > 0, not {getattr(self, name)}")
+        if not 0.0 < self.min_overlap <= 1.0:
+            raise ValueError(f"loop_closure min_overlap must be in (0, 1], not {self.min_overlap}")
+
+
+@dataclass
+class LoopClosureResult:
+    """Corrected poses and what the graph did (goes into report.json)."""
+
+    poses: list[np.ndarray]
+    nodes: int = 0
+    candidates: int = 0
+    loop_edges: int = 0
+    refused: dict[str, int] = dc_field(default_factory=dict)
+    pruned: int = 0
+    max_shift_m: float = 0.0
+    max_turn_deg: float = 0.0
+    seconds: float = 0.0
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "nodes": self.nodes,
+            "candidate_pairs": self.candidates,
+            "loop_edges": self.loop_edges,
+            "loop_edges_pruned": self.pruned,
+            "refused": dict(self.refused),
+            "max_pose_shift_m": round(self.max_shift_m, 4),
+            "max_pose_turn_deg": round(self.max_turn_deg, 3),
+            "seconds": round(self.seconds, 3),
+        }
+
+
+def observable_part(
+    H: np.ndarray, x: np.ndarray, radius: float, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project a ``[omega, t]`` correction onto the directions information ``H`` constrains.
+
+    ``H`` (6x6, rotation first like Open3D's pose graph) is normalised by the submap radius so
+    that a rotation and a translation that move the points equally compare equally; returns the
+    projected correction and ``H`` with its unobserved directions zeroed.
+    """
+    s = np.r_[np.full(3, radius), np.ones(3)]
+    Hn = H / np.outer(s, s)
+    vals, vecs = np.linalg.eigh(Hn)
+    keep = vals >= ratio * max(float(vals.max()), 1e-12)
+    x_kept = (vecs @ (keep * (vecs.T @ (x * s)))) / s
+    H_kept = (vecs * (vals * keep)) @ vecs.T * np.outer(s, s)
+    return x_kept, H_kept
+
+
+def _point_to_plane_information(src: Any, tgt: Any, T: np.ndarray, dist: float) -> tuple:
+    import open3d as o3d
+
+    ev = o3d.pipelines.registration.evaluate_registration(src, tgt, dist, T)
+    c = np.asarray(ev.correspondence_set)
+    if c.shape[0] < 50:
+        return None, ev.fitness
+    q = np.asarray(tgt.points)[c[:, 1]]
+    n = np.asarray(tgt.normals)[c[:, 1]]
+    J = np.hstack([np.cross(q, n), n])
+    return J.T @ J / c.shape[0], ev.fitness
+
+
+def close_loops(
+    frames: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    cfg: LoopClosureConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> LoopClosureResult:
+    """Corrected sensor poses for ``frames`` (sensor-frame points) registered at ``poses``.
+
+    ``poses[0]`` stays where it is (the graph's reference node), so the levelled map frame found
+    from it keeps its meaning. ``progress(done, total)`` is called once per submap.
+    """
+    import open3d as o3d
+
+    cfg = cfg or LoopClosureConfig()
+    cfg.validate()
+    t0 = time.perf_counter()
+    reg = o3d.pipelines.registration
+    P = [np.asarray(p, dtype=np.float64) for p in poses]
+    n = len(P)
+    out = LoopClosureResult(poses=[p.copy() for p in P])
+    groups = [list(range(i, min(i + cfg.submap_frames, n))) for i in range(0, n, cfg.submap_frames)]
+    if len(groups) < 3:
+        out.nodes = len(groups)
+        out.seconds = time.perf_counter() - t0
+        return out
+    anchors = [P[g[0]] for g in groups]
+    subs, radii, boxes = [], [], []
+    for g, a in zip(groups, anchors, strict=True):
+        a_inv = np.linalg.inv(a)
+        pts = np.vstack([transform(np.asarray(frames[i], np.float64), a_inv @ P[i]) for i in g])
+        pts = voxel_downsample(pts, cfg.submap_voxel)
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(cfg.normal_radius, 30))
+        subs.append(pc)
+        radii.append(float(np.sqrt((pts**2).sum(axis=1).mean())) if pts.size else 1.0)
+        world = transform(pts, a) if pts.size else np.zeros((1, 3))
+        boxes.append((world.min(axis=0), world.max(axis=0)))
+
+    graph = reg.PoseGraph()
+    for a in anchors:
+        graph.nodes.append(reg.PoseGraphNode(a))
+    odo_info = np.diag(
+        [1.0 / math.radians(cfg.odometry_sigma_deg) ** 2] * 3 + [1.0 / cfg.odometry_sigma**2] * 3
+    )
+    for i in range(len(groups) - 1):
+        rel = np.linalg.inv(anchors[i + 1]) @ anchors[i]
+        graph.edges.append(reg.PoseGraphEdge(i, i + 1, rel, odo_info, uncertain=False))
+
+    est = reg.TransformationEstimationPointToPlane()
+    crit = reg.ICPConvergenceCriteria(max_iteration=30)
+    weight = 3.0 / cfg.loop_sigma**2
+    refused: dict[str, int] = {}
+    for i in range(len(groups)):
+        for j in range(i + 2, len(groups)):
+            lo = np.maximum(boxes[i][0], boxes[j][0])
+            hi = np.minimum(boxes[i][1], boxes[j][1])
+            if np.any(hi - lo < 0.2):
+                continue
+            init = np.linalg.inv(anchors[j]) @ anchors[i]
+            pre = reg.evaluate_registration(subs[i], subs[j], 0.1, init)
+            if pre.fitness < 0.5 * cfg.min_overlap:
+                continue
+            out.candidates += 1
+            T = init
+            for d in (0.2, 0.1, 0.05):
+                T = reg.registration_icp(subs[i], subs[j], d, T, est, crit).transformation
+            H, fitness = _point_to_plane_information(subs[i], subs[j], T, 0.03)
+            if H is None or fitness < cfg.min_overlap:
+                refused["low overlap"] = refused.get("low overlap", 0) + 1
+                continue
+            # The correction of the guess, in the target node's frame (H is expressed there).
+            x = _log_se3(T @ np.linalg.inv(init))
+            xo, H_kept = observable_part(H, np.r_[x[3:], x[:3]], radii[j], cfg.observable_ratio)
+            shift = float(np.linalg.norm(xo[3:]))
+            turn = math.degrees(float(np.linalg.norm(xo[:3])))
+            if shift > cfg.max_correction or turn > cfg.max_correction_deg:
+                refused["correction too large"] = refused.get("correction too large", 0) + 1
+                continue
+            T = _exp_se3(np.r_[xo[3:], xo[:3]]) @ init
+            graph.edges.append(reg.PoseGraphEdge(i, j, T, H_kept * weight, uncertain=True))
+            out.loop_edges += 1
+        if progress is not None:
+            progress(i + 1, len(groups))
+    out.refused = refused
+    out.nodes = len(groups)
+    if out.loop_edges:
+        level = o3d.utility.get_verbosity_level()
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+        try:
+            reg.global_optimization(
+                graph,
+                reg.GlobalOptimizationLevenbergMarquardt(),
+                reg.GlobalOptimizationConvergenceCriteria(),
+                reg.GlobalOptimizationOption(
+                    max_correspondence_distance=0.05,
+                    edge_prune_threshold=cfg.edge_prune_threshold,
+                    preference_loop_closure=1.0,
+                    reference_node=0,
+                ),
+            )
+        finally:
+            o3d.utility.set_verbosity_level(level)
+        loops_left = sum(1 for e in graph.edges if e.uncertain)
+        out.pruned = out.loop_edges - loops_left
+        nodes = list(graph.nodes)
+        corr = [
+            np.asarray(nd.pose) @ np.linalg.inv(a) for nd, a in zip(nodes, anchors, strict=True)
+        ]
+        for k, g in enumerate(groups):
+            step = _log_se3(np.linalg.inv(corr[k]) @ corr[k + 1]) if k + 1 < len(groups) else None
+            for i in g:
+                C = corr[k]
+                if step is not None:
+                    C = C @ _exp_se3(step * ((i - g[0]) / len(g)))
+                out.poses[i] = C @ P[i]
+                d = np.linalg.inv(P[i]) @ out.poses[i]
+                shift = float(np.linalg.norm(out.poses[i][:3, 3] - P[i][:3, 3]))
+                out.max_shift_m = max(out.max_shift_m, shift)
+                out.max_turn_deg = max(out.max_turn_deg, rotation_angle_deg(d))
+    out.seconds = time.perf_counter() - t0
+    return out
