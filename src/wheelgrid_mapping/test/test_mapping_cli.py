@@ -47,7 +47,7 @@ def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None
 
 def test_loop_closure_runs_and_is_reported(sim_dir: Path, tmp_path: Path, capsys) -> None:
     y = tmp_path / "c.yaml"
-    y.write_text("loop_closure: {submap_frames: 5}\n")
+    y.write_text("loop_closure: {submap_seconds: 1.0}\n")
     base = [str(sim_dir / "scan"), "--prior", "arkit", "--max-frames", "30", "--config", str(y)]
     assert cli_map.main([*base, "--out", str(tmp_path / "lc")]) == 0
     assert "loop closure:" in capsys.readouterr().err

@@ -10,9 +10,16 @@ import pytest
 
 from wheelgrid_common.testing import room_world, sensor_view
 from wheelgrid_mapping.levelling import rpy_matrix
-from wheelgrid_mapping.loop_closure import LoopClosureConfig, close_loops, observable_part
+from wheelgrid_mapping.loop_closure import (
+    LoopClosureConfig,
+    close_loops,
+    observable_part,
+    submap_groups,
+)
 from wheelgrid_mapping.pipeline import Mapper
 from wheelgrid_mapping.registration import _exp_se3, rotation_angle_deg
+
+STAMPS = [0.2 * k for k in range(40)]  # 5 Hz, like the simulated bags
 
 
 def pose(x: float, y: float, yaw: float) -> np.ndarray:
@@ -55,8 +62,10 @@ def test_closing_the_lap_undoes_drift(lap) -> None:
     odo = drifted(truth, 0.08, 0.008)
     before_m, before_deg = worst(odo, truth)
     assert before_m > 0.05 and before_deg > 2.5  # the drift is real
-    cfg = LoopClosureConfig(submap_frames=5, odometry_sigma=0.04, odometry_sigma_deg=0.4)
-    res = close_loops(frames, odo, cfg)  # sigmas: this odometry drifts 4 cm, 0.4 deg a submap
+    cfg = LoopClosureConfig(submap_seconds=1.0, odometry_sigma=0.04, odometry_sigma_deg=0.4)
+    res = close_loops(
+        frames, odo, STAMPS, cfg
+    )  # sigmas: this odometry drifts 4 cm, 0.4 deg a submap
     after_m, after_deg = worst(res.poses, truth)
     assert res.loop_edges >= 3
     assert after_m < 0.5 * before_m and after_deg < 0.5 * before_deg, (after_m, after_deg)
@@ -66,7 +75,7 @@ def test_closing_the_lap_undoes_drift(lap) -> None:
 
 def test_consistent_poses_stay_put(lap) -> None:
     frames, truth = lap
-    res = close_loops(frames, truth, LoopClosureConfig(submap_frames=5))
+    res = close_loops(frames, truth, STAMPS, LoopClosureConfig(submap_seconds=1.0))
     assert res.loop_edges >= 3
     moved_m, moved_deg = worst(res.poses, truth)
     assert moved_m < 0.02 and moved_deg < 0.3
@@ -75,11 +84,14 @@ def test_consistent_poses_stay_put(lap) -> None:
 def test_short_runs_and_bad_settings() -> None:
     frames = [np.zeros((10, 3))] * 5
     poses = [np.eye(4)] * 5
-    res = close_loops(frames, poses, LoopClosureConfig(submap_frames=5))  # 1 submap: no graph
+    res = close_loops(frames, poses, [0.2 * k for k in range(5)])  # 1 submap: no graph
     assert res.nodes == 1 and res.loop_edges == 0
     assert all(np.array_equal(p, np.eye(4)) for p in res.poses)
-    with pytest.raises(ValueError, match="submap_frames"):
-        LoopClosureConfig(submap_frames=1)
+    with pytest.raises(ValueError, match="differ in length"):
+        close_loops(frames, poses, [0.0])
+    with pytest.raises(ValueError, match="submap_seconds"):
+        LoopClosureConfig(submap_seconds=0.0)
+    assert [len(g) for g in submap_groups([0.0, 0.1, 0.2, 1.0, 1.05, 3.5], 1.0)] == [3, 2, 1]
     with pytest.raises(ValueError, match="min_overlap"):
         LoopClosureConfig(min_overlap=0.0)
     with pytest.raises(RuntimeError, match="keep_frames"):

@@ -58,11 +58,11 @@ def test_config_yaml_sections(tmp_path: Path) -> None:
     y = tmp_path / "c.yaml"
     y.write_text(
         "preprocess: {voxel_size: 0.05}\nregistration: {method: open3d}\nmapper: {map_voxel: 0.04}\n"
-        "loop_closure: {enabled: false, submap_frames: 8}\n"
+        "loop_closure: {enabled: false, submap_seconds: 3.0}\n"
     )
     pre, reg, cfg, loop = load_configs(y)
     assert (pre.voxel_size, reg.method, cfg.map_voxel) == (0.05, "open3d", 0.04)
-    assert (loop.enabled, loop.submap_frames) == (False, 8)
+    assert (loop.enabled, loop.submap_seconds) == (False, 3.0)
     y.write_text("mapping: {}\n")
     with pytest.raises(ValueError, match="unknown section"):
         load_configs(y)

@@ -5,8 +5,9 @@ place it saw long ago along another row, the map it registers against already ca
 drift of the way there, and the narrow iPhone view rarely constrains enough directions to pull
 it back. A pose graph is the standard cure (Open3D's multiway registration, rtabmap's graph):
 
-* the accepted frames are cut into consecutive *submaps* of ``submap_frames`` frames, each a
-  small cloud in the frame of its first sensor pose (the node);
+* the accepted frames are cut into consecutive *submaps* of ``submap_seconds`` each (time,
+  not a frame count, so a 30 fps capture does not make a graph of thousands of tiny, fully
+  overlapping submaps), each a small cloud in the frame of its first sensor pose (the node);
 * *odometry edges* join consecutive nodes with the online relative pose, trusted to
   ``odometry_sigma`` / ``odometry_sigma_deg`` per step;
 * *loop edges* join every other pair of submaps that overlap: multi-scale point-to-plane ICP
@@ -46,7 +47,11 @@ class LoopClosureConfig:
     """Pose-graph refinement after mapping (YAML section ``loop_closure``; ``wheelgrid map``)."""
 
     enabled: bool = field(True, "optimise a pose graph with loop edges once all frames are in", "")
-    submap_frames: int = field(10, "accepted frames per submap (one pose-graph node each)", "")
+    submap_seconds: float = field(
+        2.0,
+        "time a submap (one pose-graph node) spans: 10 frames at 5 Hz, 60 at an iPhone's 30 fps",
+        "s",
+    )
     submap_voxel: float = field(0.04, "voxel of the submap clouds the loop ICP aligns", "m")
     normal_radius: float = field(0.15, "radius of the submap normals (point-to-plane ICP)", "m")
     min_overlap: float = field(
@@ -81,9 +86,13 @@ class LoopClosureConfig:
 
     def validate(self) -> None:
         """ValueError for settings that cannot work."""
-        if self.submap_frames < 2:
-            raise ValueError("loop_closure submap_frames must be >= 2")
-        for name in ("submap_voxel", "normal_radius", "odometry_sigma", "loop_sigma"):
+        for name in (
+            "submap_seconds",
+            "submap_voxel",
+            "normal_radius",
+            "odometry_sigma",
+            "loop_sigma",
+        ):
             if getattr(self, name) <= 0:
                 raise ValueError(f"loop_closure {name} must be > 0, not {getattr(self, name)}")
         if not 0.0 < self.min_overlap <= 1.0:
@@ -148,13 +157,25 @@ def _point_to_plane_information(src: Any, tgt: Any, T: np.ndarray, dist: float) 
     return J.T @ J / c.shape[0], ev.fitness
 
 
+def submap_groups(stamps: Sequence[float], seconds: float) -> list[list[int]]:
+    """Consecutive frame indices, a new group once ``seconds`` have passed since its first."""
+    groups: list[list[int]] = []
+    for i, t in enumerate(stamps):
+        if not groups or t - stamps[groups[-1][0]] >= seconds:
+            groups.append([])
+        groups[-1].append(i)
+    return groups
+
+
 def close_loops(
     frames: Sequence[np.ndarray],
     poses: Sequence[np.ndarray],
+    stamps: Sequence[float],
     cfg: LoopClosureConfig | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> LoopClosureResult:
-    """Corrected sensor poses for ``frames`` (sensor-frame points) registered at ``poses``.
+    """Corrected sensor poses for ``frames`` (sensor-frame points) registered at ``poses`` at
+    times ``stamps`` (seconds).
 
     ``poses[0]`` stays where it is (the graph's reference node), so the levelled map frame found
     from it keeps its meaning. ``progress(done, total)`` is called once per submap.
@@ -168,7 +189,9 @@ def close_loops(
     P = [np.asarray(p, dtype=np.float64) for p in poses]
     n = len(P)
     out = LoopClosureResult(poses=[p.copy() for p in P])
-    groups = [list(range(i, min(i + cfg.submap_frames, n))) for i in range(0, n, cfg.submap_frames)]
+    if len(stamps) != n or len(frames) != n:
+        raise ValueError("close_loops: frames, poses and stamps differ in length")
+    groups = submap_groups([float(t) for t in stamps], cfg.submap_seconds)
     if len(groups) < 3:
         out.nodes = len(groups)
         out.seconds = time.perf_counter() - t0

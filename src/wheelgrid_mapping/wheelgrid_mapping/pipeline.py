@@ -270,7 +270,7 @@ class Mapper:
         """
         if not self.keep_frames:
             raise RuntimeError("close_loops needs a Mapper made with keep_frames=True")
-        res = close_loops(self._frames, self.poses_odom, cfg, progress)
+        res = close_loops(self._frames, self.poses_odom, self.stamps, cfg, progress)
         self.poses_odom = res.poses
         self._evidence = self.cfg.evidence_map()
         for pts, pose in zip(self._frames, self.poses_odom, strict=True):
