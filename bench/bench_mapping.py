@@ -131,10 +131,15 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     row(f"{label}: frames failed", c.failed, "frames")
     gt_stamps, gt = read_tum(sim / "poses_map.tum")
 
-    def trajectory_rmse() -> float:
+    def matched() -> tuple[np.ndarray, np.ndarray]:
+        """The mapper's poses and the true poses at the same stamps."""
         stamps, poses = m.trajectory()
         idx = np.clip(np.searchsorted(gt_stamps, stamps - 1e-4), 0, len(gt_stamps) - 1)
-        return float(np.sqrt(np.mean(np.sum((poses[:, :3, 3] - gt[idx, :3, 3]) ** 2, axis=1))))
+        return poses, gt[idx]
+
+    def trajectory_rmse() -> float:
+        poses, true = matched()
+        return float(np.sqrt(np.mean(np.sum((poses[:, :3, 3] - true[:, :3, 3]) ** 2, axis=1))))
 
     # `wheelgrid map` closes loops after the online pass; the live node cannot. Both are shown.
     online = transform(m.map_points(), np.linalg.inv(map_from_room))
@@ -144,9 +149,8 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     row(f"{label}: loop closure time", lc["seconds"], "s")
     row(f"{label}: loop edges kept", lc["loop_edges"] - lc["loop_edges_pruned"], "edges")
     row(f"{label}: trajectory error RMSE", trajectory_rmse(), "m")
-    stamps, poses = m.trajectory()
-    idx = np.clip(np.searchsorted(gt_stamps, stamps - 1e-4), 0, len(gt_stamps) - 1)
-    first = np.linalg.inv(gt[idx[0]]) @ poses[0]
+    poses, true = matched()
+    first = np.linalg.inv(true[0]) @ poses[0]
     row(f"{label}: map frame offset (first pose)", float(np.linalg.norm(first[:3, 3])), "m")
     row(f"{label}: map frame rotation (first pose)", rotation_angle_deg(first), "deg")
     pts_room = transform(m.map_points(), np.linalg.inv(map_from_room))

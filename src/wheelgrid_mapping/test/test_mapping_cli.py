@@ -94,6 +94,10 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
     err = capsys.readouterr().err
     assert "Traceback" not in err and err.count("wheelgrid map:") == 4
     assert "prior_rotation_gain must be in [0, 1]" in err
+    bad_cfg.write_text("loop_closure:\n  submap_seconds: 0\n")
+    assert cli_map.main(argv) == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "submap_seconds must be > 0" in err
 
 
 def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:

@@ -192,8 +192,8 @@ def close_loops(
     if len(stamps) != n or len(frames) != n:
         raise ValueError("close_loops: frames, poses and stamps differ in length")
     groups = submap_groups([float(t) for t in stamps], cfg.submap_seconds)
+    out.nodes = len(groups)
     if len(groups) < 3:
-        out.nodes = len(groups)
         out.seconds = time.perf_counter() - t0
         return out
     anchors = [P[g[0]] for g in groups]
@@ -222,7 +222,7 @@ def close_loops(
     est = reg.TransformationEstimationPointToPlane()
     crit = reg.ICPConvergenceCriteria(max_iteration=30)
     weight = 3.0 / cfg.loop_sigma**2
-    refused: dict[str, int] = {}
+    refused = out.refused
     for i in range(len(groups)):
         for j in range(i + 2, len(groups)):
             lo = np.maximum(boxes[i][0], boxes[j][0])
@@ -254,8 +254,6 @@ def close_loops(
             out.loop_edges += 1
         if progress is not None:
             progress(i + 1, len(groups))
-    out.refused = refused
-    out.nodes = len(groups)
     if out.loop_edges:
         level = o3d.utility.get_verbosity_level()
         o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
