@@ -115,13 +115,14 @@ def test_open3d_baseline_tracks_too(world: np.ndarray) -> None:
 
 def test_unobservable_corrections_are_dropped_on_a_bare_floor() -> None:
     from wheelgrid_mapping.preprocess import voxel_downsample
-    from wheelgrid_mapping.registration import _exp_se3, constrain_to_observable
+    from wheelgrid_mapping.registration import constrain_to_observable
+    from wheelgrid_mapping.se3 import exp_se3
 
     rng = np.random.default_rng(17)
     floor = np.column_stack([rng.random((20000, 2)) * 4 - 2, np.full(20000, -1.0)])
     floor = voxel_downsample(floor, 0.05)
     # A correction sliding 10 cm along x/y, 5 deg of yaw (unobservable) and 3 cm in z (observable).
-    corr = _exp_se3(np.array([0.10, 0.10, 0.03, 0.0, 0.0, np.radians(5)]))
+    corr = exp_se3(np.array([0.10, 0.10, 0.03, 0.0, 0.0, np.radians(5)]))
     kept, degenerate = constrain_to_observable(floor, 0.05, corr, 0.03)
     assert degenerate == 3
     assert np.allclose(kept[:3, 3], [0, 0, 0.03], atol=1e-3)

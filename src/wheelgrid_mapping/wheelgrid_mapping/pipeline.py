@@ -189,6 +189,7 @@ class Mapper:
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
+        self._loops_closed = False
         self.loop_info: dict[str, Any] = {}
         self.frames_read = 0
         self.frames_skipped = 0
@@ -208,6 +209,10 @@ class Mapper:
         prior: np.ndarray | None = None,
     ) -> FrameOutcome:
         """Process one sensor-frame cloud (``(N, 3)``, NaN allowed) taken at ``stamp`` seconds."""
+        if self._loops_closed:
+            # The registration map still holds the pre-graph poses: a new frame would register
+            # against a map that no longer matches the trajectory it is appended to.
+            raise RuntimeError("Mapper.add_frame after close_loops: start a new Mapper")
         self.frames_read += 1
         if self.convention is None:
             from .levelling import convention_for_frame
@@ -265,12 +270,18 @@ class Mapper:
     ) -> dict[str, Any]:
         """Optimise the trajectory as a pose graph and rebuild the map from the kept frames.
 
-        For the end of an offline run: the registration map is not rebuilt, so frames added
-        afterwards would register against the old one. Returns the report's ``loop_closure``.
+        For the end of an offline run: the registration map is not rebuilt, so no frame can be
+        added afterwards. Loop edges correct x, y and yaw of the levelled map only (see
+        ``LoopClosureConfig.horizontal_only``) once the map frame is known. Returns the
+        report's ``loop_closure``.
         """
         if not self.keep_frames:
             raise RuntimeError("close_loops needs a Mapper made with keep_frames=True")
-        res = close_loops(self._frames, self.poses_odom, self.stamps, cfg, progress)
+        up = None
+        if self.T_map_odom is not None:
+            up = self.T_map_odom[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        res = close_loops(self._frames, self.poses_odom, self.stamps, cfg, progress, up=up)
+        self._loops_closed = True
         self.poses_odom = res.poses
         self._evidence = self.cfg.evidence_map()
         for pts, pose in zip(self._frames, self.poses_odom, strict=True):

@@ -25,7 +25,6 @@ the baseline the benchmarks compare against.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
@@ -36,6 +35,7 @@ import numpy as np
 from wheelgrid_common.params import field
 
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
+from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
 
 @dataclass
@@ -122,30 +122,6 @@ class RegistrationConfig:
                 )
 
 
-def _exp_se3(x: np.ndarray) -> np.ndarray:
-    """Small-motion [t, omega] -> 4x4 (Rodrigues for the rotation)."""
-    T = np.eye(4)
-    w = x[3:]
-    th = float(np.linalg.norm(w))
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if th < 1e-12:
-        T[:3, :3] = np.eye(3) + K
-    else:
-        K = K / th
-        T[:3, :3] = np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
-    T[:3, 3] = x[:3]
-    return T
-
-
-def _log_se3(T: np.ndarray) -> np.ndarray:
-    """4x4 -> [t, omega] (rotation vector), the inverse of :func:`_exp_se3` for small motions."""
-    R = T[:3, :3]
-    th = math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    w = v * (0.5 if th < 1e-9 else th / (2 * math.sin(th)))
-    return np.concatenate([T[:3, 3], w])
-
-
 def constrain_to_observable(
     points: np.ndarray, cell: float, correction: np.ndarray, ratio: float
 ) -> tuple[np.ndarray, int]:
@@ -168,9 +144,9 @@ def constrain_to_observable(
     H = J.T @ J
     vals, vecs = np.linalg.eigh(H)
     keep = vals >= ratio * max(int(ok.sum()), 1)
-    x = _log_se3(correction)
+    x = log_se3(correction)
     x_kept = vecs @ (keep * (vecs.T @ x))
-    return _exp_se3(x_kept), int((~keep).sum())
+    return exp_se3(x_kept), int((~keep).sum())
 
 
 def blend_correction(correction: np.ndarray, gain_t: float, gain_r: float) -> np.ndarray:
@@ -182,20 +158,10 @@ def blend_correction(correction: np.ndarray, gain_t: float, gain_r: float) -> np
     """
     if gain_t == 1.0 and gain_r == 1.0:
         return correction
-    x = _log_se3(correction)
+    x = log_se3(correction)
     x[:3] *= gain_t
     x[3:] *= gain_r
-    return _exp_se3(x)
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix in degrees."""
-    return math.degrees(math.acos(float(np.clip((np.trace(R[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 rigid transform to ``(N, 3)`` points."""
-    return points @ T[:3, :3].T + T[:3, 3]
+    return exp_se3(x)
 
 
 @dataclass
