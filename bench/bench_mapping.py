@@ -252,6 +252,20 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     )
 
 
+def arkit_agreement(
+    label: str, pts: np.ndarray, ref: np.ndarray, ref_pc: Any, planes: list[np.ndarray]
+) -> None:
+    """Rows: how well a map (odom = the first camera frame) agrees with the ARKit-fused map."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    d = np.asarray(cloud.compute_point_cloud_distance(ref_pc))
+    row(f"{label}: points within 5 cm of the ARKit map", 100.0 * float(np.mean(d < 0.05)), "%")
+    for kind, angle, offset in plane_alignment(ref, pts, planes):
+        row(f"{label}: {kind} planes vs the ARKit map, worst angle", angle, "deg")
+        row(f"{label}: {kind} planes vs the ARKit map, worst offset", offset * 100, "cm")
+
+
 def real_data(limit: int, interval: float) -> None:
     stray = SHARED / "data" / "stray-iphone-room"
     if not stray.exists():
@@ -282,20 +296,15 @@ def real_data(limit: int, interval: float) -> None:
     for label, prior in (("real ICP only", False), ("real ICP + ARKit prior", True)):
         total, frames = stray_frames(stray, prior)
         t0 = time.perf_counter()
-        m = run_mapper(frames, min(total, limit), RegistrationConfig(), cfg)
+        m = run_mapper(frames, min(total, limit), RegistrationConfig(), cfg, keep=True)
         wall = time.perf_counter() - t0
-        pts = m.map_odom()  # odom = the first camera frame, like the reference
-        d = np.asarray(
-            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).compute_point_cloud_distance(
-                ref_pc
-            )
-        )
-        row(f"{label}: points within 5 cm of the ARKit map", 100.0 * float(np.mean(d < 0.05)), "%")
-        for kind, angle, offset in plane_alignment(ref, pts, planes):
-            row(f"{label}: {kind} planes vs the ARKit map, worst angle", angle, "deg")
-            row(f"{label}: {kind} planes vs the ARKit map, worst offset", offset * 100, "cm")
         row(f"{label}: frames failed", m.registrar.counters.failed, "frames")
         row(f"{label}: frames/s (every {interval:.2f} s)", m.frames_read / wall, "frames/s")
+
+        arkit_agreement(f"{label}, ONLINE", m.map_odom(), ref, ref_pc, planes)
+        lc = m.close_loops(LoopClosureConfig())
+        row(f"{label}: loop edges kept", lc["loop_edges"] - lc["loop_edges_pruned"], "edges")
+        arkit_agreement(label, m.map_odom(), ref, ref_pc, planes)
 
 
 def speed(limit: int, big: int) -> None:
