@@ -189,8 +189,7 @@ class Mapper:
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
-        self._loops_closed = False
-        self.loop_info: dict[str, Any] = {}
+        self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
         self.frames_read = 0
         self.frames_skipped = 0
         self.frames_empty = 0
@@ -209,7 +208,7 @@ class Mapper:
         prior: np.ndarray | None = None,
     ) -> FrameOutcome:
         """Process one sensor-frame cloud (``(N, 3)``, NaN allowed) taken at ``stamp`` seconds."""
-        if self._loops_closed:
+        if self.loop_info:  # close_loops has run
             # The registration map still holds the pre-graph poses: a new frame would register
             # against a map that no longer matches the trajectory it is appended to.
             raise RuntimeError("Mapper.add_frame after close_loops: start a new Mapper")
@@ -281,7 +280,6 @@ class Mapper:
         if self.T_map_odom is not None:
             up = self.T_map_odom[:3, :3].T @ np.array([0.0, 0.0, 1.0])
         res = close_loops(self._frames, self.poses_odom, self.stamps, cfg, progress, up=up)
-        self._loops_closed = True
         self.poses_odom = res.poses
         self._evidence = self.cfg.evidence_map()
         for pts, pose in zip(self._frames, self.poses_odom, strict=True):
