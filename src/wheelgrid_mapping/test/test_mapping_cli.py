@@ -50,9 +50,13 @@ def test_loop_closure_runs_and_is_reported(sim_dir: Path, tmp_path: Path, capsys
     y.write_text("loop_closure: {submap_seconds: 1.0}\n")
     base = [str(sim_dir / "scan"), "--prior", "arkit", "--max-frames", "30", "--config", str(y)]
     assert cli_map.main([*base, "--out", str(tmp_path / "lc")]) == 0
-    assert "loop closure:" in capsys.readouterr().err
+    err = capsys.readouterr().err
     rep = json.loads((tmp_path / "lc" / "report.json").read_text())
     lc = rep["loop_closure"]
+    # the one-line summary says what the report says, drift removed included
+    line = next(x for x in err.splitlines() if x.startswith("loop closure:"))
+    assert f"{lc['loop_edges']} loop edges over {lc['nodes']} submaps" in line, line
+    assert f"drift removed {lc['drift_scale_pct']:+.2f} % scale" in line, line
     assert lc["nodes"] == 6 and lc["loop_edges"] >= 1, lc
     assert lc["max_pose_shift_m"] < 0.1  # 6 s of a slow chair: drift, not a jump
     stamps, poses = read_tum(tmp_path / "lc" / "trajectory.tum")

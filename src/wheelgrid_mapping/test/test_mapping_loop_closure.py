@@ -13,10 +13,12 @@ from wheelgrid_common.testing import room_world, sensor_view
 from wheelgrid_mapping.levelling import rpy_matrix
 from wheelgrid_mapping.loop_closure import (
     LoopClosureConfig,
+    _point_to_plane_information,
     close_loops,
     estimate_drift,
     observable_part,
     path_length,
+    solve_rejecting,
     submap_groups,
     undrift,
 )
@@ -111,6 +113,8 @@ def test_short_runs_and_bad_settings() -> None:
     assert [len(g) for g in submap_groups([0.0, 0.1, 0.2, 1.0, 1.05, 3.5], 1.0)] == [3, 2, 1]
     with pytest.raises(ValueError, match="min_overlap"):
         LoopClosureConfig(min_overlap=0.0)
+    with pytest.raises(ValueError, match="max_loop_residual"):
+        LoopClosureConfig(max_loop_residual=-0.01)
     with pytest.raises(RuntimeError, match="keep_frames"):
         Mapper().close_loops(LoopClosureConfig())
 
@@ -129,6 +133,73 @@ def test_no_correction_along_what_a_floor_cannot_see() -> None:
     np.testing.assert_allclose(kept[[0, 1, 5]], x[[0, 1, 5]], atol=1e-9)  # roll, pitch, z kept
     for k in (2, 3, 4):
         assert abs(H_kept[k, k]) < 1e-9
+
+
+def test_views_that_share_only_the_floor_are_no_loop_edge() -> None:
+    """Most of two submaps' overlap is floor; only walls, legs and edges fix x, y and yaw, so
+    once up is known the overlap counts those alone."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(4)
+    floor = np.c_[rng.uniform(0, 4, (3000, 2)), np.zeros(3000)]
+
+    def cloud(wall_y: float) -> o3d.geometry.PointCloud:
+        x, z = np.meshgrid(np.arange(0.0, 4.0, 0.05), np.arange(0.1, 1.5, 0.05))
+        wall = np.c_[x.ravel(), np.full(x.size, wall_y), z.ravel()]
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack([floor, wall])))
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(0.15, 30))
+        return pc
+
+    a, b = cloud(0.0), cloud(3.0)  # the same floor, walls 3 m apart
+    _, plain = _point_to_plane_information(a, b, np.eye(4), 0.03)
+    assert plain > 0.5  # by plain fitness, over half the cloud overlaps: a loop edge
+    H, structure = _point_to_plane_information(a, b, np.eye(4), 0.03, np.array([0, 0, 1.0]))
+    assert H is None and structure == 0.0
+    H, same = _point_to_plane_information(a, cloud(0.0), np.eye(4), 0.03, np.array([0, 0, 1.0]))
+    assert H is not None and same > 0.8  # the same wall twice: structure overlaps
+
+
+def square_walk() -> list[np.ndarray]:
+    """Node poses of a 2 m square walked twice, 1 m apart, facing the way they go."""
+    corners = [((0, 0), 0), ((1, 0), 0), ((2, 0), 90), ((2, 1), 90)]
+    corners += [((2, 2), 180), ((1, 2), 180), ((0, 2), -90), ((0, 1), -90)]
+    out = []
+    for _ in range(2):
+        for (x, y), yaw in corners:
+            T = np.eye(4)
+            T[:3, :3] = rpy_matrix(0.0, 0.0, math.radians(yaw))
+            T[:3, 3] = [x, y, 1.0]
+            out.append(T)
+    return out
+
+
+def test_a_weak_wrong_loop_edge_is_rejected_not_obeyed() -> None:
+    """A loop edge from a far, grazing wall carries little information, so Open3D's line
+    process (which weighs residuals by it) keeps it even when it is 20 cm wrong, and it bends
+    the graph; its metric residual gives it away."""
+    nodes = square_walk()
+    H = np.diag([4.0, 4.0, 4.0, 1.0, 1.0, 1.0])
+    wrong = exp_se3(np.r_[0.0, 0.2, 0.0, 0.0, 0.0, 0.0])
+
+    def edges() -> list:
+        good = [(i, i + 8, np.linalg.inv(nodes[i + 8]) @ nodes[i], H, None) for i in range(8)]
+        return [*good, (1, 11, np.linalg.inv(nodes[11]) @ nodes[1] @ wrong, 0.02 * H, None)]
+
+    def moved(solved: list[np.ndarray]) -> float:
+        return max(
+            float(np.linalg.norm(s[:3, 3] - n[:3, 3])) for s, n in zip(solved, nodes, strict=True)
+        )
+
+    radii = [2.0] * len(nodes)
+    obeyed, kept, rejected = solve_rejecting(
+        nodes, edges(), radii, LoopClosureConfig(max_loop_residual=0.0)
+    )
+    assert rejected == 0 and (1, 11) in kept  # the line process let it through
+    assert moved(obeyed) > 0.01  # and it bent the square by centimetres
+    es = edges()
+    solved, kept, rejected = solve_rejecting(nodes, es, radii, LoopClosureConfig())
+    assert rejected == 1 and len(es) == 8 and (1, 11) not in kept
+    assert moved(solved) < 1e-4  # the eight consistent edges are all that is left
 
 
 def height_error(poses: list[np.ndarray], truth: list[np.ndarray]) -> np.ndarray:

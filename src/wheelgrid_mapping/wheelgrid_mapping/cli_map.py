@@ -257,9 +257,12 @@ def _run(args: argparse.Namespace) -> int:
             lc = mapper.close_loops(loop, tick)
         print(
             f"loop closure: {lc['loop_edges']} loop edges over {lc['nodes']} submaps "
-            f"({lc['loop_edges_pruned']} pruned), poses moved <= "
-            f"{lc['max_pose_shift_m'] * 100:.1f} cm / {lc['max_pose_turn_deg']:.2f} deg "
-            f"in {lc['seconds']:.1f} s",
+            f"({lc['loop_edges_rejected']} rejected, {lc['loop_edges_pruned']} pruned), "
+            f"poses moved <= "
+            f"{lc['max_pose_shift_m'] * 100:.1f} cm / {lc['max_pose_turn_deg']:.2f} deg, "
+            f"{lc['passes']} solve(s), odometry drift removed "
+            f"{lc['drift_scale_pct']:+.2f} % scale / {lc['drift_yaw_deg_per_m']:+.3f} deg/m "
+            f"in {lc['seconds']:.1f} s" + (f" ({lc['drift_note']})" if "drift_note" in lc else ""),
             file=sys.stderr,
         )
     try:

@@ -18,9 +18,15 @@ it back. A pose graph is the standard cure (Open3D's multiway registration, rtab
   when the overlap is small or the correction larger than drift can explain. Once the map's
   up direction is known (``up``), an edge also leaves height, roll and pitch alone
   (``horizontal_only``): the online mapper levels every frame on the floor, which fixes those
-  absolutely, while a loop edge between two narrow views only knows them to centimetres;
+  absolutely, while a loop edge between two narrow views only knows them to centimetres; and
+  its overlap counts *structure* only (walls, legs, edges): two views of the same floor
+  overlap by half and fix nothing a loop edge is there for;
 * Open3D's Levenberg-Marquardt global optimisation with a line process (loop edges are
-  "uncertain", so a wrong one is switched off instead of bending the map);
+  "uncertain", so a wrong one is switched off instead of bending the map). The line process
+  weighs a residual by the edge's information, so a weak wrong edge (one far wall, at a
+  grazing angle) slips through: after each solve, the edge the solution disagrees with most,
+  in metres along what it observes, is dropped while that exceeds ``max_loop_residual``, and
+  the graph solved again (RTAB-Map rejects loop closures by optimisation error the same way);
 * every frame's pose is corrected by its node's correction, interpolated between nodes;
 * with ``up`` known, *drift passes*: a visual-inertial pose prior (ARKit) drifts mostly in two
   slow, systematic ways, a scale error and a yaw rate, both per metre travelled. Odometry edges
@@ -65,7 +71,11 @@ class LoopClosureConfig:
     submap_voxel: float = field(0.04, "voxel of the submap clouds the loop ICP aligns", "m")
     normal_radius: float = field(0.15, "radius of the submap normals (point-to-plane ICP)", "m")
     min_overlap: float = field(
-        0.2, "share of a submap's points within 3 cm of the other after ICP for a loop edge", ""
+        0.1,
+        "share of a submap's points within 3 cm of the other after ICP for a loop edge; once the "
+        "map's up is known, of its structure points only (normals within 60 deg of horizontal: "
+        "walls, legs, table edges; the floor fixes none of x, y, yaw)",
+        "",
     )
     max_correction: float = field(
         0.3, "a loop edge that moves its pair more than this is refused (not drift)", "m"
@@ -89,6 +99,13 @@ class LoopClosureConfig:
     )
     edge_prune_threshold: float = field(
         0.25, "Open3D line-process weight under which a loop edge is dropped", ""
+    )
+    max_loop_residual: float = field(
+        0.05,
+        "a loop edge the solved graph still disagrees with by more than this, along the "
+        "directions it observes (rotation taken at the submap radius), is dropped and the graph "
+        "solved again, worst first (RTAB-Map's RGBD/OptimizeMaxError); 0 = keep every edge",
+        "m",
     )
     horizontal_only: bool = field(
         True,
@@ -130,6 +147,10 @@ class LoopClosureConfig:
         ):
             if getattr(self, name) <= 0:
                 raise ValueError(f"loop_closure {name} must be > 0, not {getattr(self, name)}")
+        if self.max_loop_residual < 0:
+            raise ValueError(
+                f"loop_closure max_loop_residual must be >= 0, not {self.max_loop_residual}"
+            )
         if self.drift_passes < 1:
             raise ValueError(f"loop_closure drift_passes must be >= 1, not {self.drift_passes}")
         if not 0.0 < self.min_overlap <= 1.0:
@@ -146,6 +167,7 @@ class LoopClosureResult:
     loop_edges: int = 0
     refused: dict[str, int] = dc_field(default_factory=dict)
     pruned: int = 0
+    rejected: int = 0  # loop edges dropped for disagreeing with the solved graph
     max_shift_m: float = 0.0
     max_turn_deg: float = 0.0
     passes: int = 0
@@ -160,6 +182,8 @@ class LoopClosureResult:
             "candidate_pairs": self.candidates,
             "loop_edges": self.loop_edges,
             "loop_edges_pruned": self.pruned,
+            "loop_edges_rejected": self.rejected,
+            "loop_edges_kept": self.loop_edges - self.pruned - self.rejected,
             "refused": dict(self.refused),
             "max_pose_shift_m": round(self.max_shift_m, 4),
             "max_pose_turn_deg": round(self.max_turn_deg, 3),
@@ -169,6 +193,10 @@ class LoopClosureResult:
             **({"drift_note": self.drift_note} if self.drift_note else {}),
             "seconds": round(self.seconds, 3),
         }
+
+
+# A loop edge: source and target node, ICP result, its information and the horizontal projector.
+Edge = tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]
 
 
 def observable_part(
@@ -189,14 +217,22 @@ def observable_part(
     return x_kept, H_kept
 
 
-def _point_to_plane_information(src: Any, tgt: Any, T: np.ndarray, dist: float) -> tuple:
-    """Point-to-plane information of ``src`` aligned onto ``tgt`` by ``T``, in ``src``'s frame.
+def _point_to_plane_information(
+    src: Any, tgt: Any, T: np.ndarray, dist: float, up: np.ndarray | None = None
+) -> tuple:
+    """Point-to-plane information of ``src`` aligned onto ``tgt`` by ``T``, in ``src``'s frame,
+    and the overlap: the share of ``src``'s points within ``dist`` of ``tgt``.
 
     Open3D's pose graph linearises an edge's misalignment as ``X^-1 Tt^-1 Ts``, a motion of the
     *source* node, so its information matrix must be expressed in the source frame: Jacobian
     rows ``[p x n, n]`` with ``p`` a source point and ``n`` its target normal rotated into the
     source frame. (In the target frame, the lever arm between two submaps metres apart leaks a
     zeroed direction's weight into others.)
+
+    With ``up`` (the source frame's up), only *structure* counts for the overlap: points whose
+    normal is within 60 deg of horizontal, the walls, legs and table edges that fix x, y and
+    yaw. Two views of the same floor overlap by half and constrain none of those; two views
+    of one table row from its two ends overlap by a tenth and fix them well.
     """
     import open3d as o3d
 
@@ -206,8 +242,15 @@ def _point_to_plane_information(src: Any, tgt: Any, T: np.ndarray, dist: float) 
         return None, ev.fitness
     p = np.asarray(src.points)[c[:, 0]]
     n = np.asarray(tgt.normals)[c[:, 1]] @ T[:3, :3]
+    overlap = ev.fitness
+    if up is not None:
+        structure = np.abs(np.asarray(src.normals) @ up) < 0.5
+        matched = np.abs(n @ up) < 0.5
+        if int(matched.sum()) < 50:
+            return None, 0.0
+        overlap = float(matched.sum()) / max(int(structure.sum()), 1)
     J = np.hstack([np.cross(p, n), n])
-    return J.T @ J / c.shape[0], ev.fitness
+    return J.T @ J / c.shape[0], overlap
 
 
 def submap_groups(stamps: Sequence[float], seconds: float) -> list[list[int]]:
@@ -274,7 +317,7 @@ def close_loops(
     # projector: later passes re-read the same measurement against the undrifted guess.
     est = reg.TransformationEstimationPointToPlane()
     crit = reg.ICPConvergenceCriteria(max_iteration=30)
-    edges: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]] = []
+    edges: list[Edge] = []
     refused = out.refused
     for i in range(len(groups)):
         for j in range(i + 2, len(groups)):
@@ -290,7 +333,8 @@ def close_loops(
             T = init
             for d in (0.2, 0.1, 0.05):
                 T = reg.registration_icp(subs[i], subs[j], d, T, est, crit).transformation
-            H, fitness = _point_to_plane_information(subs[i], subs[j], T, 0.03)
+            g = anchors[i][:3, :3].T @ g_up if g_up is not None else None
+            H, fitness = _point_to_plane_information(subs[i], subs[j], T, 0.03, g)
             if H is None or fitness < cfg.min_overlap:
                 refused["low overlap"] = refused.get("low overlap", 0) + 1
                 continue
@@ -298,7 +342,6 @@ def close_loops(
             if g_up is not None:
                 # Projector onto yaw (rotation about up) and horizontal translation, in the
                 # source node's frame; the graph then keeps the online height, roll and pitch.
-                g = anchors[i][:3, :3].T @ g_up
                 S = np.zeros((6, 6))
                 S[:3, :3] = np.outer(g, g)
                 S[3:, 3:] = np.eye(3) - np.outer(g, g)
@@ -321,15 +364,16 @@ def close_loops(
     length = float(path_length(P, g_up)[-1]) if g_up is not None else 0.0
     for k in range(cfg.drift_passes):
         anchors = [current[g[0]] for g in groups]
-        nodes, out.pruned = _solve(anchors, edges, radii, cfg)
+        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg)
+        out.rejected += rejected
+        out.pruned = len(edges) - len(kept)
         out.passes = k + 1
         corrected = _interpolate(groups, anchors, nodes, current)
         if k + 1 == cfg.drift_passes or g_up is None:
             break
-        if len(edges) - out.pruned < cfg.drift_min_edges:
+        if len(kept) < cfg.drift_min_edges:
             out.drift_note = (
-                f"{len(edges) - out.pruned} loop edges kept, < {cfg.drift_min_edges}: "
-                "no drift estimate"
+                f"{len(kept)} loop edges kept, < {cfg.drift_min_edges}: no drift estimate"
             )
             break
         scale, yaw = estimate_drift(anchors, nodes, g_up)
@@ -373,12 +417,12 @@ def _edge_measurement(
 
 def _solve(
     anchors: list[np.ndarray],
-    edges: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]],
+    edges: list[Edge],
     radii: list[float],
     cfg: LoopClosureConfig,
-) -> tuple[list[np.ndarray], int]:
+) -> tuple[list[np.ndarray], set[tuple[int, int]]]:
     """Optimised node poses of the graph with odometry edges from ``anchors`` and the loop
-    edges; and how many loop edges the line process switched off."""
+    edges; and the ``(i, j)`` of the loop edges the line process kept."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -420,8 +464,67 @@ def _solve(
         )
     finally:
         o3d.utility.set_verbosity_level(level)
-    pruned = len(edges) - sum(1 for e in graph.edges if e.uncertain)
-    return [np.asarray(nd.pose) for nd in graph.nodes], pruned
+    kept = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
+    return [np.asarray(nd.pose) for nd in graph.nodes], kept
+
+
+def solve_rejecting(
+    anchors: list[np.ndarray],
+    edges: list[Edge],
+    radii: list[float],
+    cfg: LoopClosureConfig,
+) -> tuple[list[np.ndarray], set[tuple[int, int]], int]:
+    """Node poses of the graph solved without the loop edges it cannot agree with; the
+    ``(i, j)`` of the loop edges kept, and how many were rejected (removed from ``edges``).
+
+    Open3D's line process switches off an edge its neighbours outvote; where few edges overlap
+    (a far wall seen once from each end of the room, at a grazing angle, 5 m away) a wrong one
+    has no neighbours and bends the graph instead. Every edge the solution still disagrees with
+    by more than ``cfg.max_loop_residual`` goes, the worst first, and the graph is solved again
+    (one at a time: the worst edge's pull is often what makes a good neighbour disagree).
+    """
+    nodes, kept = _solve(anchors, edges, radii, cfg)
+    rejected = 0
+    while cfg.max_loop_residual > 0 and edges:
+        worst, residual = _worst_loop_edge(anchors, nodes, edges, kept, radii, cfg)
+        if residual <= cfg.max_loop_residual:
+            break
+        del edges[worst]
+        rejected += 1
+        nodes, kept = _solve(anchors, edges, radii, cfg)
+    return nodes, kept, rejected
+
+
+def _worst_loop_edge(
+    anchors: list[np.ndarray],
+    nodes: list[np.ndarray],
+    edges: list[Edge],
+    kept: set[tuple[int, int]],
+    radii: list[float],
+    cfg: LoopClosureConfig,
+) -> tuple[int, float]:
+    """Index and residual (m) of the kept loop edge the solved ``nodes`` disagree with most.
+
+    The residual is the motion of the source node between the edge's measurement and the
+    solution, along the directions the edge observes, rotation taken at the submap's radius:
+    how far the solution moves the overlap's points from where the edge put them. Edges the
+    line process switched off are already out and do not count.
+    """
+    worst, worst_r = -1, 0.0
+    for n, (i, j, T, H, S) in enumerate(edges):
+        if (i, j) not in kept:
+            continue
+        init = np.linalg.inv(anchors[j]) @ anchors[i]
+        _, Te, _ = _edge_measurement(init, T, H, S, radii[i], cfg.observable_ratio)
+        x = log_se3(np.linalg.inv(Te) @ np.linalg.inv(nodes[j]) @ nodes[i])
+        xw = np.r_[x[3:], x[:3]]
+        if S is not None:
+            xw = S @ xw
+        xo, _ = observable_part(H, xw, radii[i], cfg.observable_ratio)
+        r = math.hypot(float(np.linalg.norm(xo[3:])), radii[i] * float(np.linalg.norm(xo[:3])))
+        if r > worst_r:
+            worst, worst_r = n, r
+    return worst, worst_r
 
 
 def _interpolate(
