@@ -37,7 +37,7 @@ it back. A pose graph is the standard cure (Open3D's multiway registration, rtab
   edges, until the estimate is negligible or ``drift_passes`` is reached.
 
 Measured on five simulated runs (``make bench``, README): the map share within 5 cm of a true
-surface went from 77-91 % online to 92-97 % (see the README for the current figures).
+surface went from 77-91 % online to 87-98 % (see the README for the current figures).
 """
 
 from __future__ import annotations
