@@ -229,9 +229,11 @@ def _point_to_plane_information(
     source frame. (In the target frame, the lever arm between two submaps metres apart leaks a
     zeroed direction's weight into others.)
 
-    With ``up`` (the source frame's up), only *structure* counts for the overlap: points whose
+    With ``up`` (the source frame's up), only *structure* counts for the overlap: surfaces whose
     normal is within 60 deg of horizontal, the walls, legs and table edges that fix x, y and
-    yaw. Two views of the same floor overlap by half and constrain none of those; two views
+    yaw. The overlap is then the correspondences onto such a target surface (the ones that
+    carry that information) per structure point of the source, and under 50 of them make no
+    edge. Two views of the same floor overlap by half and constrain none of those; two views
     of one table row from its two ends overlap by a tenth and fix them well.
     """
     import open3d as o3d
