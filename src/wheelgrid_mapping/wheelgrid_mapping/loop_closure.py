@@ -409,12 +409,20 @@ def _edge_measurement(
     """``(correction [omega, t], edge transformation, information)`` of a loop edge whose ICP
     result is ``T``, read against the current guess ``init``: only the directions the overlap
     observes (and, with ``S``, only yaw and horizontal translation) move away from the guess."""
-    x = log_se3(np.linalg.inv(init) @ T)
+    xo, H_kept = _observed_motion(np.linalg.inv(init) @ T, H, S, radius, ratio)
+    return xo, init @ exp_se3(np.r_[xo[3:], xo[:3]]), H_kept
+
+
+def _observed_motion(
+    M: np.ndarray, H: np.ndarray, S: np.ndarray | None, radius: float, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The part of a source-node motion ``M`` (4x4) that an edge with information ``H`` (and
+    horizontal projector ``S``) observes, as ``[omega, t]``; and ``H`` without the rest."""
+    x = log_se3(M)
     xw = np.r_[x[3:], x[:3]]
     if S is not None:
         xw = S @ xw
-    xo, H_kept = observable_part(H, xw, radius, ratio)
-    return xo, init @ exp_se3(np.r_[xo[3:], xo[:3]]), H_kept
+    return observable_part(H, xw, radius, ratio)
 
 
 def _solve(
@@ -518,11 +526,8 @@ def _worst_loop_edge(
             continue
         init = np.linalg.inv(anchors[j]) @ anchors[i]
         _, Te, _ = _edge_measurement(init, T, H, S, radii[i], cfg.observable_ratio)
-        x = log_se3(np.linalg.inv(Te) @ np.linalg.inv(nodes[j]) @ nodes[i])
-        xw = np.r_[x[3:], x[:3]]
-        if S is not None:
-            xw = S @ xw
-        xo, _ = observable_part(H, xw, radii[i], cfg.observable_ratio)
+        solved = np.linalg.inv(Te) @ np.linalg.inv(nodes[j]) @ nodes[i]
+        xo, _ = _observed_motion(solved, H, S, radii[i], cfg.observable_ratio)
         r = math.hypot(float(np.linalg.norm(xo[3:])), radii[i] * float(np.linalg.norm(xo[:3])))
         if r > worst_r:
             worst, worst_r = n, r
