@@ -185,21 +185,31 @@ class Monitor:
         self.goal_pub.publish(msg)
 
     def call_trigger(self, service: str, timeout: float = 10.0) -> tuple[bool, str]:
-        """Call a std_srvs/Trigger service (e.g. /mapper/save_map) from the monitor's thread."""
+        """Call a std_srvs/Trigger service (e.g. /mapper/save_map) from the monitor's thread.
+
+        The request is sent again every few seconds while no answer comes: a server that has not
+        yet matched this client's response reader drops the response (ros2/rmw_fastrtps#467), and
+        the services called here (save, reset) are idempotent; earlier requests stay pending, so
+        a save slower than the retry period still answers.
+        """
         from std_srvs.srv import Trigger
 
         client = self.node.create_client(Trigger, service)
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 return False, f"service {service} not available"
-            future = client.call_async(Trigger.Request())
             deadline = time.monotonic() + timeout
-            while not future.done() and time.monotonic() < deadline:
-                time.sleep(0.05)
-            if not future.done():
-                return False, f"service {service} timed out"
-            result = future.result()
-            return bool(result.success), str(result.message)
+            futures = []
+            while time.monotonic() < deadline:
+                futures.append(client.call_async(Trigger.Request()))
+                retry_at = min(time.monotonic() + 5.0, deadline)
+                while time.monotonic() < retry_at:
+                    done = [f for f in futures if f.done()]
+                    if done:
+                        result = done[0].result()
+                        return bool(result.success), str(result.message)
+                    time.sleep(0.05)
+            return False, f"service {service} timed out after {timeout:.0f} s"
         finally:
             self.node.destroy_client(client)
 

@@ -1,13 +1,15 @@
 """The ROS plumbing every node relies on, over real DDS on loopback."""
 
 import os
+import threading
+import time
 
 import numpy as np
 import pytest
 
 from wheelgrid_common.pointcloud2 import read_xyz, to_pointcloud2
 from wheelgrid_common.qos import MAP_QOS
-from wheelgrid_common.testing import rclpy_context, spin_until
+from wheelgrid_common.testing import call_service, rclpy_context, spin_until
 
 pytestmark = pytest.mark.ros
 
@@ -38,3 +40,48 @@ def test_map_qos_delivers_to_a_late_subscriber():
         ex.shutdown()
         pub_node.destroy_node()
         sub_node.destroy_node()
+
+
+def test_call_service_asks_again_and_keeps_the_slow_first_answer():
+    """A request is re-sent while no answer comes, and an answer to an earlier one still counts
+    (a save slower than the retry period); with no server at all the caller gets None."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    calls: list[float] = []
+
+    def slow_first(_req, res):
+        calls.append(time.monotonic())
+        if len(calls) == 1:
+            time.sleep(1.5)
+        res.success, res.message = True, f"answer {len(calls)}"
+        return res
+
+    with rclpy_context() as server_ctx, rclpy_context() as client_ctx:
+        server = Node("wg_test_server", context=server_ctx)
+        server.create_service(Trigger, "/wg_test/slow", slow_first)
+        server_ex = SingleThreadedExecutor(context=server_ctx)
+        server_ex.add_node(server)
+        spinner = threading.Thread(target=server_ex.spin, daemon=True)
+        spinner.start()
+        node = Node("wg_test_client", context=client_ctx)
+        ex = SingleThreadedExecutor(context=client_ctx)
+        ex.add_node(node)
+        try:
+            client = node.create_client(Trigger, "/wg_test/slow")
+            assert spin_until(ex, client.service_is_ready, timeout=20.0)
+            answer = call_service(ex, client, Trigger.Request, timeout=20.0, attempt=0.5)
+            assert answer is not None and answer.message == "answer 1"
+            assert len(calls) >= 2  # asked again while the first was being served
+
+            nobody = node.create_client(Trigger, "/wg_test/nobody")
+            started = time.monotonic()
+            assert call_service(ex, nobody, Trigger.Request, timeout=1.0, attempt=0.3) is None
+            assert time.monotonic() - started < 5.0
+        finally:
+            server_ex.shutdown()
+            spinner.join(timeout=5.0)
+            ex.shutdown()
+            node.destroy_node()
+            server.destroy_node()

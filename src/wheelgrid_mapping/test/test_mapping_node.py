@@ -10,7 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+from wheelgrid_common.testing import (
+    call_service,
+    managed_process,
+    python_module,
+    rclpy_context,
+    spin_until,
+)
 
 BAG = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
 
@@ -129,15 +135,14 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
 
         save = node.create_client(Trigger, "/mapper/save_map")
         assert save.wait_for_service(timeout_sec=10.0)
-        fut = save.call_async(Trigger.Request())
-        assert spin_until(ex, fut.done, 30.0)
-        assert fut.result().success, fut.result().message
+        saved = call_service(ex, save, Trigger.Request, timeout=30.0)
+        assert saved is not None and saved.success, saved
         for name in ("map.ply", "trajectory.tum", "report.json"):
             assert (tmp_path / "saved" / name).stat().st_size > 0
         reset = node.create_client(Trigger, "/mapper/reset")
         assert reset.wait_for_service(timeout_sec=10.0)
-        fut = reset.call_async(Trigger.Request())
-        assert spin_until(ex, fut.done, 10.0) and fut.result().success
+        done = call_service(ex, reset, Trigger.Request)
+        assert done is not None and done.success, done
         assert spin_until(ex, lambda: values().get("frames_used") == "0", 10.0), values()
         ex.shutdown()
         node.destroy_node()

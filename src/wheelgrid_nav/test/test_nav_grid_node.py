@@ -11,7 +11,13 @@ import pytest
 from wheelgrid_common.map_io import OCCUPIED, from_occupancy_grid, read_map
 from wheelgrid_common.pointcloud2 import to_pointcloud2
 from wheelgrid_common.qos import MAP_QOS
-from wheelgrid_common.testing import managed_process, python_module, rclpy_context, spin_until
+from wheelgrid_common.testing import (
+    call_service,
+    managed_process,
+    python_module,
+    rclpy_context,
+    spin_until,
+)
 from wheelgrid_nav.grid_synth import paper_like_boxes, paper_like_expected, room_cloud, transform
 
 pytestmark = pytest.mark.ros
@@ -57,9 +63,9 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
             assert spin_until(ex, save.service_is_ready, timeout=20.0), log.read_text()
 
             def call_save():
-                fut = save.call_async(Trigger.Request())
-                assert spin_until(ex, fut.done, timeout=20.0)
-                return fut.result()
+                answer = call_service(ex, save, Trigger.Request)
+                assert answer is not None, log.read_text()
+                return answer
 
             early = call_save()
             assert not early.success and "no grid yet" in early.message
@@ -115,18 +121,21 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
             assert spin_until(ex, setp.service_is_ready, timeout=20.0)
 
             def set_double(name: str, value: float):
-                req = SetParameters.Request()
-                req.parameters = [
-                    Parameter(
-                        name=name,
-                        value=ParameterValue(
-                            type=ParameterType.PARAMETER_DOUBLE, double_value=value
-                        ),
-                    )
-                ]
-                fut = setp.call_async(req)
-                assert spin_until(ex, fut.done, timeout=20.0)
-                return fut.result().results[0]
+                def request() -> SetParameters.Request:
+                    req = SetParameters.Request()
+                    req.parameters = [
+                        Parameter(
+                            name=name,
+                            value=ParameterValue(
+                                type=ParameterType.PARAMETER_DOUBLE, double_value=value
+                            ),
+                        )
+                    ]
+                    return req
+
+                answer = call_service(ex, setp, request)
+                assert answer is not None, log.read_text()
+                return answer.results[0]
 
             refused = set_double("cell_size", 1.23)
             assert not refused.successful and "whole number" in refused.reason
