@@ -18,6 +18,7 @@ from wheelgrid_mapping.loop_closure import (
     estimate_drift,
     observable_part,
     path_length,
+    prior_yaw_drift,
     solve_rejecting,
     submap_groups,
     undrift,
@@ -312,3 +313,50 @@ def test_an_unbelievable_drift_estimate_stops_the_passes(lap) -> None:
     assert few.passes == 1 and "no drift estimate" in few.drift_note
     with pytest.raises(ValueError, match="drift_passes"):
         LoopClosureConfig(drift_passes=0)
+
+
+def test_prior_yaw_drift_is_read_from_loops_far_from_the_first_node(lap) -> None:
+    """A prior turning 0.5 deg/m too far: loops between late nodes alone give the rate."""
+    _, truth = lap
+    up = np.array([0.0, 0.0, 1.0])
+    prior = vio_drift(truth, 0.0, 0.5)
+    travelled = path_length(truth, up)
+    pairs = [(30, 20), (35, 22), (39, 25), (33, 21)]
+    loops = [(i, j, np.linalg.inv(truth[j]) @ truth[i]) for i, j in pairs]
+    rate, stderr = prior_yaw_drift(loops, truth, prior, travelled, up)
+    assert math.degrees(rate) == pytest.approx(0.5, abs=0.01) and stderr < 1e-3
+    # up is all the trajectory's nodes give: a rigid turn of them changes nothing
+    offset = exp_se3(np.r_[0.3, -0.2, 0.0, 0.0, 0.0, math.radians(3.0)])
+    moved = [offset @ t for t in truth]
+    assert prior_yaw_drift(loops, moved, prior, travelled, up)[0] == pytest.approx(rate, abs=1e-6)
+    same = [(5, 5, np.eye(4))]
+    assert prior_yaw_drift(same, truth, prior, travelled, up)[1] == math.inf
+
+
+def test_the_prior_fixes_the_heading_where_icp_did_not_and_leaves_it_where_icp_did(lap) -> None:
+    """Poses that drift like their prior (ICP took nothing out): the loops measure the prior's
+    0.5 deg/m and the heading is fixed from it. Poses already right (ICP took it all out) while
+    the prior drifts: nothing to fix, and they stay put (a prior's rate applied to them would
+    bend them by its whole drift)."""
+    frames, truth = lap
+    up = np.array([0.0, 0.0, 1.0])
+    prior = vio_drift(truth, 0.0, 0.5)
+    cfg = LoopClosureConfig(submap_seconds=1.0, prior_drift=True)
+    plain = close_loops(frames, prior, STAMPS, cfg, up=up)
+    res = close_loops(frames, prior, STAMPS, cfg, up=up, priors=prior)
+    assert res.prior_drift_deg_per_m == pytest.approx(0.5, abs=0.05)
+    assert res.prior_heading_fix_deg == pytest.approx(0.5 * path_length(truth, up)[-1], rel=0.1)
+    assert worst(res.poses, truth)[1] < 0.1
+    assert worst(res.poses, truth)[1] <= worst(plain.poses, truth)[1] + 0.02
+    assert "prior_drift_deg_per_m" in res.summary()
+
+    right = close_loops(frames, truth, STAMPS, cfg, up=up, priors=prior)
+    assert right.prior_drift_deg_per_m == pytest.approx(0.5, abs=0.05)
+    assert right.prior_heading_fix_deg < 0.1
+    assert worst(right.poses, truth)[0] < 0.02 and worst(right.poses, truth)[1] < 0.1
+    with pytest.raises(ValueError, match="priors"):
+        close_loops(frames, truth, STAMPS, cfg, up=up, priors=prior[:-1])
+    # off (the default): the priors are not read
+    off = close_loops(frames, prior, STAMPS, LoopClosureConfig(submap_seconds=1.0), up=up,
+                      priors=prior)  # fmt: skip
+    assert off.prior_drift_deg_per_m is None and "prior_drift_deg_per_m" not in off.summary()

@@ -189,6 +189,7 @@ class Mapper:
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
+        self._priors: list[np.ndarray | None] = []  # the pose prior of each kept frame
         self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
         self.frames_read = 0
         self.frames_skipped = 0
@@ -249,6 +250,7 @@ class Mapper:
         self.poses_odom.append(res.pose)
         if self.keep_frames:
             self._frames.append(pts.astype(np.float32))
+            self._priors.append(None if prior is None else np.asarray(prior, dtype=np.float64))
         self._evidence.add(transform(pts, res.pose), res.pose[:3, 3])
         self._dirty += pts.shape[0]
         used = len(self.poses_odom)
@@ -279,7 +281,12 @@ class Mapper:
         up = None
         if self.T_map_odom is not None:
             up = self.T_map_odom[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-        res = close_loops(self._frames, self.poses_odom, self.stamps, cfg, progress, up=up)
+        # The prior's drift is measured only when every kept frame had one (ARKit: always).
+        given = [p for p in self._priors if p is not None]
+        priors = given if len(given) == len(self._priors) else None
+        res = close_loops(
+            self._frames, self.poses_odom, self.stamps, cfg, progress, up=up, priors=priors
+        )
         self.poses_odom = res.poses
         self._evidence = self.cfg.evidence_map()
         for pts, pose in zip(self._frames, self.poses_odom, strict=True):
