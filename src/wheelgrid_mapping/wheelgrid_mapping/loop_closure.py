@@ -34,7 +34,11 @@ it back. A pose graph is the standard cure (Open3D's multiway registration, rtab
   loop's correction thinly and leaves half of a yaw drift in place. So the corrections the
   graph made are fitted with one scale and one yaw-per-metre term, the online trajectory is
   re-integrated without them (:func:`undrift`), and the graph is solved again on the same loop
-  edges, until the estimate is negligible or ``drift_passes`` is reached.
+  edges, until the estimate is negligible or ``drift_passes`` is reached;
+* optionally (``prior_drift``, off by default), with the prior's poses given: a run's first
+  leg may share no loop with the rest, and then no graph can see the yaw it drifted. The
+  loops measure the prior's own drift per metre (:func:`prior_yaw_drift`), and the heading
+  error of every node is read from the prior with it and taken out (:func:`reheaded`).
 
 Measured on ten simulated runs (``make bench``, README): the map share within 5 cm of a true
 surface went from 74-94 % online to 81-98 % (see the README for the current figures).
