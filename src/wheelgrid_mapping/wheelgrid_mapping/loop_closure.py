@@ -731,19 +731,7 @@ def undrift(
     """The trajectory re-integrated with every horizontal step ``1 + scale`` times as long and
     turned by ``yaw_per_m`` rad per metre travelled so far; heights, roll and pitch kept (the
     turn is about ``up``), the first pose unchanged."""
-    flat = np.eye(3) - np.outer(up, up)
-    out = [np.asarray(poses[0], dtype=np.float64).copy()]
-    travelled = 0.0
-    for a, b in itertools.pairwise(poses):
-        d = b[:3, 3] - a[:3, 3]
-        h = flat @ d
-        travelled += float(np.linalg.norm(h))
-        R = _about(up, yaw_per_m * travelled)
-        q = np.eye(4)
-        q[:3, :3] = R @ b[:3, :3]
-        q[:3, 3] = out[-1][:3, 3] + R @ ((1.0 + scale) * h + (d - h))
-        out.append(q)
-    return out
+    return _reintegrated(poses, up, lambda travelled: yaw_per_m * travelled, scale)
 
 
 def reheaded(
@@ -753,15 +741,29 @@ def reheaded(
     about ``up``) known at distances ``node_travelled`` along the path, linear in between;
     each horizontal step and orientation is turned back by the error at its end. Heights,
     roll and pitch kept, the first pose unchanged (its error is 0 by definition)."""
+    return _reintegrated(
+        poses, up, lambda travelled: -float(np.interp(travelled, node_travelled, node_error))
+    )
+
+
+def _reintegrated(
+    poses: Sequence[np.ndarray],
+    up: np.ndarray,
+    turn: Callable[[float], float],
+    scale: float = 0.0,
+) -> list[np.ndarray]:
+    """Each pose turned about ``up`` by ``turn(distance travelled to it)`` (rad), and each
+    horizontal step turned the same and made ``1 + scale`` times as long, from the first pose."""
     flat = np.eye(3) - np.outer(up, up)
     out = [np.asarray(poses[0], dtype=np.float64).copy()]
     travelled = 0.0
     for a, b in itertools.pairwise(poses):
         d = b[:3, 3] - a[:3, 3]
-        travelled += float(np.linalg.norm(flat @ d))
-        R = _about(up, -float(np.interp(travelled, node_travelled, node_error)))
+        h = flat @ d
+        travelled += float(np.linalg.norm(h))
+        R = _about(up, turn(travelled))
         q = np.eye(4)
         q[:3, :3] = R @ b[:3, :3]
-        q[:3, 3] = out[-1][:3, 3] + R @ d
+        q[:3, 3] = out[-1][:3, 3] + R @ ((1.0 + scale) * h + (d - h))
         out.append(q)
     return out
