@@ -17,6 +17,7 @@ import numpy as np
 from wheelgrid_bringup.supervisor import Supervisor
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+from wheelgrid_common.services import call_with_retry, poll_until
 
 
 class NodeDiedError(RuntimeError):
@@ -187,10 +188,9 @@ class Monitor:
     def call_trigger(self, service: str, timeout: float = 10.0) -> tuple[bool, str]:
         """Call a std_srvs/Trigger service (e.g. /mapper/save_map) from the monitor's thread.
 
-        The request is sent again every few seconds while no answer comes: a server that has not
-        yet matched this client's response reader drops the response (ros2/rmw_fastrtps#467), and
-        the services called here (save, reset) are idempotent; earlier requests stay pending, so
-        a save slower than the retry period still answers.
+        The request is sent again every 5 s while no answer comes (:func:`call_with_retry`: a
+        server that has not yet matched this client's response reader drops the response); the
+        services called here (save, reset) are idempotent.
         """
         from std_srvs.srv import Trigger
 
@@ -198,17 +198,9 @@ class Monitor:
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 return False, f"service {service} not available"
-            deadline = time.monotonic() + timeout
-            futures = []
-            while time.monotonic() < deadline:
-                futures.append(client.call_async(Trigger.Request()))
-                retry_at = min(time.monotonic() + 5.0, deadline)
-                while time.monotonic() < retry_at:
-                    done = [f for f in futures if f.done()]
-                    if done:
-                        result = done[0].result()
-                        return bool(result.success), str(result.message)
-                    time.sleep(0.05)
+            result = call_with_retry(client, Trigger.Request, poll_until, timeout, 5.0)
+            if result is not None:
+                return bool(result.success), str(result.message)
             return False, f"service {service} timed out after {timeout:.0f} s"
         finally:
             self.node.destroy_client(client)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.ros_env import child_env, configure_ros_env
+from wheelgrid_common.services import call_with_retry
 
 
 def box_surface(lo: Sequence[float], hi: Sequence[float], spacing: float, rng: Any) -> np.ndarray:
@@ -114,23 +115,10 @@ def call_service(
     timeout: float = 20.0,
     attempt: float = 4.0,
 ) -> Any:
-    """Call an idempotent service, asking again while no answer comes, and return the response.
-
-    Why: ``service_is_ready()`` turns true once the request path has matched, but the server
-    may not have matched this client's response reader yet; rmw_fastrtps then waits 100 ms and
-    drops the response (ros2/rmw_fastrtps#390, #467). On a loaded 2-core CI machine one such
-    call never returned. A fresh request after ``attempt`` seconds finds discovery complete;
-    earlier requests stay pending, so a server slower than ``attempt`` still answers.
-    Returns None when nothing came back within ``timeout`` seconds.
-    """
-    deadline = time.monotonic() + timeout
-    futures: list[Any] = []
-    while time.monotonic() < deadline:
-        futures.append(client.call_async(request()))  # earlier ones may still answer
-        wait = min(attempt, max(deadline - time.monotonic(), 0.0))
-        if spin_until(executor, lambda: any(f.done() for f in futures), wait):
-            return next(f for f in futures if f.done()).result()
-    return None
+    """:func:`~wheelgrid_common.services.call_with_retry`, spinning ``executor`` while waiting."""
+    return call_with_retry(
+        client, request, lambda done, wait: spin_until(executor, done, wait), timeout, attempt
+    )
 
 
 def stop_process(proc: subprocess.Popen[Any], grace: float = 5.0) -> int | None:
