@@ -354,7 +354,7 @@ def speed(limit: int, big: int) -> None:
     row(label + " (eq.5 + SOR + PFC)", ours, "s", base)
 
 
-# Loop-closure settings every run of this benchmark uses (``--prior-drift`` sets one).
+# Loop-closure settings every run of this benchmark uses (``--no-prior-drift`` sets one).
 LOOP_OVERRIDES: dict[str, Any] = {}
 
 
@@ -372,14 +372,14 @@ def main(argv: list[str] | None = None) -> int:
         "points with any change to the loop closure)",
     )
     ap.add_argument(
-        "--prior-drift",
+        "--no-prior-drift",
         action="store_true",
-        help="loop closure with prior_drift on (the prior's yaw drift measured by the loops fixes "
-        "the heading; off by default)",
+        help="loop closure without prior_drift (the prior's turns, their drift measured by the "
+        "loops, beside the odometry's): the previous release's graph, for comparison",
     )
     args = ap.parse_args(argv)
-    if args.prior_drift:
-        LOOP_OVERRIDES["prior_drift"] = True
+    if args.no_prior_drift:
+        LOOP_OVERRIDES["prior_drift"] = False
     frames = 40 if args.quick else 10_000
     if args.fresh_seed is None:
         args.fresh_seed = [] if args.quick else list(range(11, 20))

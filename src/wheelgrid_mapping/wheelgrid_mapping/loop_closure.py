@@ -35,10 +35,13 @@ it back. A pose graph is the standard cure (Open3D's multiway registration, rtab
   graph made are fitted with one scale and one yaw-per-metre term, the online trajectory is
   re-integrated without them (:func:`undrift`), and the graph is solved again on the same loop
   edges, until the estimate is negligible or ``drift_passes`` is reached;
-* optionally (``prior_drift``, off by default), with the prior's poses given: a run's first
-  leg may share no loop with the rest, and then no graph can see the yaw it drifted. The
-  loops measure the prior's own drift per metre (:func:`prior_yaw_drift`), and the heading
-  error of every node is read from the prior with it and taken out (:func:`reheaded`).
+* with the prior's poses given (``prior_drift``): a run's first leg may share no loop with
+  the rest, and then no graph can see the yaw online ICP kept of the prior's drift there. The
+  loops measure the prior's own drift per metre (:func:`prior_yaw_drift`: any two looped nodes
+  will do, not only a loop back to the start) and how much its heading wanders beside that;
+  from the next solve on, every step gets a second edge, the prior's turn with that drift taken
+  out (:class:`PriorYaw`, trusted to its wander), and the odometry edge's turn is trusted less
+  by the drift ICP may have kept. Where loops reach, they still decide.
 
 Measured on ten simulated runs (``make bench``, README): the map share within 5 cm of a true
 surface went from 74-94 % online to 81-98 % (see the README for the current figures).
@@ -137,13 +140,12 @@ class LoopClosureConfig:
         2.0, "a larger estimated yaw drift is not believed: the passes stop", "deg/m"
     )
     prior_drift: bool = field(
-        False,
+        True,
         "with the pose prior's poses given: after the first solve, measure the prior's yaw drift "
-        "per metre with the loop edges (each kept loop's relative yaw against the prior's, over "
-        "the distance travelled between its nodes), read the trajectory's heading error at every "
-        "node from the prior with it, and take that out before the next solve, so stretches no "
-        "loop reaches (a run's first leg) are corrected too. Off by default: on ten simulated "
-        "runs it lifted the worst but lowered others (README)",
+        "per metre and its wander with the loop edges, then give every step between nodes the "
+        "prior's turn with that drift taken out, beside the odometry's (trusted less by the "
+        "drift it may have kept), so stretches no loop reaches (a run's first leg) are turned "
+        "right too",
         "",
     )
 
@@ -189,7 +191,8 @@ class LoopClosureResult:
     drift_deg_per_m: float = 0.0  # estimated yaw drift removed, per metre travelled
     drift_note: str = ""
     prior_drift_deg_per_m: float | None = None  # the prior's yaw drift found by its loops
-    prior_heading_fix_deg: float = 0.0  # largest heading correction read from the prior
+    prior_walk_deg_per_sqrt_s: float | None = None  # its heading's random walk beyond that
+    prior_steps: int = 0  # steps between nodes given the prior's turn (ICP kept its drift)
     prior_drift_note: str = ""
     seconds: float = 0.0
 
@@ -214,10 +217,11 @@ class LoopClosureResult:
                 else {}
             ),
             **(
-                {"prior_heading_fix_deg": round(self.prior_heading_fix_deg, 3)}
-                if self.prior_heading_fix_deg
+                {"prior_walk_deg_per_sqrt_s": round(self.prior_walk_deg_per_sqrt_s, 4)}
+                if self.prior_walk_deg_per_sqrt_s is not None
                 else {}
             ),
+            **({"prior_steps": self.prior_steps} if self.prior_steps else {}),
             **({"prior_drift_note": self.prior_drift_note} if self.prior_drift_note else {}),
             "seconds": round(self.seconds, 3),
         }
@@ -398,9 +402,10 @@ def close_loops(
 
     current = P
     length = float(path_length(P, g_up)[-1]) if g_up is not None else 0.0
+    prior_yaw: PriorYaw | None = None
     for k in range(cfg.drift_passes):
         anchors = [current[g[0]] for g in groups]
-        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg)
+        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg, prior_yaw, g_up)
         out.rejected += rejected
         out.pruned = len(edges) - len(kept)
         out.passes = k + 1
@@ -409,10 +414,9 @@ def close_loops(
             break
         if k == 0 and priors is not None and cfg.prior_drift:
             measured = [(i, j, T) for i, j, T, _, _ in edges if (i, j) in kept]
-            heading = _prior_heading_errors(out, cfg, groups, measured, priors, current, g_up)
-            if heading is not None:
-                current = reheaded(current, *heading, g_up)
-                continue
+            prior_yaw = _prior_yaw(out, cfg, groups, measured, priors, current, stamps, g_up)
+            if prior_yaw is not None:
+                continue  # solve again with the prior's turns beside the odometry's
         if len(kept) < cfg.drift_min_edges:
             out.drift_note = (
                 f"{len(kept)} loop edges kept, < {cfg.drift_min_edges}: no drift estimate"
@@ -438,28 +442,96 @@ def close_loops(
     return out
 
 
-def _prior_heading_errors(
+@dataclass
+class PriorYaw:
+    """The pose prior's turn between consecutive nodes, its drift measured by the loops: a
+    second measurement of each step's heading change, independent of online ICP's.
+
+    A visual-inertial prior's heading error is a drift per metre plus a random walk
+    (:mod:`wheelgrid_sim.odometry` models ARKit so). With the drift known, the prior's turn
+    from node i to i+1, less ``rate`` times the distance between them, is right to within the
+    walk over that time. Online ICP starts from the prior and, where the view constrains yaw
+    weakly, keeps part of its drift: its turn over the same step is off by up to ``rate`` times
+    the distance, a bias no loop sees on a stretch no loop reaches (a run's first leg). So the
+    graph gets both, each weighted by what can be wrong with it."""
+
+    nodes: list[np.ndarray]  # the prior's poses at the nodes
+    travelled: np.ndarray  # m, distance travelled to each node
+    times: np.ndarray  # s, each node's stamp
+    rate: float  # rad/m the prior turns too far
+    rate_stderr: float  # rad/m
+    walk: float  # rad^2/s: variance its heading gains per second beyond the drift
+    kept: np.ndarray | None = None  # per step: share of the drift online ICP kept (None: all)
+
+    def used(self, i: int) -> bool:
+        """Whether step i gets the prior's turn: where ICP kept a measurable share of the
+        drift (:func:`kept_drift`). Elsewhere the prior's wander would only add noise to a
+        turn ICP already got right."""
+        return self.kept is None or bool(self.kept[i] > 0.0)
+
+    def turn_variance(self, i: int) -> float:
+        """rad^2: how far the drift-corrected prior's turn from node i to i+1 can be wrong."""
+        dt = float(self.times[i + 1] - self.times[i])
+        dd = float(self.travelled[i + 1] - self.travelled[i])
+        return self.walk * dt + (self.rate_stderr * dd) ** 2 + _MIN_TURN_VARIANCE
+
+    def odometry_bias(self, i: int) -> float:
+        """rad: how much of the prior's drift online ICP kept from node i to i+1."""
+        share = 1.0 if self.kept is None else float(np.clip(self.kept[i], 0.0, 1.0))
+        return share * abs(self.rate) * float(self.travelled[i + 1] - self.travelled[i])
+
+    def turn_gap(self, i: int, anchors: Sequence[np.ndarray], up: np.ndarray) -> float:
+        """rad: the corrected prior's turn from node i to i+1 less the ``anchors``' own."""
+        return self._gap(i, anchors, up)[0]
+
+    def _gap(
+        self, i: int, anchors: Sequence[np.ndarray], up: np.ndarray
+    ) -> tuple[float, np.ndarray, np.ndarray]:
+        g = anchors[i][:3, :3].T @ up
+        prior = np.linalg.inv(self.nodes[i + 1]) @ self.nodes[i]
+        dd = float(self.travelled[i] - self.travelled[i + 1])
+        # prior_yaw_drift: the prior's relative pose is the true one turned by rate (D_i - D_j)
+        # about up in node i's frame; undo that, then keep only the turn about up.
+        corrected = prior @ exp_se3(np.r_[0.0, 0.0, 0.0, -self.rate * dd * g])
+        init = np.linalg.inv(anchors[i + 1]) @ anchors[i]
+        return float(log_se3(np.linalg.inv(init) @ corrected)[3:] @ g), init, g
+
+    def edge(self, i: int, anchors: Sequence[np.ndarray], up: np.ndarray) -> PriorEdge:
+        """``(T, information)`` of the graph edge from node i to i+1 that turns it as the
+        corrected prior does; only the turn about up carries information."""
+        turn, init, g = self._gap(i, anchors, up)
+        info = np.zeros((6, 6))
+        info[:3, :3] = np.outer(g, g) / self.turn_variance(i)
+        return init @ exp_se3(np.r_[0.0, 0.0, 0.0, turn * g]), info
+
+
+_MIN_TURN_VARIANCE = math.radians(0.01) ** 2  # no step of any prior is trusted beyond this
+
+# The prior's turn between two nodes, corrected, as a graph edge: transformation, information.
+PriorEdge = tuple[np.ndarray, np.ndarray]
+
+
+def _prior_yaw(
     out: LoopClosureResult,
     cfg: LoopClosureConfig,
     groups: Sequence[Sequence[int]],
     measured: Sequence[tuple[int, int, np.ndarray]],
     priors: Sequence[np.ndarray],
     poses: Sequence[np.ndarray],
+    stamps: Sequence[float],
     up: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(distance travelled, heading error in rad)`` of ``poses`` at each node, read from the
-    prior once the loops (``measured``: kept edges' ICP results) have measured its drift; or
-    None, with a note saying why not.
+) -> PriorYaw | None:
+    """The prior's turns as :class:`PriorYaw`, once the loops (``measured``: kept edges' ICP
+    results) have measured its drift; or None, with a note saying why not.
 
-    The prior's yaw drift ``r`` is believed only when ``drift_min_edges`` loops measured it,
-    it is within ``max_drift_deg_per_m`` and at least twice its standard error (a rate fitted to
-    loops between nearby nodes would be their noise). The prior's heading error at a node is
-    then ``r D``; the trajectory's is that plus how far it turned away from the prior since the
-    first node. Online ICP took out anything from a fifth to nearly all of the prior's drift on
-    the simulated runs, so the trajectory's own error is used, not the prior's rate."""
+    The drift ``r`` is believed only when ``drift_min_edges`` loops measured it, it is within
+    ``max_drift_deg_per_m`` and at least twice its standard error (a rate fitted to loops
+    between nearby nodes would be their noise). The walk is what the loops disagree with the
+    drift-corrected prior by, growing with the time between their nodes (it also takes in the
+    loops' own noise: the prior is trusted less, never more)."""
     starts = [g[0] for g in groups]
-    dist = path_length(poses, up)
-    travelled = dist[starts]
+    travelled = path_length(poses, up)[starts]
+    times = np.array([float(stamps[i]) for i in starts])
     if len(measured) < cfg.drift_min_edges:
         out.prior_drift_note = f"{len(measured)} loop edges kept, < {cfg.drift_min_edges}"
         return None
@@ -475,19 +547,71 @@ def _prior_heading_errors(
             f"not applied: within twice its standard error ({math.degrees(stderr):.3f} deg/m)"
         )
         return None
-    # at every node and at the last frame (the tail after the last node drifts on)
-    at = [*starts, len(poses) - 1]
-    a0, p0 = poses[0], np.asarray(priors[0], dtype=np.float64)
-    up0 = a0[:3, :3].T @ up
-    turned = []
-    for k in at:
-        rel = np.eye(4)  # the trajectory's rotation since the first pose against the prior's
-        pk = np.asarray(priors[k], dtype=np.float64)
-        rel[:3, :3] = (np.linalg.inv(a0) @ poses[k])[:3, :3] @ (np.linalg.inv(p0) @ pk)[:3, :3].T
-        turned.append(float(log_se3(rel)[3:] @ up0))
-    errors = np.array(turned) + rate * dist[at]
-    out.prior_heading_fix_deg = float(np.degrees(np.abs(errors).max()))
-    return dist[at], errors
+    y = _loop_prior_yaw(measured, anchors, prior_nodes, up)
+    x = np.array([float(travelled[i] - travelled[j]) for i, j, _ in measured])
+    dt = np.array([abs(float(times[i] - times[j])) for i, j, _ in measured])
+    residual2 = (y - rate * x) ** 2
+    walk = float(residual2 @ dt) / max(float(dt @ dt), 1e-12)
+    out.prior_walk_deg_per_sqrt_s = math.degrees(math.sqrt(walk))
+    yaw = PriorYaw(prior_nodes, travelled, times, rate, stderr, walk)
+    yaw.kept = kept_drift(yaw, anchors, up, math.radians(cfg.odometry_sigma_deg) ** 2)
+    out.prior_steps = int((yaw.kept > 0.0).sum())
+    if out.prior_steps == 0:
+        out.prior_drift_note = "online ICP kept none of the prior's drift on any stretch"
+        return None
+    return yaw
+
+
+def kept_drift(
+    yaw: PriorYaw,
+    anchors: Sequence[np.ndarray],
+    up: np.ndarray,
+    odometry_var: float,
+    half_window: int = 3,
+) -> np.ndarray:
+    """Per step between nodes: the share of the prior's drift the online turns kept, where it
+    is measurable, else 0.
+
+    Online ICP starts from the prior: over a step of ``D`` metres it turns ``f r D`` too far if
+    it kept a share ``f`` of the prior's drift ``r``, and the drift-corrected prior differs
+    from it by that plus the prior's wander. ``f`` is fitted over ``half_window`` steps either
+    side (weighted least squares, each step's variance the wander over its time plus the
+    odometry's own), and kept only where it is more than twice its standard error: a share
+    ICP did not measurably keep is not taken out, so the prior's wander does not replace the
+    turn of a well-registered stretch (on the simulated runs ICP kept anything from none to
+    four fifths of the drift, varying along a run)."""
+    n = len(anchors) - 1
+    gap = np.array([yaw.turn_gap(i, anchors, up) for i in range(n)])
+    bias = np.array([yaw.rate * float(yaw.travelled[i + 1] - yaw.travelled[i]) for i in range(n)])
+    var = np.array(
+        [yaw.walk * float(yaw.times[i + 1] - yaw.times[i]) + odometry_var for i in range(n)]
+    )
+    out = np.zeros(n)
+    for i in range(n):
+        w = slice(max(0, i - half_window), min(n, i + half_window + 1))
+        den = float((bias[w] ** 2 / var[w]).sum())
+        if den <= 0.0:
+            continue
+        share = float((gap[w] * bias[w] / var[w]).sum()) / den
+        if share > 2.0 / math.sqrt(den):
+            out[i] = share
+    return out
+
+
+def _loop_prior_yaw(
+    measured: Sequence[tuple[int, int, np.ndarray]],
+    nodes: Sequence[np.ndarray],
+    prior_nodes: Sequence[np.ndarray],
+    up: np.ndarray,
+) -> np.ndarray:
+    """rad, per loop: how much farther the prior turned between its two nodes than the loop's
+    ICP measured, about up at the source node."""
+    out = []
+    for i, j, T in measured:
+        prior = np.linalg.inv(prior_nodes[j]) @ prior_nodes[i]
+        w = log_se3(np.linalg.inv(T) @ prior)[3:]
+        out.append(float(w @ (nodes[i][:3, :3].T @ up)))
+    return np.array(out)
 
 
 def prior_yaw_drift(
@@ -509,14 +633,8 @@ def prior_yaw_drift(
     the first node, and unlike a solved graph the loops themselves carry none of the
     odometry's drift. ``nodes`` (the trajectory's) give only the direction of up at node i.
     """
-    d_yaw, d_dist = [], []
-    for i, j, T in measured:
-        prior = np.linalg.inv(prior_nodes[j]) @ prior_nodes[i]
-        # the rotation that takes the loop's relative pose to the prior's, about up (node i)
-        w = log_se3(np.linalg.inv(T) @ prior)[3:]
-        d_yaw.append(float(w @ (nodes[i][:3, :3].T @ up)))
-        d_dist.append(float(travelled[i] - travelled[j]))
-    y, x = np.array(d_yaw), np.array(d_dist)
+    y = _loop_prior_yaw(measured, nodes, prior_nodes, up)
+    x = np.array([float(travelled[i] - travelled[j]) for i, j, _ in measured])
     den = float(x @ x)
     if den < 1e-9:
         return 0.0, math.inf
@@ -558,21 +676,32 @@ def _solve(
     edges: list[Edge],
     radii: list[float],
     cfg: LoopClosureConfig,
+    prior_yaw: PriorYaw | None = None,
+    up: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]]]:
     """Optimised node poses of the graph with odometry edges from ``anchors`` and the loop
-    edges; and the ``(i, j)`` of the loop edges the line process kept."""
+    edges; and the ``(i, j)`` of the loop edges the line process kept. With ``prior_yaw`` (and
+    ``up``) every step also gets the prior's corrected turn, and the odometry's turn is
+    trusted less by the drift it may have kept."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
     graph = reg.PoseGraph()
     for a in anchors:
         graph.nodes.append(reg.PoseGraphNode(a))
-    odo_info = np.diag(
-        [1.0 / math.radians(cfg.odometry_sigma_deg) ** 2] * 3 + [1.0 / cfg.odometry_sigma**2] * 3
-    )
+    rot_var = math.radians(cfg.odometry_sigma_deg) ** 2
+    odo_info = np.diag([1.0 / rot_var] * 3 + [1.0 / cfg.odometry_sigma**2] * 3)
+    prior_edges = []
     for i in range(len(anchors) - 1):
         rel = np.linalg.inv(anchors[i + 1]) @ anchors[i]
-        graph.edges.append(reg.PoseGraphEdge(i, i + 1, rel, odo_info, uncertain=False))
+        info = odo_info
+        if prior_yaw is not None and up is not None and prior_yaw.used(i):
+            g = anchors[i][:3, :3].T @ up
+            info = odo_info.copy()
+            yaw_var = rot_var + prior_yaw.odometry_bias(i) ** 2
+            info[:3, :3] = (np.eye(3) - np.outer(g, g)) / rot_var + np.outer(g, g) / yaw_var
+            prior_edges.append((i, *prior_yaw.edge(i, anchors, up)))
+        graph.edges.append(reg.PoseGraphEdge(i, i + 1, rel, info, uncertain=False))
     weight = 3.0 / cfg.loop_sigma**2
     for i, j, T, H, S in edges:
         init = np.linalg.inv(anchors[j]) @ anchors[i]
@@ -586,6 +715,8 @@ def _solve(
     # ``horizontal_only``.
     mean55 = float(np.mean([e.information[5, 5] for e in graph.edges]))
     preference = weight / max(mean55, 1e-12)
+    for i, T, info in prior_edges:  # certain, and not in the line process's mean above
+        graph.edges.append(reg.PoseGraphEdge(i, i + 1, T, info, uncertain=False))
     level = o3d.utility.get_verbosity_level()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     try:
@@ -611,6 +742,8 @@ def solve_rejecting(
     edges: list[Edge],
     radii: list[float],
     cfg: LoopClosureConfig,
+    prior_yaw: PriorYaw | None = None,
+    up: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]], int]:
     """Node poses of the graph solved without the loop edges it cannot agree with; the
     ``(i, j)`` of the loop edges kept, and how many were rejected (removed from ``edges``).
@@ -621,7 +754,7 @@ def solve_rejecting(
     by more than ``cfg.max_loop_residual`` goes, the worst first, and the graph is solved again
     (one at a time: the worst edge's pull is often what makes a good neighbour disagree).
     """
-    nodes, kept = _solve(anchors, edges, radii, cfg)
+    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up)
     rejected = 0
     while cfg.max_loop_residual > 0 and edges:
         worst, residual = _worst_loop_edge(anchors, nodes, edges, kept, radii, cfg)
@@ -629,7 +762,7 @@ def solve_rejecting(
             break
         del edges[worst]
         rejected += 1
-        nodes, kept = _solve(anchors, edges, radii, cfg)
+        nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up)
     return nodes, kept, rejected
 
 
@@ -732,18 +865,6 @@ def undrift(
     turned by ``yaw_per_m`` rad per metre travelled so far; heights, roll and pitch kept (the
     turn is about ``up``), the first pose unchanged."""
     return _reintegrated(poses, up, lambda travelled: yaw_per_m * travelled, scale)
-
-
-def reheaded(
-    poses: Sequence[np.ndarray], node_travelled: np.ndarray, node_error: np.ndarray, up: np.ndarray
-) -> list[np.ndarray]:
-    """The trajectory re-integrated with its heading error taken out: ``node_error`` (rad,
-    about ``up``) known at distances ``node_travelled`` along the path, linear in between;
-    each horizontal step and orientation is turned back by the error at its end. Heights,
-    roll and pitch kept, the first pose unchanged (its error is 0 by definition)."""
-    return _reintegrated(
-        poses, up, lambda travelled: -float(np.interp(travelled, node_travelled, node_error))
-    )
 
 
 def _reintegrated(
