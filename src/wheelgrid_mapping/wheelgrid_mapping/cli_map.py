@@ -265,6 +265,18 @@ def _run(args: argparse.Namespace) -> int:
             f"in {lc['seconds']:.1f} s" + (f" ({lc['drift_note']})" if "drift_note" in lc else ""),
             file=sys.stderr,
         )
+        if "prior_drift_deg_per_m" in lc:
+            print(
+                f"loop closure: the pose prior drifts {lc['prior_drift_deg_per_m']:+.3f} deg/m"
+                + (
+                    f", wanders {lc['prior_walk_deg_per_sqrt_s']:.3f} deg/sqrt(s); its turns "
+                    f"used on {lc.get('prior_steps', 0)} of {lc['nodes'] - 1} steps"
+                    if "prior_walk_deg_per_sqrt_s" in lc
+                    else ""
+                )
+                + (f" ({lc['prior_drift_note']})" if "prior_drift_note" in lc else ""),
+                file=sys.stderr,
+            )
     try:
         rep = mapper.save(
             args.out,
