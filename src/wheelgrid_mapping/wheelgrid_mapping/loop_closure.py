@@ -39,9 +39,10 @@ it back. A pose graph is the standard cure (Open3D's multiway registration, rtab
   the rest, and then no graph can see the yaw online ICP kept of the prior's drift there. The
   loops measure the prior's own drift per metre (:func:`prior_yaw_drift`: any two looped nodes
   will do, not only a loop back to the start) and how much its heading wanders beside that;
-  from the next solve on, every step gets a second edge, the prior's turn with that drift taken
-  out (:class:`PriorYaw`, trusted to its wander), and the odometry edge's turn is trusted less
-  by the drift ICP may have kept. Where loops reach, they still decide.
+  from the next solve on, every step on which online ICP measurably kept a share of that drift
+  (:func:`kept_drift`) gets a second edge, the prior's turn with the drift taken out
+  (:class:`PriorYaw`, trusted to its wander), and the odometry edge's turn there is trusted
+  less by the share ICP kept. Where loops reach, they still decide.
 
 Measured on ten simulated runs (``make bench``, README): the map share within 5 cm of a true
 surface went from 74-94 % online to 81-98 % (see the README for the current figures).
@@ -142,10 +143,10 @@ class LoopClosureConfig:
     prior_drift: bool = field(
         True,
         "with the pose prior's poses given: after the first solve, measure the prior's yaw drift "
-        "per metre and its wander with the loop edges, then give every step between nodes the "
-        "prior's turn with that drift taken out, beside the odometry's (trusted less by the "
-        "drift it may have kept), so stretches no loop reaches (a run's first leg) are turned "
-        "right too",
+        "per metre and its wander with the loop edges, then give every step on which online ICP "
+        "measurably kept a share of that drift the prior's turn with the drift taken out, "
+        "beside the odometry's (trusted less by the share kept), so stretches no loop reaches "
+        "(a run's first leg) are turned right too",
         "",
     )
 
@@ -314,8 +315,9 @@ def close_loops(
     (and ``cfg.horizontal_only``) loop edges correct only x, y and yaw, and up to
     ``cfg.drift_passes`` solves remove the odometry's scale and yaw drift. ``priors`` are the
     pose prior's poses of the same frames (any fixed frame, e.g. ARKit's world): with them
-    (and ``cfg.prior_drift``) the prior's yaw drift per metre is measured by the loops and
-    taken out of the whole trajectory after the first solve. ``progress(done, total)`` is called
+    (and ``cfg.prior_drift``) the loops measure the prior's yaw drift per metre after the
+    first solve, and later solves give the prior's drift-corrected turn to every step on which
+    online ICP measurably kept that drift. ``progress(done, total)`` is called
     once per submap.
     """
     import open3d as o3d
@@ -537,7 +539,8 @@ def _prior_yaw(
         return None
     prior_nodes = [np.asarray(priors[i], dtype=np.float64) for i in starts]
     anchors = [poses[i] for i in starts]
-    rate, stderr = prior_yaw_drift(measured, anchors, prior_nodes, travelled, up)
+    y, x = _loop_prior_yaw(measured, anchors, prior_nodes, travelled, up)
+    rate, stderr = _slope_through_zero(x, y)
     out.prior_drift_deg_per_m = math.degrees(rate)
     if abs(math.degrees(rate)) > cfg.max_drift_deg_per_m:
         out.prior_drift_note = "not believed: above max_drift_deg_per_m"
@@ -547,8 +550,6 @@ def _prior_yaw(
             f"not applied: within twice its standard error ({math.degrees(stderr):.3f} deg/m)"
         )
         return None
-    y = _loop_prior_yaw(measured, anchors, prior_nodes, up)
-    x = np.array([float(travelled[i] - travelled[j]) for i, j, _ in measured])
     dt = np.array([abs(float(times[i] - times[j])) for i, j, _ in measured])
     residual2 = (y - rate * x) ** 2
     walk = float(residual2 @ dt) / max(float(dt @ dt), 1e-12)
@@ -602,16 +603,30 @@ def _loop_prior_yaw(
     measured: Sequence[tuple[int, int, np.ndarray]],
     nodes: Sequence[np.ndarray],
     prior_nodes: Sequence[np.ndarray],
+    travelled: np.ndarray,
     up: np.ndarray,
-) -> np.ndarray:
-    """rad, per loop: how much farther the prior turned between its two nodes than the loop's
-    ICP measured, about up at the source node."""
-    out = []
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per loop: how much farther the prior turned between its two nodes than the loop's ICP
+    measured, about up at the source node (rad); and the distance travelled between them (m,
+    ``D_i - D_j``)."""
+    yaw = []
     for i, j, T in measured:
         prior = np.linalg.inv(prior_nodes[j]) @ prior_nodes[i]
         w = log_se3(np.linalg.inv(T) @ prior)[3:]
-        out.append(float(w @ (nodes[i][:3, :3].T @ up)))
-    return np.array(out)
+        yaw.append(float(w @ (nodes[i][:3, :3].T @ up)))
+    dist = [float(travelled[i] - travelled[j]) for i, j, _ in measured]
+    return np.array(yaw), np.array(dist)
+
+
+def _slope_through_zero(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of ``y`` against ``x`` through zero, and its standard error (inf
+    when ``x`` has no spread)."""
+    den = float(x @ x)
+    if den < 1e-9:
+        return 0.0, math.inf
+    rate = float(x @ y) / den
+    dof = max(len(x) - 1, 1)
+    return rate, math.sqrt(float(((y - rate * x) ** 2).sum()) / dof / den)
 
 
 def prior_yaw_drift(
@@ -633,15 +648,8 @@ def prior_yaw_drift(
     the first node, and unlike a solved graph the loops themselves carry none of the
     odometry's drift. ``nodes`` (the trajectory's) give only the direction of up at node i.
     """
-    y = _loop_prior_yaw(measured, nodes, prior_nodes, up)
-    x = np.array([float(travelled[i] - travelled[j]) for i, j, _ in measured])
-    den = float(x @ x)
-    if den < 1e-9:
-        return 0.0, math.inf
-    rate = float(x @ y) / den
-    dof = max(len(x) - 1, 1)
-    stderr = math.sqrt(float(((y - rate * x) ** 2).sum()) / dof / den)
-    return rate, stderr
+    y, x = _loop_prior_yaw(measured, nodes, prior_nodes, travelled, up)
+    return _slope_through_zero(x, y)
 
 
 def _edge_measurement(
@@ -681,8 +689,8 @@ def _solve(
 ) -> tuple[list[np.ndarray], set[tuple[int, int]]]:
     """Optimised node poses of the graph with odometry edges from ``anchors`` and the loop
     edges; and the ``(i, j)`` of the loop edges the line process kept. With ``prior_yaw`` (and
-    ``up``) every step also gets the prior's corrected turn, and the odometry's turn is
-    trusted less by the drift it may have kept."""
+    ``up``) every step it is used on (:meth:`PriorYaw.used`) also gets the prior's corrected
+    turn, and the odometry's turn there is trusted less by the drift ICP kept."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -864,17 +872,6 @@ def undrift(
     """The trajectory re-integrated with every horizontal step ``1 + scale`` times as long and
     turned by ``yaw_per_m`` rad per metre travelled so far; heights, roll and pitch kept (the
     turn is about ``up``), the first pose unchanged."""
-    return _reintegrated(poses, up, lambda travelled: yaw_per_m * travelled, scale)
-
-
-def _reintegrated(
-    poses: Sequence[np.ndarray],
-    up: np.ndarray,
-    turn: Callable[[float], float],
-    scale: float = 0.0,
-) -> list[np.ndarray]:
-    """Each pose turned about ``up`` by ``turn(distance travelled to it)`` (rad), and each
-    horizontal step turned the same and made ``1 + scale`` times as long, from the first pose."""
     flat = np.eye(3) - np.outer(up, up)
     out = [np.asarray(poses[0], dtype=np.float64).copy()]
     travelled = 0.0
@@ -882,7 +879,7 @@ def _reintegrated(
         d = b[:3, 3] - a[:3, 3]
         h = flat @ d
         travelled += float(np.linalg.norm(h))
-        R = _about(up, turn(travelled))
+        R = _about(up, yaw_per_m * travelled)
         q = np.eye(4)
         q[:3, :3] = R @ b[:3, :3]
         q[:3, 3] = out[-1][:3, 3] + R @ ((1.0 + scale) * h + (d - h))
