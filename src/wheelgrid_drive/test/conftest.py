@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 
 import pytest
 
+from wheelgrid_common.services import poll_until
 from wheelgrid_drive.link import MotorLink
 from wheelgrid_drive.motor_sim import MotorSim, MotorSimConfig
 
@@ -49,12 +49,7 @@ def make_link() -> Iterator[Callable[..., MotorLink]]:
 
 def wait_for(predicate: Callable[[], bool], timeout: float = 5.0, step: float = 0.01) -> bool:
     """Poll ``predicate`` until true or ``timeout`` s (threads do the work, we just watch)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return bool(predicate())
+    return poll_until(predicate, timeout, step)
 
 
 @pytest.fixture
