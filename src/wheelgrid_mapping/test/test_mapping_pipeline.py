@@ -85,3 +85,23 @@ def test_the_prior_reaches_loop_closure_only_when_every_frame_had_one(all_have_o
     assert info["loop_edges_kept"] > 0
     # with a prior, its drift is looked for (a still sensor shows none: the note says why)
     assert ("prior_drift_note" in info) is all_have_one
+
+
+def test_a_broken_prior_is_dropped_and_counted_not_fatal() -> None:
+    """A NaN or scaled pose from a bridge or a bag: the frame is still mapped (without it), the
+    report counts it, and loop closure gets no half-broken prior."""
+    from wheelgrid_mapping.loop_closure import LoopClosureConfig
+
+    rng = np.random.default_rng(24)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2), keep_frames=True)
+    nan, scaled = np.eye(4), 2.0 * np.eye(4)
+    nan[0, 3] = np.nan
+    scaled[3, 3] = 1.0
+    for i, prior in enumerate([np.eye(4), nan, np.eye(4), scaled, np.eye(4), np.eye(4)]):
+        out = m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link", prior=prior)
+        assert out.status == "used"
+    assert np.isfinite(np.array(m.poses_odom)).all()
+    assert m.report()["frames"]["priors_refused"] == 2
+    info = m.close_loops(LoopClosureConfig(submap_seconds=0.2))
+    assert "prior_drift_note" not in info  # two frames had none: no prior for the graph
+    assert np.isfinite(np.array(m.poses_odom)).all()

@@ -292,6 +292,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_skipped_busy": self.counts["skipped_busy"],
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,
+            "priors_refused": self.mapper.priors_refused,
             "levelled": self.mapper.T_map_odom is not None,
         }
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]

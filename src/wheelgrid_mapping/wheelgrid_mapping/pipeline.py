@@ -33,6 +33,7 @@ from .levelling import (
 from .loop_closure import LoopClosureConfig, close_loops
 from .preprocess import PreprocessConfig, PreprocessStats, preprocess, voxel_downsample
 from .registration import Registrar, RegistrationConfig, transform
+from .se3 import is_rigid
 
 
 @dataclass
@@ -194,6 +195,7 @@ class Mapper:
         self.frames_read = 0
         self.frames_skipped = 0
         self.frames_empty = 0
+        self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
         self.failures: list[dict[str, Any]] = []
         self.points = {"input": 0, "valid": 0, "downsampled": 0, "after_sor": 0, "after_pfc": 0}
         self.timings = {"preprocess_s": 0.0, "registration_s": 0.0, "levelling_s": 0.0}
@@ -226,6 +228,11 @@ class Mapper:
             self.frames_skipped += 1
             return FrameOutcome("skipped", "keyframe interval")
         self._last_processed = stamp
+        if prior is not None and not is_rigid(prior):
+            # A NaN pose from a bridge or bag would abort KISS-ICP (Sophus) and poison the loop
+            # closure's prior drift: the frame is registered without it, and it is counted.
+            self.priors_refused += 1
+            prior = None
         t0 = time.perf_counter()
         st = PreprocessStats()
         pts = preprocess(points, self.pre, confidence, st)
@@ -390,6 +397,7 @@ class Mapper:
                 "empty": self.frames_empty,
                 "skipped": self.frames_skipped,
                 "relocalised": c.relocalised,
+                "priors_refused": self.priors_refused,
             },
             "failure_reasons": dict(c.failure_reasons),
             "failures": self.failures[:200],

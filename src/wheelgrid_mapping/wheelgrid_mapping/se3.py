@@ -44,3 +44,16 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Apply a 4x4 rigid transform to ``(N, 3)`` points."""
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+    """Whether ``T`` is a finite 4x4 rigid transform (rotation to within ``tol``)."""
+    M = np.asarray(T, dtype=np.float64)
+    if M.shape != (4, 4) or not np.isfinite(M).all():
+        return False
+    R = M[:3, :3]
+    return (
+        bool(np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=tol))
+        and bool(np.allclose(R.T @ R, np.eye(3), atol=tol))
+        and float(np.linalg.det(R)) > 0.0
+    )
