@@ -252,7 +252,9 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
             break
         pose = gt[int(np.argmin(np.abs(gt_stamps - stamp)))]
         ev.add(transform(preprocess(pts, pre, conf), pose), pose[:3, 3])
-    pts_room = transform(ev.points(), np.linalg.inv(np.asarray(truth["map_from_room"])))
+    # map frame (true poses are in it): z is up, for the evidence margin
+    pts = ev.points(up=np.array([0.0, 0.0, 1.0]))
+    pts_room = transform(pts, np.linalg.inv(np.asarray(truth["map_from_room"])))
     # Table I here too: what the measurement itself is worth, the same boxes on a perfect map.
     truth_rows(label, pts_room, scene)
 

@@ -62,3 +62,68 @@ def test_floor_correction_levels_a_slightly_tilted_floor_and_keeps_the_origin():
     assert np.linalg.norm(corr[:2, 3]) < 1e-9  # no sideways shift of the origin
     steep = np.c_[xy, np.tan(np.radians(10)) * xy[:, 0]]
     assert floor_correction(steep) is None  # not a small refinement: leave it alone
+
+
+_POST = (np.array([1.0, 2.0, 0.0]), np.array([1.1, 2.1, 1.0]))  # a 10 cm square post
+
+
+def _shadowed(origin, pts):
+    """Points whose ray from ``origin`` passes through the post (slab test)."""
+    d = pts - origin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (_POST[0] - origin) / d
+        t1 = (_POST[1] - origin) / d
+    near = np.nanmax(np.minimum(t0, t1), axis=1)
+    far = np.nanmin(np.maximum(t0, t1), axis=1)
+    return (near <= far) & (far > 0) & (near < 0.999)
+
+
+def _frame(rng, origin, front, sigma=0.01):
+    """What a camera at ``origin`` sees: from the front (y < 2) the post's face at y = 2.0 (on
+    an evidence-voxel boundary) and a wall at y = 3; from the side a wall at x = 0. Range noise
+    along the ray."""
+    if front:
+        face = np.c_[rng.uniform(1.0, 1.1, 400), np.full(400, 2.0), rng.uniform(0, 1, 400)]
+        wall = np.c_[rng.uniform(0, 3, 3000), np.full(3000, 3.0), rng.uniform(0, 1, 3000)]
+        pts = np.vstack([face, wall[~_shadowed(origin, wall)]])
+    else:
+        wall = np.c_[np.zeros(3000), rng.uniform(1.0, 2.6, 3000), rng.uniform(0, 1, 3000)]
+        pts = wall[~_shadowed(origin, wall)]
+    ray = pts - origin
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    return pts + ray * rng.normal(0, sigma, (pts.shape[0], 1))
+
+
+@pytest.mark.parametrize(("margin", "up"), [(0.0, "z"), (0.04, "z"), (0.04, "y"), (0.04, None)])
+def test_margin_keeps_both_sides_of_a_surfaces_noise(margin, up):
+    """Frames from the side see through the voxel just in front of the post's face and call it
+    free; without a margin the face's noise on that side is dropped and the face moves away
+    from the sensor that saw it. The margin grows sideways only: with y up (the face a ceiling)
+    or no vertical known, the face is carved as without it."""
+    rng = np.random.default_rng(3)
+    m = EvidenceMap(0.02, 0.1, 2, hit_fraction=0.5, margin=margin)
+    for k in range(8):
+        origin = np.array([0.4 + 0.2 * k, 0.0, 0.5])
+        m.add(_frame(rng, origin, True), origin)
+    for k in range(12):
+        origin = np.array([2.5, 2.3 + 0.02 * k, 0.5])
+        m.add(_frame(rng, origin, False), origin)
+    m.add(np.array([[1.05, 1.5, 0.5]]), np.array([1.0, 0.0, 0.5]))  # a wild return, free space
+    kept = m.points(up=None if up is None else np.eye(3)["xyz".index(up)])
+    face = kept[(np.abs(kept[:, 0] - 1.05) < 0.05) & (np.abs(kept[:, 1] - 2.0) < 0.1)]
+    assert face.shape[0] > 20
+    offset = float(np.mean(face[:, 1]) - 2.0)  # + = behind the face, away from the sensor
+    if margin == 0.0 or up != "z":
+        assert offset > 0.002  # measured: 3.2 mm
+    else:
+        assert abs(offset) < 0.0015  # measured: 0.5 mm
+    assert not (np.linalg.norm(kept - [1.05, 1.5, 0.5], axis=1) < 0.2).any()  # still free
+    assert m.all_points().shape[0] >= kept.shape[0]
+
+
+def test_margin_is_checked():
+    with pytest.raises(ValueError, match="margin"):
+        EvidenceMap(0.02, 0.1, 2, margin=0.2)
+    assert EvidenceMap(0.02, 0.1, 2, margin=0.04).rings == 2
+    assert EvidenceMap(0.02, 0.1, 2, margin=0.03).rings == 2
+    assert EvidenceMap(0.02, 0.1, 2).rings == 0

@@ -67,6 +67,12 @@ class MapperConfig:
         "(rays of the others passed through: flying pixels, wild returns); 0 = no ray casting",
         "",
     )
+    evidence_margin: float = field(
+        0.04,
+        "map voxels this close to a kept one are kept too, though their evidence voxel failed: a "
+        "surface's range noise spills into the free voxel in front of it (0 = off)",
+        "m",
+    )
     relevel: bool = field(
         True,
         "refine the floor plane from the whole map as it grows (the first floor fit sees only a "
@@ -81,6 +87,7 @@ class MapperConfig:
             self.evidence_voxel,
             self.evidence_min_frames,
             self.evidence_hit_fraction,
+            margin=self.evidence_margin,
         )
 
 
@@ -308,7 +315,9 @@ class Mapper:
     def map_odom(self) -> np.ndarray:
         """Global map in odom, voxelised at ``map_voxel`` (consolidated lazily)."""
         if self._dirty:
-            self._map_odom = self._evidence.points()
+            # the evidence margin grows sideways only, so only once the vertical is known
+            up = None if self.T_map_odom is None else self.T_map_odom[2, :3]
+            self._map_odom = self._evidence.points(up=up)
             self._dirty = 0
         return self._map_odom
 
@@ -321,6 +330,7 @@ class Mapper:
         try:
             if self.cfg.mount_xyz_rpy:
                 self.T_map_odom = map_from_mount(self.cfg.mount_xyz_rpy, conv)
+                self._dirty = 1
                 self.level_info = {"method": "mount", "mount_xyz_rpy": list(self.cfg.mount_xyz_rpy)}
             else:
                 pts = self.map_odom()
@@ -328,6 +338,7 @@ class Mapper:
                 down = first[:3, :3] @ DOWN_HINT[conv]
                 n, d = find_floor(pts, down, first[:3, 3], self.cfg.floor_max_tilt_deg)
                 self.T_map_odom = map_from_floor(n, d, conv, first)
+                self._dirty = 1  # the map again, now with the vertical for the margin
                 tilt = float(np.degrees(np.arccos(np.clip(-(n @ down), -1, 1))))
                 self.level_info = {
                     "method": "floor",
