@@ -102,6 +102,17 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
     assert cli_map.main(argv) == 2 and not out.exists()
     err = capsys.readouterr().err
     assert "Traceback" not in err and "submap_seconds must be > 0" in err
+    for text, says in (
+        ("mapper:\n  evidence_margin: 0.5\n", "evidence_margin must be in [0, evidence_voxel"),
+        ("mapper:\n  evidence_voxel: 0\n", "evidence_voxel must be > 0"),
+        ("mapper:\n  sensor_convention: camera\n", "sensor_convention must be auto"),
+        ("preprocess:\n  min_range: 7.0\n", "min_range < max_range"),
+        ("preprocess:\n  sor_k: 0\n", "sor_k >= 1"),
+    ):
+        bad_cfg.write_text(text)
+        assert cli_map.main(argv) == 2 and not out.exists(), text
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and says in err, err
 
 
 def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:

@@ -80,6 +80,42 @@ class MapperConfig:
         "",
     )
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """ValueError for settings that cannot work (a YAML typo must not end in a traceback
+        half-way through a bag)."""
+        for name in ("map_voxel", "evidence_voxel", "floor_max_tilt_deg"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"mapper {name} must be > 0, not {getattr(self, name)}")
+        for name in ("max_published_points", "level_min_frames", "evidence_min_frames"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"mapper {name} must be >= 1, not {getattr(self, name)}")
+        if self.min_frame_interval < 0:
+            raise ValueError(
+                f"mapper min_frame_interval must be >= 0, not {self.min_frame_interval}"
+            )
+        if not 0.0 <= self.evidence_hit_fraction <= 1.0:
+            raise ValueError(
+                f"mapper evidence_hit_fraction must be in [0, 1], not {self.evidence_hit_fraction}"
+            )
+        if not 0.0 <= self.evidence_margin <= self.evidence_voxel:
+            raise ValueError(
+                f"mapper evidence_margin must be in [0, evidence_voxel = {self.evidence_voxel}], "
+                f"not {self.evidence_margin}"
+            )
+        if self.sensor_convention not in ("auto", "optical", "body"):
+            raise ValueError(
+                "mapper sensor_convention must be auto, optical or body, "
+                f"not {self.sensor_convention!r}"
+            )
+        if self.mount_xyz_rpy and len(self.mount_xyz_rpy) != 6:
+            raise ValueError(
+                f"mapper mount_xyz_rpy needs 6 values (x y z roll pitch yaw) or none, "
+                f"not {len(self.mount_xyz_rpy)}"
+            )
+
     def evidence_map(self) -> EvidenceMap:
         """An empty map with these settings (the mapper's, and the benchmark's true-pose run)."""
         return EvidenceMap(

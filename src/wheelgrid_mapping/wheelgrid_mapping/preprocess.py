@@ -61,6 +61,25 @@ class PreprocessConfig:
     enable_sor: bool = field(True, "run the statistical outlier removal", "")
     enable_pfc: bool = field(True, "run the plane fitting criterion", "")
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """ValueError for settings that cannot work."""
+        if not 0.0 <= self.min_range < self.max_range:
+            raise ValueError(
+                f"preprocess needs 0 <= min_range < max_range, not {self.min_range}, "
+                f"{self.max_range}"
+            )
+        if self.voxel_size < 0 or self.target_points < 0:
+            raise ValueError("preprocess voxel_size and target_points must be >= 0")
+        if self.sor_k < 1 or self.pfc_k < 3:
+            raise ValueError(
+                f"preprocess needs sor_k >= 1 and pfc_k >= 3, not {self.sor_k}, {self.pfc_k}"
+            )
+        if self.pfc_min_offset < 0:
+            raise ValueError(f"preprocess pfc_min_offset must be >= 0, not {self.pfc_min_offset}")
+
 
 def valid_mask(
     points: np.ndarray,
