@@ -20,7 +20,7 @@ the surface pass: that spill would be dropped, the spill behind kept, and every 
 boundary pulled up to half its noise away from the sensor (0.5 % on a 1.2 m gap between table
 legs, with perfect poses). So map voxels within ``margin`` of a kept one are kept too (grown
 ring by ring over the map voxels, ``ceil(margin / voxel)`` rings): the surface keeps both sides
-of its noise, and nothing farther than ``margin`` from a confirmed surface comes back. They grow
+of its noise, and nothing more than those rings from a confirmed surface comes back. They grow
 sideways only (within 30 deg of horizontal, ``up`` given): a floor's noise spills upwards, and
 anything 5 cm above the floor is an obstacle to the grid, so that spill stays carved (with
 vertical growth the far floor of the paper room put a phantom obstacle in a free cell); without

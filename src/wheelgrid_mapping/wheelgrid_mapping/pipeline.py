@@ -69,8 +69,9 @@ class MapperConfig:
     )
     evidence_margin: float = field(
         0.04,
-        "map voxels this close to a kept one are kept too, though their evidence voxel failed: a "
-        "surface's range noise spills into the free voxel in front of it (0 = off)",
+        "map voxels this close to a kept one (sideways, in whole map voxels rounded up) are kept "
+        "too, though their evidence voxel failed: a surface's range noise spills into the free "
+        "voxel in front of it (0 = off)",
         "m",
     )
     relevel: bool = field(
