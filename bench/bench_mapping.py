@@ -156,7 +156,13 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     total, frames, _ = bag_frames(sim / "scan", None, prior)
     total = min(total, frames_limit)
     t0 = time.perf_counter()
-    m = run_mapper(frames, total, RegistrationConfig(method=method), MapperConfig(), keep=True)
+    m = run_mapper(
+        frames,
+        total,
+        RegistrationConfig(method=method),
+        MapperConfig(**MAPPER_OVERRIDES),
+        keep=True,
+    )
     wall = time.perf_counter() - t0
     row(f"{label}: frames/s", total / wall, "frames/s")
     c = m.registrar.counters
@@ -245,7 +251,7 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     scene = json.loads((sim / "scene.json").read_text())
     truth = json.loads((sim / "truth.json").read_text())
     gt_stamps, gt = read_tum(sim / "poses_map.tum")
-    pre, ev = PreprocessConfig(), MapperConfig().evidence_map()
+    pre, ev = PreprocessConfig(), MapperConfig(**MAPPER_OVERRIDES).evidence_map()
     total, frames, _ = bag_frames(sim / "scan", None, False)
     for n, (pts, stamp, _, conf, _) in enumerate(frames):
         if n >= min(total, frames_limit):
@@ -278,7 +284,7 @@ def real_data(limit: int, interval: float) -> None:
     if not stray.exists():
         print("real data: ../shared/data/stray-iphone-room not present, skipped")
         return
-    cfg = MapperConfig(min_frame_interval=interval)
+    cfg = MapperConfig(min_frame_interval=interval, **MAPPER_OVERRIDES)
     # The ARKit-fused reference map: every used frame placed with ARKit's pose, same filters.
     total, frames = stray_frames(stray, True)
     total = min(total, limit)
@@ -323,7 +329,12 @@ def speed(limit: int, big: int) -> None:
     for method in ("kiss", "open3d"):
         total, frames = stray_frames(stray, False)
         t0 = time.perf_counter()
-        m = run_mapper(frames, min(total, limit), RegistrationConfig(method=method), MapperConfig())
+        m = run_mapper(
+            frames,
+            min(total, limit),
+            RegistrationConfig(method=method),
+            MapperConfig(**MAPPER_OVERRIDES),
+        )
         res[method] = m.frames_read / (time.perf_counter() - t0)
     row("every 256x192 frame: frames/s, KISS-ICP", res["kiss"], "frames/s", res["open3d"])
     # ~7 M real points: ARKit-fused frames, then eq. 5 downsampling to 1.3 M + SOR + PFC.
@@ -356,8 +367,10 @@ def speed(limit: int, big: int) -> None:
     row(label + " (eq.5 + SOR + PFC)", ours, "s", base)
 
 
-# Loop-closure settings every run of this benchmark uses (``--no-prior-drift`` sets one).
+# Loop-closure and mapper settings every run of this benchmark uses (``--no-prior-drift`` and
+# ``--evidence-margin`` set them, to measure the previous behaviour in the same run).
 LOOP_OVERRIDES: dict[str, Any] = {}
+MAPPER_OVERRIDES: dict[str, Any] = {}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -379,9 +392,18 @@ def main(argv: list[str] | None = None) -> int:
         help="loop closure without prior_drift (the prior's turns, their drift measured by the "
         "loops, beside the odometry's): the previous release's graph, for comparison",
     )
+    ap.add_argument(
+        "--evidence-margin",
+        type=float,
+        metavar="M",
+        help="mapper.evidence_margin for every map of the run (0: the previous release's map, "
+        "which dropped a surface's noise on its free side)",
+    )
     args = ap.parse_args(argv)
     if args.no_prior_drift:
         LOOP_OVERRIDES["prior_drift"] = False
+    if args.evidence_margin is not None:
+        MAPPER_OVERRIDES["evidence_margin"] = args.evidence_margin
     frames = 40 if args.quick else 10_000
     if args.fresh_seed is None:
         args.fresh_seed = [] if args.quick else list(range(11, 20))
