@@ -325,7 +325,7 @@ def test_prior_yaw_drift_is_read_from_loops_far_from_the_first_node(lap) -> None
     travelled = path_length(truth, up)
     pairs = [(30, 20), (35, 22), (39, 25), (33, 21)]
     loops = [(i, j, np.linalg.inv(truth[j]) @ truth[i]) for i, j in pairs]
-    rate, stderr = prior_yaw_drift(loops, truth, prior, travelled, up)
+    rate, stderr, _ = prior_yaw_drift(loops, truth, prior, travelled, up)
     assert math.degrees(rate) == pytest.approx(0.5, abs=0.01) and stderr < 1e-3
     # up is all the trajectory's nodes give: a rigid turn of them changes nothing
     offset = exp_se3(np.r_[0.3, -0.2, 0.0, 0.0, 0.0, math.radians(3.0)])

@@ -539,8 +539,7 @@ def _prior_yaw(
         return None
     prior_nodes = [np.asarray(priors[i], dtype=np.float64) for i in starts]
     anchors = [poses[i] for i in starts]
-    y, x = _loop_prior_yaw(measured, anchors, prior_nodes, travelled, up)
-    rate, stderr = _slope_through_zero(x, y)
+    rate, stderr, residual = prior_yaw_drift(measured, anchors, prior_nodes, travelled, up)
     out.prior_drift_deg_per_m = math.degrees(rate)
     if abs(math.degrees(rate)) > cfg.max_drift_deg_per_m:
         out.prior_drift_note = "not believed: above max_drift_deg_per_m"
@@ -551,8 +550,7 @@ def _prior_yaw(
         )
         return None
     dt = np.array([abs(float(times[i] - times[j])) for i, j, _ in measured])
-    residual2 = (y - rate * x) ** 2
-    walk = float(residual2 @ dt) / max(float(dt @ dt), 1e-12)
+    walk = float(residual**2 @ dt) / max(float(dt @ dt), 1e-12)
     out.prior_walk_deg_per_sqrt_s = math.degrees(math.sqrt(walk))
     yaw = PriorYaw(prior_nodes, travelled, times, rate, stderr, walk)
     yaw.kept = kept_drift(yaw, anchors, up, math.radians(cfg.odometry_sigma_deg) ** 2)
@@ -599,45 +597,16 @@ def kept_drift(
     return out
 
 
-def _loop_prior_yaw(
-    measured: Sequence[tuple[int, int, np.ndarray]],
-    nodes: Sequence[np.ndarray],
-    prior_nodes: Sequence[np.ndarray],
-    travelled: np.ndarray,
-    up: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per loop: how much farther the prior turned between its two nodes than the loop's ICP
-    measured, about up at the source node (rad); and the distance travelled between them (m,
-    ``D_i - D_j``)."""
-    yaw = []
-    for i, j, T in measured:
-        prior = np.linalg.inv(prior_nodes[j]) @ prior_nodes[i]
-        w = log_se3(np.linalg.inv(T) @ prior)[3:]
-        yaw.append(float(w @ (nodes[i][:3, :3].T @ up)))
-    dist = [float(travelled[i] - travelled[j]) for i, j, _ in measured]
-    return np.array(yaw), np.array(dist)
-
-
-def _slope_through_zero(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """Least-squares slope of ``y`` against ``x`` through zero, and its standard error (inf
-    when ``x`` has no spread)."""
-    den = float(x @ x)
-    if den < 1e-9:
-        return 0.0, math.inf
-    rate = float(x @ y) / den
-    dof = max(len(x) - 1, 1)
-    return rate, math.sqrt(float(((y - rate * x) ** 2).sum()) / dof / den)
-
-
 def prior_yaw_drift(
     measured: Sequence[tuple[int, int, np.ndarray]],
     nodes: Sequence[np.ndarray],
     prior_nodes: Sequence[np.ndarray],
     travelled: np.ndarray,
     up: np.ndarray,
-) -> tuple[float, float]:
+) -> tuple[float, float, np.ndarray]:
     """``(rate, standard error)``, rad per metre: how much farther the prior turns than the
-    loops measured, per metre travelled.
+    loops measured, per metre travelled; and per loop what is left beside that (rad), the
+    prior's heading wander between the loop's nodes plus the loop's own noise.
 
     A visual-inertial prior's heading error grows with the distance travelled, ``e(D) = r D``.
     Between two nodes a loop joins, the prior's relative yaw then differs from the loop's
@@ -647,9 +616,23 @@ def prior_yaw_drift(
     Unlike a fit of the graph's corrections (:func:`estimate_drift`) it needs no loop back to
     the first node, and unlike a solved graph the loops themselves carry none of the
     odometry's drift. ``nodes`` (the trajectory's) give only the direction of up at node i.
+    The standard error is inf when the loops' nodes are no distance apart.
     """
-    y, x = _loop_prior_yaw(measured, nodes, prior_nodes, travelled, up)
-    return _slope_through_zero(x, y)
+    yaw = []
+    for i, j, T in measured:
+        prior = np.linalg.inv(prior_nodes[j]) @ prior_nodes[i]
+        # the rotation that takes the loop's relative pose to the prior's, about up (node i)
+        w = log_se3(np.linalg.inv(T) @ prior)[3:]
+        yaw.append(float(w @ (nodes[i][:3, :3].T @ up)))
+    y = np.array(yaw)
+    x = np.array([float(travelled[i] - travelled[j]) for i, j, _ in measured])
+    den = float(x @ x)
+    if den < 1e-9:
+        return 0.0, math.inf, y
+    rate = float(x @ y) / den
+    residual = y - rate * x
+    dof = max(len(x) - 1, 1)
+    return rate, math.sqrt(float((residual**2).sum()) / dof / den), residual
 
 
 def _edge_measurement(
