@@ -66,12 +66,19 @@ class EvidenceMap:
         seed: int = 0,
         margin: float = 0.0,
     ) -> None:
-        if voxel <= 0 or evidence_voxel <= 0 or min_frames < 1:
-            raise ValueError("voxel sizes must be > 0 and min_frames >= 1")
+        # named as the mapper's parameters (MapperConfig.validate relies on these checks)
+        if not voxel > 0:
+            raise ValueError(f"map_voxel must be > 0, not {voxel}")
+        if not evidence_voxel > 0:
+            raise ValueError(f"evidence_voxel must be > 0, not {evidence_voxel}")
+        if min_frames < 1:
+            raise ValueError(f"evidence_min_frames must be >= 1, not {min_frames}")
         if not 0.0 <= hit_fraction <= 1.0:
-            raise ValueError("hit_fraction must be in [0, 1]")
+            raise ValueError(f"evidence_hit_fraction must be in [0, 1], not {hit_fraction}")
         if not 0.0 <= margin <= evidence_voxel:
-            raise ValueError("margin must be in [0, evidence_voxel]")
+            raise ValueError(
+                f"evidence_margin must be in [0, evidence_voxel = {evidence_voxel}], not {margin}"
+            )
         self.voxel = voxel
         self.evidence_voxel = evidence_voxel
         self.min_frames = min_frames

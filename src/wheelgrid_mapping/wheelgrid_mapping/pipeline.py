@@ -26,6 +26,7 @@ from .evidence import EvidenceMap
 from .levelling import (
     DOWN_HINT,
     FloorNotFoundError,
+    convention_for_frame,
     find_floor,
     map_from_floor,
     map_from_mount,
@@ -86,36 +87,19 @@ class MapperConfig:
 
     def validate(self) -> None:
         """ValueError for settings that cannot work (a YAML typo must not end in a traceback
-        half-way through a bag)."""
-        for name in ("map_voxel", "evidence_voxel", "floor_max_tilt_deg"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"mapper {name} must be > 0, not {getattr(self, name)}")
-        for name in ("max_published_points", "level_min_frames", "evidence_min_frames"):
+        half-way through a bag). The evidence map, the convention and the mount are checked by
+        the code that uses them, run here once on the settings."""
+        if not self.floor_max_tilt_deg > 0:
+            raise ValueError(f"floor_max_tilt_deg must be > 0, not {self.floor_max_tilt_deg}")
+        for name in ("max_published_points", "level_min_frames"):
             if getattr(self, name) < 1:
-                raise ValueError(f"mapper {name} must be >= 1, not {getattr(self, name)}")
+                raise ValueError(f"{name} must be >= 1, not {getattr(self, name)}")
         if self.min_frame_interval < 0:
-            raise ValueError(
-                f"mapper min_frame_interval must be >= 0, not {self.min_frame_interval}"
-            )
-        if not 0.0 <= self.evidence_hit_fraction <= 1.0:
-            raise ValueError(
-                f"mapper evidence_hit_fraction must be in [0, 1], not {self.evidence_hit_fraction}"
-            )
-        if not 0.0 <= self.evidence_margin <= self.evidence_voxel:
-            raise ValueError(
-                f"mapper evidence_margin must be in [0, evidence_voxel = {self.evidence_voxel}], "
-                f"not {self.evidence_margin}"
-            )
-        if self.sensor_convention not in ("auto", "optical", "body"):
-            raise ValueError(
-                "mapper sensor_convention must be auto, optical or body, "
-                f"not {self.sensor_convention!r}"
-            )
-        if self.mount_xyz_rpy and len(self.mount_xyz_rpy) != 6:
-            raise ValueError(
-                f"mapper mount_xyz_rpy needs 6 values (x y z roll pitch yaw) or none, "
-                f"not {len(self.mount_xyz_rpy)}"
-            )
+            raise ValueError(f"min_frame_interval must be >= 0, not {self.min_frame_interval}")
+        self.evidence_map()
+        convention_for_frame("", self.sensor_convention)
+        if self.mount_xyz_rpy:
+            map_from_mount(self.mount_xyz_rpy, "optical")
 
     def evidence_map(self) -> EvidenceMap:
         """An empty map with these settings (the mapper's, and the benchmark's true-pose run)."""
@@ -261,8 +245,6 @@ class Mapper:
             raise RuntimeError("Mapper.add_frame after close_loops: start a new Mapper")
         self.frames_read += 1
         if self.convention is None:
-            from .levelling import convention_for_frame
-
             self.convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
         if (
             self.cfg.min_frame_interval > 0
