@@ -43,6 +43,7 @@ _STEPS = np.array(
     dtype=np.int64,
 )
 _NEIGHBOURS = (_STEPS[:, 0] << (2 * _BITS)) + (_STEPS[:, 1] << _BITS) + _STEPS[:, 2]
+_DIRECTIONS = _STEPS / np.linalg.norm(_STEPS, axis=1, keepdims=True)
 
 
 def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
@@ -175,8 +176,7 @@ class EvidenceMap:
 
     def _grow(self, keep: np.ndarray, up: np.ndarray) -> np.ndarray:
         """``keep`` plus the map voxels up to ``rings`` sideways voxel steps away."""
-        steps = _STEPS / np.linalg.norm(_STEPS, axis=1, keepdims=True)
-        sideways = _NEIGHBOURS[np.abs(steps @ (up / np.linalg.norm(up))) < 0.5]
+        sideways = _NEIGHBOURS[np.abs(_DIRECTIONS @ (up / np.linalg.norm(up))) < 0.5]
         keep = keep.copy()
         for _ in range(self.rings):
             cand = np.flatnonzero(~keep)
@@ -184,8 +184,9 @@ class EvidenceMap:
             if cand.size == 0 or kept.size == 0:
                 break
             grow = np.zeros(cand.size, dtype=bool)
+            cand_keys = self._keys[cand]
             for off in sideways:
-                q = self._keys[cand] + off
+                q = cand_keys + off
                 pos = np.clip(np.searchsorted(kept, q), 0, kept.size - 1)
                 grow |= kept[pos] == q
             keep[cand[grow]] = True
