@@ -105,3 +105,29 @@ def test_a_broken_prior_is_dropped_and_counted_not_fatal() -> None:
     info = m.close_loops(LoopClosureConfig(submap_seconds=0.2))
     assert "prior_drift_note" not in info  # two frames had none: no prior for the graph
     assert np.isfinite(np.array(m.poses_odom)).all()
+
+
+def test_relevelling_keeps_the_map_frame_convention() -> None:
+    """The refined floor is applied with the convention: origin below the first pose, x along
+    its view. A first floor that is tilted about a point 3 m ahead (where most floor is seen)
+    left the refined frame's origin 0.7 mm beside the first pose (the live node, refining as
+    the map grows, 2-4 mm)."""
+    rng = np.random.default_rng(23)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+    for i in range(3):
+        m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link")
+    assert m.T_map_odom is not None
+    c, s = np.cos(np.radians(1.0)), np.sin(np.radians(1.0))
+    tilt = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1.0]])
+    about = np.eye(4)
+    about[0, 3] = 3.0
+    m.T_map_odom = about @ tilt @ np.linalg.inv(about) @ m.T_map_odom
+    pts = m.map_points()  # re-levels
+    assert m.level_info["relevelled_tilt_deg"] == pytest.approx(1.0, abs=0.1)
+    floor = pts[np.abs(pts[:, 2]) < 0.03]
+    assert abs(np.polyfit(floor[:, 0], floor[:, 2], 1)[0]) < 1e-3  # level again
+    first = m.trajectory()[1][0]
+    assert np.abs(first[:2, 3]).max() < 1e-6  # directly above the origin
+    assert first[2, 3] == pytest.approx(1.0, abs=0.01)  # 1 m above the floor
+    view = first[:3, 0]  # body convention: the sensor looks along its x
+    assert view[0] > 0.99 and abs(view[1]) < 1e-6

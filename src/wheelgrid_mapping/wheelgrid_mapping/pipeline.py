@@ -188,8 +188,8 @@ class Mapper:
     """Incremental map builder; one instance per mapping session.
 
     ``keep_frames`` keeps every accepted frame's filtered points (float32, ~12 bytes a point)
-    so that :meth:`close_loops` can rebuild the map at the end of an offline run; a live node
-    leaves it off, its memory would grow without bound.
+    so that :meth:`close_loops` can rebuild the map at the end of a run; a live node bounds
+    that memory with :meth:`release_frames`.
     """
 
     def __init__(
@@ -228,6 +228,16 @@ class Mapper:
         self.points = {"input": 0, "valid": 0, "downsampled": 0, "after_sor": 0, "after_pfc": 0}
         self.timings = {"preprocess_s": 0.0, "registration_s": 0.0, "levelling_s": 0.0}
         self._last_processed: float | None = None
+
+    def release_frames(self) -> None:
+        """Stop keeping frames and free those kept: the map goes on, :meth:`close_loops` cannot.
+
+        All or nothing: a pose graph over only the later frames would move them against an
+        earlier map it cannot correct.
+        """
+        self.keep_frames = False
+        self._frames = []
+        self._priors = []
 
     # -- per frame ----------------------------------------------------------------------------
     def add_frame(
@@ -388,12 +398,19 @@ class Mapper:
             self._relevelled_at = used
             corr = floor_correction(pts)
             if corr is not None:
-                self.T_map_odom = corr @ self.T_map_odom
+                # The refined floor (z = 0 after ``corr``), the convention applied afresh: the
+                # correction alone turns about the origin, and repeated ones walked the first
+                # pose millimetres off the z axis (and would turn x off the first view).
+                floor = corr @ self.T_map_odom
+                first = self.poses_odom[0] if self.poses_odom else np.eye(4)
+                self.T_map_odom = map_from_floor(
+                    floor[2, :3], float(floor[2, 3]), self.convention or "optical", first
+                )
                 self.level_info["relevelled_tilt_deg"] = float(
                     np.degrees(np.arccos(np.clip(corr[2, 2], -1.0, 1.0)))
                 )
                 self.level_info["relevelled_at_frames"] = used
-                pts = transform(pts, corr)
+                pts = transform(self.map_odom(), self.T_map_odom)
         return pts
 
     def published_points(self) -> np.ndarray:
