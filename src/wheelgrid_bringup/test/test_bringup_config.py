@@ -16,6 +16,7 @@ PKG = Path(__file__).resolve().parents[1]
 def _declared() -> dict[str, set[str]]:
     from wheelgrid_drive.drive_node import DriveConfig
     from wheelgrid_mapping.iphone_bridge_node import BridgeConfig
+    from wheelgrid_mapping.loop_closure import LoopClosureConfig
     from wheelgrid_mapping.mapper_node import MapperNodeConfig
     from wheelgrid_mapping.pipeline import MapperConfig
     from wheelgrid_mapping.preprocess import PreprocessConfig
@@ -31,7 +32,8 @@ def _declared() -> dict[str, set[str]]:
         "mapper": names(MapperNodeConfig)
         | names(PreprocessConfig, "preprocess.")
         | names(RegistrationConfig, "registration.")
-        | names(MapperConfig, "mapper."),
+        | names(MapperConfig, "mapper.")
+        | names(LoopClosureConfig, "loop_closure."),
         "grid": names(GridNodeConfig),
         "planner": names(PlannerNodeConfig) | names(PlannerConfig),
         "drive": names(DriveConfig),

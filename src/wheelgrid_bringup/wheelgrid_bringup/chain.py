@@ -213,6 +213,11 @@ class Monitor:
             recv = m.get("frames_received", "?")
             failed = m.get("frames_failed", m.get("registration_failures", "0"))
             parts = [f"map {used}/{recv} frames ({failed} failed), {s.map_points / 1000:.0f}k pts"]
+            loops = m.get("loop_closure", "")
+            if loops in ("requested", "running"):
+                parts[0] += f", closing loops {m.get('loop_closure_note', '')}".rstrip()
+            elif loops in ("closed", "failed"):
+                parts[0] += f", loops {loops}"
             if s.grid is not None:
                 d = s.grid.data
                 parts.append(

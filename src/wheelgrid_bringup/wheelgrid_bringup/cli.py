@@ -53,6 +53,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "wheelgrid_bringup.launcher:main",
         "start mapper, grid, planner and drive nodes (and a bag replay or the iPhone bridge)",
     ),
+    "call": (
+        "wheelgrid_bringup.call:main",
+        "call a node's Trigger service (e.g. /mapper/close_loops, /mapper/save_map): no ros2 CLI",
+    ),
     "demo": (
         "wheelgrid_bringup.demo:main",
         "the whole chain on the bundled bag: map, grid, plan, drive a simulated chair; out/",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import array
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,7 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         "-p", f"output_dir:={tmp_path / 'saved'}",
         "-p", "publish_period:=0.5",
         "-p", "pose_prior_topic:=/test_mapper/odometry",
+        "-p", "max_kept_frames:=5",  # memory bound: loop closure off after the 5th frame
     )  # fmt: skip
     with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
         node = rclpy.create_node("mapper_test", context=ctx)
@@ -133,6 +135,13 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         # With the pose prior the in-place turn at the start of the bag registers cleanly.
         assert v["frames_failed"] == "0" and int(v["frames_used"]) >= len(clouds) - 2
 
+        # More frames than max_kept_frames: their points released, loop closure off, said so.
+        assert v["loop_closure"] == "off" and "max_kept_frames" in v["loop_closure_note"], v
+        close = node.create_client(Trigger, "/mapper/close_loops")
+        assert close.wait_for_service(timeout_sec=10.0)
+        refused = call_service(ex, close, Trigger.Request)
+        assert refused is not None and not refused.success and "max_kept_frames" in refused.message
+
         save = node.create_client(Trigger, "/mapper/save_map")
         assert save.wait_for_service(timeout_sec=10.0)
         saved = call_service(ex, save, Trigger.Request, timeout=30.0)
@@ -158,3 +167,146 @@ def test_bad_parameters_stop_the_mapper_with_exit_2(param: str) -> None:
     proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "FATAL" in proc.stderr + proc.stdout and "Traceback" not in proc.stderr
+
+
+@pytest.mark.ros
+def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
+    """~/close_loops over a live stream gives the map `wheelgrid map` makes of the same frames,
+    without stalling the node; the map is then final until ~/reset."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    import json
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_common.fileio import quat_to_matrix, read_ply, read_tum
+    from wheelgrid_common.pointcloud2 import has_field, read_fields, read_xyz
+    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_mapping.loop_closure import LoopClosureConfig
+    from wheelgrid_mapping.pipeline import Mapper
+
+    pairs = bag_clouds(41)  # 40 frames: 4 submaps of the bag's in-place turn, then one more
+    args = python_module(
+        "wheelgrid_mapping.mapper_node",
+        "--ros-args",
+        "-p", "topic:=/test_loops/points",
+        "-p", f"output_dir:={tmp_path / 'saved'}",
+        "-p", "publish_period:=0.5",
+        "-p", "max_queue:=100",
+        "-p", "pose_prior_topic:=/test_loops/odometry",
+    )  # fmt: skip
+    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
+        node = rclpy.create_node("loops_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        pub = node.create_publisher(PointCloud2, "/test_loops/points", SENSOR_QOS)
+        odom_pub = node.create_publisher(Odometry, "/test_loops/odometry", SENSOR_QOS)
+        maps: list = []
+        status: list = []
+        node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", maps.append, MAP_QOS)
+        node.create_subscription(
+            DiagnosticArray, "/wheelgrid/mapper_status", status.append, RELIABLE_QOS
+        )
+        assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 20.0), "node not up"
+        assert spin_until(ex, lambda: odom_pub.get_subscription_count() > 0, 20.0)
+        spin_until(ex, lambda: False, 1.0)
+
+        def values() -> dict[str, str]:
+            return {kv.key: kv.value for kv in status[-1].status[0].values} if status else {}
+
+        def client(name: str):
+            c = node.create_client(Trigger, f"/mapper/{name}")
+            assert c.wait_for_service(timeout_sec=10.0)
+            return c
+
+        close, save, reset = client("close_loops"), client("save_map"), client("reset")
+        refused = call_service(ex, close, Trigger.Request)
+        assert refused is not None and not refused.success and "nothing to close" in refused.message
+
+        for msg, odom in pairs[:40]:
+            pub.publish(msg)
+            odom_pub.publish(odom)
+            spin_until(ex, lambda: False, 0.15)
+
+        def mapped() -> bool:
+            v = {k: int(x) for k, x in values().items() if x.isdigit()}
+            got = v.get("frames_received", 0)
+            return got >= 40 and v["frames_used"] + v["frames_failed"] >= got
+
+        assert spin_until(ex, mapped, 60.0), values()
+        used = int(values()["frames_used"])
+        assert used >= 38, values()  # best effort: at most a sample or two lost on loopback
+
+        # From a shell, as a user of the pip-only ROS would (no `ros2 service call` there).
+        started = subprocess.run(
+            [sys.executable, "-m", "wheelgrid_bringup.cli", "call", "/mapper/close_loops"],
+            env=dict(os.environ), capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert started.returncode == 0, started.stdout + started.stderr
+        assert started.stdout.startswith("ok: ") and f"over {used} frames" in started.stdout
+        statuses_before = len(status)
+        assert spin_until(ex, lambda: values().get("loop_closure") == "closed", 90.0), values()
+        assert len(status) > statuses_before  # the status went on while the worker held the map
+        note = values()["loop_closure_note"]
+        assert "loop edges kept" in note, note
+        spin_until(ex, lambda: False, 1.5)  # three publish periods: the corrected map is out
+
+        # The map is final: a new frame is counted, not mapped; asking again changes nothing.
+        pub.publish(pairs[40][0])
+        odom_pub.publish(pairs[40][1])
+        assert spin_until(ex, lambda: values().get("frames_after_close") == "1", 10.0), values()
+        assert values()["frames_used"] == str(used)
+        again = call_service(ex, close, Trigger.Request)
+        assert again is not None and again.success and "already closed" in again.message
+
+        saved = call_service(ex, save, Trigger.Request, timeout=30.0)
+        assert saved is not None and saved.success, saved
+        report = json.loads((tmp_path / "saved" / "report.json").read_text())
+        lc = report["loop_closure"]
+        assert lc["nodes"] >= 3 and lc["loop_edges_kept"] >= 1, lc
+        stamps, poses = read_tum(tmp_path / "saved" / "trajectory.tum")
+        assert len(stamps) == used
+        # what /wheelgrid/map_cloud carries now is the corrected map that was saved
+        published = read_xyz(maps[-1]).astype(np.float64)
+        ply = read_ply(tmp_path / "saved" / "map.ply")
+        assert published.shape == ply.shape
+        assert np.abs(np.sort(published, axis=0) - np.sort(ply, axis=0)).max() < 1e-5
+
+        # The same frames through the offline pipeline (what `wheelgrid map` does) give the same
+        # trajectory: the node runs the product's loop closure, not a variant of it.
+        offline = Mapper(keep_frames=True)
+        for msg, odom in pairs[:40]:
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            if np.min(np.abs(stamps - t)) > 1e-4:
+                continue  # a frame the node never got
+            p = odom.pose.pose
+            prior = np.eye(4)
+            prior[:3, :3] = quat_to_matrix(
+                p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w
+            )
+            prior[:3, 3] = [p.position.x, p.position.y, p.position.z]
+            conf = read_fields(msg, ("confidence",))[:, 0] if has_field(msg, "confidence") else None
+            offline.add_frame(read_fields(msg), t, msg.header.frame_id, conf, prior)
+        offline.close_loops(LoopClosureConfig())
+        offline.save(tmp_path / "offline")
+        _, ref = read_tum(tmp_path / "offline" / "trajectory.tum")
+        assert np.abs(poses[:, :3, 3] - ref[:, :3, 3]).max() < 1e-3
+        assert np.abs(poses[:, :3, :3] - ref[:, :3, :3]).max() < 1e-3
+
+        done = call_service(ex, reset, Trigger.Request)
+        assert done is not None and done.success, done
+        assert spin_until(
+            ex,
+            lambda: values().get("loop_closure") == "ready" and values()["frames_used"] == "0",
+            10.0,
+        ), values()
+        pub.publish(pairs[0][0])  # mapping again
+        odom_pub.publish(pairs[0][1])
+        assert spin_until(ex, lambda: values().get("frames_used") == "1", 20.0), values()
+        ex.shutdown()
+        node.destroy_node()

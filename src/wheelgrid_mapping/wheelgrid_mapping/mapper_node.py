@@ -11,6 +11,15 @@ logs that once and uses them (the data is not wrong, only unusual).
 
 The map cloud is published only once the levelled map frame is known (floor found or mount
 given): a map in an unknown frame would place obstacles wrongly.
+
+``~/close_loops`` ends a scan the way ``wheelgrid map`` ends a bag: the worker optimises the pose
+graph over every frame mapped so far (``loop_closure.*`` parameters), rebuilds the map from the
+corrected poses and republishes it; ``~/save_map`` then saves it. It runs in the background
+(tens of seconds) while the node keeps publishing its status (``loop_closure`` key); the map is
+then final, so later frames are counted (``frames_after_close``) and not mapped until
+``~/reset``. For it the node keeps each mapped frame's filtered points (tens of kB a frame), up
+to ``max_kept_frames``; beyond that they are released with a warning and the map goes on without
+loop closure, so memory stays bounded on a scan that never ends.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ from wheelgrid_common.params import declare_dataclass, field
 from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_pointcloud2
 from wheelgrid_common.ros_env import spin_node, tf2_available
 
+from .loop_closure import LoopClosureConfig
 from .pipeline import Mapper, MapperConfig
 from .preprocess import PreprocessConfig
 from .registration import RegistrationConfig
@@ -57,6 +67,17 @@ class MapperNodeConfig:
         "sensor (always map the newest frame); large (e.g. 1000) = bag replay (map every frame)",
         "frames",
     )
+    max_kept_frames: int = field(
+        6000,
+        "frames kept for ~/close_loops (with loop_closure.enabled); beyond this they are "
+        "released and loop closure is off until ~/reset (6000: ~10 min at 10 frames/s, "
+        "0.3-0.6 GB)",
+        "frames",
+    )
+
+
+class _CancelledError(Exception):
+    """Raised from the loop closure's progress callback when ~/reset asks it to stop."""
 
 
 def _stamp_seconds(stamp: Any) -> float:
@@ -81,11 +102,14 @@ class MapperNode(Node):  # type: ignore[misc]
         self.map_frame = node_cfg.map_frame
         self.publish_period = node_cfg.publish_period
         self.max_queue = max(1, node_cfg.max_queue)
+        self.max_kept_frames = max(0, node_cfg.max_kept_frames)
         try:
             pre = declare_dataclass(self, PreprocessConfig(), "preprocess.")
             reg = declare_dataclass(self, RegistrationConfig(), "registration.")
             cfg = declare_dataclass(self, MapperConfig(), "mapper.")
-            self.mapper = Mapper(pre, reg, cfg)
+            self.loop_cfg = declare_dataclass(self, LoopClosureConfig(), "loop_closure.")
+            self.loop_cfg.validate()
+            self.mapper = Mapper(pre, reg, cfg, keep_frames=self.loop_cfg.enabled)
         except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
@@ -97,7 +121,12 @@ class MapperNode(Node):  # type: ignore[misc]
         self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
         self._logged: set[str] = set()
         self._map_dirty = False
-        self.counts = {"received": 0, "skipped_busy": 0, "malformed": 0}
+        self.counts = {"received": 0, "skipped_busy": 0, "malformed": 0, "after_close": 0}
+        # Loop closure: "off" | "ready" | "requested" | "running" | "closed" | "failed"; the
+        # service sets "requested", the worker runs it, ~/reset cancels it.
+        self._loop_state = "ready" if self.loop_cfg.enabled else "off"
+        self._loop_note = ""
+        self._loop_cancel = False
         self._sensor_frame = "iphone_depth_optical_frame"
 
         self.map_pub = self.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
@@ -130,12 +159,14 @@ class MapperNode(Node):  # type: ignore[misc]
             self.create_subscription(Odometry, self.prior_topic, self._on_prior, prior_qos)
         self.create_service(Trigger, "~/save_map", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(Trigger, "~/close_loops", self._on_close_loops)
         self.create_timer(self.publish_period, self._on_timer)
         self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
             f"mapper: {self.topic} -> /wheelgrid/map_cloud (prior: {self.prior_topic or 'none'}, "
-            f"registration {reg.method} voxel {reg.voxel_size} m)"
+            f"registration {reg.method} voxel {reg.voxel_size} m, loop closure "
+            f"{'on ~/close_loops' if self.loop_cfg.enabled else 'off'})"
         )
 
     # -- input -------------------------------------------------------------------------------
@@ -150,6 +181,15 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_cloud(self, msg: Any) -> None:
         self.counts["received"] += 1
+        if self._loop_state in ("requested", "running", "closed"):
+            self.counts["after_close"] += 1
+            self._log_once(
+                "closed",
+                "loops closed (or closing): the map is final, new frames are not "
+                "mapped; ~/reset starts a new map",
+                False,
+            )
+            return
         try:
             pts = read_fields(msg)
             conf = read_fields(msg, ("confidence",))[:, 0] if has_field(msg, "confidence") else None
@@ -186,12 +226,19 @@ class MapperNode(Node):  # type: ignore[misc]
     def _work(self) -> None:
         while True:
             with self._slot_lock:
-                while not self._queue and not self._stop:
+                while not self._queue and not self._stop and self._loop_state != "requested":
                     self._slot_lock.wait(0.5)
                 if self._stop:
                     return
-                frame = self._queue.popleft()
+                if self._queue:  # frames received before a ~/close_loops are mapped first
+                    frame = self._queue.popleft()
+                else:
+                    self._loop_state = "running"
+                    frame = None
                 generation = self._generation
+            if frame is None:
+                self._close_loops()
+                continue
             assert frame is not None
             pts, stamp, frame_id, conf = frame
             if frame_id:
@@ -228,6 +275,50 @@ class MapperNode(Node):  # type: ignore[misc]
                 self._map_dirty = True
                 if out.pose_map is not None:
                     self._publish_pose(out.pose_map, stamp)
+                self._bound_kept_frames()
+
+    def _bound_kept_frames(self) -> None:
+        if self.mapper.keep_frames and len(self.mapper.poses_odom) > self.max_kept_frames:
+            with self._lock:
+                self.mapper.release_frames()
+            self._loop_state = "off"
+            self._loop_note = f"frames released after {self.max_kept_frames} (max_kept_frames)"
+            self.get_logger().warning(
+                f"loop closure OFF until ~/reset: more than max_kept_frames "
+                f"({self.max_kept_frames}) mapped, their kept points released; the map goes on "
+                "without it"
+            )
+
+    def _close_loops(self) -> None:
+        """Runs in the worker: the pose graph over every frame so far, then the map rebuilt."""
+        frames = len(self.mapper.poses_odom)
+        self.get_logger().info(f"closing loops over {frames} frames ...")
+
+        def progress(done: int, total: int) -> None:
+            self._loop_note = f"{done}/{total} submaps"
+            if self._loop_cancel:
+                raise _CancelledError
+
+        try:
+            with self._lock:
+                lc = self.mapper.close_loops(self.loop_cfg, progress)
+        except _CancelledError:
+            return  # ~/reset takes it from here
+        except Exception as exc:  # the online map is kept as it was: nothing is lost
+            self._loop_state = "failed"
+            self._loop_note = repr(exc)
+            self.get_logger().error(
+                f"loop closure failed ({exc!r}); the online map is kept, ~/save_map saves it"
+            )
+            return
+        self._loop_state = "closed"
+        self._loop_note = (
+            f"{lc['loop_edges_kept']} loop edges kept of {lc['loop_edges']} over {lc['nodes']} "
+            f"submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
+            f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
+        )
+        self._map_dirty = True
+        self.get_logger().info(f"loops closed: {self._loop_note}; map republished")
 
     def _publish_pose(self, T: np.ndarray, stamp: float) -> None:
         from nav_msgs.msg import Odometry
@@ -259,7 +350,10 @@ class MapperNode(Node):  # type: ignore[misc]
 
     # -- output ------------------------------------------------------------------------------
     def _on_timer(self) -> None:
-        if self._map_dirty:
+        # A loop closure holds the map for tens of seconds and the status must go on meanwhile:
+        # no waiting for it then. Only this (executor) thread moves the state from "ready" to
+        # "requested", so a closure cannot start between this check and the lock.
+        if self._map_dirty and self._loop_state not in ("requested", "running"):
             with self._lock:
                 try:
                     pts = self.mapper.published_points()
@@ -294,6 +388,9 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_empty": self.mapper.frames_empty,
             "priors_refused": self.mapper.priors_refused,
             "levelled": self.mapper.T_map_odom is not None,
+            "loop_closure": self._loop_state,
+            "loop_closure_note": self._loop_note,
+            "frames_after_close": self.counts["after_close"],
         }
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
@@ -303,6 +400,14 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_save(self, request: Any, response: Any) -> Any:
         out = Path(self.output_dir)
+        if self._loop_state in ("requested", "running"):
+            # the worker holds the map; waiting here would stall every other callback
+            response.success = False
+            response.message = (
+                f"loop closure running ({self._loop_note or 'starting'}); save once "
+                "/wheelgrid/mapper_status says loop_closure: closed"
+            )
+            return response
         try:
             with self._lock:
                 rep = self.mapper.save(out, {"node_counts": dict(self.counts)})
@@ -316,14 +421,56 @@ class MapperNode(Node):  # type: ignore[misc]
         return response
 
     def _on_reset(self, request: Any, response: Any) -> Any:
+        self._loop_cancel = True  # a running loop closure stops at its next submap
         with self._slot_lock, self._lock:
             self.counts["skipped_busy"] += len(self._queue)
             self._queue.clear()
             self._generation += 1
             self.mapper.reset()
+            self.mapper.release_frames()
+            self.mapper.keep_frames = self.loop_cfg.enabled
+            self.counts["after_close"] = 0
+            self._loop_state = "ready" if self.loop_cfg.enabled else "off"
+            self._loop_note = ""
+            self._loop_cancel = False
         self._map_dirty = False
         response.success = True
         response.message = "map, trajectory and counters cleared"
+        return response
+
+    def _on_close_loops(self, request: Any, response: Any) -> Any:
+        with self._slot_lock:
+            state, frames = self._loop_state, len(self.mapper.poses_odom)
+            if state == "off":
+                response.success = False
+                response.message = (
+                    "loop closure is off ("
+                    + (self._loop_note or "loop_closure.enabled is false")
+                    + "); the online map stands, ~/save_map saves it"
+                )
+            elif state in ("requested", "running", "closed"):
+                # Idempotent, as callers retry a request whose answer DDS dropped: what was
+                # asked for is under way or done.
+                response.success = True
+                response.message = (
+                    f"loop closure already {state}"
+                    + (f" ({self._loop_note})" if self._loop_note else "")
+                    + "; ~/reset starts a new map"
+                )
+            elif frames < 2:
+                response.success = False
+                response.message = f"{frames} frame(s) mapped: nothing to close yet"
+            else:
+                self._loop_state = "requested"
+                self._loop_note = ""
+                self._slot_lock.notify()
+                response.success = True
+                response.message = (
+                    f"closing loops over {frames} frames in the background; the map is final "
+                    "from now on (new frames are not mapped until ~/reset); "
+                    "/wheelgrid/mapper_status says loop_closure: closed when the corrected map "
+                    "is on /wheelgrid/map_cloud"
+                )
         return response
 
     def close(self) -> None:

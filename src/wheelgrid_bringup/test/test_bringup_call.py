@@ -1,0 +1,22 @@
+"""``wheelgrid call``: a Trigger call from a shell (its success path runs in the mapper node
+test, against a real node)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from wheelgrid_common.ros_env import child_env
+
+
+@pytest.mark.ros
+def test_call_without_such_a_service_says_so_and_exits_2() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "wheelgrid_bringup.cli", "call", "/nobody/close_loops",
+         "--timeout", "1"],
+        env=child_env(), capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "no service /nobody/close_loops" in proc.stdout and "Traceback" not in proc.stderr

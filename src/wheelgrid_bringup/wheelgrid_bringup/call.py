@@ -1,0 +1,71 @@
+"""``wheelgrid call SERVICE``: call a std_srvs/Trigger service of a running node.
+
+The pip-installed ROS 2 has no ``ros2`` command, yet a live session needs a few calls from a
+shell: ``/mapper/close_loops`` at the end of a scan, ``/mapper/save_map``, ``/grid/save``,
+``/mapper/reset``. Where ``ros2 service call`` exists it does the same. Exit 0 when the service
+answered success, 1 when it refused or never answered, 2 when no such service appeared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+
+from wheelgrid_common.ros_env import configure_ros_env
+from wheelgrid_common.services import call_with_retry
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="wheelgrid call",
+        description="Call a std_srvs/Trigger service (e.g. /mapper/close_loops, "
+        "/mapper/save_map, /mapper/reset, /grid/save) and print its answer.",
+    )
+    p.add_argument("service", help="service name, e.g. /mapper/save_map")
+    p.add_argument(
+        "--timeout", type=float, default=30.0, help="seconds to wait in all (default 30)"
+    )
+    args = p.parse_args(argv)
+    configure_ros_env()
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from std_srvs.srv import Trigger
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("wheelgrid_call", context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    deadline = time.monotonic() + args.timeout
+
+    def spin_until(done: Callable[[], bool], seconds: float) -> bool:
+        end = min(time.monotonic() + seconds, deadline)
+        while time.monotonic() < end:
+            if done():
+                return True
+            ex.spin_once(timeout_sec=0.05)
+        return bool(done())
+
+    try:
+        client = node.create_client(Trigger, args.service)
+        if not spin_until(client.service_is_ready, args.timeout):
+            print(
+                f"wheelgrid call: no service {args.service} within {args.timeout:.0f} s (is the "
+                "node running, with the same ROS_DOMAIN_ID?)"
+            )
+            return 2
+        result = call_with_retry(
+            client, Trigger.Request, spin_until, max(deadline - time.monotonic(), 0.1), 5.0
+        )
+        if result is None:
+            print(f"wheelgrid call: {args.service} did not answer within {args.timeout:.0f} s")
+            return 1
+        print(("ok: " if result.success else "refused: ") + str(result.message))
+        return 0 if result.success else 1
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        if ctx.ok():
+            rclpy.shutdown(context=ctx)
