@@ -308,5 +308,28 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
         pub.publish(pairs[0][0])  # mapping again
         odom_pub.publish(pairs[0][1])
         assert spin_until(ex, lambda: values().get("frames_used") == "1", 20.0), values()
+
+        # ~/reset while loops are being closed: stopped (or just finished), the node clean.
+        for msg, odom in pairs[1:40]:
+            pub.publish(msg)
+            odom_pub.publish(odom)
+            spin_until(ex, lambda: False, 0.15)
+        assert spin_until(ex, lambda: int(values()["frames_used"]) >= 36, 60.0), values()
+        started = call_service(ex, close, Trigger.Request)
+        assert started is not None and started.success, started
+        # (~1.5 s of pose graph: the status shows it running, then the reset stops it there)
+        assert spin_until(
+            ex, lambda: values().get("loop_closure") in ("running", "closed"), 10.0
+        ), values()
+        done = call_service(ex, reset, Trigger.Request)
+        assert done is not None and done.success, done
+        assert spin_until(
+            ex,
+            lambda: values().get("loop_closure") == "ready" and values()["frames_used"] == "0",
+            10.0,
+        ), values()
+        pub.publish(pairs[5][0])
+        odom_pub.publish(pairs[5][1])
+        assert spin_until(ex, lambda: values().get("frames_used") == "1", 20.0), values()
         ex.shutdown()
         node.destroy_node()

@@ -299,25 +299,29 @@ class MapperNode(Node):  # type: ignore[misc]
             if self._loop_cancel:
                 raise _CancelledError
 
-        try:
-            with self._lock:
+        # The outcome is set while the map is still held: a ~/reset waiting for it then finds
+        # it and overrides it, never the other way round.
+        with self._lock:
+            try:
                 lc = self.mapper.close_loops(self.loop_cfg, progress)
-        except _CancelledError:
-            return  # ~/reset takes it from here
-        except Exception as exc:  # the online map is kept as it was: nothing is lost
-            self._loop_state = "failed"
-            self._loop_note = repr(exc)
-            self.get_logger().error(
-                f"loop closure failed ({exc!r}); the online map is kept, ~/save_map saves it"
+            except _CancelledError:
+                return  # ~/reset takes it from here
+            except Exception as exc:  # the online map is kept as it was: nothing is lost
+                self._loop_state = "failed"
+                self._loop_note = repr(exc)
+                self.get_logger().error(
+                    f"loop closure failed ({exc!r}); the online map is kept, ~/save_map saves it"
+                )
+                return
+            if self._loop_cancel:
+                return  # finished just as a ~/reset came: it clears this map anyway
+            self._loop_state = "closed"
+            self._loop_note = (
+                f"{lc['loop_edges_kept']} loop edges kept of {lc['loop_edges']} over "
+                f"{lc['nodes']} submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
+                f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
             )
-            return
-        self._loop_state = "closed"
-        self._loop_note = (
-            f"{lc['loop_edges_kept']} loop edges kept of {lc['loop_edges']} over {lc['nodes']} "
-            f"submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
-            f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
-        )
-        self._map_dirty = True
+            self._map_dirty = True
         self.get_logger().info(f"loops closed: {self._loop_note}; map republished")
 
     def _publish_pose(self, T: np.ndarray, stamp: float) -> None:
