@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import array
+import contextlib
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -54,52 +57,83 @@ def big_endian_copy(msg):  # the same cloud, stored big-endian
     return be
 
 
-@pytest.mark.ros
-def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
-    if not BAG.exists():
-        pytest.skip("bags/paper_room: not present")
+@contextlib.contextmanager
+def running_mapper(tmp_path: Path, name: str, *params: str) -> Iterator[SimpleNamespace]:
+    """A mapper node (child process) fed on /<name>/points + /<name>/odometry, and a test node
+    watching its map cloud and status: ``ex``, ``node``, ``pub``, ``odom_pub``, ``maps``,
+    ``status``, ``values()`` (the newest status) and ``client(service)``."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+
+    args = python_module(
+        "wheelgrid_mapping.mapper_node",
+        "--ros-args",
+        "-p", f"topic:=/{name}/points",
+        "-p", f"pose_prior_topic:=/{name}/odometry",
+        "-p", f"output_dir:={tmp_path / 'saved'}",
+        "-p", "publish_period:=0.5",
+        *[a for p in params for a in ("-p", p)],
+    )  # fmt: skip
+    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
+        node = rclpy.create_node(f"{name}_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        t = SimpleNamespace(ex=ex, node=node, maps=[], status=[])
+        t.pub = node.create_publisher(PointCloud2, f"/{name}/points", SENSOR_QOS)
+        t.odom_pub = node.create_publisher(Odometry, f"/{name}/odometry", SENSOR_QOS)
+        node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", t.maps.append, MAP_QOS)
+        node.create_subscription(
+            DiagnosticArray, "/wheelgrid/mapper_status", t.status.append, RELIABLE_QOS
+        )
+
+        def values() -> dict[str, str]:
+            return {kv.key: kv.value for kv in t.status[-1].status[0].values} if t.status else {}
+
+        def client(service: str):
+            c = node.create_client(Trigger, f"/mapper/{service}")
+            assert c.wait_for_service(timeout_sec=10.0)
+            return c
+
+        t.values, t.client = values, client
+        assert spin_until(ex, lambda: t.pub.get_subscription_count() > 0, 20.0), "node not up"
+        assert spin_until(ex, lambda: t.odom_pub.get_subscription_count() > 0, 20.0)
+        spin_until(ex, lambda: False, 1.0)  # let the node's side of discovery finish too
+        try:
+            yield t
+        finally:
+            ex.shutdown()
+            node.destroy_node()
+
+
+@pytest.mark.ros
+def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
     from sensor_msgs.msg import PointCloud2, PointField
     from std_srvs.srv import Trigger
 
     from wheelgrid_common.pointcloud2 import read_xyz
-    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
 
     pairs = bag_clouds(8)
     clouds = [c for c, _ in pairs]
-    args = python_module(
-        "wheelgrid_mapping.mapper_node",
-        "--ros-args",
-        "-p", "topic:=/test_mapper/points",
-        "-p", f"output_dir:={tmp_path / 'saved'}",
-        "-p", "publish_period:=0.5",
-        "-p", "pose_prior_topic:=/test_mapper/odometry",
-        "-p", "max_kept_frames:=5",  # memory bound: loop closure off after the 5th frame
-    )  # fmt: skip
-    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
-        node = rclpy.create_node("mapper_test", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-        pub = node.create_publisher(PointCloud2, "/test_mapper/points", SENSOR_QOS)
-        odom_pub = node.create_publisher(Odometry, "/test_mapper/odometry", SENSOR_QOS)
-        maps: list = []
-        status: list = []
-        node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", maps.append, MAP_QOS)
-        node.create_subscription(
-            DiagnosticArray, "/wheelgrid/mapper_status", status.append, RELIABLE_QOS
-        )
-        assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 20.0), "node not up"
+    with running_mapper(
+        tmp_path,
+        "test_mapper",
+        "max_kept_frames:=5",  # loop closure off after the 5th frame
+    ) as t:
+        ex, pub, odom_pub, maps, values = t.ex, t.pub, t.odom_pub, t.maps, t.values
         # Malformed: no z field. Must be skipped, counted, never crash the node.
         bad = PointCloud2()
         bad.height, bad.width, bad.point_step, bad.row_step = 1, 2, 8, 16
         bad.fields = [PointField(name="x", offset=0, datatype=7, count=1),
                       PointField(name="y", offset=4, datatype=7, count=1)]  # fmt: skip
         bad.data = array.array("B", bytes(16))
-        assert spin_until(ex, lambda: odom_pub.get_subscription_count() > 0, 20.0)
-        spin_until(ex, lambda: False, 1.0)  # let the node's side of discovery finish too
         # Clouds first, their ARKit poses just after (the node waits briefly for them).
         pub.publish(big_endian_copy(clouds[0]))  # read correctly, converted
         odom_pub.publish(pairs[0][1])
@@ -109,9 +143,6 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
             odom_pub.publish(odom)
             if i == 1:
                 pub.publish(bad)
-
-        def values() -> dict[str, str]:
-            return {kv.key: kv.value for kv in status[-1].status[0].values} if status else {}
 
         assert spin_until(ex, lambda: bool(maps), 60.0), "no map cloud published"
         pts = read_xyz(maps[-1])
@@ -137,24 +168,16 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
 
         # More frames than max_kept_frames: their points released, loop closure off, said so.
         assert v["loop_closure"] == "off" and "max_kept_frames" in v["loop_closure_note"], v
-        close = node.create_client(Trigger, "/mapper/close_loops")
-        assert close.wait_for_service(timeout_sec=10.0)
-        refused = call_service(ex, close, Trigger.Request)
+        refused = call_service(ex, t.client("close_loops"), Trigger.Request)
         assert refused is not None and not refused.success and "max_kept_frames" in refused.message
 
-        save = node.create_client(Trigger, "/mapper/save_map")
-        assert save.wait_for_service(timeout_sec=10.0)
-        saved = call_service(ex, save, Trigger.Request, timeout=30.0)
+        saved = call_service(ex, t.client("save_map"), Trigger.Request, timeout=30.0)
         assert saved is not None and saved.success, saved
         for name in ("map.ply", "trajectory.tum", "report.json"):
             assert (tmp_path / "saved" / name).stat().st_size > 0
-        reset = node.create_client(Trigger, "/mapper/reset")
-        assert reset.wait_for_service(timeout_sec=10.0)
-        done = call_service(ex, reset, Trigger.Request)
+        done = call_service(ex, t.client("reset"), Trigger.Request)
         assert done is not None and done.success, done
         assert spin_until(ex, lambda: values().get("frames_used") == "0", 10.0), values()
-        ex.shutdown()
-        node.destroy_node()
 
 
 @pytest.mark.parametrize(
@@ -177,54 +200,32 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
         pytest.skip("bags/paper_room: not present")
     import json
 
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from nav_msgs.msg import Odometry
-    from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import PointCloud2
     from std_srvs.srv import Trigger
 
     from wheelgrid_common.fileio import quat_to_matrix, read_ply, read_tum
     from wheelgrid_common.pointcloud2 import has_field, read_fields, read_xyz
-    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
     from wheelgrid_mapping.loop_closure import LoopClosureConfig
     from wheelgrid_mapping.pipeline import Mapper
 
     pairs = bag_clouds(41)  # 40 frames: 4 submaps of the bag's in-place turn, then one more
-    args = python_module(
-        "wheelgrid_mapping.mapper_node",
-        "--ros-args",
-        "-p", "topic:=/test_loops/points",
-        "-p", f"output_dir:={tmp_path / 'saved'}",
-        "-p", "publish_period:=0.5",
-        "-p", "max_queue:=100",
-        "-p", "pose_prior_topic:=/test_loops/odometry",
-    )  # fmt: skip
-    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
-        node = rclpy.create_node("loops_test", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-        pub = node.create_publisher(PointCloud2, "/test_loops/points", SENSOR_QOS)
-        odom_pub = node.create_publisher(Odometry, "/test_loops/odometry", SENSOR_QOS)
-        maps: list = []
-        status: list = []
-        node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", maps.append, MAP_QOS)
-        node.create_subscription(
-            DiagnosticArray, "/wheelgrid/mapper_status", status.append, RELIABLE_QOS
-        )
-        assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 20.0), "node not up"
-        assert spin_until(ex, lambda: odom_pub.get_subscription_count() > 0, 20.0)
-        spin_until(ex, lambda: False, 1.0)
-
-        def values() -> dict[str, str]:
-            return {kv.key: kv.value for kv in status[-1].status[0].values} if status else {}
-
-        def client(name: str):
-            c = node.create_client(Trigger, f"/mapper/{name}")
-            assert c.wait_for_service(timeout_sec=10.0)
-            return c
-
+    with running_mapper(tmp_path, "test_loops", "max_queue:=100") as t:
+        ex, pub, odom_pub, maps, status = t.ex, t.pub, t.odom_pub, t.maps, t.status
+        values, client = t.values, t.client
         close, save, reset = client("close_loops"), client("save_map"), client("reset")
+
+        def reset_and_map_again(pair: tuple) -> None:
+            """~/reset: a clean node (loop closure ready, nothing mapped) that maps again."""
+            done = call_service(ex, reset, Trigger.Request)
+            assert done is not None and done.success, done
+            assert spin_until(
+                ex,
+                lambda: values().get("loop_closure") == "ready" and values()["frames_used"] == "0",
+                10.0,
+            ), values()
+            pub.publish(pair[0])
+            odom_pub.publish(pair[1])
+            assert spin_until(ex, lambda: values().get("frames_used") == "1", 20.0), values()
+
         refused = call_service(ex, close, Trigger.Request)
         assert refused is not None and not refused.success and "nothing to close" in refused.message
 
@@ -298,16 +299,7 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
         assert np.abs(poses[:, :3, 3] - ref[:, :3, 3]).max() < 1e-3
         assert np.abs(poses[:, :3, :3] - ref[:, :3, :3]).max() < 1e-3
 
-        done = call_service(ex, reset, Trigger.Request)
-        assert done is not None and done.success, done
-        assert spin_until(
-            ex,
-            lambda: values().get("loop_closure") == "ready" and values()["frames_used"] == "0",
-            10.0,
-        ), values()
-        pub.publish(pairs[0][0])  # mapping again
-        odom_pub.publish(pairs[0][1])
-        assert spin_until(ex, lambda: values().get("frames_used") == "1", 20.0), values()
+        reset_and_map_again(pairs[0])
 
         # ~/reset while loops are being closed: stopped (or just finished), the node clean.
         for msg, odom in pairs[1:40]:
@@ -321,15 +313,4 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
         assert spin_until(
             ex, lambda: values().get("loop_closure") in ("running", "closed"), 10.0
         ), values()
-        done = call_service(ex, reset, Trigger.Request)
-        assert done is not None and done.success, done
-        assert spin_until(
-            ex,
-            lambda: values().get("loop_closure") == "ready" and values()["frames_used"] == "0",
-            10.0,
-        ), values()
-        pub.publish(pairs[5][0])
-        odom_pub.publish(pairs[5][1])
-        assert spin_until(ex, lambda: values().get("frames_used") == "1", 20.0), values()
-        ex.shutdown()
-        node.destroy_node()
+        reset_and_map_again(pairs[5])
