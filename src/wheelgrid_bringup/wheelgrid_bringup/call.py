@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
 
 from wheelgrid_common.ros_env import configure_ros_env
-from wheelgrid_common.services import call_with_retry
+from wheelgrid_common.testing import call_service, spin_until
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,25 +38,16 @@ def main(argv: list[str] | None = None) -> int:
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     deadline = time.monotonic() + args.timeout
-
-    def spin_until(done: Callable[[], bool], seconds: float) -> bool:
-        end = min(time.monotonic() + seconds, deadline)
-        while time.monotonic() < end:
-            if done():
-                return True
-            ex.spin_once(timeout_sec=0.05)
-        return bool(done())
-
     try:
         client = node.create_client(Trigger, args.service)
-        if not spin_until(client.service_is_ready, args.timeout):
+        if not spin_until(ex, client.service_is_ready, args.timeout):
             print(
                 f"wheelgrid call: no service {args.service} within {args.timeout:.0f} s (is the "
                 "node running, with the same ROS_DOMAIN_ID?)"
             )
             return 2
-        result = call_with_retry(
-            client, Trigger.Request, spin_until, max(deadline - time.monotonic(), 0.1), 5.0
+        result = call_service(
+            ex, client, Trigger.Request, max(deadline - time.monotonic(), 0.1), 5.0
         )
         if result is None:
             print(f"wheelgrid call: {args.service} did not answer within {args.timeout:.0f} s")

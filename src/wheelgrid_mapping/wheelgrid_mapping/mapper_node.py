@@ -76,6 +76,12 @@ class MapperNodeConfig:
     )
 
 
+# Loop-closure states in which the worker holds (or is about to take) the map, and those after
+# which the map is final until ~/reset.
+_CLOSING = ("requested", "running")
+_FINAL = (*_CLOSING, "closed")
+
+
 class _CancelledError(Exception):
     """Raised from the loop closure's progress callback when ~/reset asks it to stop."""
 
@@ -108,7 +114,6 @@ class MapperNode(Node):  # type: ignore[misc]
             reg = declare_dataclass(self, RegistrationConfig(), "registration.")
             cfg = declare_dataclass(self, MapperConfig(), "mapper.")
             self.loop_cfg = declare_dataclass(self, LoopClosureConfig(), "loop_closure.")
-            self.loop_cfg.validate()
             self.mapper = Mapper(pre, reg, cfg, keep_frames=self.loop_cfg.enabled)
         except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
             self.get_logger().fatal(f"invalid parameters: {exc}")
@@ -181,7 +186,7 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_cloud(self, msg: Any) -> None:
         self.counts["received"] += 1
-        if self._loop_state in ("requested", "running", "closed"):
+        if self._loop_state in _FINAL:
             self.counts["after_close"] += 1
             self._log_once(
                 "closed",
@@ -357,7 +362,7 @@ class MapperNode(Node):  # type: ignore[misc]
         # A loop closure holds the map for tens of seconds and the status must go on meanwhile:
         # no waiting for it then. Only this (executor) thread moves the state from "ready" to
         # "requested", so a closure cannot start between this check and the lock.
-        if self._map_dirty and self._loop_state not in ("requested", "running"):
+        if self._map_dirty and self._loop_state not in _CLOSING:
             with self._lock:
                 try:
                     pts = self.mapper.published_points()
@@ -404,7 +409,7 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_save(self, request: Any, response: Any) -> Any:
         out = Path(self.output_dir)
-        if self._loop_state in ("requested", "running"):
+        if self._loop_state in _CLOSING:
             # the worker holds the map; waiting here would stall every other callback
             response.success = False
             response.message = (
@@ -430,8 +435,7 @@ class MapperNode(Node):  # type: ignore[misc]
             self.counts["skipped_busy"] += len(self._queue)
             self._queue.clear()
             self._generation += 1
-            self.mapper.reset()
-            self.mapper.release_frames()
+            self.mapper.reset()  # kept frames go too; keep them again if max_kept_frames stopped it
             self.mapper.keep_frames = self.loop_cfg.enabled
             self.counts["after_close"] = 0
             self._loop_state = "ready" if self.loop_cfg.enabled else "off"
@@ -452,7 +456,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     + (self._loop_note or "loop_closure.enabled is false")
                     + "); the online map stands, ~/save_map saves it"
                 )
-            elif state in ("requested", "running", "closed"):
+            elif state in _FINAL:
                 # Idempotent, as callers retry a request whose answer DDS dropped: what was
                 # asked for is under way or done.
                 response.success = True
