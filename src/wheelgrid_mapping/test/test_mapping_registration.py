@@ -172,3 +172,23 @@ def test_bad_registration_settings_are_refused() -> None:
     cfg.method = "ndt"  # changed after construction: the Registrar checks again
     with pytest.raises(ValueError, match="kiss or open3d"):
         Registrar(cfg)
+
+
+def test_fitness_is_the_share_of_points_next_to_an_occupied_cell() -> None:
+    """The overlap check keeps occupied cells and their neighbours as new cells arrive (no
+    re-sort of the map per frame); it must still be: a point matches when its own fitness cell
+    or one of the 26 around it holds a map point."""
+    rng = np.random.default_rng(2)
+    reg = Registrar(RegistrationConfig())
+    cell = reg.cfg.fitness_cell
+    occupied: set[tuple[int, int, int]] = set()
+    for _ in range(5):  # frames integrated one by one, overlapping
+        pts = rng.uniform(-10, 10, (400, 3)) * cell
+        reg._integrate(pts, np.eye(4))
+        occupied |= {tuple(c) for c in np.floor(pts / cell).astype(int)}
+    query = rng.uniform(-14, 14, (2000, 3)) * cell
+    ijk = np.floor(query / cell).astype(int)
+    steps = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+    want = np.mean([any((i + a, j + b, k + c) in occupied for a, b, c in steps) for i, j, k in ijk])
+    assert 0.05 < want < 0.95
+    assert reg._fitness(query) == want

@@ -54,6 +54,37 @@ def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
 
 
+def _unique_keys(
+    columns: list[np.ndarray], size: float, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
+    """``np.unique(voxel_keys(points, size))`` for points given as x, y, z columns whose voxel
+    indices lie within ``lo..hi`` (inclusive, as ``floor(p / size)``): a bitmap over that box
+    when it is small (a frame: up to ~2 M cells), 2-3x faster than hashing each sample."""
+    lo, hi = lo.astype(np.int64), hi.astype(np.int64)
+    dims = hi - lo + 1
+    if columns[0].shape[0] == 0:
+        return np.empty(0, np.int64)
+    ijk = [np.floor(c / size).astype(np.int64) for c in columns]
+    if int(dims.prod()) > 16 * columns[0].shape[0] + 2_000_000:
+        return np.unique(voxel_keys(np.column_stack(columns), size))
+    if (lo + _OFFSET < 0).any() or (hi + _OFFSET > _MASK).any():
+        raise ValueError(f"points too far from the origin for {size} m voxels")
+    lin = ijk[0] - lo[0]
+    lin *= dims[1]
+    lin += ijk[1] - lo[1]
+    lin *= dims[2]
+    lin += ijk[2] - lo[2]
+    occ = np.zeros(int(dims.prod()), dtype=bool)
+    occ[lin] = True
+    # back to packed keys; row-major over (i, j, k) is the packed keys' sort order
+    i, rest = np.divmod(np.flatnonzero(occ), dims[1] * dims[2])
+    j, k = np.divmod(rest, dims[2])
+    i += lo[0] + _OFFSET
+    j += lo[1] + _OFFSET
+    k += lo[2] + _OFFSET
+    return (i << (2 * _BITS)) | (j << _BITS) | k
+
+
 class EvidenceMap:
     """Centroid voxel map (``voxel``) filtered by frame evidence (``evidence_voxel``)."""
 
@@ -128,9 +159,20 @@ class EvidenceMap:
             return np.empty(0, np.int64)
         t = np.arange(1, n_steps + 1) * step
         unit = d / np.maximum(length, 1e-9)[:, None]
-        ok = t[None, :] < reach[:, None]
-        samples = origin + unit[:, None, :] * t[None, :, None]
-        return np.unique(voxel_keys(samples[ok], self.evidence_voxel))
+        # Only the samples short of each ray's reach (a ray's are a prefix of t), built
+        # directly: the full (rays, steps, 3) block was 80 % discarded and cost half the time.
+        per_ray = np.searchsorted(t, reach, side="left")
+        ray = np.repeat(np.arange(unit.shape[0]), per_ray)
+        first = np.cumsum(per_ray) - per_ray
+        k = np.arange(ray.shape[0]) - np.repeat(first, per_ray)
+        tk = t[k]
+        columns = [origin[a] + unit[ray, a] * tk for a in range(3)]
+        # every sample lies between the origin and its point: their box bounds the voxels (one
+        # voxel wider, so no rounding can put a sample outside it)
+        box = np.vstack([pts.min(axis=0), pts.max(axis=0), origin])
+        lo = np.floor(box.min(axis=0) / self.evidence_voxel) - 1
+        hi = np.floor(box.max(axis=0) / self.evidence_voxel) + 1
+        return _unique_keys(columns, self.evidence_voxel, lo, hi)
 
     def _consolidate(self) -> None:
         if not self._pending:

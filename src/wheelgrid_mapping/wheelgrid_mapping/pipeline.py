@@ -226,7 +226,12 @@ class Mapper:
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
         self.failures: list[dict[str, Any]] = []
         self.points = {"input": 0, "valid": 0, "downsampled": 0, "after_sor": 0, "after_pfc": 0}
-        self.timings = {"preprocess_s": 0.0, "registration_s": 0.0, "levelling_s": 0.0}
+        self.timings = {
+            "preprocess_s": 0.0,
+            "registration_s": 0.0,
+            "evidence_s": 0.0,
+            "levelling_s": 0.0,
+        }
         self._last_processed: float | None = None
 
     def release_frames(self) -> None:
@@ -294,7 +299,9 @@ class Mapper:
         if self.keep_frames:
             self._frames.append(pts.astype(np.float32))
             self._priors.append(None if prior is None else np.asarray(prior, dtype=np.float64))
+        t2 = time.perf_counter()
         self._evidence.add(transform(pts, res.pose), res.pose[:3, 3])
+        self.timings["evidence_s"] += time.perf_counter() - t2
         self._dirty += pts.shape[0]
         used = len(self.poses_odom)
         # Look for the floor after level_min_frames, then every 5th frame until found (each

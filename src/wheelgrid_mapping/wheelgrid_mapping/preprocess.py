@@ -142,8 +142,10 @@ def voxel_downsample(points: np.ndarray, cell: float) -> np.ndarray:
         raise ValueError(f"cloud too large for cell {cell} m (span {span.max():.0f} cells)")
     ijk = np.floor((pts - origin) / cell).astype(np.int64)
     dims = ijk.max(axis=0) + 1
-    if int(dims.prod()) <= 256_000_000:
-        # Dense lattice: cell index by a bitmap + cumulative sum instead of a sort.
+    if int(dims.prod()) <= min(256_000_000, max(8 * pts.shape[0], 1 << 16)):
+        # Dense lattice: cell index by a bitmap + cumulative sum instead of a sort (a big
+        # cloud). A frame's box is mostly empty (30 k points in 1.6 M cells): sorting its
+        # points is 10x cheaper than summing that many cells, and orders the cells alike.
         lin = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
         occ = np.zeros(int(dims.prod()), dtype=bool)
         occ[lin] = True
@@ -274,8 +276,11 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
             q = sel[s : s + 65_536]
             qkey = lin[q]
             qx, qy, qz = xs[q], ys[q], zs[q]
-            cand = np.empty((q.shape[0], ncol), dtype=np.int32)
-            d = np.empty((q.shape[0], ncol), dtype=np.float32)
+            # Candidate-major (column per row): each offset writes contiguous memory; and
+            # only the candidates that exist are gathered (in a frame ~15 % of the 5x5x5
+            # shell's cells are occupied), the rest stay -1 / inf.
+            cand = np.full((ncol, q.shape[0]), -1, dtype=np.int32)
+            d = np.full((ncol, q.shape[0]), np.inf, dtype=np.float32)
             col = 0
             for off in offs:
                 rows = cell_rows(qkey + off)
@@ -286,21 +291,24 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
                     if off == 0:
                         slots = [np.where(c == q, -1, c) for c in slots]
                 for c in slots:
-                    cand[:, col] = c
-                    dx = xs[c] - qx
-                    dd = dx * dx
-                    dx = ys[c] - qy
-                    dd += dx * dx
-                    dx = zs[c] - qz
-                    dd += dx * dx
-                    d[:, col] = dd
+                    hit = np.flatnonzero(c >= 0)
+                    if hit.size:
+                        ch = c[hit].astype(np.intp)
+                        cand[col, hit] = ch
+                        dx = xs[ch] - qx[hit]
+                        dd = dx * dx
+                        dx = ys[ch] - qy[hit]
+                        dd += dx * dx
+                        dx = zs[ch] - qz[hit]
+                        dd += dx * dx
+                        d[col, hit] = dd
                     col += 1
             if keep_found:  # merge with what the inner search found
-                cand[:, col : col + k] = idx_out[q]
-                d[:, col : col + k] = np.square(dist_out[q])
+                cand[col : col + k] = idx_out[q].T
+                d[col : col + k] = np.square(dist_out[q]).T
                 col += k
-            cand, d = cand[:, :col], d[:, :col]
-            d[cand < 0] = np.inf
+            cand = np.ascontiguousarray(cand[:col].T)
+            d = np.ascontiguousarray(d[:col].T)
             kk = min(k, col)
             # One sortable int64 per candidate: float32 bits (monotonic for d >= 0) | column.
             key = (d.view(np.int32).astype(np.int64) << 12) | np.arange(col, dtype=np.int64)
