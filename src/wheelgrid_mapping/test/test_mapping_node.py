@@ -250,6 +250,12 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
         )  # fmt: skip
         assert started.returncode == 0, started.stdout + started.stderr
         assert started.stdout.startswith("ok: ") and f"over {used} frames" in started.stdout
+        # Saving while the worker holds the map is refused at once, not queued behind it (the
+        # closure of these 40 frames takes seconds; this call comes within one).
+        busy = call_service(ex, save, Trigger.Request)
+        assert busy is not None and not busy.success, busy
+        assert "loop closure running" in busy.message, busy.message
+        assert not (tmp_path / "saved" / "map.ply").exists()
         statuses_before = len(status)
         assert spin_until(ex, lambda: values().get("loop_closure") == "closed", 90.0), values()
         assert len(status) > statuses_before  # the status went on while the worker held the map
