@@ -20,11 +20,9 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
 def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray_capture):
-    import open3d as o3d
-
     from wheelgrid_bringup.chain import Monitor
     from wheelgrid_bringup.supervisor import Supervisor, node_argv
-    from wheelgrid_common.fileio import read_ply, read_tum
+    from wheelgrid_common.fileio import read_tum
     from wheelgrid_common.ros_env import child_env
     from wheelgrid_common.testing import free_port, rclpy_context
     from wheelgrid_mapping.cli_stray import stream_export
@@ -33,6 +31,7 @@ def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray
     exp = StrayExport(stray_capture)
     full = os.environ.get("WHEELGRID_IPHONE_FULL") == "1"
     start, n = (0, len(exp)) if full else (300, 120)  # CI: 2 s of the capture at 60 fps
+    arkit_map = _arkit_map(exp, start, n)  # what both maps (online, loops closed) are held to
     port = free_port()
     sup = Supervisor(tmp_path / "logs", child_env())
     with rclpy_context() as ctx:
@@ -87,7 +86,7 @@ def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray
                 print(f"iPhone live, newest frame: {m}")
                 ok, msg = monitor.call_trigger("/mapper/save_map", timeout=30)
                 assert ok, msg
-                online = _within(tmp_path / "map", exp, start, n, o3d, read_ply, read_tum)
+                online = _within(tmp_path / "map", arkit_map)
                 ok, msg = monitor.call_trigger("/mapper/close_loops", timeout=30)
                 assert ok, msg
                 _wait(lambda: monitor.state.mapper.get("loop_closure") == "closed", 600, sup)
@@ -101,7 +100,7 @@ def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray
     stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
     print(f"iPhone live: {n} frames streamed, {len(stamps)} registered")
     if full:
-        within = _within(tmp_path / "map", exp, start, n, o3d, read_ply, read_tum)
+        within = _within(tmp_path / "map", arkit_map)
         print(f"iPhone live, whole capture: {100 * online:.1f} % online, {100 * within:.1f} % "
               "with loops closed, of the map within 5 cm of the ARKit-fused map")  # fmt: skip
         assert within >= 0.8
@@ -113,18 +112,18 @@ def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray
     assert all(f["frame"] != 0 for f in report["failures"])  # frame `start` opened the map
     capture = np.array([exp.stamp(i) for i in range(start, start + n)])
     np.testing.assert_allclose(stamps[1] - stamps[0], capture[1] - capture[0], atol=1e-3)
-    within = _within(tmp_path / "map", exp, start, n, o3d, read_ply, read_tum)
+    within = _within(tmp_path / "map", arkit_map)
     print(f"iPhone live map vs ARKit-fused map: {100 * within:.1f} % of points within 5 cm")
     assert within >= 0.8
 
 
-def _within(out, exp, start: int, n: int, o3d, read_ply, read_tum) -> float:
-    """Share of the saved map's points within 5 cm of the map fused from ARKit's own poses
-    (frames ``start`` .. ``start + n``), the two tied by the first registered frame."""
+def _arkit_map(exp, start: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The map fused from ARKit's own poses (frames ``start`` .. ``start + n``, 2 cm voxels,
+    ROS z-up odom frame) and the ARKit pose of frame ``start``."""
+    import open3d as o3d
+
     from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
 
-    mapped = read_ply(out / "map.ply")
-    _, poses_map = read_tum(out / "trajectory.tum")
     ref = []
     for i in range(start, start + n):
         f = exp.frame(i)
@@ -134,11 +133,22 @@ def _within(out, exp, start: int, n: int, o3d, read_ply, read_tum) -> float:
         ref.append(pts @ T[:3, :3].T + T[:3, 3])
     ref_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack(ref)))
     ref_cloud = ref_cloud.voxel_down_sample(0.02)
-    # the first registered frame, the first streamed (it opened the map: the mapper was idle),
-    # ties the two frames together (map <- odom)
-    T_odom0 = arkit_pose_to_ros(exp.frame(start).pose)
+    return np.asarray(ref_cloud.points), arkit_pose_to_ros(exp.frame(start).pose)
+
+
+def _within(out, arkit_map: tuple[np.ndarray, np.ndarray]) -> float:
+    """Share of the saved map's points (every 5th) within 5 cm of the ARKit-fused map, the two
+    tied by the first registered frame: the first streamed (it opened the map, the mapper was
+    idle), whose ARKit pose ``arkit_map`` carries."""
+    import open3d as o3d
+
+    from wheelgrid_common.fileio import read_ply, read_tum
+
+    ref, T_odom0 = arkit_map
+    mapped = read_ply(out / "map.ply")
+    _, poses_map = read_tum(out / "trajectory.tum")
     T = poses_map[0] @ np.linalg.inv(T_odom0)
-    ref_map = np.asarray(ref_cloud.points) @ T[:3, :3].T + T[:3, 3]
+    ref_map = ref @ T[:3, :3].T + T[:3, 3]
     tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ref_map)))
     dist = np.array([np.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in mapped[::5]])
     return float((dist < 0.05).mean())

@@ -42,8 +42,13 @@ _STEPS = np.array(
     [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if dx or dy or dz],
     dtype=np.int64,
 )
-_NEIGHBOURS = (_STEPS[:, 0] << (2 * _BITS)) + (_STEPS[:, 1] << _BITS) + _STEPS[:, 2]
+NEIGHBOUR_KEYS = (_STEPS[:, 0] << (2 * _BITS)) + (_STEPS[:, 1] << _BITS) + _STEPS[:, 2]
 _DIRECTIONS = _STEPS / np.linalg.norm(_STEPS, axis=1, keepdims=True)
+
+
+def _pack(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """One int64 key from offset-coded voxel indices (row-major: sorting keys sorts i, j, k)."""
+    return (i << (2 * _BITS)) | (j << _BITS) | k
 
 
 def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
@@ -51,7 +56,15 @@ def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     ijk = np.floor(np.asarray(points, dtype=np.float64) / size).astype(np.int64) + _OFFSET
     if ijk.size and (ijk.min() < 0 or ijk.max() > _MASK):
         raise ValueError(f"points too far from the origin for {size} m voxels")
-    return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+    return _pack(ijk[:, 0], ijk[:, 1], ijk[:, 2])
+
+
+def contains_sorted(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Which ``keys`` are in the sorted array ``sorted_keys``."""
+    if sorted_keys.size == 0:
+        return np.zeros(keys.shape[0], dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), sorted_keys.size - 1)
+    return sorted_keys[pos] == keys
 
 
 def _unique_keys(
@@ -64,11 +77,11 @@ def _unique_keys(
     dims = hi - lo + 1
     if columns[0].shape[0] == 0:
         return np.empty(0, np.int64)
-    ijk = [np.floor(c / size).astype(np.int64) for c in columns]
     if int(dims.prod()) > 16 * columns[0].shape[0] + 2_000_000:
         return np.unique(voxel_keys(np.column_stack(columns), size))
     if (lo + _OFFSET < 0).any() or (hi + _OFFSET > _MASK).any():
         raise ValueError(f"points too far from the origin for {size} m voxels")
+    ijk = [np.floor(c / size).astype(np.int64) for c in columns]
     lin = ijk[0] - lo[0]
     lin *= dims[1]
     lin += ijk[1] - lo[1]
@@ -79,10 +92,7 @@ def _unique_keys(
     # back to packed keys; row-major over (i, j, k) is the packed keys' sort order
     i, rest = np.divmod(np.flatnonzero(occ), dims[1] * dims[2])
     j, k = np.divmod(rest, dims[2])
-    i += lo[0] + _OFFSET
-    j += lo[1] + _OFFSET
-    k += lo[2] + _OFFSET
-    return (i << (2 * _BITS)) | (j << _BITS) | k
+    return _pack(i + lo[0] + _OFFSET, j + lo[1] + _OFFSET, k + lo[2] + _OFFSET)
 
 
 class EvidenceMap:
@@ -218,7 +228,7 @@ class EvidenceMap:
 
     def _grow(self, keep: np.ndarray, up: np.ndarray) -> np.ndarray:
         """``keep`` plus the map voxels up to ``rings`` sideways voxel steps away."""
-        sideways = _NEIGHBOURS[np.abs(_DIRECTIONS @ (up / np.linalg.norm(up))) < 0.5]
+        sideways = NEIGHBOUR_KEYS[np.abs(_DIRECTIONS @ (up / np.linalg.norm(up))) < 0.5]
         keep = keep.copy()
         for _ in range(self.rings):
             cand = np.flatnonzero(~keep)
@@ -228,9 +238,7 @@ class EvidenceMap:
             grow = np.zeros(cand.size, dtype=bool)
             cand_keys = self._keys[cand]
             for off in sideways:
-                q = cand_keys + off
-                pos = np.clip(np.searchsorted(kept, q), 0, kept.size - 1)
-                grow |= kept[pos] == q
+                grow |= contains_sorted(kept, cand_keys + off)
             keep[cand[grow]] = True
         return keep
 

@@ -34,6 +34,7 @@ import numpy as np
 
 from wheelgrid_common.params import field
 
+from .evidence import NEIGHBOUR_KEYS, contains_sorted
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
@@ -120,21 +121,6 @@ class RegistrationConfig:
                     f"registration {name} must be in [0, 1] (0 = the prior, 1 = ICP), "
                     f"not {getattr(self, name)}"
                 )
-
-
-# Packed-key offsets of a fitness cell's 27-neighbourhood (itself included); see _keys.
-_NEIGHBOUR_KEYS = np.array(
-    [(a << 42) + (b << 21) + c for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)],
-    dtype=np.int64,
-)
-
-
-def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """Which ``keys`` are in the sorted array ``sorted_keys``."""
-    if sorted_keys.size == 0:
-        return np.zeros(keys.shape[0], dtype=bool)
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), sorted_keys.size - 1)
-    return sorted_keys[pos] == keys
 
 
 def _insert_sorted(sorted_keys: np.ndarray, new: np.ndarray) -> np.ndarray:
@@ -241,6 +227,7 @@ class Registrar:
 
     # -- map occupancy for the overlap check -------------------------------------------------
     def _keys(self, pts: np.ndarray) -> np.ndarray:
+        # evidence.voxel_keys' layout (so its NEIGHBOUR_KEYS step between cells), unchecked
         ijk = np.floor(pts / self.cfg.fitness_cell).astype(np.int64) + (1 << 20)
         return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
@@ -250,7 +237,7 @@ class Registrar:
         # A point matches when its cell or one of the 26 around it is occupied: the tolerance is
         # one to two cells, independent of where cell borders fall. ``_near`` holds exactly
         # those cells, so that is one lookup per point instead of 27.
-        return float(np.mean(_contains(self._near, self._keys(pts_odom))))
+        return float(np.mean(contains_sorted(self._near, self._keys(pts_odom))))
 
     def _integrate(self, pts_sensor: np.ndarray, pose: np.ndarray) -> None:
         # KISS-ICP's update() transforms the sensor-frame points by ``pose`` itself.
@@ -258,11 +245,12 @@ class Registrar:
         keys = np.unique(self._keys(transform(pts_sensor, pose)))
         # Only a frame's new cells are merged (into sorted arrays, in place of a union that
         # re-sorted the whole map every frame: a cost that grew with the session).
-        fresh = keys[~_contains(self._occupied, keys)]
+        fresh = keys[~contains_sorted(self._occupied, keys)]
         if fresh.size:
             self._occupied = _insert_sorted(self._occupied, fresh)
-            near = np.unique((fresh[:, None] + _NEIGHBOUR_KEYS[None, :]).ravel())
-            self._near = _insert_sorted(self._near, near[~_contains(self._near, near)])
+            around = (fresh[:, None] + NEIGHBOUR_KEYS[None, :]).ravel()
+            near = np.unique(np.concatenate([fresh, around]))
+            self._near = _insert_sorted(self._near, near[~contains_sorted(self._near, near)])
 
     # -- alignment -----------------------------------------------------------------------------
     def _align(self, source: np.ndarray, guess: np.ndarray, max_corr: float, kernel: float) -> Any:
