@@ -147,6 +147,11 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
         dev = 100.0 * abs(meas.distance - true[key]) / true[key]
         row(f"{label}: Table I {name} ({true[key] * 100:.2f} cm)", meas.distance * 100, "cm")
         row(f"{label}: Table I {name} deviation", dev, "%")
+        if axis is None:
+            # the previous release's measure (no facing normals), printed for comparison only
+            prev = measure(pts_room, a, b, axis, normal_radius=0.0)
+            prev_dev = 100.0 * abs(prev.distance - true[key]) / true[key]
+            print(f"{label}: Table I {name}: previous measure {prev_dev:.3g} %")
 
 
 def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str) -> Mapper:

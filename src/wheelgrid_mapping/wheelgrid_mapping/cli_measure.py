@@ -3,9 +3,11 @@
 The paper measured obstacle-to-obstacle distances on its 3D map by hand in MATLAB. Here each
 surface is chosen by an axis-aligned box (map frame, metres) around it; in each box the plane
 most points agree with is found (RANSAC, 1.5 cm) and refitted by SVD on its inliers, so a
-neighbouring surface the box clips does not tilt or shift it; the distance is the mean of the
-centroid-to-other-plane distances both ways. With ``--true`` the deviation in % is printed, as
-in Table I.
+neighbouring surface the box clips does not tilt or shift it; then only the points whose own
+surface normal (from their neighbours within ``--normal-radius``) faces the same way are kept
+and the plane refitted on them, so the sides of a leg or the underside of a top that run into
+the face do not pull it inwards. The distance is the mean of the centroid-to-other-plane
+distances both ways. With ``--true`` the deviation in % is printed, as in Table I.
 """
 
 from __future__ import annotations
@@ -21,6 +23,16 @@ import numpy as np
 
 from wheelgrid_common.fileio import read_ply
 
+#: Normals from neighbours within this radius (m): 1.5 voxels of a 2 cm map, so the 3x3
+#: neighbourhood of a point on a face, diagonals included.
+NORMAL_RADIUS = 0.03
+#: A point belongs to the fitted face when its normal is within this angle of the plane's.
+NORMAL_ANGLE_DEG = 30.0
+#: RANSAC's band (m): a face's points and its range noise.
+INLIER = 0.015
+#: Fewer points than this facing the plane: the normal step is skipped (noted in the result).
+MIN_FACING = 10
+
 
 @dataclass
 class Plane:
@@ -28,6 +40,8 @@ class Plane:
     centroid: np.ndarray
     points: int
     rms: float
+    facing: bool = False  # the final fit used only the points whose normals face its way
+    support: np.ndarray | None = None  # the points the final fit stands on
 
 
 @dataclass
@@ -38,6 +52,8 @@ class Measurement:
     points_b: int
     rms_a: float
     rms_b: float
+    facing_a: bool = False  # the normal step was applied (enough points faced the plane)
+    facing_b: bool = False
 
 
 def points_in_box(points: np.ndarray, box: list[float] | np.ndarray) -> np.ndarray:
@@ -46,7 +62,7 @@ def points_in_box(points: np.ndarray, box: list[float] | np.ndarray) -> np.ndarr
     return points[((points >= lo) & (points <= hi)).all(axis=1)]
 
 
-def fit_plane(points: np.ndarray, inlier: float = 0.015, trials: int = 300) -> Plane:
+def fit_plane(points: np.ndarray, inlier: float = INLIER, trials: int = 300) -> Plane:
     """The plane most points of the box agree with (RANSAC), refitted by SVD on its inliers.
 
     A box drawn around a table's edge face also catches the rim of its top and the sides of
@@ -90,17 +106,101 @@ def fit_plane(points: np.ndarray, inlier: float = 0.015, trials: int = 300) -> P
     c = sel.mean(axis=0)
     n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
     rms = float(np.sqrt(np.mean(((sel - c) @ n) ** 2)))
-    return Plane(n, c, int(sel.shape[0]), rms)
+    return Plane(n, c, int(sel.shape[0]), rms, support=sel)
+
+
+def point_normals(points: np.ndarray, radius: float) -> np.ndarray:
+    """Unit normal of each point from its neighbours within ``radius`` (at most 30; Open3D's
+    PCA; sign arbitrary)."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    return np.asarray(cloud.normals)
+
+
+def fit_face(
+    points: np.ndarray,
+    box: list[float] | np.ndarray,
+    radius: float = NORMAL_RADIUS,
+    max_angle_deg: float = NORMAL_ANGLE_DEG,
+) -> Plane:
+    """The face inside ``box``: :func:`fit_plane`'s, standing on its points that face its way.
+
+    A box drawn around a table leg's face also holds the first centimetres of the leg's sides
+    and of the top's underside; their points lie within the fit's band, behind the face, and
+    pull it inwards and tilt it. Their normals are at right angles to the face's, so the face
+    is the points within the plane's band whose own normal (from their neighbours in the whole
+    map: the box widened by ``radius``, so a point at the box's edge has all of its own) is
+    within ``max_angle_deg`` of the plane's. Those points are the ``support``; :func:`measure`
+    fits the two faces' common normal on them.
+    """
+    b = np.asarray(box, dtype=float).reshape(2, 3)
+    lo, hi = b.min(axis=0), b.max(axis=0)
+    around = points_in_box(points, np.r_[lo - radius, hi + radius])
+    inside = ((around >= lo) & (around <= hi)).all(axis=1)
+    pts = around[inside]
+    plane = fit_plane(pts)
+    if radius <= 0 or pts.shape[0] < MIN_FACING:
+        return plane
+    normals = point_normals(around, radius)[inside]
+    offset = (pts - plane.centroid) @ plane.normal
+    facing = (np.abs(normals @ plane.normal) >= math.cos(math.radians(max_angle_deg))) & (
+        np.abs(offset) <= INLIER
+    )
+    if int(facing.sum()) < MIN_FACING:
+        return plane
+    sel = pts[facing]
+    c = sel.mean(axis=0)
+    n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
+    rms = float(np.sqrt(np.mean(((sel - c) @ n) ** 2)))
+    return Plane(n, c, int(sel.shape[0]), rms, True, sel)
+
+
+def _common_normal(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """One plane normal for point sets each centred on its own centroid, and the centroids."""
+    cs = [s.mean(axis=0) for s in sets]
+    stacked = np.vstack([s - c for s, c in zip(sets, cs, strict=True)])
+    return np.linalg.svd(stacked, full_matrices=False)[2][2], cs
+
+
+def parallel_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance between two parallel planes fitted to point sets ``a`` and ``b`` together.
+
+    Table I measures a gap between facing surfaces: one normal for both (the smallest singular
+    vector of both sets, each centred on its own centroid) stands on both faces' points, so a
+    face seen by only one leg's 20 points cannot tilt it, as its own fit can (on points lying
+    exactly on the paper scene's surfaces, separate fits read the table gap 0.27 % long: the
+    sides of the legs tilt them, and centroids 0.4 m apart sideways turn a tilt into length).
+    """
+    sets = [np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)]
+    for _ in range(4):
+        n, cs = _common_normal(sets)
+        # as in fit_plane: each face within 2.5 robust sigmas of its own noise, so a corner
+        # point whose normal still leans the face's way (its neighbours are mostly the face's)
+        # drops out
+        trimmed = []
+        for s, c in zip(sets, cs, strict=True):
+            r = np.abs((s - c) @ n)
+            keep = r <= float(np.clip(2.5 * 1.4826 * np.median(r), 0.003, INLIER))
+            trimmed.append(s[keep] if keep.sum() >= 3 else s)
+        sets = trimmed
+    n, cs = _common_normal(sets)
+    return abs(float((cs[1] - cs[0]) @ n))
 
 
 def measure(
-    points: np.ndarray, box_a: list[float], box_b: list[float], axis: int | None = None
+    points: np.ndarray,
+    box_a: list[float],
+    box_b: list[float],
+    axis: int | None = None,
+    normal_radius: float = NORMAL_RADIUS,
 ) -> Measurement:
     """Distance between the surfaces inside ``box_a`` and ``box_b`` (each x0 y0 z0 x1 y1 z1).
 
     ``axis`` (0/1/2) measures instead the difference of the two point sets' median coordinate
     along that axis: for thin objects (a bar seen from below) whose faces are too small for a
-    plane fit.
+    plane fit. ``normal_radius`` 0 skips the facing-normals step (the previous measure).
     """
     if axis is not None:
         a, b = points_in_box(points, box_a), points_in_box(points, box_b)
@@ -109,12 +209,16 @@ def measure(
         dist = abs(float(np.median(b[:, axis]) - np.median(a[:, axis])))
         return Measurement(dist, 0.0, a.shape[0], b.shape[0], float(a[:, axis].std()),
                            float(b[:, axis].std()))  # fmt: skip
-    pa = fit_plane(points_in_box(points, box_a))
-    pb = fit_plane(points_in_box(points, box_b))
-    d_ab = abs(float((pb.centroid - pa.centroid) @ pa.normal))
-    d_ba = abs(float((pa.centroid - pb.centroid) @ pb.normal))
+    pa = fit_face(points, box_a, normal_radius)
+    pb = fit_face(points, box_b, normal_radius)
     angle = math.degrees(math.acos(min(1.0, abs(float(pa.normal @ pb.normal)))))
-    return Measurement(0.5 * (d_ab + d_ba), angle, pa.points, pb.points, pa.rms, pb.rms)
+    if normal_radius > 0 and pa.support is not None and pb.support is not None:
+        dist = parallel_distance(pa.support, pb.support)
+    else:  # the previous measure: each plane's centroid to the other plane, both ways
+        d_ab = abs(float((pb.centroid - pa.centroid) @ pa.normal))
+        d_ba = abs(float((pa.centroid - pb.centroid) @ pb.normal))
+        dist = 0.5 * (d_ab + d_ba)
+    return Measurement(dist, angle, pa.points, pb.points, pa.rms, pb.rms, pa.facing, pb.facing)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,6 +233,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--axis", choices=["x", "y", "z"], help="median-coordinate distance along this axis"
     )
+    p.add_argument(
+        "--normal-radius",
+        type=float,
+        default=NORMAL_RADIUS,
+        metavar="M",
+        help="neighbourhood (m) of the point normals that keep a fit to its face "
+        f"(default {NORMAL_RADIUS}; 0 = off)",
+    )
     p.add_argument("--true", type=float, help="the real distance (m): prints the deviation %%")
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     args = p.parse_args(argv)
@@ -139,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         axis = None if args.axis is None else "xyz".index(args.axis)
-        m = measure(pts, args.box_a, args.box_b, axis)
+        m = measure(pts, args.box_a, args.box_b, axis, args.normal_radius)
     except ValueError as exc:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2
@@ -157,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.true:
         line += f"; true {args.true * 100:.2f} cm, deviation {out['deviation_pct']:.2f} %"
+    unfaced = [n for n, f in (("A", m.facing_a), ("B", m.facing_b)) if not f]
+    if args.normal_radius > 0 and unfaced:
+        line += f"; box {' and '.join(unfaced)}: < {MIN_FACING} points face the plane, fit on all"
     if m.angle_deg > 10.0:
         line += "; WARNING: surfaces not parallel, distance is centroid-based"
     print(line)
