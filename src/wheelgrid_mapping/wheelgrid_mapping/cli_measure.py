@@ -151,10 +151,12 @@ def fit_face(
     if int(facing.sum()) < MIN_FACING:
         return plane
     sel = pts[facing]
+    # The normal stays the fit's on all inliers: as few as 20 points of one leg may face the
+    # plane on a real map, too few to fix its tilt (their own fit leaned 11-21 deg and the two
+    # faces were called not parallel); the distance takes both faces' normal together.
     c = sel.mean(axis=0)
-    n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
-    rms = float(np.sqrt(np.mean(((sel - c) @ n) ** 2)))
-    return Plane(n, c, int(sel.shape[0]), rms, True, sel)
+    rms = float(np.sqrt(np.mean(((sel - c) @ plane.normal) ** 2)))
+    return Plane(plane.normal, c, int(sel.shape[0]), rms, True, sel)
 
 
 def _common_normal(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
