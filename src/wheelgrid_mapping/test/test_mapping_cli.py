@@ -254,6 +254,8 @@ def test_measure_along_an_axis_for_a_thin_bar(tmp_path: Path, capsys) -> None:
             "--box-b", "0", "0.9", "1.4", "2", "1.1", "1.6", "--axis", "z", "--json"]  # fmt: skip
     assert cli_measure.main(argv) == 0
     assert json.loads(capsys.readouterr().out)["distance"] == pytest.approx(1.525, abs=0.005)
+    assert cli_measure.main(argv[:-1]) == 0  # the line: no word of plane fits for an axis
+    assert "face the plane" not in capsys.readouterr().out
 
 
 def test_map_from_a_ros1_bag(sim_dir: Path, tmp_path: Path) -> None:

@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.true:
         line += f"; true {args.true * 100:.2f} cm, deviation {out['deviation_pct']:.2f} %"
     unfaced = [n for n, f in (("A", m.facing_a), ("B", m.facing_b)) if not f]
-    if args.normal_radius > 0 and unfaced:
+    if axis is None and args.normal_radius > 0 and unfaced:
         line += f"; box {' and '.join(unfaced)}: < {MIN_FACING} points face the plane, fit on all"
     if m.angle_deg > 10.0:
         line += "; WARNING: surfaces not parallel, distance is centroid-based"
