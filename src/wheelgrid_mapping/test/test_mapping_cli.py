@@ -175,6 +175,14 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
     assert out["deviation_pct"] < 0.5 and out["angle_deg"] < 2.0
     empty = ["5", "5", "5", "6", "6", "6"]
     assert cli_measure.main([str(ply), "--box-a", *box_a, "--box-b", *empty]) == 2
+    capsys.readouterr()
+    assert (
+        cli_measure.main(
+            [str(ply), "--box-a", *box_a, "--box-b", *box_b, "--normal-radius", "-0.03"]
+        )
+        == 2
+    )
+    assert "--normal-radius must be >= 0" in capsys.readouterr().err
     assert cli_measure.main([str(tmp_path / "none.ply"), "--box-a", *box_a, "--box-b", *box_b]) == 2
 
 

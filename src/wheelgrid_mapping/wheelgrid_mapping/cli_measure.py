@@ -3,11 +3,11 @@
 The paper measured obstacle-to-obstacle distances on its 3D map by hand in MATLAB. Here each
 surface is chosen by an axis-aligned box (map frame, metres) around it; in each box the plane
 most points agree with is found (RANSAC, 1.5 cm) and refitted by SVD on its inliers, so a
-neighbouring surface the box clips does not tilt or shift it; then only the points whose own
-surface normal (from their neighbours within ``--normal-radius``) faces the same way are kept
-and the plane refitted on them, so the sides of a leg or the underside of a top that run into
-the face do not pull it inwards. The distance is the mean of the centroid-to-other-plane
-distances both ways. With ``--true`` the deviation in % is printed, as in Table I.
+neighbouring surface the box clips does not tilt or shift it; then only its inliers whose own
+surface normal (from their neighbours within ``--normal-radius``) faces the same way are kept,
+so the sides of a leg or the underside of a top that run into the face do not pull it inwards.
+The distance is that between two parallel planes with one normal fitted on both faces' kept
+points. With ``--true`` the deviation in % is printed, as in Table I.
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ class Plane:
     centroid: np.ndarray
     points: int
     rms: float
-    facing: bool = False  # the final fit used only the points whose normals face its way
-    support: np.ndarray | None = None  # the points the final fit stands on
+    support: np.ndarray  # the points the final fit stands on
+    facing: bool = False  # those are only the inliers whose normals face its way
 
 
 @dataclass
@@ -56,10 +56,21 @@ class Measurement:
     facing_b: bool = False
 
 
-def points_in_box(points: np.ndarray, box: list[float] | np.ndarray) -> np.ndarray:
+def box_mask(points: np.ndarray, box: list[float] | np.ndarray, pad: float = 0.0) -> np.ndarray:
+    """Which points lie in ``box`` (x0 y0 z0 x1 y1 z1, either corner first) widened by ``pad``."""
     b = np.asarray(box, dtype=float).reshape(2, 3)
-    lo, hi = b.min(axis=0), b.max(axis=0)
-    return points[((points >= lo) & (points <= hi)).all(axis=1)]
+    lo, hi = b.min(axis=0) - pad, b.max(axis=0) + pad
+    return ((points >= lo) & (points <= hi)).all(axis=1)
+
+
+def points_in_box(points: np.ndarray, box: list[float] | np.ndarray) -> np.ndarray:
+    return points[box_mask(points, box)]
+
+
+def _robust_band(r: np.ndarray, inlier: float) -> float:
+    """2.5 robust sigmas (MAD) of a surface's own noise ``r`` (absolute offsets), 3 mm at the
+    least (a noise-free surface keeps its points) and ``inlier`` at most."""
+    return float(np.clip(2.5 * 1.4826 * np.median(r), 0.003, inlier))
 
 
 def fit_plane(points: np.ndarray, inlier: float = INLIER, trials: int = 300) -> Plane:
@@ -97,16 +108,14 @@ def fit_plane(points: np.ndarray, inlier: float = INLIER, trials: int = 300) -> 
         # rim of a neighbouring surface inside the RANSAC band drops out step by step.
         c = sel.mean(axis=0)
         n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
-        r = np.abs((sel - c) @ n)
-        band = float(np.clip(2.5 * 1.4826 * np.median(r), 0.003, inlier))
-        inl = np.abs((pts - c) @ n) <= band
+        inl = np.abs((pts - c) @ n) <= _robust_band(np.abs((sel - c) @ n), inlier)
         if inl.sum() < 3:
             break
         sel = pts[inl]
     c = sel.mean(axis=0)
     n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
     rms = float(np.sqrt(np.mean(((sel - c) @ n) ** 2)))
-    return Plane(n, c, int(sel.shape[0]), rms, support=sel)
+    return Plane(n, c, int(sel.shape[0]), rms, sel)
 
 
 def point_normals(points: np.ndarray, radius: float) -> np.ndarray:
@@ -135,10 +144,8 @@ def fit_face(
     within ``max_angle_deg`` of the plane's. Those points are the ``support``; :func:`measure`
     fits the two faces' common normal on them.
     """
-    b = np.asarray(box, dtype=float).reshape(2, 3)
-    lo, hi = b.min(axis=0), b.max(axis=0)
-    around = points_in_box(points, np.r_[lo - radius, hi + radius])
-    inside = ((around >= lo) & (around <= hi)).all(axis=1)
+    around = points[box_mask(points, box, max(radius, 0.0))]
+    inside = box_mask(around, box)
     pts = around[inside]
     plane = fit_plane(pts)
     if radius <= 0 or pts.shape[0] < MIN_FACING:
@@ -156,7 +163,7 @@ def fit_face(
     # faces were called not parallel); the distance takes both faces' normal together.
     c = sel.mean(axis=0)
     rms = float(np.sqrt(np.mean(((sel - c) @ plane.normal) ** 2)))
-    return Plane(plane.normal, c, int(sel.shape[0]), rms, True, sel)
+    return Plane(plane.normal, c, int(sel.shape[0]), rms, sel, facing=True)
 
 
 def _common_normal(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -184,7 +191,7 @@ def parallel_distance(a: np.ndarray, b: np.ndarray) -> float:
         trimmed = []
         for s, c in zip(sets, cs, strict=True):
             r = np.abs((s - c) @ n)
-            keep = r <= float(np.clip(2.5 * 1.4826 * np.median(r), 0.003, INLIER))
+            keep = r <= _robust_band(r, INLIER)
             trimmed.append(s[keep] if keep.sum() >= 3 else s)
         sets = trimmed
     n, cs = _common_normal(sets)
@@ -204,6 +211,8 @@ def measure(
     along that axis: for thin objects (a bar seen from below) whose faces are too small for a
     plane fit. ``normal_radius`` 0 skips the facing-normals step (the previous measure).
     """
+    if not normal_radius >= 0:
+        raise ValueError(f"--normal-radius must be >= 0 (0 = off), not {normal_radius}")
     if axis is not None:
         a, b = points_in_box(points, box_a), points_in_box(points, box_b)
         if a.shape[0] < 3 or b.shape[0] < 3:
@@ -214,7 +223,7 @@ def measure(
     pa = fit_face(points, box_a, normal_radius)
     pb = fit_face(points, box_b, normal_radius)
     angle = math.degrees(math.acos(min(1.0, abs(float(pa.normal @ pb.normal)))))
-    if normal_radius > 0 and pa.support is not None and pb.support is not None:
+    if normal_radius > 0:
         dist = parallel_distance(pa.support, pb.support)
     else:  # the previous measure: each plane's centroid to the other plane, both ways
         d_ab = abs(float((pb.centroid - pa.centroid) @ pa.normal))
