@@ -147,11 +147,19 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
         dev = 100.0 * abs(meas.distance - true[key]) / true[key]
         row(f"{label}: Table I {name} ({true[key] * 100:.2f} cm)", meas.distance * 100, "cm")
         row(f"{label}: Table I {name} deviation", dev, "%")
+        # how sure the reading is from its points alone (not a table row: a property of the
+        # measurement, not of the map)
+        note = (
+            f"{label}: Table I {name}: +- {meas.stderr * 100:.2f} cm "
+            f"({100 * meas.stderr / true[key]:.2f} %) from its {meas.points_a} + "
+            f"{meas.points_b} points' scatter"
+        )
         if axis is None:
             # the previous release's measure (no facing normals), printed for comparison only
             prev = measure(pts_room, a, b, axis, normal_radius=0.0)
             prev_dev = 100.0 * abs(prev.distance - true[key]) / true[key]
-            print(f"{label}: Table I {name}: previous measure {prev_dev:.3g} %")
+            note += f"; previous measure {prev_dev:.3g} %"
+        print(note)
 
 
 def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str) -> Mapper:

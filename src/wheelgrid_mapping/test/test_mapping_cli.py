@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -184,6 +185,40 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
     )
     assert "--normal-radius must be >= 0" in capsys.readouterr().err
     assert cli_measure.main([str(tmp_path / "none.ply"), "--box-a", *box_a, "--box-b", *box_b]) == 2
+
+
+def test_measure_standard_error_follows_the_points_scatter(tmp_path: Path, capsys) -> None:
+    """Two faces directly opposite, 3 mm of noise: the bootstrap's standard error is the
+    textbook one of a difference of two means (sigma * sqrt(1/na + 1/nb)), and a face of ten
+    points (a thin leg seen from the side) reads several times less sure than one of a
+    thousand."""
+    rng = np.random.default_rng(4)
+    sigma = 0.003
+
+    def face(x: float, n: int) -> np.ndarray:
+        yz = rng.random((n, 2)) * [0.2, 0.6] + [0.4, 0.1]
+        return np.column_stack([np.full(n, x) + rng.normal(0, sigma, n), yz])
+
+    box_a, box_b = [0.95, 0.3, 0.0, 1.05, 0.7, 0.8], [2.15, 0.3, 0.0, 2.25, 0.7, 0.8]
+    big = cli_measure.measure(np.vstack([face(1.0, 1000), face(2.2, 1000)]), box_a, box_b)
+    expected = sigma * math.sqrt(2 / 1000)
+    assert big.facing_a and big.facing_b
+    assert 0.7 * expected < big.stderr < 1.4 * expected
+    assert abs(big.distance - 1.2) < 4 * big.stderr
+    small = cli_measure.measure(np.vstack([face(1.0, 10), face(2.2, 1000)]), box_a, box_b)
+    textbook = math.sqrt(small.rms_a**2 / small.points_a + small.rms_b**2 / small.points_b)
+    assert 0.7 * textbook < small.stderr < 1.5 * textbook  # these ten points' own scatter
+    assert small.stderr > 3 * big.stderr
+    along = cli_measure.measure(np.vstack([face(1.0, 1000), face(2.2, 1000)]), box_a, box_b, axis=0)
+    # the median's standard error is sqrt(pi / 2) times the mean's
+    assert 0.7 * 1.25 * expected < along.stderr < 1.4 * 1.25 * expected
+    ply = tmp_path / "faces.ply"
+    write_ply(ply, np.vstack([face(1.0, 1000), face(2.2, 1000)]))
+    argv = [str(ply), "--box-a", *map(str, box_a), "--box-b", *map(str, box_b)]
+    assert cli_measure.main([*argv, "--json"]) == 0
+    assert 0 < json.loads(capsys.readouterr().out)["stderr"] < 0.001
+    assert cli_measure.main(argv) == 0
+    assert " +- 0.0" in capsys.readouterr().out  # "distance 120.00 +- 0.01 cm"
 
 
 def test_measure_keeps_to_the_face_when_the_box_clips_a_table_top() -> None:
