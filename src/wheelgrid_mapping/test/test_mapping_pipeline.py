@@ -131,3 +131,39 @@ def test_relevelling_keeps_the_map_frame_convention() -> None:
     assert first[2, 3] == pytest.approx(1.0, abs=0.01)  # 1 m above the floor
     view = first[:3, 0]  # body convention: the sensor looks along its x
     assert view[0] > 0.99 and abs(view[1]) < 1e-6
+
+
+@pytest.mark.parametrize("where", ["graph", "rebuild"])
+def test_a_loop_closure_that_fails_loses_nothing(where: str, monkeypatch) -> None:
+    """The live node keeps its online map when ~/close_loops fails ("~/save_map saves it"):
+    a failure in the pose graph, or while the map is rebuilt from the corrected poses (memory
+    on a long scan), must leave the map, the poses and the frames as they were, and the
+    mapper able to go on."""
+    import wheelgrid_mapping.pipeline as pipeline
+    from wheelgrid_mapping.evidence import EvidenceMap
+    from wheelgrid_mapping.loop_closure import LoopClosureConfig
+
+    rng = np.random.default_rng(23)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2), keep_frames=True)
+    for i in range(6):
+        assert m.add_frame(body_frame_room(rng, True), i * 1.0, "base_link").status == "used"
+    before_map = m.map_points().copy()
+    before_poses = [p.copy() for p in m.poses_odom]
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise MemoryError(f"injected in the {where}")
+
+    if where == "graph":
+        monkeypatch.setattr(pipeline, "close_loops", fail)
+    else:
+        monkeypatch.setattr(EvidenceMap, "add", fail)
+    with pytest.raises(MemoryError, match="injected"):
+        m.close_loops(LoopClosureConfig(submap_seconds=1.0))
+    monkeypatch.undo()
+    np.testing.assert_array_equal(m.map_points(), before_map)
+    for p, q in zip(m.poses_odom, before_poses, strict=True):
+        np.testing.assert_array_equal(p, q)
+    assert not m.loop_info and len(m._frames) == 6
+    assert m.add_frame(body_frame_room(rng, True), 6.0, "base_link").status == "used"
+    m.close_loops(LoopClosureConfig(submap_seconds=1.0))  # and it can still close them
+    assert m.loop_info["nodes"] == 7

@@ -337,10 +337,14 @@ class Mapper:
         res = close_loops(
             self._frames, self.poses_odom, self.stamps, cfg, progress, up=up, priors=priors
         )
+        # All or nothing: the new map is built aside and swapped in only once complete, so a
+        # failure anywhere (the graph, memory while rebuilding) leaves the online map, poses
+        # and frames exactly as they were, and the caller can still save or extend them.
+        evidence = self.cfg.evidence_map()
+        for pts, pose in zip(self._frames, res.poses, strict=True):
+            evidence.add(transform(pts.astype(np.float64), pose), pose[:3, 3])
         self.poses_odom = res.poses
-        self._evidence = self.cfg.evidence_map()
-        for pts, pose in zip(self._frames, self.poses_odom, strict=True):
-            self._evidence.add(transform(pts.astype(np.float64), pose), pose[:3, 3])
+        self._evidence = evidence
         self._dirty = 1
         self._relevelled_at = -1
         self.timings["loop_closure_s"] = res.seconds
