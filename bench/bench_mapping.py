@@ -154,6 +154,8 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
             f"({100 * meas.stderr / true[key]:.2f} %) from its {meas.points_a} + "
             f"{meas.points_b} points' scatter"
         )
+        if meas.unstable_pct >= 1.0:
+            note += f", {meas.unstable_pct:.0f} % of resamples beyond 4x that"
         if axis is None:
             # the previous release's measure (no facing normals), printed for comparison only
             prev = measure(pts_room, a, b, axis, normal_radius=0.0)

@@ -335,3 +335,26 @@ def test_map_from_a_ros1_bag(sim_dir: Path, tmp_path: Path) -> None:
     assert cli_map.main([str(bag1), "--out", str(out), "--config", str(cfg)]) == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["read"] == 6 and (out / "map.ply").stat().st_size > 1000
+
+
+def test_measure_reports_resamples_that_tilt_apart_from_its_standard_error() -> None:
+    """A reading that a few points decide (one resample in four reads it 10 cm off, as when a
+    16-point face's resamples tilt the common normal) keeps the standard error of its main
+    mode, and the share of far resamples is reported beside it instead of inflating it."""
+    rng = np.random.default_rng(5)
+    a = np.column_stack([rng.normal(1.0, 0.003, 10), rng.random((10, 2))])
+    a[0, 1] = 99.0  # the point that tilts the reading when drawn twice or more
+    b = np.column_stack([rng.normal(2.2, 0.003, 1000), rng.random((1000, 2))])
+
+    def fragile(a: np.ndarray, b: np.ndarray) -> float:
+        tilt = 0.1 if int((a[:, 1] == 99.0).sum()) >= 2 else 0.0
+        return float(b[:, 0].mean() - a[:, 0].mean()) + tilt
+
+    se, unstable = cli_measure.bootstrap_stderr(a, b, fragile)
+    textbook = 0.003 * math.sqrt(1 / 10 + 1 / 1000)
+    assert 0.6 * textbook < se < 1.6 * textbook  # the main mode's scatter, not the 10 cm
+    # P(drawn >= 2 times in 10 draws of 10) = 26 %
+    assert 18.0 < unstable < 35.0
+    a[0, 1] = 0.5  # the same face without it
+    se, unstable = cli_measure.bootstrap_stderr(a, b, fragile)
+    assert unstable == 0.0 and 0.6 * textbook < se < 1.6 * textbook
