@@ -17,6 +17,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "wheelgrid_sim.cli:main",
         "write a synthetic iPhone-LiDAR room scan (rosbag2) with exact ground truth",
     ),
+    "bag-recover": (
+        "wheelgrid_common.bag_recover:main",
+        "copy the complete messages of an MCAP recording that was cut off into a readable bag",
+    ),
     "map": (
         "wheelgrid_mapping.cli_map:main",
         "filter and register a bag or Stray Scanner export into a levelled 3D map (map.ply)",

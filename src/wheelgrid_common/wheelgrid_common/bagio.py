@@ -25,10 +25,20 @@ def typestore() -> Any:
     return get_typestore(Stores.ROS2_JAZZY)
 
 
+def recover_hint(path: Path) -> str:
+    """What to do with an MCAP recording that was cut off (``wheelgrid bag-recover``)."""
+    return (
+        f"a recording that was cut off? `wheelgrid bag-recover {path} --out NEW_BAG` copies "
+        "its complete messages into a bag that opens"
+    )
+
+
 def _check_path(path: Path) -> None:
     if not path.exists():
         raise BagError(f"{path}: no such bag (expected a rosbag2 folder or a ROS 1 .bag file)")
     if path.is_dir() and not (path / "metadata.yaml").exists():
+        if any(path.glob("*.mcap")):
+            raise BagError(f"{path}: MCAP files but no metadata.yaml: {recover_hint(path)}")
         raise BagError(f"{path}: folder has no metadata.yaml, so it is not a rosbag2 bag")
     if path.is_file() and path.suffix != ".bag":
         raise BagError(f"{path}: not a bag (a rosbag2 folder or a ROS 1 .bag file)")
@@ -57,7 +67,10 @@ class BagReader:
             reader.open()
             self._reader = reader  # only an opened reader is ever closed in __exit__
         except Exception as exc:  # rosbags raises several unrelated types for corrupt bags
-            raise BagError(f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})") from exc
+            text = f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})"
+            if "end magic" in str(exc) or "MCAP footer" in str(exc):
+                text += f"; {recover_hint(self.path)}"
+            raise BagError(text) from exc
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -1,0 +1,80 @@
+"""``wheelgrid bag-recover``: an MCAP recording cut off mid-write (no footer, no metadata.yaml)
+gives back every message written before the cut, byte for byte, and nothing after it."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wheelgrid_common import bag_recover
+from wheelgrid_common.bagio import POINTCLOUD2, BagError, BagReader, BagWriter
+from wheelgrid_common.pointcloud2 import to_pointcloud2
+
+N = 60
+
+
+def _recording(tmp_path: Path) -> tuple[Path, list[tuple[str, int, bytes]]]:
+    """An MCAP bag of N clouds (~100 kB each, so it spans several of rosbags' 1 MB chunks) and
+    N strings, and its messages as a reader returns them."""
+    from std_msgs.msg import String
+
+    rng = np.random.default_rng(3)
+    bag = tmp_path / "rec"
+    with BagWriter(bag, "mcap") as w:
+        for i in range(N):
+            w.write("/p", POINTCLOUD2, 1_000 + 100 * i, to_pointcloud2(rng.random((8000, 3)), "c"))
+            w.write("/s", "std_msgs/msg/String", 1_050 + 100 * i, String(data=f"m{i}"))
+    with BagReader(bag) as r:
+        msgs = [(t, ns, raw) for t, _, ns, raw in r.raw(["/p", "/s"])]
+    return bag, msgs
+
+
+def _read(bag: Path) -> list[tuple[str, int, bytes]]:
+    with BagReader(bag) as r:
+        return [(t, ns, raw) for t, _, ns, raw in r.raw(["/p", "/s"])]
+
+
+def test_a_cut_recording_gives_back_every_message_before_the_cut(tmp_path, capsys) -> None:
+    bag, msgs = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: int(0.6 * len(data))])  # the recorder died here
+    (bag / "metadata.yaml").unlink()  # rosbag2 writes it only when it closes
+    with pytest.raises(BagError, match="bag-recover"):  # the reader says what to do
+        BagReader(bag).__enter__()
+
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
+    line = capsys.readouterr().out
+    got = _read(tmp_path / "back")
+    # a prefix of the recording, byte for byte: the complete chunks before the cut
+    assert 0.3 * len(msgs) < len(got) < 0.6 * len(msgs)
+    assert sorted(got) == sorted(msgs[: len(got)])
+    assert f"bag-recover: {len(got)} messages" in line and "the cut went through" in line
+    assert mcap.read_bytes() == data[: int(0.6 * len(data))]  # the original is only read
+
+    # the same into sqlite3, and a complete bag loses nothing
+    assert bag_recover.main([str(mcap), "--out", str(tmp_path / "b2"), "--storage", "sqlite3"]) == 0
+    assert _read(tmp_path / "b2") == got
+    full, msgs = _recording(tmp_path / "full")
+    res = bag_recover.recover(full, tmp_path / "b3", progress=False)
+    assert res.already_complete == 1 and res.bytes_lost == 0
+    assert _read(tmp_path / "b3") == msgs
+
+
+def test_what_cannot_be_recovered_is_refused_clearly(tmp_path, capsys) -> None:
+    bag, _ = _recording(tmp_path)
+    assert bag_recover.main([str(bag), "--out", str(bag)]) == 2  # never over a bag
+    assert "already exists" in capsys.readouterr().err
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not a bag at all" * 10)
+    assert bag_recover.main([str(junk), "--out", str(tmp_path / "o")]) == 2
+    assert "not an MCAP file" in capsys.readouterr().err
+    mcap = next(bag.glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(mcap.read_bytes()[:20])  # inside the header record
+    assert bag_recover.main([str(cut), "--out", str(tmp_path / "o")]) == 2
+    assert "nothing to recover" in capsys.readouterr().err
+    (tmp_path / "none").mkdir()
+    assert bag_recover.main([str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "no .mcap file" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,214 @@
+"""``wheelgrid bag-recover``: the messages of an MCAP recording that was cut off.
+
+A recorder killed mid-scan (a phone's battery, a chair's power switch, ``kill -9``) leaves an
+MCAP file without its summary and footer, and a rosbag2 folder without ``metadata.yaml``: no
+reader opens it, though every record written before the cut is intact. This copies those
+messages into a new, complete rosbag2 bag and says how much was lost; the original is only
+read. Records are walked from the file's header by their length fields: the first record that
+runs past the end of the file (or an opcode MCAP does not have) is where the cut was.
+"""
+
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .bagio import BagError, typestore
+from .progress import Progress
+
+MAGIC = b"\x89MCAP0\r\n"
+_HEADER, _FOOTER, _DATA_END = 0x01, 0x02, 0x0F
+
+
+@dataclass
+class Extent:
+    """Where an MCAP file's complete data records are."""
+
+    data_start: int  # first byte after the header record
+    data_end: int  # first byte after the last complete data record
+    size: int  # the file's size
+    complete: bool  # a data-end record or footer was reached: nothing was cut off
+
+
+@dataclass
+class Recovery:
+    """What ``recover`` copied (one line of it is printed)."""
+
+    files: list[str] = field(default_factory=list)
+    messages: int = 0
+    topics: dict[str, int] = field(default_factory=dict)
+    bytes_kept: int = 0
+    bytes_lost: int = 0  # the incomplete tail after the last complete record
+    already_complete: int = 0  # files that had their footer: nothing was lost there
+    start_ns: int = 0
+    end_ns: int = 0
+
+
+def mcap_extent(path: Path) -> Extent:
+    """The complete records of ``path`` (an MCAP file, footer or not); BagError if it is not
+    MCAP at all."""
+    with path.open("rb") as f:
+        size = f.seek(0, 2)
+        f.seek(0)
+        if f.read(8) != MAGIC:
+            raise BagError(f"{path}: not an MCAP file (its first bytes are not the MCAP magic)")
+        head = f.read(9)
+        if len(head) < 9 or head[0] != _HEADER:
+            raise BagError(f"{path}: MCAP file without a header record: nothing to recover")
+        pos = 17 + struct.unpack("<Q", head[1:])[0]
+        if pos > size:
+            raise BagError(f"{path}: cut off inside its header record: nothing to recover")
+        start = end = pos
+        while pos + 9 <= size:
+            f.seek(pos)
+            rec = f.read(9)
+            op, length = rec[0], struct.unpack("<Q", rec[1:])[0]
+            if op in (_DATA_END, _FOOTER):
+                return Extent(start, end, size, True)
+            nxt = pos + 9 + length
+            if not 0x01 <= op <= 0x0F or nxt > size:
+                break  # a record the cut went through (or garbage after it)
+            end = pos = nxt
+        return Extent(start, end, size, False)
+
+
+def _reader(path: Path, extent: Extent) -> Any:
+    """rosbags' MCAP reader over the complete records only (its own scan, no summary)."""
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    class _CutReader(McapReader):  # type: ignore[misc]
+        def _open(self) -> None:
+            self.data_start, self.data_end = extent.data_start, extent.data_end
+            self.meta_scan()
+            counts = self.statistics.channel_message_counts
+            self.connections = [c._replace(msgcount=counts.get(c.id, 0)) for c in self.connections]
+
+    reader = _CutReader(path)
+    reader.open()
+    return reader
+
+
+def mcap_files(src: Path) -> list[Path]:
+    """The MCAP files of a rosbag2 folder (in name order, as rosbag2 splits them) or one file."""
+    if src.is_file():
+        return [src]
+    if not src.is_dir():
+        raise BagError(f"{src}: no such bag folder or MCAP file")
+    files = sorted(src.glob("*.mcap"))
+    if not files:
+        raise BagError(f"{src}: no .mcap file in it (only MCAP recordings can be recovered)")
+    return files
+
+
+def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) -> Recovery:
+    """Copy every complete message of the MCAP recording ``src`` into a new bag ``out``."""
+    files = mcap_files(Path(src))
+    if Path(out).exists():
+        raise BagError(f"{out}: already exists; rosbag2 will not overwrite a bag")
+    if storage not in ("sqlite3", "mcap"):
+        raise BagError(f"storage must be sqlite3 or mcap, not {storage!r}")
+    res = Recovery(files=[str(p) for p in files])
+    readers: list[tuple[Path, Any]] = []
+    try:
+        for path in files:
+            ext = mcap_extent(path)
+            res.bytes_kept += ext.data_end
+            res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
+            res.already_complete += int(ext.complete)
+            try:
+                readers.append((path, _reader(path, ext)))
+            except Exception as exc:  # a record inside the kept part does not decode
+                raise BagError(
+                    f"{path}: damaged before the cut, not only cut off ({type(exc).__name__}: "
+                    f"{exc})"
+                ) from exc
+        total = sum(r.statistics.message_count for _, r in readers)
+        _copy(readers, Path(out), storage, total if progress else 0, res)
+    finally:
+        for _, r in readers:
+            r.close()
+    return res
+
+
+def _copy(
+    readers: list[tuple[Path, Any]], out: Path, storage: str, total: int, res: Recovery
+) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = typestore()
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    writer = Writer(out, version=9, storage_plugin=plugin)
+    writer.open()
+    conns: dict[tuple[str, str], Any] = {}
+    try:
+        with Progress(total, "recover", "messages") as bar:
+            for path, reader in readers:
+                try:
+                    for conn, t_ns, data in reader.messages_scan(reader.connections):
+                        key = (conn.topic, conn.msgtype)
+                        if key not in conns:
+                            conns[key] = _connection(writer, conn, store)
+                        writer.write(conns[key], t_ns, data)
+                        res.messages += 1
+                        res.topics[conn.topic] = res.topics.get(conn.topic, 0) + 1
+                        res.start_ns = t_ns if res.messages == 1 else min(res.start_ns, t_ns)
+                        res.end_ns = max(res.end_ns, t_ns)
+                        if total:
+                            bar.update()
+                except Exception as exc:
+                    raise BagError(
+                        f"{path}: damaged before the cut, not only cut off "
+                        f"({type(exc).__name__}: {exc}); the {res.messages} messages before "
+                        f"it are in {out}"
+                    ) from exc
+    finally:
+        writer.close()
+
+
+def _connection(writer: Any, conn: Any, store: Any) -> Any:
+    qos = list(getattr(conn.ext, "offered_qos_profiles", []) or [])
+    if conn.msgtype in store.fielddefs:
+        return writer.add_connection(
+            conn.topic, conn.msgtype, typestore=store, offered_qos_profiles=qos
+        )
+    # a type this ROS distribution's store does not know: its definition travels from the file
+    return writer.add_connection(
+        conn.topic, conn.msgtype, msgdef=conn.msgdef.data, rihs01="", offered_qos_profiles=qos
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="wheelgrid bag-recover",
+        description="Copy the complete messages of an MCAP recording that was cut off (no "
+        "footer, no metadata.yaml) into a new rosbag2 bag that every reader opens.",
+    )
+    p.add_argument("src", type=Path, help="the cut-off rosbag2 folder, or one .mcap file")
+    p.add_argument("--out", type=Path, required=True, help="the new bag folder (must not exist)")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
+    args = p.parse_args(argv)
+    try:
+        res = recover(args.src, args.out, args.storage)
+    except (BagError, OSError) as exc:
+        print(f"wheelgrid bag-recover: {exc}", file=sys.stderr)
+        return 2
+    span = (res.end_ns - res.start_ns) / 1e9 if res.messages else 0.0
+    topics = ", ".join(f"{t} {n}" for t, n in sorted(res.topics.items())) or "none"
+    state = (
+        "nothing was cut off"
+        if res.already_complete == len(res.files)
+        else f"the cut went through a record: its {res.bytes_lost / 1e3:.0f} kB written are lost"
+    )
+    print(
+        f"bag-recover: {res.messages} messages over {span:.1f} s ({topics}) from "
+        f"{len(res.files)} file(s) -> {args.out}; {state}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
