@@ -19,7 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "bag-recover": (
         "wheelgrid_common.bag_recover:main",
-        "copy the complete messages of an MCAP recording that was cut off into a readable bag",
+        "copy the complete messages of a recording that was cut off into a bag that opens",
     ),
     "map": (
         "wheelgrid_mapping.cli_map:main",

@@ -1,4 +1,4 @@
-"""``wheelgrid bag-recover``: an MCAP recording cut off mid-write (no footer, no metadata.yaml)
+"""``wheelgrid bag-recover``: a recording cut off mid-write (an MCAP file without its footer,
 gives back every message written before the cut, byte for byte, and nothing after it."""
 
 from pathlib import Path
@@ -13,14 +13,14 @@ from wheelgrid_common.pointcloud2 import to_pointcloud2
 N = 60
 
 
-def _recording(tmp_path: Path) -> tuple[Path, list[tuple[str, int, bytes]]]:
+def _recording(tmp_path: Path, storage: str = "mcap") -> tuple[Path, list[tuple[str, int, bytes]]]:
     """An MCAP bag of N clouds (~100 kB each, so it spans several of rosbags' 1 MB chunks) and
     N strings, and its messages as a reader returns them."""
     from std_msgs.msg import String
 
     rng = np.random.default_rng(3)
     bag = tmp_path / "rec"
-    with BagWriter(bag, "mcap") as w:
+    with BagWriter(bag, storage) as w:
         for i in range(N):
             w.write("/p", POINTCLOUD2, 1_000 + 100 * i, to_pointcloud2(rng.random((8000, 3)), "c"))
             w.write("/s", "std_msgs/msg/String", 1_050 + 100 * i, String(data=f"m{i}"))
@@ -76,5 +76,16 @@ def test_what_cannot_be_recovered_is_refused_clearly(tmp_path, capsys) -> None:
     assert "nothing to recover" in capsys.readouterr().err
     (tmp_path / "none").mkdir()
     assert bag_recover.main([str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
-    assert "no .mcap file" in capsys.readouterr().err
+    assert "no .mcap or .db3 file" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_sqlite3_recording_without_its_metadata_is_given_back_whole(tmp_path, capsys) -> None:
+    """A killed sqlite3 recorder leaves every committed message and no metadata.yaml."""
+    bag, msgs = _recording(tmp_path, "sqlite3")
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(BagError, match="bag-recover"):
+        BagReader(bag).__enter__()
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
+    assert "nothing was cut off" in capsys.readouterr().out
+    assert _read(tmp_path / "back") == msgs

@@ -1,8 +1,9 @@
-"""``wheelgrid bag-recover``: the messages of an MCAP recording that was cut off.
+"""``wheelgrid bag-recover``: the messages of a rosbag2 recording that was cut off.
 
 A recorder killed mid-scan (a phone's battery, a chair's power switch, ``kill -9``) leaves an
 MCAP file without its summary and footer, and a rosbag2 folder without ``metadata.yaml``: no
-reader opens it, though every record written before the cut is intact. This copies those
+reader opens it, though every record written before the cut is intact (a sqlite3 recording
+keeps every committed message; only its ``metadata.yaml`` is missing). This copies those
 messages into a new, complete rosbag2 bag and says how much was lost; the original is only
 read. Records are walked from the file's header by their length fields: the first record that
 runs past the end of the file (or an opcode MCAP does not have) is where the cut was.
@@ -92,21 +93,47 @@ def _reader(path: Path, extent: Extent) -> Any:
     return reader
 
 
-def mcap_files(src: Path) -> list[Path]:
-    """The MCAP files of a rosbag2 folder (in name order, as rosbag2 splits them) or one file."""
+def bag_files(src: Path) -> list[Path]:
+    """The storage files of a rosbag2 folder (in name order, as rosbag2 splits them: MCAP, or
+    sqlite3 where there is no MCAP) or one such file."""
     if src.is_file():
+        if src.suffix not in (".mcap", ".db3"):
+            raise BagError(f"{src}: not a rosbag2 storage file (.mcap or .db3)")
         return [src]
     if not src.is_dir():
-        raise BagError(f"{src}: no such bag folder or MCAP file")
-    files = sorted(src.glob("*.mcap"))
+        raise BagError(f"{src}: no such bag folder or storage file")
+    files = sorted(src.glob("*.mcap")) or sorted(src.glob("*.db3"))
     if not files:
-        raise BagError(f"{src}: no .mcap file in it (only MCAP recordings can be recovered)")
+        raise BagError(f"{src}: no .mcap or .db3 file in it: nothing to recover")
     return files
 
 
+def _count(reader: Any) -> int:
+    stats = getattr(reader, "statistics", None)
+    if stats is not None:
+        return int(stats.message_count)
+    return sum(int(c.msgcount) for c in reader.connections)
+
+
+def _messages(reader: Any) -> Any:
+    if hasattr(reader, "messages_scan"):  # MCAP: only the records before the cut
+        return reader.messages_scan(reader.connections)
+    return reader.messages(reader.connections)
+
+
+def _sqlite_reader(path: Path) -> Any:
+    """A sqlite3 file describes its own topics; a killed recorder leaves it consistent (every
+    message committed before the kill) and only ``metadata.yaml`` unwritten."""
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    reader = Sqlite3Reader(path)
+    reader.open()
+    return reader
+
+
 def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) -> Recovery:
-    """Copy every complete message of the MCAP recording ``src`` into a new bag ``out``."""
-    files = mcap_files(Path(src))
+    """Copy every complete message of the recording ``src`` into a new bag ``out``."""
+    files = bag_files(Path(src))
     if Path(out).exists():
         raise BagError(f"{out}: already exists; rosbag2 will not overwrite a bag")
     if storage not in ("sqlite3", "mcap"):
@@ -115,18 +142,27 @@ def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) 
     readers: list[tuple[Path, Any]] = []
     try:
         for path in files:
-            ext = mcap_extent(path)
-            res.bytes_kept += ext.data_end
-            res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
-            res.already_complete += int(ext.complete)
+            if path.suffix == ".db3":
+                res.already_complete += 1
+                res.bytes_kept += path.stat().st_size
+                open_reader = _sqlite_reader
+            else:
+                ext = mcap_extent(path)
+                res.bytes_kept += ext.data_end
+                res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
+                res.already_complete += int(ext.complete)
+
+                def open_reader(p: Path, ext: Extent = ext) -> Any:
+                    return _reader(p, ext)
+
             try:
-                readers.append((path, _reader(path, ext)))
+                readers.append((path, open_reader(path)))
             except Exception as exc:  # a record inside the kept part does not decode
                 raise BagError(
                     f"{path}: damaged before the cut, not only cut off ({type(exc).__name__}: "
                     f"{exc})"
                 ) from exc
-        total = sum(r.statistics.message_count for _, r in readers)
+        total = sum(_count(r) for _, r in readers)
         _copy(readers, Path(out), storage, total if progress else 0, res)
     finally:
         for _, r in readers:
@@ -148,7 +184,7 @@ def _copy(
         with Progress(total, "recover", "messages") as bar:
             for path, reader in readers:
                 try:
-                    for conn, t_ns, data in reader.messages_scan(reader.connections):
+                    for conn, t_ns, data in _messages(reader):
                         key = (conn.topic, conn.msgtype)
                         if key not in conns:
                             conns[key] = _connection(writer, conn, store)
@@ -184,10 +220,11 @@ def _connection(writer: Any, conn: Any, store: Any) -> Any:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="wheelgrid bag-recover",
-        description="Copy the complete messages of an MCAP recording that was cut off (no "
-        "footer, no metadata.yaml) into a new rosbag2 bag that every reader opens.",
+        description="Copy the complete messages of a rosbag2 recording that was cut off (an "
+        "MCAP file without its footer, a folder without metadata.yaml) into a new bag that every "
+        "reader opens.",
     )
-    p.add_argument("src", type=Path, help="the cut-off rosbag2 folder, or one .mcap file")
+    p.add_argument("src", type=Path, help="the cut-off rosbag2 folder, or one .mcap/.db3 file")
     p.add_argument("--out", type=Path, required=True, help="the new bag folder (must not exist)")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     args = p.parse_args(argv)

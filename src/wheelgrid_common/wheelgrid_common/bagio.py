@@ -26,7 +26,7 @@ def typestore() -> Any:
 
 
 def recover_hint(path: Path) -> str:
-    """What to do with an MCAP recording that was cut off (``wheelgrid bag-recover``)."""
+    """What to do with a recording that was cut off (``wheelgrid bag-recover``)."""
     return (
         f"a recording that was cut off? `wheelgrid bag-recover {path} --out NEW_BAG` copies "
         "its complete messages into a bag that opens"
@@ -37,8 +37,8 @@ def _check_path(path: Path) -> None:
     if not path.exists():
         raise BagError(f"{path}: no such bag (expected a rosbag2 folder or a ROS 1 .bag file)")
     if path.is_dir() and not (path / "metadata.yaml").exists():
-        if any(path.glob("*.mcap")):
-            raise BagError(f"{path}: MCAP files but no metadata.yaml: {recover_hint(path)}")
+        if any(path.glob("*.mcap")) or any(path.glob("*.db3")):
+            raise BagError(f"{path}: bag files but no metadata.yaml: {recover_hint(path)}")
         raise BagError(f"{path}: folder has no metadata.yaml, so it is not a rosbag2 bag")
     if path.is_file() and path.suffix != ".bag":
         raise BagError(f"{path}: not a bag (a rosbag2 folder or a ROS 1 .bag file)")
