@@ -1,5 +1,6 @@
-"""``wheelgrid bag-recover``: a recording cut off mid-write (an MCAP file without its footer,
-gives back every message written before the cut, byte for byte, and nothing after it."""
+"""``wheelgrid bag-recover``: a recording cut off mid-write (an MCAP file without its footer, a
+folder without metadata.yaml) gives back every message written before the cut, byte for byte,
+and nothing after it."""
 
 from pathlib import Path
 
