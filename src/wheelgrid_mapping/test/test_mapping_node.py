@@ -320,3 +320,38 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
             ex, lambda: values().get("loop_closure") in ("running", "closed"), 10.0
         ), values()
         reset_and_map_again(pairs[5])
+
+
+@pytest.mark.ros
+def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
+    """Ctrl-C on a live mapper whose map was never saved writes it to <output_dir>/on_exit
+    (not over ~/save_map's files); a map ~/save_map already has is not written again."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    from std_srvs.srv import Trigger
+
+    def feed(t: SimpleNamespace, pairs: list) -> int:
+        for msg, odom in pairs:
+            t.pub.publish(msg)
+            t.odom_pub.publish(odom)
+            spin_until(t.ex, lambda: False, 0.4)
+        assert spin_until(t.ex, lambda: int(t.values().get("frames_used", 0)) >= 3, 60.0)
+        spin_until(t.ex, lambda: False, 1.0)  # the last frame through the worker too
+        return int(t.values()["frames_used"])
+
+    pairs = bag_clouds(5)
+    with running_mapper(tmp_path / "a", "exit_mapper") as t:
+        used = feed(t, pairs)
+    # stopped with SIGINT, as Ctrl-C does
+    out = tmp_path / "a" / "saved"
+    assert not (out / "map.ply").exists()  # ~/save_map's place stays untouched
+    assert (out / "on_exit" / "map.ply").stat().st_size > 1000
+    poses = (out / "on_exit" / "trajectory.tum").read_text().split("\n")
+    assert len([ln for ln in poses if ln and not ln.startswith("#")]) == used
+
+    with running_mapper(tmp_path / "b", "exit_mapper_saved") as t:
+        feed(t, pairs)
+        saved = call_service(t.ex, t.client("save_map"), Trigger.Request, timeout=30.0)
+        assert saved is not None and saved.success, saved
+    assert (tmp_path / "b" / "saved" / "map.ply").exists()
+    assert not (tmp_path / "b" / "saved" / "on_exit").exists()  # nothing new to save

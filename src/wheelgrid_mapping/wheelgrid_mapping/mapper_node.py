@@ -59,6 +59,12 @@ class MapperNodeConfig:
         "", "nav_msgs/Odometry pose prior (ARKit: /iphone/odometry); empty = register without"
     )
     output_dir: str = field("wheelgrid_map", "where ~/save_map writes map.ply etc.")
+    save_on_exit: bool = field(
+        True,
+        "on Ctrl-C / SIGTERM a map not saved since it last changed is written to "
+        "<output_dir>/on_exit (never over ~/save_map's files): a scan is not lost to a closed "
+        "terminal",
+    )
     map_frame: str = field("map", "frame id of the levelled map")
     publish_period: float = field(2.0, "period of /wheelgrid/map_cloud and status updates", "s")
     max_queue: int = field(
@@ -105,6 +111,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self.topic = node_cfg.topic
         self.prior_topic = node_cfg.pose_prior_topic
         self.output_dir = node_cfg.output_dir
+        self.save_on_exit = node_cfg.save_on_exit
         self.map_frame = node_cfg.map_frame
         self.publish_period = node_cfg.publish_period
         self.max_queue = max(1, node_cfg.max_queue)
@@ -126,6 +133,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
         self._logged: set[str] = set()
         self._map_dirty = False
+        self._saved: tuple[int, int, str] | None = None  # what ~/save_map last wrote
         self.counts = {"received": 0, "skipped_busy": 0, "malformed": 0, "after_close": 0}
         # Loop closure: "off" | "ready" | "requested" | "running" | "closed" | "failed"; the
         # service sets "requested", the worker runs it, ~/reset cancels it.
@@ -420,6 +428,7 @@ class MapperNode(Node):  # type: ignore[misc]
         try:
             with self._lock:
                 rep = self.mapper.save(out, {"node_counts": dict(self.counts)})
+                self._saved = self._map_state()
             response.success = True
             response.message = (
                 f"wrote {out}/map.ply ({rep['points']['map']} points), trajectory.tum, report.json"
@@ -481,11 +490,40 @@ class MapperNode(Node):  # type: ignore[misc]
                 )
         return response
 
+    def _map_state(self) -> tuple[int, int, str]:
+        """Changes whenever the map does: a frame mapped, loops closed, a ~/reset."""
+        return (self._generation, len(self.mapper.poses_odom), self._loop_state)
+
     def close(self) -> None:
+        # A loop closure in progress is cancelled (it is all or nothing: the online map stays)
+        # so the worker lets go of the map in time for it to be saved.
+        self._loop_cancel = True
         with self._slot_lock:
             self._stop = True
             self._slot_lock.notify()
         self._worker.join(timeout=10.0)
+        if self.save_on_exit:
+            self._save_on_exit()
+
+    def _save_on_exit(self) -> None:
+        log = self.get_logger()
+        if not self._lock.acquire(timeout=5.0):
+            log.error("map NOT saved on exit: the mapper did not let go of it within 5 s")
+            return
+        try:
+            frames = len(self.mapper.poses_odom)
+            if frames == 0 or self._map_state() == self._saved:
+                return  # nothing mapped, or ~/save_map already has exactly this map
+            out = Path(self.output_dir) / "on_exit"
+            rep = self.mapper.save(out, {"node_counts": dict(self.counts), "saved_on_exit": True})
+            log.warning(
+                f"map saved on exit: {out}/map.ply ({rep['points']['map']} points, {frames} "
+                "frames), trajectory.tum, report.json"
+            )
+        except (RuntimeError, OSError) as exc:
+            log.error(f"map NOT saved on exit: {exc}")
+        finally:
+            self._lock.release()
 
 
 def main() -> None:
