@@ -75,6 +75,10 @@ def test_what_cannot_be_recovered_is_refused_clearly(tmp_path, capsys) -> None:
     cut.write_bytes(mcap.read_bytes()[:20])  # inside the header record
     assert bag_recover.main([str(cut), "--out", str(tmp_path / "o")]) == 2
     assert "nothing to recover" in capsys.readouterr().err
+    head = 17 + int.from_bytes(mcap.read_bytes()[9:17], "little")
+    cut.write_bytes(mcap.read_bytes()[:head])  # the header, then nothing
+    assert bag_recover.main([str(cut), "--out", str(tmp_path / "o")]) == 2
+    assert "no complete message" in capsys.readouterr().err
     (tmp_path / "none").mkdir()
     assert bag_recover.main([str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
     assert "no .mcap or .db3 file" in capsys.readouterr().err

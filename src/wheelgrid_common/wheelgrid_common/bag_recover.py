@@ -163,6 +163,8 @@ def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) 
                     f"{exc})"
                 ) from exc
         total = sum(_count(r) for _, r in readers)
+        if total == 0:
+            raise BagError(f"{src}: no complete message before the cut: nothing to recover")
         _copy(readers, Path(out), storage, total if progress else 0, res)
     finally:
         for _, r in readers:
@@ -239,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
         "nothing was cut off"
         if res.already_complete == len(res.files)
         else f"the cut went through a record: its {res.bytes_lost / 1e3:.0f} kB written are lost"
+        if res.bytes_lost
+        else "the file ends after a complete record, without its footer"
     )
     print(
         f"bag-recover: {res.messages} messages over {span:.1f} s ({topics}) from "
