@@ -42,7 +42,6 @@ class Recovery:
     files: list[str] = field(default_factory=list)
     messages: int = 0
     topics: dict[str, int] = field(default_factory=dict)
-    bytes_kept: int = 0
     bytes_lost: int = 0  # the incomplete tail after the last complete record
     already_complete: int = 0  # files that had their footer: nothing was lost there
     start_ns: int = 0
@@ -88,6 +87,11 @@ def _reader(path: Path, extent: Extent) -> Any:
             counts = self.statistics.channel_message_counts
             self.connections = [c._replace(msgcount=counts.get(c.id, 0)) for c in self.connections]
 
+        def messages(self, connections: Any, start: Any = None, stop: Any = None) -> Any:
+            # In file order: rosbags' unindexed path refuses messages out of stamp order, and a
+            # recorder writes them in arrival order.
+            return self.messages_scan(connections, start, stop)
+
     reader = _CutReader(path)
     reader.open()
     return reader
@@ -108,19 +112,6 @@ def bag_files(src: Path) -> list[Path]:
     return files
 
 
-def _count(reader: Any) -> int:
-    stats = getattr(reader, "statistics", None)
-    if stats is not None:
-        return int(stats.message_count)
-    return sum(int(c.msgcount) for c in reader.connections)
-
-
-def _messages(reader: Any) -> Any:
-    if hasattr(reader, "messages_scan"):  # MCAP: only the records before the cut
-        return reader.messages_scan(reader.connections)
-    return reader.messages(reader.connections)
-
-
 def _sqlite_reader(path: Path) -> Any:
     """A sqlite3 file describes its own topics; a killed recorder leaves it consistent (every
     message committed before the kill) and only ``metadata.yaml`` unwritten."""
@@ -129,6 +120,17 @@ def _sqlite_reader(path: Path) -> Any:
     reader = Sqlite3Reader(path)
     reader.open()
     return reader
+
+
+def _open_file(path: Path, res: Recovery) -> Any:
+    """A reader over ``path``'s complete messages; what was cut off is counted in ``res``."""
+    if path.suffix == ".db3":
+        res.already_complete += 1
+        return _sqlite_reader(path)
+    ext = mcap_extent(path)
+    res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
+    res.already_complete += int(ext.complete)
+    return _reader(path, ext)
 
 
 def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) -> Recovery:
@@ -142,27 +144,16 @@ def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) 
     readers: list[tuple[Path, Any]] = []
     try:
         for path in files:
-            if path.suffix == ".db3":
-                res.already_complete += 1
-                res.bytes_kept += path.stat().st_size
-                open_reader = _sqlite_reader
-            else:
-                ext = mcap_extent(path)
-                res.bytes_kept += ext.data_end
-                res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
-                res.already_complete += int(ext.complete)
-
-                def open_reader(p: Path, ext: Extent = ext) -> Any:
-                    return _reader(p, ext)
-
             try:
-                readers.append((path, open_reader(path)))
+                readers.append((path, _open_file(path, res)))
+            except BagError:
+                raise
             except Exception as exc:  # a record inside the kept part does not decode
                 raise BagError(
                     f"{path}: damaged before the cut, not only cut off ({type(exc).__name__}: "
                     f"{exc})"
                 ) from exc
-        total = sum(_count(r) for _, r in readers)
+        total = sum(int(c.msgcount) for _, r in readers for c in r.connections)
         if total == 0:
             raise BagError(f"{src}: no complete message before the cut: nothing to recover")
         _copy(readers, Path(out), storage, total if progress else 0, res)
@@ -186,7 +177,7 @@ def _copy(
         with Progress(total, "recover", "messages") as bar:
             for path, reader in readers:
                 try:
-                    for conn, t_ns, data in _messages(reader):
+                    for conn, t_ns, data in reader.messages(reader.connections):
                         key = (conn.topic, conn.msgtype)
                         if key not in conns:
                             conns[key] = _connection(writer, conn, store)
