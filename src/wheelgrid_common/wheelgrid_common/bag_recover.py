@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .bagio import MCAP_MAGIC as MAGIC
 from .bagio import BagError, typestore
 from .progress import Progress
 
-MAGIC = b"\x89MCAP0\r\n"
 _HEADER, _FOOTER, _DATA_END = 0x01, 0x02, 0x0F
 
 

@@ -33,6 +33,30 @@ def recover_hint(path: Path) -> str:
     )
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def cut_off_mcap(path: Path) -> bool:
+    """Whether a bag folder (or file) holds an MCAP file that does not end with the MCAP magic.
+
+    A complete MCAP file ends with its footer and the magic; one a killed recorder left does
+    not. Judged from the file itself, not from a reader's error text, which a release may reword.
+    """
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    for f in files:
+        if f.suffix != ".mcap":
+            continue
+        try:
+            size = f.stat().st_size
+            with f.open("rb") as fh:
+                fh.seek(max(size - len(MCAP_MAGIC), 0))
+                if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                    return True
+        except OSError:
+            continue
+    return False
+
+
 def _check_path(path: Path) -> None:
     if not path.exists():
         raise BagError(f"{path}: no such bag (expected a rosbag2 folder or a ROS 1 .bag file)")
@@ -68,7 +92,7 @@ class BagReader:
             self._reader = reader  # only an opened reader is ever closed in __exit__
         except Exception as exc:  # rosbags raises several unrelated types for corrupt bags
             text = f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})"
-            if "end magic" in str(exc) or "MCAP footer" in str(exc):
+            if cut_off_mcap(self.path):
                 text += f"; {recover_hint(self.path)}"
             raise BagError(text) from exc
         return self

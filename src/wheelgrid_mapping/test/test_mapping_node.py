@@ -5,6 +5,8 @@ from __future__ import annotations
 import array
 import contextlib
 import os
+import re
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -58,10 +60,13 @@ def big_endian_copy(msg):  # the same cloud, stored big-endian
 
 
 @contextlib.contextmanager
-def running_mapper(tmp_path: Path, name: str, *params: str) -> Iterator[SimpleNamespace]:
+def running_mapper(
+    tmp_path: Path, name: str, *params: str, log: Path | None = None
+) -> Iterator[SimpleNamespace]:
     """A mapper node (child process) fed on /<name>/points + /<name>/odometry, and a test node
     watching its map cloud and status: ``ex``, ``node``, ``pub``, ``odom_pub``, ``maps``,
-    ``status``, ``values()`` (the newest status) and ``client(service)``."""
+    ``status``, ``values()`` (the newest status) and ``client(service)``. ``log``: a file that
+    gets the node's output (its log lines), else it goes to the test's."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
@@ -80,7 +85,12 @@ def running_mapper(tmp_path: Path, name: str, *params: str) -> Iterator[SimpleNa
         "-p", "publish_period:=0.5",
         *[a for p in params for a in ("-p", p)],
     )  # fmt: skip
-    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
+    with contextlib.ExitStack() as stack:
+        popen: dict = {}
+        if log is not None:
+            popen = {"stdout": stack.enter_context(log.open("wb")), "stderr": subprocess.STDOUT}
+        stack.enter_context(managed_process(args, env=dict(os.environ), **popen))
+        ctx = stack.enter_context(rclpy_context())
         node = rclpy.create_node(f"{name}_test", context=ctx)
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
@@ -355,3 +365,22 @@ def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
         assert saved is not None and saved.success, saved
     assert (tmp_path / "b" / "saved" / "map.ply").exists()
     assert not (tmp_path / "b" / "saved" / "on_exit").exists()  # nothing new to save
+
+    # an output_dir that cannot be written (here: below a regular file) loses nothing either:
+    # the map goes to a new temporary folder, and the log says where
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "not_a_dir").write_text("")
+    log = tmp_path / "c" / "mapper.log"
+    bad = f"output_dir:={tmp_path / 'c' / 'not_a_dir' / 'saved'}"
+    with running_mapper(tmp_path / "c", "exit_mapper_bad_dir", bad, log=log) as t:
+        used = feed(t, pairs)
+    text = log.read_text(errors="replace")
+    found = re.search(r"map saved on exit: (\S+)/map\.ply", text)
+    assert "cannot save the map to" in text and found, text[-2000:]
+    fallback = Path(found.group(1))
+    try:
+        assert fallback.name.startswith("wheelgrid_on_exit_")
+        poses = (fallback / "trajectory.tum").read_text().split("\n")
+        assert len([ln for ln in poses if ln and not ln.startswith("#")]) == used
+    finally:
+        shutil.rmtree(fallback, ignore_errors=True)

@@ -24,6 +24,7 @@ loop closure, so memory stays bounded on a scan that never ends.
 
 from __future__ import annotations
 
+import tempfile
 import threading
 import time
 from collections import deque
@@ -62,8 +63,8 @@ class MapperNodeConfig:
     save_on_exit: bool = field(
         True,
         "on Ctrl-C / SIGTERM a map not saved since it last changed is written to "
-        "<output_dir>/on_exit (never over ~/save_map's files): a scan is not lost to a closed "
-        "terminal",
+        "<output_dir>/on_exit (never over ~/save_map's files; a new temporary folder, logged, "
+        "if that cannot be written): a scan is not lost to a closed terminal",
     )
     map_frame: str = field("map", "frame id of the levelled map")
     publish_period: float = field(2.0, "period of /wheelgrid/map_cloud and status updates", "s")
@@ -514,8 +515,17 @@ class MapperNode(Node):  # type: ignore[misc]
             frames = len(self.mapper.poses_odom)
             if frames == 0 or self._map_state() == self._saved:
                 return  # nothing mapped, or ~/save_map already has exactly this map
+            extra = {"node_counts": dict(self.counts), "saved_on_exit": True}
             out = Path(self.output_dir) / "on_exit"
-            rep = self.mapper.save(out, {"node_counts": dict(self.counts), "saved_on_exit": True})
+            try:
+                rep = self.mapper.save(out, extra)
+            except OSError as exc:
+                # An unwritable output_dir (a read-only mount, a full disk, a typo) must not
+                # lose the scan this save exists for: a fresh temporary folder is tried next.
+                fallback = Path(tempfile.mkdtemp(prefix="wheelgrid_on_exit_"))
+                log.error(f"cannot save the map to {out} ({exc}); trying {fallback}")
+                out = fallback
+                rep = self.mapper.save(out, extra)
             log.warning(
                 f"map saved on exit: {out}/map.ply ({rep['points']['map']} points, {frames} "
                 "frames), trajectory.tum, report.json"
