@@ -59,9 +59,14 @@ def row(figure: str, value: float, unit: str, baseline: float | None = None) -> 
 
 
 def run_mapper(
-    frames: Any, total: int, reg: RegistrationConfig, cfg: MapperConfig, keep: bool = False
+    frames: Any,
+    total: int,
+    reg: RegistrationConfig,
+    cfg: MapperConfig,
+    keep: bool = False,
+    pre: PreprocessConfig | None = None,
 ) -> Mapper:
-    m = Mapper(PreprocessConfig(), reg, cfg, keep_frames=keep)
+    m = Mapper(pre or PreprocessConfig(), reg, cfg, keep_frames=keep)
     for n, (pts, stamp, frame_id, conf, prior) in enumerate(frames):
         if n >= total:
             break

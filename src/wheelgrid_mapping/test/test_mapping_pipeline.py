@@ -133,6 +133,38 @@ def test_relevelling_keeps_the_map_frame_convention() -> None:
     assert view[0] > 0.99 and abs(view[1]) < 1e-6
 
 
+def test_a_floor_first_missed_is_found_when_seen() -> None:
+    """The first floor search sees only the first frames. On the real capture with
+    min_confidence 2, those frames held no floor ARKit trusted, so a level surface 0.38 m up
+    became z = 0: the grid's height band then began above every real obstacle lower than that.
+    When later frames see the real floor, the map comes down to it."""
+    rng = np.random.default_rng(24)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+
+    def seat() -> np.ndarray:  # a sofa seat: 0.4 m above the floor, 2 x 4 m
+        xy = rng.random((6000, 2)) * [2, 4] + [1, -2]
+        return np.column_stack([xy, np.full(6000, -0.6)]) + rng.normal(0, 0.003, (6000, 3))
+
+    for i in range(3):  # the first views: the seat, no floor
+        m.add_frame(np.vstack([body_frame_room(rng, False), seat()]), i * 0.2, "base_link")
+    assert m.T_map_odom is not None
+    assert m.level_info["sensor_height_m"] == pytest.approx(0.6, abs=0.03)  # the seat
+    for i in range(3, 6):  # then the floor comes into view
+        m.add_frame(np.vstack([body_frame_room(rng, True), seat()]), i * 0.2, "base_link")
+    pts = m.map_points()
+    assert m.level_info["sensor_height_m"] == pytest.approx(1.0, abs=0.03)
+    assert m.level_info["floor_lowered_m"] == pytest.approx(0.4, abs=0.03)
+    assert np.mean(pts[:, 2] < -0.1) < 0.01  # nothing left below the floor
+    first = m.trajectory()[1][0]
+    assert np.abs(first[:2, 3]).max() < 1e-6 and first[2, 3] == pytest.approx(1.0, abs=0.03)
+    # an ordinary map is left alone
+    m2 = Mapper(cfg=MapperConfig(level_min_frames=2))
+    for i in range(4):
+        m2.add_frame(body_frame_room(rng, True), i * 0.2, "base_link")
+    m2.map_points()
+    assert "floor_lowered_m" not in m2.level_info
+
+
 @pytest.mark.parametrize("where", ["graph", "rebuild"])
 def test_a_loop_closure_that_fails_loses_nothing(where: str, monkeypatch) -> None:
     """The live node keeps its online map when ~/close_loops fails ("~/save_map saves it"):

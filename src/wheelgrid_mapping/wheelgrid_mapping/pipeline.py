@@ -112,6 +112,10 @@ class MapperConfig:
         )
 
 
+# A level plane this far below z = 0 (m), with 3 % of the map, is a floor the first search missed.
+LOWER_FLOOR_GAP = 0.15
+
+
 def floor_correction(
     pts: np.ndarray, band: float = 0.08, gate: float = 0.03, max_tilt_deg: float = 3.0
 ) -> np.ndarray | None:
@@ -407,6 +411,8 @@ class Mapper:
             and used != self._relevelled_at
         ):
             self._relevelled_at = used
+            if self._refind_lower_floor(pts, used):
+                pts = transform(self.map_odom(), self.T_map_odom)
             corr = floor_correction(pts)
             if corr is not None:
                 # The refined floor (z = 0 after ``corr``), the convention applied afresh: the
@@ -423,6 +429,48 @@ class Mapper:
                 self.level_info["relevelled_at_frames"] = used
                 pts = transform(self.map_odom(), self.T_map_odom)
         return pts
+
+    def _refind_lower_floor(self, pts: np.ndarray, used: int) -> bool:
+        """Move z = 0 down to a large level plane found below the floor; True if it did.
+
+        The floor is first looked for after ``level_min_frames`` frames. If those frames saw no
+        floor (a phone pointed at a sofa, a floor ARKit calls low confidence), the lowest level
+        plane they saw (a seat) became z = 0, and the height band of the grid then started
+        above real obstacles. Later frames that see the real floor fix it here: the same rule
+        as the first search (the lowest plane with ``min_fraction`` of the map), on the map
+        below the current floor.
+        """
+        assert self.T_map_odom is not None
+        below = pts[pts[:, 2] < -LOWER_FLOOR_GAP]
+        need = max(200, int(0.03 * pts.shape[0]))
+        if below.shape[0] < need:
+            return False
+        first = self.T_map_odom @ (self.poses_odom[0] if self.poses_odom else np.eye(4))
+        try:
+            n, d = find_floor(
+                below,
+                np.array([0.0, 0.0, -1.0]),
+                first[:3, 3],
+                max_tilt_deg=10.0,
+                min_fraction=0.0,
+                min_points=need,
+            )
+        except FloorNotFoundError:
+            return False
+        # the plane in odom: n . (R p + t) + d = 0
+        R, t = self.T_map_odom[:3, :3], self.T_map_odom[:3, 3]
+        n_odom, d_odom = R.T @ n, float(n @ t + d)
+        drop = float(n @ first[:3, 3] + d) - float(first[2, 3])
+        self.T_map_odom = map_from_floor(
+            n_odom, d_odom, self.convention or "optical", self.poses_odom[0]
+        )
+        self._dirty = 1
+        self.level_info["sensor_height_m"] = float(n_odom @ self.poses_odom[0][:3, 3] + d_odom)
+        self.level_info["floor_lowered_m"] = round(
+            self.level_info.get("floor_lowered_m", 0.0) + drop, 4
+        )
+        self.level_info["floor_lowered_at_frames"] = used
+        return True
 
     def published_points(self) -> np.ndarray:
         """``map_points`` coarsened until it fits ``max_published_points``."""
