@@ -35,6 +35,7 @@ from wheelgrid_mapping.pipeline import MapperConfig
 from wheelgrid_mapping.registration import RegistrationConfig
 from wheelgrid_mapping.stray import StrayExport
 from wheelgrid_nav.grid import build_grid
+from wheelgrid_sim.camera import DepthCamera
 
 STRAY = SHARED / "data" / "stray-iphone-room"
 LEVELS = ("low", "medium", "high")
@@ -43,22 +44,14 @@ LEVELS = ("low", "medium", "high")
 def edge_classes(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(valid, near side of an edge, far side of an edge) masks of a depth image (m, NaN = none).
 
-    The same edge test as the simulator's flying pixels (:mod:`wheelgrid_sim.camera`), so the
-    shares below say what a real phone's confidence does to those pixels.
+    The simulator's own edge test (:meth:`DepthCamera.edges`, where it puts flying pixels), with
+    its range opened to the whole capture (seen: 0.46-6.3 m), so the shares below say what a
+    real phone's confidence does to those pixels.
     """
-    pad = np.pad(depth, 1, constant_values=np.nan)
-    best = np.zeros_like(depth)
-    sign = np.zeros_like(depth)
-    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        nb = pad[1 + dr : 1 + dr + depth.shape[0], 1 + dc : 1 + dc + depth.shape[1]]
-        with np.errstate(invalid="ignore"):
-            jump = np.where(np.isfinite(nb - depth), nb - depth, 0.0)
-        take = np.abs(jump) > best
-        sign = np.where(take, np.sign(jump), sign)
-        best = np.where(take, np.abs(jump), best)
-    valid = np.isfinite(depth)
-    edge = valid & (best > 0.08 + 0.03 * np.nan_to_num(depth))
-    return valid, edge & (sign > 0), edge & (sign < 0)
+    edge, nb = DepthCamera(min_range=0.01, max_range=100.0).edges(depth)
+    with np.errstate(invalid="ignore"):
+        near, far = edge & (nb > depth), edge & (nb < depth)
+    return np.isfinite(depth), near, far
 
 
 def pixel_shares(export: StrayExport, step: int) -> None:

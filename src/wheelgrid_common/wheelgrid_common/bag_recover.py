@@ -18,8 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .bagio import MCAP_MAGIC as MAGIC
-from .bagio import BagError, typestore
+from .bagio import MCAP_MAGIC, BagError, typestore
 from .progress import Progress
 
 _HEADER, _FOOTER, _DATA_END = 0x01, 0x02, 0x0F
@@ -54,7 +53,7 @@ def mcap_extent(path: Path) -> Extent:
     with path.open("rb") as f:
         size = f.seek(0, 2)
         f.seek(0)
-        if f.read(8) != MAGIC:
+        if f.read(8) != MCAP_MAGIC:
             raise BagError(f"{path}: not an MCAP file (its first bytes are not the MCAP magic)")
         head = f.read(9)
         if len(head) < 9 or head[0] != _HEADER:

@@ -445,7 +445,8 @@ class Mapper:
         need = max(200, int(0.03 * pts.shape[0]))
         if below.shape[0] < need:
             return False
-        first = self.T_map_odom @ (self.poses_odom[0] if self.poses_odom else np.eye(4))
+        first_odom = self.poses_odom[0] if self.poses_odom else np.eye(4)
+        first = self.T_map_odom @ first_odom
         try:
             n, d = find_floor(
                 below,
@@ -460,14 +461,12 @@ class Mapper:
         # the plane in odom: n . (R p + t) + d = 0
         R, t = self.T_map_odom[:3, :3], self.T_map_odom[:3, 3]
         n_odom, d_odom = R.T @ n, float(n @ t + d)
-        drop = float(n @ first[:3, 3] + d) - float(first[2, 3])
-        self.T_map_odom = map_from_floor(
-            n_odom, d_odom, self.convention or "optical", self.poses_odom[0]
-        )
+        height = float(n @ first[:3, 3] + d)  # the first sensor pose above the new floor
+        self.T_map_odom = map_from_floor(n_odom, d_odom, self.convention or "optical", first_odom)
         self._dirty = 1
-        self.level_info["sensor_height_m"] = float(n_odom @ self.poses_odom[0][:3, 3] + d_odom)
+        self.level_info["sensor_height_m"] = height
         self.level_info["floor_lowered_m"] = round(
-            self.level_info.get("floor_lowered_m", 0.0) + drop, 4
+            self.level_info.get("floor_lowered_m", 0.0) + height - float(first[2, 3]), 4
         )
         self.level_info["floor_lowered_at_frames"] = used
         return True

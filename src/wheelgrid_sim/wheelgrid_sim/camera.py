@@ -99,6 +99,27 @@ class DepthCamera:
         depth = np.where((depth >= self.min_range) & (depth <= self.max_range), depth, np.nan)
         return depth.astype(np.float32)
 
+    def edges(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(edge, neighbour)``: in-range pixels whose farthest-differing 4-neighbour lies more
+        than ``flying_threshold`` + 3 % of the depth away (where flying pixels are), and that
+        neighbour's depth (NaN where there is none). A neighbour beyond the range limit still
+        counts: its light mixes in all the same. ``bench/bench_confidence.py`` applies the same
+        test to real frames, to see what ARKit's confidence calls these pixels."""
+        with np.errstate(invalid="ignore"):
+            valid = (depth <= self.max_range) & (depth >= self.min_range)
+        best_nb = np.full_like(depth, np.nan)
+        best_jump = np.zeros_like(depth)
+        pad = np.pad(depth, 1, constant_values=np.nan)
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            nb = pad[1 + dr : 1 + dr + depth.shape[0], 1 + dc : 1 + dc + depth.shape[1]]
+            with np.errstate(invalid="ignore"):
+                jump = np.abs(nb - depth)
+            take = np.isfinite(jump) & (jump > best_jump)
+            best_jump = np.where(take, jump, best_jump)
+            best_nb = np.where(take, nb, best_nb)
+        edge = valid & (best_jump > self.flying_threshold + 0.03 * np.where(valid, depth, 0.0))
+        return edge, best_nb
+
     def _corrupt(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Flying pixels at depth edges, Gaussian range noise, then ~1 % wild outliers."""
         depth = np.where(np.isfinite(depth), depth, np.nan)  # misses (inf) -> NaN
@@ -106,19 +127,8 @@ class DepthCamera:
         with np.errstate(invalid="ignore"):
             valid = (z <= self.max_range) & (z >= self.min_range)
         zv = np.where(valid, z, 0.0)
-        # Flying pixels: mix with the farthest-differing 4-neighbour where the jump is large
-        # (a neighbour beyond the range limit still counts: its light mixes in all the same).
-        best_nb = np.full_like(z, np.nan)
-        best_jump = np.zeros_like(z)
-        pad = np.pad(depth, 1, constant_values=np.nan)
-        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-            nb = pad[1 + dr : 1 + dr + z.shape[0], 1 + dc : 1 + dc + z.shape[1]]
-            with np.errstate(invalid="ignore"):
-                jump = np.abs(nb - depth)
-            take = np.isfinite(jump) & (jump > best_jump)
-            best_jump = np.where(take, jump, best_jump)
-            best_nb = np.where(take, nb, best_nb)
-        edge = valid & (best_jump > self.flying_threshold + 0.03 * zv)
+        # Flying pixels: mix with the farthest-differing 4-neighbour where the jump is large.
+        edge, best_nb = self.edges(depth)
         fly = edge & (rng.random(z.shape) < self.flying_probability)
         w = rng.uniform(0.15, 0.85, z.shape)
         z = np.where(fly, zv + w * (np.nan_to_num(best_nb) - zv), z)
