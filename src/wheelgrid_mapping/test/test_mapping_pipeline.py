@@ -165,6 +165,41 @@ def test_a_floor_first_missed_is_found_when_seen() -> None:
     assert "floor_lowered_m" not in m2.level_info
 
 
+def test_what_lies_below_the_floor_but_is_no_floor_is_searched_again_only_when_it_grows() -> None:
+    """A stairwell going down (a 30 deg slope under the floor) is no floor: the search for a
+    lower floor fails. It ran on every re-levelling, i.e. on every republish of the live map
+    (a RANSAC over all the points below, a few hundred ms on a real map at min_confidence 0),
+    though nothing new lay below; now only once the points there have grown by a quarter."""
+    rng = np.random.default_rng(25)
+
+    def slope(y0: float) -> np.ndarray:  # 2 x 1 m, going down from 0.2 m below the floor
+        xy = rng.random((6000, 2)) * [2, 1] + [0.5, y0]
+        z = -1.2 - np.tan(np.radians(30)) * (xy[:, 0] - 0.5)
+        return np.column_stack([xy, z]) + rng.normal(0, 0.003, (6000, 3))
+
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+
+    def add(i: int, *parts: np.ndarray) -> None:
+        m.add_frame(np.vstack([body_frame_room(rng, True), *parts]), i * 0.2, "base_link")
+
+    for i in range(3):
+        add(i, slope(1.5))
+    m.map_points()
+    assert m.level_info["lower_floor_searches"] == 1
+    for i in range(3, 5):  # more views of the same slope: not searched again
+        add(i, slope(1.5))
+    m.map_points()
+    assert m.level_info["relevelled_at_frames"] == 5  # it did re-level
+    assert m.level_info["lower_floor_searches"] == 1
+    for i in range(5, 8):  # a second stairwell: twice as much below the floor
+        add(i, slope(1.5), slope(-2.5))
+    pts = m.map_points()
+    assert m.level_info["lower_floor_searches"] == 2
+    assert "floor_lowered_m" not in m.level_info
+    assert m.level_info["sensor_height_m"] == pytest.approx(1.0, abs=0.01)
+    assert np.mean(pts[:, 2] < -0.15) > 0.05  # the slopes are still in the map
+
+
 @pytest.mark.parametrize("where", ["graph", "rebuild"])
 def test_a_loop_closure_that_fails_loses_nothing(where: str, monkeypatch) -> None:
     """The live node keeps its online map when ~/close_loops fails ("~/save_map saves it"):

@@ -114,6 +114,8 @@ class MapperConfig:
 
 # A level plane this far below z = 0 (m), with 3 % of the map, is a floor the first search missed.
 LOWER_FLOOR_GAP = 0.15
+# A failed search below the floor is repeated once the points there have grown by this factor.
+LOWER_FLOOR_RETRY = 1.25
 
 
 def floor_correction(
@@ -219,6 +221,7 @@ class Mapper:
         self._map_odom = np.empty((0, 3))
         self._dirty = 0
         self._relevelled_at = -1
+        self._lower_floor_tried = 0  # points below the floor at the last search that found none
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
@@ -443,8 +446,11 @@ class Mapper:
         assert self.T_map_odom is not None
         below = pts[pts[:, 2] < -LOWER_FLOOR_GAP]
         need = max(200, int(0.03 * pts.shape[0]))
-        if below.shape[0] < need:
+        if below.shape[0] < need or below.shape[0] < LOWER_FLOOR_RETRY * self._lower_floor_tried:
+            # What lies below is no plane (a stairwell, low-confidence returns): search again
+            # only once there is markedly more of it, not on every republish of the live map.
             return False
+        self.level_info["lower_floor_searches"] = self.level_info.get("lower_floor_searches", 0) + 1
         first_odom = self.poses_odom[0] if self.poses_odom else np.eye(4)
         first = self.T_map_odom @ first_odom
         try:
@@ -457,7 +463,9 @@ class Mapper:
                 min_points=need,
             )
         except FloorNotFoundError:
+            self._lower_floor_tried = below.shape[0]
             return False
+        self._lower_floor_tried = 0
         # the plane in odom: n . (R p + t) + d = 0
         R, t = self.T_map_odom[:3, :3], self.T_map_odom[:3, 3]
         n_odom, d_odom = R.T @ n, float(n @ t + d)
