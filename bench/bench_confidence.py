@@ -32,6 +32,7 @@ from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN
 from wheelgrid_mapping.cli_map import stray_frames
 from wheelgrid_mapping.loop_closure import LoopClosureConfig
 from wheelgrid_mapping.pipeline import MapperConfig
+from wheelgrid_mapping.preprocess import PreprocessConfig
 from wheelgrid_mapping.registration import RegistrationConfig
 from wheelgrid_mapping.stray import StrayExport
 from wheelgrid_nav.grid import build_grid
@@ -86,8 +87,6 @@ def pixel_shares(export: StrayExport, step: int) -> None:
 
 
 def mapped(min_confidence: int, limit: int, interval: float) -> None:
-    from wheelgrid_mapping.preprocess import PreprocessConfig
-
     total, frames = stray_frames(STRAY, True)
     cfg = MapperConfig(min_frame_interval=interval, **MAPPER_OVERRIDES)
     t0 = time.perf_counter()

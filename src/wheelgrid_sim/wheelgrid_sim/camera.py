@@ -96,8 +96,13 @@ class DepthCamera:
             if rng is None:
                 raise ValueError("render(noise=True) needs an rng (seeded, for reproducibility)")
             depth = self._corrupt(depth, rng)
-        depth = np.where((depth >= self.min_range) & (depth <= self.max_range), depth, np.nan)
+        depth = np.where(self.in_range(depth), depth, np.nan)
         return depth.astype(np.float32)
+
+    def in_range(self, depth: np.ndarray) -> np.ndarray:
+        """Pixels the sensor reports: within ``[min_range, max_range]`` (NaN and inf are not)."""
+        with np.errstate(invalid="ignore"):
+            return (depth >= self.min_range) & (depth <= self.max_range)
 
     def edges(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(edge, neighbour)``: in-range pixels whose farthest-differing 4-neighbour lies more
@@ -105,8 +110,7 @@ class DepthCamera:
         neighbour's depth (NaN where there is none). A neighbour beyond the range limit still
         counts: its light mixes in all the same. ``bench/bench_confidence.py`` applies the same
         test to real frames, to see what ARKit's confidence calls these pixels."""
-        with np.errstate(invalid="ignore"):
-            valid = (depth <= self.max_range) & (depth >= self.min_range)
+        valid = self.in_range(depth)
         best_nb = np.full_like(depth, np.nan)
         best_jump = np.zeros_like(depth)
         pad = np.pad(depth, 1, constant_values=np.nan)
@@ -124,8 +128,7 @@ class DepthCamera:
         """Flying pixels at depth edges, Gaussian range noise, then ~1 % wild outliers."""
         depth = np.where(np.isfinite(depth), depth, np.nan)  # misses (inf) -> NaN
         z = depth.copy()
-        with np.errstate(invalid="ignore"):
-            valid = (z <= self.max_range) & (z >= self.min_range)
+        valid = self.in_range(z)
         zv = np.where(valid, z, 0.0)
         # Flying pixels: mix with the farthest-differing 4-neighbour where the jump is large.
         edge, best_nb = self.edges(depth)
