@@ -147,3 +147,18 @@ def test_ray_misses_are_every_voxel_a_ray_crosses_short_of_its_hit():
         want = np.unique(voxel_keys(samples[t[None, :] < reach[:, None]], 0.1))
         assert want.size > 1000, trial
         np.testing.assert_array_equal(got, want)
+
+
+def test_keys_or_invalid_agree_with_voxel_keys_inside_and_mark_the_edge_and_beyond() -> None:
+    from wheelgrid_mapping.evidence import INVALID_KEY, NEIGHBOUR_KEYS, voxel_keys_or_invalid
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-50.0, 50.0, (500, 3))
+    assert np.array_equal(voxel_keys_or_invalid(pts, 0.05), voxel_keys(pts, 0.05))
+    edge = (2**20 - 0.5) * 0.05  # the last voxel inside: a neighbour step would leave the space
+    odd = np.array([[edge, 0.0, 0.0], [0.0, -edge - 0.05, 0.0], [0.0, 0.0, 1e9], [np.inf] * 3])
+    keys = voxel_keys_or_invalid(odd, 0.05)
+    assert np.all(keys == INVALID_KEY)
+    valid_max = voxel_keys(np.array([[edge - 0.05] * 3]), 0.05)[0]
+    assert INVALID_KEY + NEIGHBOUR_KEYS.max() < 0 <= voxel_keys(np.zeros((1, 3)), 0.05)[0]
+    assert valid_max + NEIGHBOUR_KEYS.max() < 2**63

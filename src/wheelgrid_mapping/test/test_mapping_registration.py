@@ -192,3 +192,20 @@ def test_fitness_is_the_share_of_points_next_to_an_occupied_cell() -> None:
     want = np.mean([any((i + a, j + b, k + c) in occupied for a, b, c in steps) for i, j, k in ijk])
     assert 0.05 < want < 0.95
     assert reg._fitness(query) == want
+
+
+def test_a_point_beyond_the_overlap_keys_range_matches_nothing_and_is_not_stored() -> None:
+    """21 bits per axis hold about 100 km at the 5 cm fitness cell. Only a pose gone wild puts a
+    point beyond that; it used to spill into the next axis's bits and alias a cell next to the
+    map (z = 2**21 cells read as y + 1), so a lost frame could look like a good overlap."""
+    reg = Registrar(RegistrationConfig())
+    cell = reg.cfg.fitness_cell
+    reg._integrate(np.full((20, 3), 0.5 * cell), np.eye(4))
+    near = np.array([[0.5 * cell, 1.5 * cell, 0.5 * cell]])  # the cell (0, 1, 0), a neighbour
+    far = np.array([[0.5 * cell, 0.5 * cell, (2**21 + 0.5) * cell]])
+    assert reg._fitness(near) == 1.0
+    assert reg._fitness(far) == 0.0
+    stored = reg._near.size
+    reg._integrate(np.vstack([far, far - 2**22 * cell]), np.eye(4))  # no error, nothing stored
+    assert reg._near.size == stored
+    assert reg._fitness(np.vstack([near, far])) == 0.5

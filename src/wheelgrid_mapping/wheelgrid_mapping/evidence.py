@@ -46,6 +46,9 @@ NEIGHBOUR_KEYS = (_STEPS[:, 0] << (2 * _BITS)) + (_STEPS[:, 1] << _BITS) + _STEP
 _DIRECTIONS = _STEPS / np.linalg.norm(_STEPS, axis=1, keepdims=True)
 
 
+INVALID_KEY = -(1 << 62)  # below every key and every key plus a NEIGHBOUR_KEYS step
+
+
 def _pack(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     """One int64 key from offset-coded voxel indices (row-major: sorting keys sorts i, j, k)."""
     return (i << (2 * _BITS)) | (j << _BITS) | k
@@ -57,6 +60,19 @@ def voxel_keys(points: np.ndarray, size: float) -> np.ndarray:
     if ijk.size and (ijk.min() < 0 or ijk.max() > _MASK):
         raise ValueError(f"points too far from the origin for {size} m voxels")
     return _pack(ijk[:, 0], ijk[:, 1], ijk[:, 2])
+
+
+def voxel_keys_or_invalid(points: np.ndarray, size: float) -> np.ndarray:
+    """:func:`voxel_keys` for callers that must not fail on one far point (the registrar's
+    overlap check, every frame): a point whose voxel or a neighbour of it lies outside the key
+    space gets ``INVALID_KEY``, which no stored key and no neighbour step can equal, instead
+    of a key that would alias a voxel on the other side of the space."""
+    f = np.floor(np.asarray(points, dtype=np.float64) / size) + _OFFSET
+    ok = np.all((f >= 1) & (f <= _MASK - 1), axis=1)  # NaN and inf fail too
+    ijk = np.where(ok[:, None], f, 0.0).astype(np.int64)
+    keys = _pack(ijk[:, 0], ijk[:, 1], ijk[:, 2])
+    keys[~ok] = INVALID_KEY
+    return keys
 
 
 def contains_sorted(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:

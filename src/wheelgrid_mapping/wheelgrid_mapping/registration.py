@@ -34,7 +34,7 @@ import numpy as np
 
 from wheelgrid_common.params import field
 
-from .evidence import NEIGHBOUR_KEYS, contains_sorted
+from .evidence import INVALID_KEY, NEIGHBOUR_KEYS, contains_sorted, voxel_keys_or_invalid
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
@@ -227,9 +227,9 @@ class Registrar:
 
     # -- map occupancy for the overlap check -------------------------------------------------
     def _keys(self, pts: np.ndarray) -> np.ndarray:
-        # evidence.voxel_keys' layout (so its NEIGHBOUR_KEYS step between cells), unchecked
-        ijk = np.floor(pts / self.cfg.fitness_cell).astype(np.int64) + (1 << 20)
-        return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+        # evidence's layout (so its NEIGHBOUR_KEYS step between cells); a point beyond the key
+        # space (about 100 km at 5 cm: only a pose gone wild) matches nothing and is not stored
+        return voxel_keys_or_invalid(pts, self.cfg.fitness_cell)
 
     def _fitness(self, pts_odom: np.ndarray) -> float:
         if self._near.size == 0 or pts_odom.shape[0] == 0:
@@ -243,6 +243,7 @@ class Registrar:
         # KISS-ICP's update() transforms the sensor-frame points by ``pose`` itself.
         self._map.update(pts_sensor, pose)
         keys = np.unique(self._keys(transform(pts_sensor, pose)))
+        keys = keys[keys != INVALID_KEY]
         # Only a frame's new cells are merged (into sorted arrays, in place of a union that
         # re-sorted the whole map every frame: a cost that grew with the session).
         fresh = keys[~contains_sorted(self._occupied, keys)]
