@@ -56,14 +56,12 @@ def edge_classes(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def pixel_shares(export: StrayExport, step: int) -> None:
-    classes = {
-        "edge, near side": None,
-        "edge, far side": None,
+    spans = {
         "other, 0-2 m": (0.0, 2.0),
         "other, 2-4 m": (2.0, 4.0),
         "other, beyond 4 m": (4.0, np.inf),
     }
-    counts = {name: np.zeros(3, dtype=np.int64) for name in classes}
+    counts: dict[str, np.ndarray] = {}
     for i in range(0, len(export), step):
         fr = export.frame(i)
         if fr.confidence is None:
@@ -74,12 +72,11 @@ def pixel_shares(export: StrayExport, step: int) -> None:
         conf = fr.confidence.astype(np.int64)
         other = valid & ~near & ~far
         z = np.nan_to_num(depth)
-        for name, span in classes.items():
-            if span is None:
-                mask = near if name == "edge, near side" else far
-            else:
-                mask = other & (z >= span[0]) & (z < span[1])
-            counts[name] += np.bincount(np.clip(conf[mask], 0, 2), minlength=3)
+        masks = {"edge, near side": near, "edge, far side": far}
+        masks |= {name: other & (z >= lo) & (z < hi) for name, (lo, hi) in spans.items()}
+        for name, mask in masks.items():
+            c = np.bincount(np.clip(conf[mask], 0, 2), minlength=3)
+            counts[name] = counts.get(name, np.zeros(3, dtype=np.int64)) + c
     for name, c in counts.items():
         total = max(int(c.sum()), 1)
         for level, n in zip(LEVELS, c, strict=True):
