@@ -21,6 +21,13 @@ share of resamples more than :data:`UNSTABLE_SIGMAS` of it from their median is 
 apart: on a face of 16 points, one resample in six can tilt the faces' common normal by
 several degrees and read up to 18 cm off; a standard deviation would then call every reading
 of that map +- 4 cm, when the reading itself sits in the main mode, and hide why.
+
+What no resample shows is a tilt all of a face's points share, and two faces of 5 cm table
+legs fix their normal only to a degree or so. The reading therefore also says how far apart
+sideways the two faces' points sit, and what each 0.1 deg of tilt does to it across that
+lever. Where the faces' direction is known better than their points fix it (both are
+perpendicular to a wall; a simulated scene's truth), ``--normal`` reads the same faces along
+it and says how far it is from their own common normal.
 """
 
 from __future__ import annotations
@@ -78,6 +85,11 @@ class Measurement:
     facing_b: bool = False
     stderr: float = math.nan  # m, bootstrap over each surface's points (their scatter only)
     unstable_pct: float = 0.0  # % of resamples beyond UNSTABLE_SIGMAS standard errors
+    # m, how far apart the two faces' kept points sit across the normal: a normal tilted by
+    # t radians moves the reading by about sideways * t, which no resample of the points shows
+    sideways: float = 0.0
+    along: list[float] | None = None  # the given direction the distance was read along
+    along_angle_deg: float = 0.0  # between it and the faces' fitted common normal
 
 
 def box_mask(points: np.ndarray, box: list[float] | np.ndarray, pad: float = 0.0) -> np.ndarray:
@@ -197,8 +209,9 @@ def _common_normal(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]
     return np.linalg.svd(stacked, full_matrices=False)[2][2], cs
 
 
-def parallel_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance between two parallel planes fitted to point sets ``a`` and ``b`` together.
+def parallel_distance(a: np.ndarray, b: np.ndarray, normal: np.ndarray | None = None) -> float:
+    """Distance between two parallel planes fitted to point sets ``a`` and ``b`` together
+    (or, with ``normal``, standing on that unit normal: only the offsets are fitted).
 
     Table I measures a gap between facing surfaces: one normal for both (the smallest singular
     vector of both sets, each centred on its own centroid) stands on both faces' points, so a
@@ -207,8 +220,14 @@ def parallel_distance(a: np.ndarray, b: np.ndarray) -> float:
     sides of the legs tilt them, and centroids 0.4 m apart sideways turn a tilt into length).
     """
     sets = [np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)]
+
+    def common(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+        if normal is None:
+            return _common_normal(sets)
+        return normal, [s.mean(axis=0) for s in sets]
+
     for _ in range(4):
-        n, cs = _common_normal(sets)
+        n, cs = common(sets)
         # as in fit_plane: each face within 2.5 robust sigmas of its own noise, so a corner
         # point whose normal still leans the face's way (its neighbours are mostly the face's)
         # drops out
@@ -218,8 +237,27 @@ def parallel_distance(a: np.ndarray, b: np.ndarray) -> float:
             keep = r <= _robust_band(r, INLIER)
             trimmed.append(s[keep] if keep.sum() >= 3 else s)
         sets = trimmed
-    n, cs = _common_normal(sets)
+    n, cs = common(sets)
     return abs(float((cs[1] - cs[0]) @ n))
+
+
+def sideways_offset(a: np.ndarray, b: np.ndarray, normal: np.ndarray) -> float:
+    """How far apart two faces' points sit across ``normal`` (m, between their centroids).
+
+    The lever of the reading: two leg faces 5 cm wide fix their common normal only to a
+    degree or so, and on a perfect map of the paper's tables, whose kept faces were one leg of
+    each table 0.59 m apart sideways, a 0.75 deg tilt read the 120.12 cm gap 1.1 cm short.
+    """
+    d = np.asarray(b, np.float64).mean(axis=0) - np.asarray(a, np.float64).mean(axis=0)
+    return float(np.linalg.norm(d - (d @ normal) * normal))
+
+
+def unit_direction(v: list[float] | np.ndarray) -> np.ndarray:
+    n = np.asarray(v, dtype=np.float64).reshape(3)
+    norm = float(np.linalg.norm(n))
+    if not np.isfinite(n).all() or norm < 1e-9:
+        raise ValueError(f"--normal must be a non-zero finite direction, not {n.tolist()}")
+    return n / norm
 
 
 def measure(
@@ -228,15 +266,23 @@ def measure(
     box_b: list[float],
     axis: int | None = None,
     normal_radius: float = NORMAL_RADIUS,
+    along: list[float] | np.ndarray | None = None,
 ) -> Measurement:
     """Distance between the surfaces inside ``box_a`` and ``box_b`` (each x0 y0 z0 x1 y1 z1).
 
     ``axis`` (0/1/2) measures instead the difference of the two point sets' median coordinate
     along that axis: for thin objects (a bar seen from below) whose faces are too small for a
     plane fit. ``normal_radius`` 0 skips the facing-normals step (the previous measure).
+    ``along`` (a direction) reads the distance between the same kept faces along it instead of
+    along their fitted common normal: for faces a few centimetres wide whose direction is known
+    better than their points fix it (both perpendicular to a wall, or a simulated scene's
+    true normal). The faces' common normal is still fitted, to report how far it is off it.
     """
     if not normal_radius >= 0:
         raise ValueError(f"--normal-radius must be >= 0 (0 = off), not {normal_radius}")
+    if axis is not None and along is not None:
+        raise ValueError("--axis and --normal are two different readings: give one")
+    given = None if along is None else unit_direction(along)
     if axis is not None:
         a, b = points_in_box(points, box_a), points_in_box(points, box_b)
         if a.shape[0] < 3 or b.shape[0] < 3:
@@ -253,12 +299,28 @@ def measure(
         )  # fmt: skip
     pa = fit_face(points, box_a, normal_radius)
     pb = fit_face(points, box_b, normal_radius)
-    angle = math.degrees(math.acos(min(1.0, abs(float(pa.normal @ pb.normal)))))
-    distance = parallel_distance if normal_radius > 0 else centroid_distance
+
+    def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+        return math.degrees(math.acos(min(1.0, abs(float(u @ v)))))
+
+    angle = angle_deg(pa.normal, pb.normal)
+    fitted = _common_normal([pa.support, pb.support])[0]
+    distance: Callable[[np.ndarray, np.ndarray], float]
+    if given is not None:
+        n = given
+
+        def distance(a: np.ndarray, b: np.ndarray) -> float:
+            return parallel_distance(a, b, n)
+
+    else:
+        distance = parallel_distance if normal_radius > 0 else centroid_distance
+        n = fitted
     se, unstable = bootstrap_stderr(pa.support, pb.support, distance)
     return Measurement(
         distance(pa.support, pb.support), angle, pa.points, pb.points, pa.rms, pb.rms,
-        pa.facing, pb.facing, se, unstable,
+        pa.facing, pb.facing, se, unstable, sideways_offset(pa.support, pb.support, n),
+        None if given is None else given.tolist(),
+        0.0 if given is None else angle_deg(given, fitted),
     )  # fmt: skip
 
 
@@ -310,8 +372,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("map", type=Path, help="map.ply from `wheelgrid map`")
     p.add_argument("--box-a", nargs=6, type=float, required=True, metavar="V")
     p.add_argument("--box-b", nargs=6, type=float, required=True, metavar="V")
-    p.add_argument(
+    how = p.add_mutually_exclusive_group()
+    how.add_argument(
         "--axis", choices=["x", "y", "z"], help="median-coordinate distance along this axis"
+    )
+    how.add_argument(
+        "--normal",
+        nargs=3,
+        type=float,
+        metavar=("NX", "NY", "NZ"),
+        help="read the distance between the fitted faces along this direction (map frame) "
+        "instead of their fitted normal: for faces a few cm wide whose direction is known",
     )
     p.add_argument(
         "--normal-radius",
@@ -331,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         axis = None if args.axis is None else "xyz".index(args.axis)
-        m = measure(pts, args.box_a, args.box_b, axis, args.normal_radius)
+        m = measure(pts, args.box_a, args.box_b, axis, args.normal_radius, args.normal)
     except ValueError as exc:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2
@@ -350,6 +421,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.true:
         line += f"; true {args.true * 100:.2f} cm, deviation {out['deviation_pct']:.2f} %"
+    if m.along is not None:
+        line += f"; along the given normal, {m.along_angle_deg:.1f} deg from the faces' own"
+        if m.along_angle_deg > 10.0:
+            line += " (WARNING: it does not stand on these faces)"
+    elif axis is None:
+        # what the standard error cannot show: a tilt all of the normal's points share
+        tilt_mm = 1000.0 * m.sideways * math.tan(math.radians(0.1))
+        line += (
+            f"; faces {m.sideways:.2f} m apart sideways: each 0.1 deg of normal tilt "
+            f"moves it {tilt_mm:.1f} mm"
+        )
     unfaced = [n for n, f in (("A", m.facing_a), ("B", m.facing_b)) if not f]
     if axis is None and args.normal_radius > 0 and unfaced:
         line += f"; box {' and '.join(unfaced)}: < {MIN_FACING} points face the plane, fit on all"
