@@ -314,9 +314,10 @@ def _leg_face(x: float, y0: float, yaw_deg: float, rng: np.random.Generator) -> 
 def test_measure_along_a_given_normal_where_leg_faces_tilt_their_own(
     tmp_path: Path, capsys
 ) -> None:
-    """Each table's face is one 5 cm leg, the two 0.75 m apart sideways (as the paper scene's
-    9(a) faces were on a perfect map) and each turned 1.5 deg: their common normal turns
-    with them and the gap reads 1.9 cm short, which no resample of the points shows. Along
+    """Each table's face is one 5 cm leg, the two 0.75 m apart sideways (the paper scene's 9(a)
+    faces sat 0.44-0.68 m apart on the simulated runs' TRUE-pose maps) and each turned 1.5
+    deg: their common normal turns with them and the gap reads about 2 cm short, which no
+    resample of the points shows. Along
     the given (true) normal the same faces read the gap to the millimetre, the report says
     how far the given normal is from the faces' own, and the sideways lever is reported."""
     rng = np.random.default_rng(7)
