@@ -317,9 +317,9 @@ def test_measure_along_a_given_normal_where_leg_faces_tilt_their_own(
     """Each table's face is one 5 cm leg, the two 0.75 m apart sideways (the paper scene's 9(a)
     faces sat 0.44-0.68 m apart on the simulated runs' TRUE-pose maps) and each turned 1.5
     deg: their common normal turns with them and the gap reads about 2 cm short, which no
-    resample of the points shows. Along
-    the given (true) normal the same faces read the gap to the millimetre, the report says
-    how far the given normal is from the faces' own, and the sideways lever is reported."""
+    resample of the points shows. Along the given (true) normal the same faces read the gap to
+    the millimetre, the report says how far the given normal is from the faces' own, and the
+    sideways lever is reported."""
     rng = np.random.default_rng(7)
     pts = np.vstack([_leg_face(1.1, 5.0, 1.5, rng), _leg_face(2.3012, 5.75, 1.5, rng)])
     pts += rng.normal(0.0, 0.001, pts.shape)
@@ -333,8 +333,9 @@ def test_measure_along_a_given_normal_where_leg_faces_tilt_their_own(
     assert given.distance == pytest.approx(1.2012, abs=0.001)
     assert given.along == [1.0, 0.0, 0.0]
     assert given.along_angle_deg == pytest.approx(1.5, abs=0.2)
-    with pytest.raises(ValueError, match="non-zero finite"):
-        cli_measure.measure(pts, box_a, box_b, along=[0.0, 0.0, 0.0])
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [np.inf, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="non-zero finite"):
+            cli_measure.measure(pts, box_a, box_b, along=bad)
     with pytest.raises(ValueError, match="give one"):
         cli_measure.measure(pts, box_a, box_b, axis=0, along=[1.0, 0.0, 0.0])
 

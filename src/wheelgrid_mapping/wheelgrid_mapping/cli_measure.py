@@ -241,8 +241,9 @@ def parallel_distance(a: np.ndarray, b: np.ndarray, normal: np.ndarray | None = 
     return abs(float((cs[1] - cs[0]) @ n))
 
 
-def sideways_offset(a: np.ndarray, b: np.ndarray, normal: np.ndarray) -> float:
-    """How far apart two faces' points sit across ``normal`` (m, between their centroids).
+def sideways_offset(apart: np.ndarray, normal: np.ndarray) -> float:
+    """How far apart two faces' points sit across ``normal`` (m), from ``apart``, the vector
+    between their centroids.
 
     The lever of the reading: two leg faces 5 cm wide fix their common normal only to a
     degree or so. On a perfect map of the paper's tables (simulated seed 16 at its true poses)
@@ -250,8 +251,7 @@ def sideways_offset(a: np.ndarray, b: np.ndarray, normal: np.ndarray) -> float:
     within 0.6 mm of the true surfaces; their common normal was 0.8 deg off the true one, and
     the 120.12 cm gap read 1.1 cm short.
     """
-    d = np.asarray(b, np.float64).mean(axis=0) - np.asarray(a, np.float64).mean(axis=0)
-    return float(np.linalg.norm(d - (d @ normal) * normal))
+    return float(np.linalg.norm(apart - (apart @ normal) * normal))
 
 
 def unit_direction(v: list[float] | np.ndarray) -> np.ndarray:
@@ -306,7 +306,7 @@ def measure(
         return math.degrees(math.acos(min(1.0, abs(float(u @ v)))))
 
     angle = angle_deg(pa.normal, pb.normal)
-    fitted = _common_normal([pa.support, pb.support])[0]
+    fitted, (ca, cb) = _common_normal([pa.support, pb.support])
     distance: Callable[[np.ndarray, np.ndarray], float]
     if given is not None:
         n = given
@@ -320,7 +320,7 @@ def measure(
     se, unstable = bootstrap_stderr(pa.support, pb.support, distance)
     return Measurement(
         distance(pa.support, pb.support), angle, pa.points, pb.points, pa.rms, pb.rms,
-        pa.facing, pb.facing, se, unstable, sideways_offset(pa.support, pb.support, n),
+        pa.facing, pb.facing, se, unstable, sideways_offset(cb - ca, n),
         None if given is None else given.tolist(),
         0.0 if given is None else angle_deg(given, fitted),
     )  # fmt: skip
