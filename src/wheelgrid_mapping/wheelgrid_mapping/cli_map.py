@@ -14,6 +14,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -186,6 +187,22 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def prior_scale_line(ps: dict[str, Any]) -> str:
+    """One line on the pose prior's scale as online ICP measured it, and what was done."""
+    se = "?" if ps["stderr_pct"] is None else f"{ps['stderr_pct']:.2f}"
+    longer = "longer" if ps["measured_pct"] >= 0 else "shorter"
+    line = (
+        f"loop closure: the pose prior's steps are {abs(ps['measured_pct']):.2f} +- {se} % "
+        f"{longer} than ICP measures them ({ps['steps']} steps that see ahead)"
+    )
+    if ps["applied"]:
+        return line + (
+            f"; frames registered again with its steps / {ps['prior_scale']:.4f} "
+            f"(left: {ps['residual_pct']:+.2f} %)"
+        )
+    return line + f"; {ps.get('note', 'kept')}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -277,6 +294,8 @@ def _run(args: argparse.Namespace) -> int:
                 + (f" ({lc['prior_drift_note']})" if "prior_drift_note" in lc else ""),
                 file=sys.stderr,
             )
+        if "prior_scale" in lc:
+            print(prior_scale_line(lc["prior_scale"]), file=sys.stderr)
     try:
         rep = mapper.save(
             args.out,

@@ -149,12 +149,26 @@ class LoopClosureConfig:
         "(a run's first leg) are turned right too",
         "",
     )
+    prior_scale_sigmas: float = field(
+        3.0,
+        "with a pose prior: where online ICP measured the prior's scale error (its corrections "
+        "along the steps whose direction the view constrains) at least this many standard "
+        "errors from 0, every kept frame is registered again with the prior's steps rescaled "
+        "before the graph is built, so stretches where the view fixed no forward motion "
+        "(driving along a row) lose the prior's scale error too (0 = off)",
+        "",
+    )
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
         """ValueError for settings that cannot work."""
+        if self.prior_scale_sigmas < 0:
+            raise ValueError(
+                f"loop_closure prior_scale_sigmas must be >= 0 (0 = off), not "
+                f"{self.prior_scale_sigmas}"
+            )
         for name in (
             "submap_seconds",
             "submap_voxel",

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -341,9 +341,11 @@ class Mapper:
         # The prior's drift is measured only when every kept frame had one (ARKit: always).
         given = [p for p in self._priors if p is not None]
         priors = given if len(given) == len(self._priors) else None
-        res = close_loops(
-            self._frames, self.poses_odom, self.stamps, cfg, progress, up=up, priors=priors
-        )
+        online = self.poses_odom
+        scale_info: dict[str, Any] = {}
+        if priors is not None and cfg.prior_scale_sigmas > 0:
+            online, scale_info = self._rescale_prior(cfg)
+        res = close_loops(self._frames, online, self.stamps, cfg, progress, up=up, priors=priors)
         # All or nothing: the new map is built aside and swapped in only once complete, so a
         # failure anywhere (the graph, memory while rebuilding) leaves the online map, poses
         # and frames exactly as they were, and the caller can still save or extend them.
@@ -356,7 +358,57 @@ class Mapper:
         self._relevelled_at = -1
         self.timings["loop_closure_s"] = res.seconds
         self.loop_info = res.summary()
+        if scale_info:
+            self.loop_info["prior_scale"] = scale_info
         return self.loop_info
+
+    def _rescale_prior(self, cfg: LoopClosureConfig) -> tuple[list[np.ndarray], dict[str, Any]]:
+        """The online poses, registered again from the kept frames with the prior's steps
+        rescaled where online ICP measured its scale error (:class:`PriorScaleEstimate`) at
+        least ``cfg.prior_scale_sigmas`` standard errors from 0; else as they are. And what was
+        measured and done, for the report.
+
+        A second pass because the error is known only once the run is over: the stretches it
+        spoils are those where the view fixed no forward motion, and the prior alone placed
+        them. Nothing is lost: if a frame fails in the new pass (it passed the first), or the
+        estimate is beyond ``cfg.max_drift_scale``, the online poses stay.
+        """
+        fit = self.registrar.prior_scale_fit
+        given = self.reg_cfg.prior_scale
+        info: dict[str, Any] = {
+            "measured_pct": round(100.0 * fit.error, 3),
+            "stderr_pct": round(100.0 * fit.stderr, 3) if np.isfinite(fit.stderr) else None,
+            "steps": fit.steps,
+            "applied": False,
+        }
+        if not abs(fit.error) >= cfg.prior_scale_sigmas * fit.stderr:
+            info["note"] = f"within {cfg.prior_scale_sigmas:g} standard errors of 0: kept"
+            return self.poses_odom, info
+        if abs(fit.error) > cfg.max_drift_scale:
+            info["note"] = f"beyond max_drift_scale ({100 * cfg.max_drift_scale:g} %): not believed"
+            return self.poses_odom, info
+        t0 = time.perf_counter()
+        scale = given * (1.0 + fit.error)
+        reg = Registrar(replace(self.reg_cfg, prior_scale=scale))
+        poses = []
+        for pts, stamp, prior in zip(self._frames, self.stamps, self._priors, strict=True):
+            res = reg.register(pts.astype(np.float64), stamp, prior)
+            if not res.accepted:
+                info["note"] = f"a frame failed when registered again ({res.reason}): kept"
+                return self.poses_odom, info
+            poses.append(res.pose)
+        self.timings["prior_rescale_s"] = time.perf_counter() - t0
+        info.update(
+            applied=True,
+            prior_scale=round(scale, 6),
+            residual_pct=round(100.0 * reg.prior_scale_fit.error, 3),
+            residual_stderr_pct=(
+                round(100.0 * reg.prior_scale_fit.stderr, 3)
+                if np.isfinite(reg.prior_scale_fit.stderr)
+                else None
+            ),
+        )
+        return poses, info
 
     # -- map -----------------------------------------------------------------------------------
     def map_odom(self) -> np.ndarray:

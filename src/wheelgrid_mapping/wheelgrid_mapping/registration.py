@@ -38,6 +38,10 @@ from .evidence import INVALID_KEY, NEIGHBOUR_KEYS, contains_sorted, voxel_keys_o
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
+#: Prior steps shorter than this (m) are not scale measurements: ICP's millimetres of noise
+#: would be most of them.
+PRIOR_SCALE_MIN_STEP = 0.02
+
 
 @dataclass
 class RegistrationConfig:
@@ -102,6 +106,12 @@ class RegistrationConfig:
         "than this share of its points is a failure: its pose would be a guess (0 = off)",
         "",
     )
+    prior_scale: float = field(
+        1.0,
+        "the pose prior's steps are divided by this before they seed ICP (1.02: the prior "
+        "measures 2 % too long); wheelgrid map's loop closure sets it from the run itself",
+        "",
+    )
     relocalise_scale: float = field(
         3.0, "correspondence distance multiplier while relocalising", ""
     )
@@ -115,6 +125,11 @@ class RegistrationConfig:
         because a caller may change a field after construction)."""
         if self.method not in ("kiss", "open3d"):
             raise ValueError(f"registration method must be kiss or open3d, not {self.method!r}")
+        if not 0.5 <= self.prior_scale <= 2.0:
+            raise ValueError(
+                f"registration prior_scale must be in [0.5, 2] (1 = as given), not "
+                f"{self.prior_scale}"
+            )
         for name in ("prior_rotation_gain", "prior_translation_gain"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(
@@ -128,31 +143,84 @@ def _insert_sorted(sorted_keys: np.ndarray, new: np.ndarray) -> np.ndarray:
     return np.insert(sorted_keys, np.searchsorted(sorted_keys, new), new)
 
 
-def constrain_to_observable(
-    points: np.ndarray, cell: float, correction: np.ndarray, ratio: float
-) -> tuple[np.ndarray, int]:
-    """Keep only the part of an ICP ``correction`` (4x4, sensor frame) the geometry observes.
-
-    Point-to-plane information ``H = sum J^T J`` with ``J = [n, p x n]`` (normals of the frame's
-    own points) says which of the 6 motion directions the scene constrains. A floor-dominated
-    view constrains height, roll and pitch but not sliding or yaw; ICP "corrections" along such
-    directions are bias (points pulled back to where they were), so with a pose prior they are
-    dropped and the prior kept. Returns the filtered correction and the number of degenerate
-    directions.
-    """
+def point_to_plane_information(points: np.ndarray, cell: float) -> np.ndarray | None:
+    """Point-to-plane information ``H = sum J^T J / N`` with ``J = [n, p x n]`` (normals of the
+    frame's own points, twist order translation then rotation), per point: ``u^T H u`` is the
+    share of the points that constrain motion along ``u``. None below 10 points."""
     if points.shape[0] < 10:
-        return correction, 0
+        return None
     idx, _ = grid_knn(points, 8, cell)
     normals, _ = neighbourhood_normals(points, idx)
     ok = (idx >= 0).sum(axis=1) >= 3
     n, p = normals[ok], points[ok]
     J = np.hstack([n, np.cross(p, n)])
-    H = J.T @ J
+    return (J.T @ J) / max(int(ok.sum()), 1)
+
+
+def constrain_to_observable(
+    points: np.ndarray,
+    cell: float,
+    correction: np.ndarray,
+    ratio: float,
+    information: np.ndarray | None = None,
+) -> tuple[np.ndarray, int]:
+    """Keep only the part of an ICP ``correction`` (4x4, sensor frame) the geometry observes.
+
+    Point-to-plane information (:func:`point_to_plane_information`, or ``information`` when the
+    caller has it already) says which of the 6 motion directions the scene constrains. A
+    floor-dominated view constrains height, roll and pitch but not sliding or yaw; ICP
+    "corrections" along such directions are bias (points pulled back to where they were), so
+    with a pose prior they are dropped and the prior kept. Returns the filtered correction and
+    the number of degenerate directions.
+    """
+    H = point_to_plane_information(points, cell) if information is None else information
+    if H is None:
+        return correction, 0
     vals, vecs = np.linalg.eigh(H)
-    keep = vals >= ratio * max(int(ok.sum()), 1)
+    keep = vals >= ratio
     x = log_se3(correction)
     x_kept = vecs @ (keep * (vecs.T @ x))
     return exp_se3(x_kept), int((~keep).sum())
+
+
+@dataclass
+class PriorScaleEstimate:
+    """How much longer the pose prior's steps are than the ones ICP measures (ROS-free sums).
+
+    A visual-inertial prior (ARKit) gets its scale from the IMU and is 1-2 % off on a room scan
+    (:mod:`wheelgrid_sim.odometry` draws it from 1 %). Where the view constrains the direction of
+    travel, ICP corrects each step, and its correction along the step is that step's scale error
+    (plus ICP's noise); where it does not (driving along a row with nothing ahead), the
+    degeneracy gate keeps the prior's step as it is, and its scale error with it: on the
+    simulated seed 19 (prior 1.9 % short) the first leg came out 1.1 % short, and 11 % of the
+    map more than 5 cm from a true surface. The loops cannot see it (a route that retraces
+    itself observes no scale). So every accepted step whose direction the view constrains is a
+    measurement ``y = -(s - 1) x`` (``x`` the prior's step length, ``y`` ICP's correction along
+    it), and ``s`` is their least-squares fit; its standard error comes from their scatter.
+    """
+
+    sxy: float = 0.0
+    sxx: float = 0.0
+    syy: float = 0.0
+    steps: int = 0
+
+    def add(self, step: float, correction_along: float) -> None:
+        self.sxy += step * correction_along
+        self.sxx += step * step
+        self.syy += correction_along * correction_along
+        self.steps += 1
+
+    @property
+    def error(self) -> float:
+        """The prior's scale error relative to the steps it was given (0.01 = 1 % too long)."""
+        return -self.sxy / self.sxx if self.sxx > 0 else 0.0
+
+    @property
+    def stderr(self) -> float:
+        if self.steps < 3 or self.sxx <= 0:
+            return float("inf")
+        rss = max(self.syy - self.sxy * self.sxy / self.sxx, 0.0)
+        return float(np.sqrt(rss / (self.steps - 1) / self.sxx))
 
 
 def blend_correction(correction: np.ndarray, gain_t: float, gain_r: float) -> np.ndarray:
@@ -224,6 +292,7 @@ class Registrar:
         self.last_stamp: float | None = None
         self.last_prior: np.ndarray | None = None
         self.counters = RegCounters()
+        self.prior_scale_fit = PriorScaleEstimate()
 
     # -- map occupancy for the overlap check -------------------------------------------------
     def _keys(self, pts: np.ndarray) -> np.ndarray:
@@ -303,8 +372,12 @@ class Registrar:
             self.counters.accepted += 1
             return RegResult(np.eye(4), True, fitness=1.0, seconds=time.perf_counter() - t0)
 
+        prior_step = None
         if prior is not None and self.last_prior is not None:
-            guess = self.last_pose @ np.linalg.inv(self.last_prior) @ prior
+            prior_step = np.linalg.inv(self.last_prior) @ prior
+            if cfg.prior_scale != 1.0:
+                prior_step[:3, 3] /= cfg.prior_scale
+            guess = self.last_pose @ prior_step
         else:
             guess = self.last_pose @ self.last_delta
         source = voxel_downsample(frame_down, 1.5 * cfg.voxel_size)
@@ -320,10 +393,12 @@ class Registrar:
         pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
         corr = np.linalg.inv(guess) @ pose  # ICP's correction of the guess (sensor frame)
         degenerate = 0
+        info = None
         ratio = cfg.degeneracy_ratio if with_prior else cfg.reject_degenerate_ratio
         if ratio > 0:
+            info = point_to_plane_information(frame_down, 0.5 * cfg.voxel_size)
             observed, degenerate = constrain_to_observable(
-                frame_down, 0.5 * cfg.voxel_size, corr, ratio
+                frame_down, 0.5 * cfg.voxel_size, corr, ratio, info
             )
             if with_prior:
                 corr = observed
@@ -355,6 +430,8 @@ class Registrar:
 
         if not relocalising:
             self._threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
+            if prior_step is not None and info is not None:
+                self._measure_prior_scale(prior_step, corr, info)
         self._integrate(frame_down, pose)
         self.last_delta = step if not relocalising else np.eye(4)
         self.last_pose = pose
@@ -367,6 +444,22 @@ class Registrar:
         return RegResult(
             pose, True, fitness=fitness, relocalised=relocalising, seconds=time.perf_counter() - t0
         )
+
+    def _measure_prior_scale(
+        self, prior_step: np.ndarray, correction: np.ndarray, info: np.ndarray
+    ) -> None:
+        """One :class:`PriorScaleEstimate` measurement from an accepted step, where the view
+        constrains the direction of travel as the degeneracy gate would (else ICP kept the
+        prior's step along it, and its correction there says nothing)."""
+        t = prior_step[:3, :3].T @ prior_step[:3, 3]  # the step, in the new sensor frame
+        length = float(np.linalg.norm(t))
+        if length < PRIOR_SCALE_MIN_STEP:
+            return
+        u = np.zeros(6)
+        u[:3] = t / length
+        if float(u @ info @ u) < self.cfg.degeneracy_ratio:
+            return
+        self.prior_scale_fit.add(length, float(correction[:3, 3] @ u[:3]))
 
     def _fail(
         self, reason: str, t0: float, fitness: float = 0.0, pose: np.ndarray | None = None
