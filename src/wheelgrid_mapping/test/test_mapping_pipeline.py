@@ -169,39 +169,6 @@ def test_a_floor_first_missed_is_found_when_seen() -> None:
     assert "floor_lowered_m" not in m2.level_info
 
 
-def test_a_missed_floor_tilted_against_the_first_level_surface_is_found_too() -> None:
-    """The first views level the map on a sofa seat that slopes back 4 deg, 0.25 m above the
-    floor at its front; the floor then seen is a 3.5 x 0.35 m strip. In the seat's frame the
-    strip rises from 0.31 to 0.06 m below z = 0, so the search, which took only the points
-    more than 0.15 m down, found no plane with 3 % of the map among them (the real capture
-    did this in some runs: a 1.7 deg tilt). Now the points from 0.05 m down are searched and
-    the plane found must lie 0.15 m down under the first pose."""
-    rng = np.random.default_rng(26)
-    m = Mapper(cfg=MapperConfig(level_min_frames=2))
-    slope = math.tan(math.radians(4.0))
-
-    def seat() -> np.ndarray:
-        xy = rng.random((6000, 2)) * [2, 4] + [1, -2]
-        z = -0.75 - slope * (xy[:, 0] - 1)
-        return np.column_stack([xy, z]) + rng.normal(0, 0.003, (6000, 3))
-
-    def floor_strip() -> np.ndarray:
-        xy = rng.random((3000, 2)) * [3.5, 0.35] + [0.2, -2.9]
-        return np.column_stack([xy, np.full(3000, -1.0)]) + rng.normal(0, 0.003, (3000, 3))
-
-    for i in range(3):
-        m.add_frame(np.vstack([body_frame_room(rng, False), seat()]), i * 0.2, "base_link")
-    assert m.level_info["sensor_height_m"] < 0.8  # levelled on the seat
-    for i in range(3, 6):
-        m.add_frame(
-            np.vstack([body_frame_room(rng, False), seat(), floor_strip()]), i * 0.2, "base_link"
-        )
-    pts = m.map_points()
-    assert m.level_info["floor_lowered_m"] > 0.2
-    assert m.level_info["sensor_height_m"] == pytest.approx(1.0, abs=0.05)
-    assert np.mean(pts[:, 2] < -0.05) < 0.01
-
-
 def test_what_lies_below_the_floor_but_is_no_floor_is_searched_again_only_when_it_grows() -> None:
     """A stairwell going down (a 30 deg slope under the floor) is no floor: the search for a
     lower floor fails. It ran on every re-levelling, i.e. on every republish of the live map

@@ -112,13 +112,8 @@ class MapperConfig:
         )
 
 
-# A level plane this far below z = 0 (m) under the first sensor pose, with 3 % of the map, is a
-# floor the first search missed.
+# A level plane this far below z = 0 (m), with 3 % of the map, is a floor the first search missed.
 LOWER_FLOOR_GAP = 0.15
-# It is looked for among the points this far below z = 0 (m): well clear of the current floor's
-# noise, and not LOWER_FLOOR_GAP, since a floor tilted a few degrees against the surface that
-# became z = 0 (a sofa seat sloping back) rises above that cut over a room's width.
-LOWER_FLOOR_SEARCH = 0.05
 # A failed search below the floor is repeated once the points there have grown by this factor.
 LOWER_FLOOR_RETRY = 1.25
 
@@ -501,12 +496,7 @@ class Mapper:
         below the current floor.
         """
         assert self.T_map_odom is not None
-        # The candidates reach up to LOWER_FLOOR_SEARCH; the plane found must then lie
-        # LOWER_FLOOR_GAP down under the first pose. Cutting the candidates at LOWER_FLOOR_GAP
-        # itself lost the real capture's floor (about 0.2 m below the first surface levelled
-        # on, spread over 0.1-0.33 m below it by a 1.7 deg tilt) whenever less than 3 % of
-        # the map lay under the cut: in some runs, not in others.
-        below = pts[pts[:, 2] < -LOWER_FLOOR_SEARCH]
+        below = pts[pts[:, 2] < -LOWER_FLOOR_GAP]
         need = max(200, int(0.03 * pts.shape[0]))
         if below.shape[0] < need or below.shape[0] < LOWER_FLOOR_RETRY * self._lower_floor_tried:
             # What lies below is no plane (a stairwell, low-confidence returns): search again
@@ -527,15 +517,11 @@ class Mapper:
         except FloorNotFoundError:
             self._lower_floor_tried = below.shape[0]
             return False
-        height = float(n @ first[:3, 3] + d)  # the first sensor pose above the new floor
-        if height - float(first[2, 3]) < LOWER_FLOOR_GAP:
-            # a plane just under the floor (a step, the floor's own far edge): not missed
-            self._lower_floor_tried = below.shape[0]
-            return False
         self._lower_floor_tried = 0
         # the plane in odom: n . (R p + t) + d = 0
         R, t = self.T_map_odom[:3, :3], self.T_map_odom[:3, 3]
         n_odom, d_odom = R.T @ n, float(n @ t + d)
+        height = float(n @ first[:3, 3] + d)  # the first sensor pose above the new floor
         self.T_map_odom = map_from_floor(n_odom, d_odom, self.convention or "optical", first_odom)
         self._dirty = 1
         self.level_info["sensor_height_m"] = height
