@@ -108,8 +108,9 @@ class RegistrationConfig:
     )
     prior_scale: float = field(
         1.0,
-        "the pose prior's steps are divided by this before they seed ICP (1.02: the prior "
-        "measures 2 % too long); wheelgrid map's loop closure sets it from the run itself",
+        "the pose prior's horizontal steps (its frame's x, y: z up) are divided by this before "
+        "they seed ICP (1.02: the prior measures 2 % too long); wheelgrid map's loop closure "
+        "sets it from the run itself",
         "",
     )
     relocalise_scale: float = field(
@@ -374,9 +375,19 @@ class Registrar:
 
         prior_step = None
         if prior is not None and self.last_prior is not None:
-            prior_step = np.linalg.inv(self.last_prior) @ prior
             if cfg.prior_scale != 1.0:
-                prior_step[:3, 3] /= cfg.prior_scale
+                # Horizontal only, in the prior's own frame (z up: REP-105's odom, ARKit's
+                # world as the bridge publishes it): the floor fixes height, and on the real
+                # capture rescaling a hand-held phone's climbs too moved its floor against
+                # the surface first levelled on, by centimetres.
+                scaled = prior.copy()
+                scaled[:2, 3] = (
+                    self.last_prior[:2, 3]
+                    + (prior[:2, 3] - self.last_prior[:2, 3]) / cfg.prior_scale
+                )
+                prior_step = np.linalg.inv(self.last_prior) @ scaled
+            else:
+                prior_step = np.linalg.inv(self.last_prior) @ prior
             guess = self.last_pose @ prior_step
         else:
             guess = self.last_pose @ self.last_delta
