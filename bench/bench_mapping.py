@@ -227,6 +227,7 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     lc = m.close_loops(LoopClosureConfig(**LOOP_OVERRIDES))
     row(f"{label}: loop closure time", lc["seconds"], "s")
     row(f"{label}: loop edges kept", lc["loop_edges_kept"], "edges")
+    prior_scale_rows(label, lc)
     row(f"{label}: trajectory error RMSE", trajectory_rmse(), "m")
     poses, true = matched()
     first = np.linalg.inv(true[0]) @ poses[0]
@@ -235,6 +236,18 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
     pts_room = transform(m.map_points(), np.linalg.inv(map_from_room))
     truth_rows(label, pts_room, scene)
     return m
+
+
+def prior_scale_rows(label: str, lc: dict[str, Any]) -> None:
+    """The pose prior's scale error as online ICP measured it, and whether loop closure
+    registered the frames again with it removed (``loop_closure.prior_scale``)."""
+    ps = lc.get("prior_scale")
+    if not ps:
+        return
+    done = "applied" if ps["applied"] else "not applied"
+    row(f"{label}: prior scale error measured by ICP ({done})", ps["measured_pct"], "%")
+    if ps["stderr_pct"] is not None:
+        row(f"{label}: prior scale error measured by ICP, standard error", ps["stderr_pct"], "%")
 
 
 def largest_planes(pc: Any, count: int = 6, min_share: float = 0.02) -> list[np.ndarray]:
@@ -362,6 +375,7 @@ def real_data(limit: int, interval: float) -> None:
         arkit_agreement(f"{label}, ONLINE", m.map_odom(), ref, ref_pc, planes)
         lc = m.close_loops(LoopClosureConfig(**LOOP_OVERRIDES))
         row(f"{label}: loop edges kept", lc["loop_edges_kept"], "edges")
+        prior_scale_rows(label, lc)
         arkit_agreement(label, m.map_odom(), ref, ref_pc, planes)
 
 
