@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.testing import box_surface, sensor_view
-from wheelgrid_mapping.loop_closure import LoopClosureConfig
+from wheelgrid_mapping.loop_closure import LoopClosureConfig, submap_groups
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, load_configs
 from wheelgrid_mapping.registration import PriorScaleEstimate
 
@@ -279,22 +279,40 @@ def test_a_prior_scale_error_is_measured_where_the_view_sees_ahead_and_removed_w
     """Seed 19 of the simulated runs in small: where the view fixes no forward motion the online
     poses take the prior's steps as they are, 4 % too long, and by the end of that stretch
     they are 16 cm ahead 4 m down. The stretch that sees the end wall measures the scale error; closing
-    the loops registers the frames again with the prior's steps rescaled."""
+    the loops registers the frames again with the prior's horizontal steps rescaled."""
     frames, truth, prior = corridor_run(1.04)
 
-    def run(sigmas: float) -> tuple[Mapper, list[np.ndarray], dict]:
+    def run(sigmas: float, cancel_first: bool = False) -> tuple[Mapper, list[np.ndarray], dict]:
         m = Mapper(keep_frames=True)
         for k, (pts, P) in enumerate(zip(frames, prior, strict=True)):
             assert m.add_frame(pts, 0.2 * k, "base_link", prior=P).status == "used"
         online = [p.copy() for p in m.poses_odom]
-        info = m.close_loops(LoopClosureConfig(prior_scale_sigmas=sigmas))
+        cfg = LoopClosureConfig(prior_scale_sigmas=sigmas)
+        if cancel_first:
+            # the node's ~/reset and shutdown cancel through progress, also while the frames
+            # are registered again (no submap done yet): nothing changes
+            calls: list[tuple[int, int]] = []
+
+            class CancelledError(Exception):
+                pass
+
+            def cancel(done: int, total: int) -> None:
+                calls.append((done, total))
+                raise CancelledError
+
+            with pytest.raises(CancelledError):
+                m.close_loops(cfg, cancel)
+            assert calls == [(0, len(submap_groups(m.stamps, cfg.submap_seconds)))]
+            assert m.loop_info == {} and "prior_rescale_s" not in m.timings
+            assert all(np.array_equal(a, b) for a, b in zip(m.poses_odom, online, strict=True))
+        info = m.close_loops(cfg)
         return m, online, info
 
     def along_error(poses: list[np.ndarray], k: int) -> float:
         """Forward error at frame k of poses in odom (the first sensor pose) against truth."""
         return float(poses[k][0, 3] - (truth[k][0, 3] - truth[0][0, 3]))
 
-    m, online, info = run(3.0)
+    m, online, info = run(3.0, cancel_first=True)
     fit = m.registrar.prior_scale_fit
     assert fit.steps >= 10  # only the steps that see the end wall
     assert abs(fit.error - 0.04) < 3 * fit.stderr and abs(fit.error) > 3 * fit.stderr

@@ -197,7 +197,7 @@ def prior_scale_line(ps: dict[str, Any]) -> str:
     )
     if ps["applied"]:
         return line + (
-            f"; frames registered again with its steps / {ps['prior_scale']:.4f} "
+            f"; frames registered again with its horizontal steps / {ps['prior_scale']:.4f} "
             f"(left: {ps['residual_pct']:+.2f} %)"
         )
     return line + f"; {ps.get('note', 'kept')}"

@@ -153,8 +153,8 @@ class LoopClosureConfig:
         3.0,
         "with a pose prior: where online ICP measured the prior's scale error (its corrections "
         "along the steps whose direction the view constrains) at least this many standard "
-        "errors from 0, every kept frame is registered again with the prior's steps rescaled "
-        "before the graph is built, so stretches where the view fixed no forward motion "
+        "errors from 0, every kept frame is registered again with the prior's horizontal steps "
+        "rescaled before the graph is built, so stretches where the view fixed no forward motion "
         "(driving along a row) lose the prior's scale error too (0 = off)",
         "",
     )

@@ -31,7 +31,7 @@ from .levelling import (
     map_from_floor,
     map_from_mount,
 )
-from .loop_closure import LoopClosureConfig, close_loops
+from .loop_closure import LoopClosureConfig, close_loops, submap_groups
 from .preprocess import PreprocessConfig, PreprocessStats, preprocess, voxel_downsample
 from .registration import Registrar, RegistrationConfig, transform
 from .se3 import is_rigid
@@ -344,7 +344,7 @@ class Mapper:
         online = self.poses_odom
         scale_info: dict[str, Any] = {}
         if priors is not None and cfg.prior_scale_sigmas > 0:
-            online, scale_info = self._rescale_prior(cfg)
+            online, scale_info = self._rescale_prior(cfg, progress)
         res = close_loops(self._frames, online, self.stamps, cfg, progress, up=up, priors=priors)
         # All or nothing: the new map is built aside and swapped in only once complete, so a
         # failure anywhere (the graph, memory while rebuilding) leaves the online map, poses
@@ -362,11 +362,14 @@ class Mapper:
             self.loop_info["prior_scale"] = scale_info
         return self.loop_info
 
-    def _rescale_prior(self, cfg: LoopClosureConfig) -> tuple[list[np.ndarray], dict[str, Any]]:
-        """The online poses, registered again from the kept frames with the prior's steps
-        rescaled where online ICP measured its scale error (:class:`PriorScaleEstimate`) at
+    def _rescale_prior(
+        self, cfg: LoopClosureConfig, progress: Callable[[int, int], None] | None = None
+    ) -> tuple[list[np.ndarray], dict[str, Any]]:
+        """The online poses, registered again from the kept frames with the prior's horizontal
+        steps rescaled where online ICP measured its scale error (:class:`PriorScaleEstimate`) at
         least ``cfg.prior_scale_sigmas`` standard errors from 0; else as they are. And what was
-        measured and done, for the report.
+        measured and done, for the report. ``progress`` is called as the graph's is, with no
+        submap done yet, every 10 frames: the node's ~/reset and shutdown cancel through it.
 
         A second pass because the error is known only once the run is over: the stretches it
         spoils are those where the view fixed no forward motion, and the prior alone placed
@@ -391,7 +394,12 @@ class Mapper:
         scale = given * (1.0 + fit.error)
         reg = Registrar(replace(self.reg_cfg, prior_scale=scale))
         poses = []
-        for pts, stamp, prior in zip(self._frames, self.stamps, self._priors, strict=True):
+        submaps = len(submap_groups(self.stamps, cfg.submap_seconds))
+        for k, (pts, stamp, prior) in enumerate(
+            zip(self._frames, self.stamps, self._priors, strict=True)
+        ):
+            if progress is not None and k % 10 == 0:
+                progress(0, submaps)
             res = reg.register(pts.astype(np.float64), stamp, prior)
             if not res.accepted:
                 info["note"] = f"a frame failed when registered again ({res.reason}): kept"
