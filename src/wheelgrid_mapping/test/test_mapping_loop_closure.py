@@ -111,6 +111,8 @@ def test_short_runs_and_bad_settings() -> None:
     assert all(np.array_equal(p, np.eye(4)) for p in res.poses)
     with pytest.raises(ValueError, match="differ in length"):
         close_loops(frames, poses, [0.0])
+    with pytest.raises(ValueError, match="prior_scale_sigmas"):
+        LoopClosureConfig(prior_scale_sigmas=-1.0)
     with pytest.raises(ValueError, match="submap_seconds"):
         LoopClosureConfig(submap_seconds=0.0)
     assert [len(g) for g in submap_groups([0.0, 0.1, 0.2, 1.0, 1.05, 3.5], 1.0)] == [3, 2, 1]

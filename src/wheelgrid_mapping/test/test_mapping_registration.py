@@ -168,6 +168,9 @@ def test_bad_registration_settings_are_refused() -> None:
         RegistrationConfig(prior_rotation_gain=1.5)
     with pytest.raises(ValueError, match="prior_translation_gain"):
         RegistrationConfig(prior_translation_gain=-0.1)
+    for bad in (0.1, 3.0, float("nan")):  # a scale no phone's prior is off by, or none
+        with pytest.raises(ValueError, match="prior_scale"):
+            RegistrationConfig(prior_scale=bad)
     cfg = RegistrationConfig()
     cfg.method = "ndt"  # changed after construction: the Registrar checks again
     with pytest.raises(ValueError, match="kiss or open3d"):
