@@ -335,6 +335,13 @@ class MapperNode(Node):  # type: ignore[misc]
                 f"{lc['nodes']} submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
                 f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
             )
+            ps = lc.get("prior_scale")
+            if ps and ps["applied"]:
+                # what the frames were registered again for (report.json has the rest)
+                self._loop_note += (
+                    f", the prior's scale error ({ps['measured_pct']:+.2f} % as ICP measured "
+                    "it) removed"
+                )
             self._map_dirty = True
         self.get_logger().info(f"loops closed: {self._loop_note}; map republished")
 
