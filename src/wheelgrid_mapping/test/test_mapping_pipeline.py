@@ -246,6 +246,7 @@ def test_prior_scale_fit_is_least_squares_with_its_scatter() -> None:
     rng = np.random.default_rng(3)
     fit = PriorScaleEstimate()
     assert fit.error == 0.0 and fit.stderr == math.inf  # nothing measured: no claim
+    assert fit.percent() == (0.0, None)  # report.json gets null, not Infinity (invalid JSON)
     steps = rng.uniform(0.1, 0.2, 400)
     for x, noise in zip(steps, rng.normal(0.0, 0.003, 400), strict=True):
         fit.add(float(x), -0.02 * float(x) + float(noise))

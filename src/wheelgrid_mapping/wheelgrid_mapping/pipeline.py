@@ -378,9 +378,10 @@ class Mapper:
         """
         fit = self.registrar.prior_scale_fit
         given = self.reg_cfg.prior_scale
+        measured, stderr = fit.percent()
         info: dict[str, Any] = {
-            "measured_pct": round(100.0 * fit.error, 3),
-            "stderr_pct": round(100.0 * fit.stderr, 3) if np.isfinite(fit.stderr) else None,
+            "measured_pct": measured,
+            "stderr_pct": stderr,
             "steps": fit.steps,
             "applied": False,
         }
@@ -406,15 +407,12 @@ class Mapper:
                 return self.poses_odom, info
             poses.append(res.pose)
         self.timings["prior_rescale_s"] = time.perf_counter() - t0
+        residual, residual_stderr = reg.prior_scale_fit.percent()
         info.update(
             applied=True,
             prior_scale=round(scale, 6),
-            residual_pct=round(100.0 * reg.prior_scale_fit.error, 3),
-            residual_stderr_pct=(
-                round(100.0 * reg.prior_scale_fit.stderr, 3)
-                if np.isfinite(reg.prior_scale_fit.stderr)
-                else None
-            ),
+            residual_pct=residual,
+            residual_stderr_pct=residual_stderr,
         )
         return poses, info
 

@@ -223,6 +223,12 @@ class PriorScaleEstimate:
         rss = max(self.syy - self.sxy * self.sxy / self.sxx, 0.0)
         return float(np.sqrt(rss / (self.steps - 1) / self.sxx))
 
+    def percent(self) -> tuple[float, float | None]:
+        """``(error, stderr)`` in %, rounded for a report; the standard error None (JSON has no
+        infinity) where too few steps fix it."""
+        se = self.stderr
+        return round(100.0 * self.error, 3), round(100.0 * se, 3) if np.isfinite(se) else None
+
 
 def blend_correction(correction: np.ndarray, gain_t: float, gain_r: float) -> np.ndarray:
     """Scale an ICP correction of the prior's guess: ``gain`` 1 = ICP, 0 = the prior.
@@ -375,19 +381,18 @@ class Registrar:
 
         prior_step = None
         if prior is not None and self.last_prior is not None:
+            target = prior
             if cfg.prior_scale != 1.0:
                 # Horizontal only, in the prior's own frame (z up: REP-105's odom, ARKit's
                 # world as the bridge publishes it): the floor fixes height, and on the real
                 # capture rescaling a hand-held phone's climbs too moved its floor against
                 # the surface first levelled on, by centimetres.
-                scaled = prior.copy()
-                scaled[:2, 3] = (
+                target = prior.copy()
+                target[:2, 3] = (
                     self.last_prior[:2, 3]
                     + (prior[:2, 3] - self.last_prior[:2, 3]) / cfg.prior_scale
                 )
-                prior_step = np.linalg.inv(self.last_prior) @ scaled
-            else:
-                prior_step = np.linalg.inv(self.last_prior) @ prior
+            prior_step = np.linalg.inv(self.last_prior) @ target
             guess = self.last_pose @ prior_step
         else:
             guess = self.last_pose @ self.last_delta
