@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import resource
 import sys
 import tempfile
@@ -32,7 +33,7 @@ import numpy as np
 
 from wheelgrid_common.fileio import read_tum
 from wheelgrid_mapping.cli_map import bag_frames, stray_frames
-from wheelgrid_mapping.cli_measure import measure
+from wheelgrid_mapping.cli_measure import measure, reference_plane
 from wheelgrid_mapping.loop_closure import LoopClosureConfig
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig
 from wheelgrid_mapping.preprocess import (
@@ -101,7 +102,19 @@ def near_surface_pct(pts_room: np.ndarray, scene: dict[str, Any]) -> float:
 # along it too is the map's, free of the ruler's normal, which two 5 cm leg faces fix only to
 # about a degree (0.2-1.1 deg off on the TRUE-pose maps of seeds 7, 11-19; 9(c)'s 3-4 m long
 # faces <= 0.1 deg).
-TABLE_I: list[tuple[str, list[float], list[float], str, int | None, list[float] | None]] = [
+# The field after it is the nearest wall parallel to the faces (its name and a box around it
+# above the tables, room frame): the gap read along that wall's normal as the MAP has it
+# (`wheelgrid measure --normal-box`), a direction the user can take from the map alone.
+TableIRow = tuple[
+    str,
+    list[float],
+    list[float],
+    str,
+    int | None,
+    list[float] | None,
+    tuple[str, list[float]] | None,
+]
+TABLE_I: list[TableIRow] = [
     (
         "9(a) table A to table B",
         [1.08, 4.95, 0.1, 1.16, 5.85, 0.745],
@@ -109,6 +122,7 @@ TABLE_I: list[tuple[str, list[float], list[float], str, int | None, list[float] 
         "table_gap",
         None,
         [1.0, 0.0, 0.0],
+        ("WEST WALL", [-0.05, 1.0, 0.8, 0.05, 9.0, 2.5]),
     ),
     (
         "9(b) floor to barrier 2 centre",
@@ -116,6 +130,7 @@ TABLE_I: list[tuple[str, list[float], list[float], str, int | None, list[float] 
         [5.5, 4.1, 1.45, 9.0, 4.3, 1.6],
         "barrier2",
         2,
+        None,
         None,
     ),
     (
@@ -125,6 +140,7 @@ TABLE_I: list[tuple[str, list[float], list[float], str, int | None, list[float] 
         "rows_gap",
         None,
         [0.0, 1.0, 0.0],
+        ("SOUTH WALL", [1.0, -0.05, 0.8, 9.0, 0.05, 2.5]),
     ),
 ]
 
@@ -143,7 +159,7 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
         if "barrier2" in bars
         else None,
     }
-    for name, a, b, key, axis, true_normal in TABLE_I:
+    for name, a, b, key, axis, true_normal, wall in TABLE_I:
         if true.get(key) is None:
             continue
         try:
@@ -188,6 +204,30 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
                 f"{100 * along.stderr / true[key]:.2f} %; the faces' fitted common normal "
                 f"{along.along_angle_deg:.2f} deg off it"
             )
+        if wall is not None:
+            # the same kept faces along the normal of a wall as the map has it: what a user
+            # reads with `wheelgrid measure --normal-box`, no truth given
+            wall_name, wall_box = wall
+            try:
+                ref = reference_plane(pts_room, wall_box)
+            except ValueError as exc:
+                print(f"{label}: Table I {name}: the {wall_name} not measurable ({exc})")
+                continue
+            on_wall = measure(pts_room, a, b, axis, along=ref.normal)
+            row(
+                f"{label}: Table I {name} along the {wall_name}'s normal (the map's) deviation",
+                100.0 * abs(on_wall.distance - true[key]) / true[key],
+                "%",
+            )
+            note = (
+                f"{label}: Table I {name} along the {wall_name}'s normal: +- "
+                f"{100 * on_wall.stderr / true[key]:.2f} %; {ref.points} points of wall, its "
+                f"normal {on_wall.along_angle_deg:.2f} deg off the faces' fitted one"
+            )
+            if true_normal is not None:
+                cos = abs(float(ref.normal @ np.asarray(true_normal)))
+                note += f" and {math.degrees(math.acos(min(1.0, cos))):.2f} deg off the true one"
+            print(note)
 
 
 def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str) -> Mapper:

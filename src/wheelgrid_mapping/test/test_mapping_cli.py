@@ -362,6 +362,48 @@ def test_measure_along_a_given_normal_where_leg_faces_tilt_their_own(
     assert exc.value.code == 2
 
 
+def test_measure_along_a_walls_normal_from_the_map(tmp_path: Path, capsys) -> None:
+    """The same turned leg faces, and a wall they are parallel to, drawn in its own box: the
+    wall's thousands of points fix the direction the faces' few cannot, and the gap reads to
+    the millimetre with no truth given. A box with too few points for a reference, or around a
+    wall the faces are not parallel to, is said so."""
+    rng = np.random.default_rng(7)
+    legs = np.vstack([_leg_face(1.1, 5.0, 1.5, rng), _leg_face(2.3012, 5.75, 1.5, rng)])
+    wall_x = np.column_stack(  # the wall the tables stand along (x = 0, facing +x)
+        [np.zeros(4000), 4.0 + 3.0 * rng.random(4000), 0.8 + 1.7 * rng.random(4000)]
+    )
+    wall_y = np.column_stack(  # a wall at right angles to the faces (y = 9)
+        [3.0 * rng.random(4000), np.full(4000, 9.0), 0.8 + 1.7 * rng.random(4000)]
+    )
+    pts = np.vstack([legs, wall_x, wall_y])
+    pts += rng.normal(0.0, 0.002, pts.shape)
+    ply = tmp_path / "room.ply"
+    write_ply(ply, pts)
+    box_a, box_b = [1.06, 4.95, 0.05, 1.14, 5.85, 0.75], [2.26, 4.95, 0.05, 2.34, 5.85, 0.75]
+    argv = [str(ply), "--box-a", *map(str, box_a), "--box-b", *map(str, box_b), "--true", "1.2012"]
+    assert cli_measure.main([*argv, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["deviation_pct"] > 1.5  # the faces' own normal
+    wall = ["--normal-box", "-0.05", "4", "0.8", "0.05", "7", "2.5"]
+    assert cli_measure.main([*argv, *wall, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["deviation_pct"] < 0.1
+    assert out["normal_box"]["points"] > 3500 and out["normal_box"]["rms"] < 0.003
+    assert abs(out["along"][0]) == pytest.approx(1.0, abs=1e-4)
+    assert out["along_angle_deg"] == pytest.approx(1.5, abs=0.2)
+    assert cli_measure.main([*argv, *wall]) == 0
+    line = capsys.readouterr().out
+    assert "along the --normal-box surface's normal (" in line and "WARN" not in line
+    # a box on the wrong wall: the reading stands on no face, and says so
+    assert cli_measure.main([*argv, "--normal-box", "0", "8.95", "0.8", "3", "9.05", "2.5"]) == 0
+    assert "does not stand on these faces" in capsys.readouterr().out
+    # a box with nothing in it, and a box given beside --normal: a clear refusal
+    assert cli_measure.main([*argv, "--normal-box", "5", "5", "5", "6", "6", "6"]) == 2
+    assert "--normal-box holds 0 points" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli_measure.main([*argv, *wall, "--normal", "1", "0", "0"])
+    assert exc.value.code == 2
+
+
 def test_map_from_a_ros1_bag(sim_dir: Path, tmp_path: Path) -> None:
     """The same frames as a ROS 1 .bag (what older iPhone tools record) map the same way."""
     from rosbags.rosbag1 import Writer
