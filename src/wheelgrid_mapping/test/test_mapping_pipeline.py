@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from wheelgrid_common.testing import box_surface, sensor_view
-from wheelgrid_mapping.loop_closure import LoopClosureConfig, submap_groups
+from wheelgrid_mapping.loop_closure import LoopClosureConfig, closed_note, submap_groups
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, load_configs
 from wheelgrid_mapping.registration import PriorScaleEstimate
 
@@ -323,8 +324,13 @@ def test_a_prior_scale_error_is_measured_where_the_view_sees_ahead_and_removed_w
     assert along_error(online, k) > 0.1  # the prior's 4 % kept
     assert abs(along_error(m.poses_odom, k)) < 0.5 * along_error(online, k)
     assert "prior_rescale_s" in m.report()["timings"]
+    # the mapper node's ~/close_loops status says so, with the error as ICP measured it
+    said = re.search(r"the prior's scale error \(([+-][\d.]+) % as ICP measured it\) removed$",
+                     closed_note(info))  # fmt: skip
+    assert said and float(said.group(1)) == pytest.approx(100 * fit.error, abs=0.006)
 
     # off: the same loop closure leaves the prior's scale where it was
     m_off, _, info_off = run(0.0)
     assert "prior_scale" not in info_off
+    assert "scale" not in closed_note(info_off) and "loop edges kept of" in closed_note(info_off)
     assert along_error(m_off.poses_odom, k) > 0.1

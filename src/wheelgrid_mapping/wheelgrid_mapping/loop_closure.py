@@ -242,6 +242,24 @@ class LoopClosureResult:
         }
 
 
+def closed_note(lc: dict[str, Any]) -> str:
+    """One line on what closing the loops did, from :meth:`.pipeline.Mapper.close_loops`'s
+    summary. The mapper node's diagnostics, its log and its answer to a repeated
+    ``~/close_loops`` say it, so a user watching a live scan learns there, not only from
+    report.json, that its frames were registered again for the prior's scale."""
+    note = (
+        f"{lc['loop_edges_kept']} loop edges kept of {lc['loop_edges']} over "
+        f"{lc['nodes']} submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
+        f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
+    )
+    ps = lc.get("prior_scale")
+    if ps and ps["applied"]:
+        note += (
+            f", the prior's scale error ({ps['measured_pct']:+.2f} % as ICP measured it) removed"
+        )
+    return note
+
+
 # A loop edge: source and target node, ICP result, its information and the horizontal projector.
 Edge = tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]
 

@@ -39,7 +39,7 @@ from wheelgrid_common.params import declare_dataclass, field
 from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_pointcloud2
 from wheelgrid_common.ros_env import spin_node, tf2_available
 
-from .loop_closure import LoopClosureConfig
+from .loop_closure import LoopClosureConfig, closed_note
 from .pipeline import Mapper, MapperConfig
 from .preprocess import PreprocessConfig
 from .registration import RegistrationConfig
@@ -330,18 +330,7 @@ class MapperNode(Node):  # type: ignore[misc]
             if self._loop_cancel:
                 return  # finished just as a ~/reset came: it clears this map anyway
             self._loop_state = "closed"
-            self._loop_note = (
-                f"{lc['loop_edges_kept']} loop edges kept of {lc['loop_edges']} over "
-                f"{lc['nodes']} submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
-                f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
-            )
-            ps = lc.get("prior_scale")
-            if ps and ps["applied"]:
-                # what the frames were registered again for (report.json has the rest)
-                self._loop_note += (
-                    f", the prior's scale error ({ps['measured_pct']:+.2f} % as ICP measured "
-                    "it) removed"
-                )
+            self._loop_note = closed_note(lc)
             self._map_dirty = True
         self.get_logger().info(f"loops closed: {self._loop_note}; map republished")
 
