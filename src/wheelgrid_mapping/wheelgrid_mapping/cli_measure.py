@@ -29,8 +29,8 @@ lever. Where the faces' direction is known better than their points fix it (both
 perpendicular to a wall; a simulated scene's truth), ``--normal`` reads the same faces along
 it and says how far it is from their own common normal, and ``--normal-box`` takes that
 direction from the map itself: the normal of a large surface in a third box (a wall the faces
-are parallel to), which thousands of points fix to a few hundredths of a degree where two leg
-faces fix theirs to a degree.
+are parallel to), which thousands of points fix to a tenth of a degree or better where two
+leg faces fix theirs to a degree.
 """
 
 from __future__ import annotations
