@@ -277,6 +277,30 @@ def corridor_run(prior_scale: float) -> tuple[list[np.ndarray], list[np.ndarray]
     return frames, truth, prior
 
 
+def test_a_prior_scale_error_is_measured_from_steps_too_short_to_count_alone() -> None:
+    """A phone at 60 Hz (or a chair at 30 Hz) moves a centimetre a frame or less, under the
+    2 cm one scale measurement needs: with every frame registered, as `wheelgrid map` does by
+    default, the real capture's 942 frames gave none. Consecutive steps are now joined until
+    the prior's travel reaches 2 cm. Here 1.2 m of 0.8 cm steps toward the corridor's end
+    wall, the prior 4 % long: the joined steps measure it."""
+    from wheelgrid_mapping.registration import PRIOR_SCALE_MIN_STEP, Registrar, RegistrationConfig
+
+    rng = np.random.default_rng(5)
+    world = box_surface([0, 0, 0], [10, 2.4, 2.6], 0.04, rng)
+    reg = Registrar(RegistrationConfig())
+    step = 0.008
+    assert step < PRIOR_SCALE_MIN_STEP
+    for k in range(150):
+        T = np.eye(4)
+        T[:3, 3] = [7.5 + step * k, 1.2, 1.1]
+        P = T.copy()
+        P[0, 3] = 7.5 + 1.04 * step * k
+        assert reg.register(sensor_view(world, T, rng), k / 30.0, prior=P).accepted
+    fit = reg.prior_scale_fit
+    assert fit.steps >= 45  # 149 steps, 2.5 to a measurement (each alone: none)
+    assert abs(fit.error - 0.04) < 3 * fit.stderr and fit.error > 2 * fit.stderr
+
+
 def test_a_prior_scale_error_is_measured_where_the_view_sees_ahead_and_removed_where_not() -> None:
     """Seed 19 of the simulated runs in small: where the view fixes no forward motion the online
     poses take the prior's steps as they are, 4 % too long, and by the end of that stretch

@@ -38,8 +38,9 @@ from .evidence import INVALID_KEY, NEIGHBOUR_KEYS, contains_sorted, voxel_keys_o
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
-#: Prior steps shorter than this (m) are not scale measurements: ICP's millimetres of noise
-#: would be most of them.
+#: A scale measurement spans at least this much of the prior's travel (m): ICP's millimetres
+#: of noise would be most of a shorter one. Consecutive shorter steps (a 60 Hz phone moves
+#: millimetres a frame) are joined until their travel reaches it.
 PRIOR_SCALE_MIN_STEP = 0.02
 
 
@@ -300,6 +301,9 @@ class Registrar:
         self.last_prior: np.ndarray | None = None
         self.counters = RegCounters()
         self.prior_scale_fit = PriorScaleEstimate()
+        # the steps joined so far into one scale measurement: the chain of the prior's steps
+        # and the chain of those steps with ICP's corrections, since the last measurement
+        self._scale_window: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- map occupancy for the overlap check -------------------------------------------------
     def _keys(self, pts: np.ndarray) -> np.ndarray:
@@ -444,10 +448,12 @@ class Registrar:
         if reason:
             return self._fail(reason, t0, fitness, pose)
 
+        if relocalising or prior_step is None or info is None:
+            self._scale_window = None  # a scale measurement spans registered steps only
+        else:
+            self._measure_prior_scale(prior_step, corr, info)
         if not relocalising:
             self._threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
-            if prior_step is not None and info is not None:
-                self._measure_prior_scale(prior_step, corr, info)
         self._integrate(frame_down, pose)
         self.last_delta = step if not relocalising else np.eye(4)
         self.last_pose = pose
@@ -464,23 +470,40 @@ class Registrar:
     def _measure_prior_scale(
         self, prior_step: np.ndarray, correction: np.ndarray, info: np.ndarray
     ) -> None:
-        """One :class:`PriorScaleEstimate` measurement from an accepted step, where the view
-        constrains the direction of travel as the degeneracy gate would (else ICP kept the
-        prior's step along it, and its correction there says nothing)."""
-        t = prior_step[:3, :3].T @ prior_step[:3, 3]  # the step, in the new sensor frame
+        """One :class:`PriorScaleEstimate` measurement per :data:`PRIOR_SCALE_MIN_STEP` of the
+        prior's travel, over accepted steps whose view constrains the direction travelled as
+        the degeneracy gate would (else ICP kept the prior's step along it, and its correction
+        there says nothing; such a step ends the measurement unmade).
+
+        A step that long on its own is one measurement: ICP's correction along it. Shorter
+        ones are joined first: a 60 Hz phone moves a centimetre a frame or less, and with
+        every frame registered (``wheelgrid map``'s default) no single step would count.
+        """
+        G, C = self._scale_window or (np.eye(4), np.eye(4))
+        G = G @ prior_step  # the prior's travel since the window began (in its first frame)
+        C = C @ prior_step @ correction  # the same with ICP's corrections
+        t = G[:3, 3]
         length = float(np.linalg.norm(t))
-        if length < PRIOR_SCALE_MIN_STEP:
+        if length < 1e-9:
+            self._scale_window = (G, C)
             return
         u = np.zeros(6)
-        u[:3] = t / length
+        u[:3] = G[:3, :3].T @ t / length  # the way travelled, in this frame's coordinates
         if float(u @ info @ u) < self.cfg.degeneracy_ratio:
+            self._scale_window = None
             return
-        self.prior_scale_fit.add(length, float(correction[:3, 3] @ u[:3]))
+        if length < PRIOR_SCALE_MIN_STEP:
+            self._scale_window = (G, C)
+            return
+        self._scale_window = None
+        # for a single step: ICP's correction along it, in the step's own frame
+        self.prior_scale_fit.add(length, float((C[:3, 3] - t) @ t) / length)
 
     def _fail(
         self, reason: str, t0: float, fitness: float = 0.0, pose: np.ndarray | None = None
     ) -> RegResult:
         self.counters.failed += 1
+        self._scale_window = None
         key = reason.split(" (")[0].split(" by ")[0]
         self.counters.failure_reasons[key] = self.counters.failure_reasons.get(key, 0) + 1
         if self.last_stamp is not None:
