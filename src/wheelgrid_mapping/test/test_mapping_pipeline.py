@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.testing import box_surface, sensor_view
+from wheelgrid_mapping.cli_map import prior_scale_line
 from wheelgrid_mapping.loop_closure import LoopClosureConfig, closed_note, submap_groups
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, load_configs
 from wheelgrid_mapping.registration import PriorScaleEstimate
@@ -352,6 +353,14 @@ def test_a_prior_scale_error_is_measured_where_the_view_sees_ahead_and_removed_w
     said = re.search(r"the prior's scale error \(([+-][\d.]+) % as ICP measured it\) removed$",
                      closed_note(info))  # fmt: skip
     assert said and float(said.group(1)) == pytest.approx(100 * fit.error, abs=0.006)
+    # and `wheelgrid map`'s summary line: how many stretches measured it, and what was done
+    line = prior_scale_line(scale)
+    assert (
+        f"steps are {scale['measured_pct']:.2f} +- {scale['stderr_pct']:.2f} % longer than ICP"
+        in line
+    )
+    assert f"({fit.steps} stretches of >= 2 cm that see ahead)" in line
+    assert f"frames registered again with its horizontal steps / {scale['prior_scale']:.4f}" in line
 
     # off: the same loop closure leaves the prior's scale where it was
     m_off, _, info_off = run(0.0)

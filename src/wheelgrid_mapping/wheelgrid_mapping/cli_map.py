@@ -193,7 +193,7 @@ def prior_scale_line(ps: dict[str, Any]) -> str:
     longer = "longer" if ps["measured_pct"] >= 0 else "shorter"
     line = (
         f"loop closure: the pose prior's steps are {abs(ps['measured_pct']):.2f} +- {se} % "
-        f"{longer} than ICP measures them ({ps['steps']} steps that see ahead)"
+        f"{longer} than ICP measures them ({ps['steps']} stretches of >= 2 cm that see ahead)"
     )
     if ps["applied"]:
         return line + (
