@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import resource
 import sys
 import tempfile
@@ -33,7 +32,7 @@ import numpy as np
 
 from wheelgrid_common.fileio import read_tum
 from wheelgrid_mapping.cli_map import bag_frames, stray_frames
-from wheelgrid_mapping.cli_measure import measure, reference_plane
+from wheelgrid_mapping.cli_measure import angle_deg, measure, reference_plane
 from wheelgrid_mapping.loop_closure import LoopClosureConfig
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig
 from wheelgrid_mapping.preprocess import (
@@ -225,8 +224,7 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
                 f"normal {on_wall.along_angle_deg:.2f} deg off the faces' fitted one"
             )
             if true_normal is not None:
-                cos = abs(float(ref.normal @ np.asarray(true_normal)))
-                note += f" and {math.degrees(math.acos(min(1.0, cos))):.2f} deg off the true one"
+                note += f" and {angle_deg(ref.normal, true_normal):.2f} deg off the true one"
             print(note)
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from wheelgrid_common.progress import Progress
 
 from .pipeline import Mapper, load_configs
+from .registration import PRIOR_SCALE_MIN_STEP
 
 Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None]
 
@@ -193,7 +194,8 @@ def prior_scale_line(ps: dict[str, Any]) -> str:
     longer = "longer" if ps["measured_pct"] >= 0 else "shorter"
     line = (
         f"loop closure: the pose prior's steps are {abs(ps['measured_pct']):.2f} +- {se} % "
-        f"{longer} than ICP measures them ({ps['steps']} stretches of >= 2 cm that see ahead)"
+        f"{longer} than ICP measures them ({ps['steps']} stretches of >= "
+        f"{PRIOR_SCALE_MIN_STEP * 100:g} cm that see ahead)"
     )
     if ps["applied"]:
         return line + (

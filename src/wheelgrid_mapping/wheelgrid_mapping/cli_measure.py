@@ -278,6 +278,11 @@ def reference_plane(points: np.ndarray, box: list[float] | np.ndarray) -> Plane:
     return fit_plane(pts)
 
 
+def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    """Angle (deg) between two unit normals as lines: a plane's normal has no sign."""
+    return math.degrees(math.acos(min(1.0, abs(float(np.asarray(u) @ np.asarray(v))))))
+
+
 def unit_direction(v: list[float] | np.ndarray) -> np.ndarray:
     n = np.asarray(v, dtype=np.float64).reshape(3)
     norm = float(np.linalg.norm(n))
@@ -325,10 +330,6 @@ def measure(
         )  # fmt: skip
     pa = fit_face(points, box_a, normal_radius)
     pb = fit_face(points, box_b, normal_radius)
-
-    def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
-        return math.degrees(math.acos(min(1.0, abs(float(u @ v)))))
-
     angle = angle_deg(pa.normal, pb.normal)
     fitted, (ca, cb) = _common_normal([pa.support, pb.support])
     distance: Callable[[np.ndarray, np.ndarray], float]

@@ -196,9 +196,10 @@ class PriorScaleEstimate:
     degeneracy gate keeps the prior's step as it is, and its scale error with it: on the
     simulated seed 19 (prior 1.9 % short) the first leg came out 1.1 % short, and 11 % of the
     map more than 5 cm from a true surface. The loops cannot see it (a route that retraces
-    itself observes no scale). So every accepted step whose direction the view constrains is a
-    measurement ``y = -(s - 1) x`` (``x`` the prior's step length, ``y`` ICP's correction along
-    it), and ``s`` is their least-squares fit; its standard error comes from their scatter.
+    itself observes no scale). So every accepted step whose direction the view constrains (or
+    run of such steps, joined to :data:`PRIOR_SCALE_MIN_STEP`) is a measurement
+    ``y = -(s - 1) x`` (``x`` the prior's travel, ``y`` ICP's correction along it), and ``s``
+    is their least-squares fit; its standard error comes from their scatter.
     """
 
     sxy: float = 0.0
