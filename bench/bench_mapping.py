@@ -7,7 +7,8 @@ Figures (printed, and with ``--json FILE`` as ``{"rows": [...]}``):
   ``wheelgrid measure``'s plane fits, the share of map points within 5 cm of a true surface,
   the trajectory error against the simulator's poses, and the map frame against the convention;
   each after loop closure (what ``wheelgrid map`` writes), with the ONLINE map (what the live
-  mapper node publishes) beside it.
+  mapper node publishes) beside it; and the same frames at the simulator's TRUE poses: the map
+  they make (the registration ceiling) and how far the loop closure moves them (its own error).
 * Real data (``../shared/data/stray-iphone-room``): the ICP map (no prior) and the ICP+ARKit
   map against the map fused from ARKit's own poses (share of points within 5 cm).
 * Speed on this machine: frames/s on 256x192 depth frames (KISS-ICP vs the Open3D
@@ -337,19 +338,49 @@ def plane_alignment(
 
 def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     """The same filtered frames placed at the simulator's true poses, through the same evidence
-    map: what the map's points could reach with perfect registration."""
+    map: what the map's points could reach with perfect registration. Then the pose graph
+    started from those TRUE poses (with the bag's prior, as `wheelgrid map` runs it): how far
+    it moves a perfect trajectory is the loop closure's own error, a floor under the
+    registered runs' trajectory error."""
+    from wheelgrid_mapping.loop_closure import close_loops
     from wheelgrid_mapping.preprocess import preprocess
 
     scene = json.loads((sim / "scene.json").read_text())
     truth = json.loads((sim / "truth.json").read_text())
     gt_stamps, gt = read_tum(sim / "poses_map.tum")
     pre, ev = PreprocessConfig(), MapperConfig(**MAPPER_OVERRIDES).evidence_map()
-    total, frames, _ = bag_frames(sim / "scan", None, False)
-    for n, (pts, stamp, _, conf, _) in enumerate(frames):
+    total, frames, _ = bag_frames(sim / "scan", None, True)
+    kept: list[np.ndarray] = []
+    poses: list[np.ndarray] = []
+    stamps: list[float] = []
+    priors: list[np.ndarray | None] = []
+    for n, (pts, stamp, _, conf, prior) in enumerate(frames):
         if n >= min(total, frames_limit):
             break
         pose = gt[int(np.argmin(np.abs(gt_stamps - stamp)))]
-        ev.add(transform(preprocess(pts, pre, conf), pose), pose[:3, 3])
+        filtered = preprocess(pts, pre, conf)
+        ev.add(transform(filtered, pose), pose[:3, 3])
+        if filtered.shape[0]:
+            kept.append(filtered)
+            poses.append(pose)
+            stamps.append(float(stamp))
+            priors.append(prior)
+    given = [p for p in priors if p is not None]
+    lc = close_loops(
+        kept,
+        poses,
+        stamps,
+        LoopClosureConfig(**LOOP_OVERRIDES),
+        up=np.array([0.0, 0.0, 1.0]),
+        priors=given if len(given) == len(priors) else None,
+    )
+    moved = np.array([q[:3, 3] - p[:3, 3] for p, q in zip(poses, lc.poses, strict=True)])
+    row(
+        f"{label}: loop closure started from them moves them (RMSE)",
+        float(np.sqrt(np.mean(np.sum(moved**2, axis=1)))),
+        "m",
+    )
+    row(f"{label}: loop closure started from them turns them (at most)", lc.max_turn_deg, "deg")
     # map frame (true poses are in it): z is up, for the evidence margin
     pts = ev.points(up=np.array([0.0, 0.0, 1.0]))
     pts_room = transform(pts, np.linalg.inv(np.asarray(truth["map_from_room"])))
