@@ -35,7 +35,7 @@ from wheelgrid_common.fileio import read_tum
 from wheelgrid_mapping.cli_map import bag_frames, stray_frames
 from wheelgrid_mapping.cli_measure import angle_deg, measure, reference_plane
 from wheelgrid_mapping.loop_closure import LoopClosureConfig
-from wheelgrid_mapping.pipeline import Mapper, MapperConfig
+from wheelgrid_mapping.pipeline import Mapper, MapperConfig, complete_priors
 from wheelgrid_mapping.preprocess import (
     PreprocessConfig,
     PreprocessStats,
@@ -229,6 +229,12 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
             print(note)
 
 
+def position_rmse(poses: Any, true: Any) -> float:
+    """RMSE (m) of the positions of two equally long sequences of 4x4 poses."""
+    d = np.asarray(poses)[:, :3, 3] - np.asarray(true)[:, :3, 3]
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+
+
 def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str) -> Mapper:
     scene = json.loads((sim / "scene.json").read_text())
     truth = json.loads((sim / "truth.json").read_text())
@@ -256,8 +262,7 @@ def fidelity(sim: Path, frames_limit: int, label: str, prior: bool, method: str)
         return poses, gt[idx]
 
     def trajectory_rmse() -> float:
-        poses, true = matched()
-        return float(np.sqrt(np.mean(np.sum((poses[:, :3, 3] - true[:, :3, 3]) ** 2, axis=1))))
+        return position_rmse(*matched())
 
     # `wheelgrid map` closes loops after the online pass; the live node cannot. Both are shown.
     online = transform(m.map_points(), np.linalg.inv(map_from_room))
@@ -365,19 +370,17 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
             poses.append(pose)
             stamps.append(float(stamp))
             priors.append(prior)
-    given = [p for p in priors if p is not None]
     lc = close_loops(
         kept,
         poses,
         stamps,
         LoopClosureConfig(**LOOP_OVERRIDES),
         up=np.array([0.0, 0.0, 1.0]),
-        priors=given if len(given) == len(priors) else None,
+        priors=complete_priors(priors),
     )
-    moved = np.array([q[:3, 3] - p[:3, 3] for p, q in zip(poses, lc.poses, strict=True)])
     row(
         f"{label}: loop closure started from them moves them (RMSE)",
-        float(np.sqrt(np.mean(np.sum(moved**2, axis=1)))),
+        position_rmse(lc.poses, poses),
         "m",
     )
     row(f"{label}: loop closure started from them turns them (at most)", lc.max_turn_deg, "deg")

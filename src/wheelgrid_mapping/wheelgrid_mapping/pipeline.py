@@ -155,6 +155,14 @@ def floor_correction(
     return corr
 
 
+def complete_priors(priors: list[np.ndarray | None]) -> list[np.ndarray] | None:
+    """The frames' pose priors for the loop closure, or None unless every frame had one: the
+    prior's drift is measured along the whole trajectory (ARKit gives one always), and a gap
+    would make its steps span frames it never saw."""
+    given = [p for p in priors if p is not None]
+    return given if len(given) == len(priors) else None
+
+
 def load_configs(
     path: str | Path | None,
 ) -> tuple[PreprocessConfig, RegistrationConfig, MapperConfig, LoopClosureConfig]:
@@ -338,9 +346,7 @@ class Mapper:
         up = None
         if self.T_map_odom is not None:
             up = self.T_map_odom[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-        # The prior's drift is measured only when every kept frame had one (ARKit: always).
-        given = [p for p in self._priors if p is not None]
-        priors = given if len(given) == len(self._priors) else None
+        priors = complete_priors(self._priors)
         online = self.poses_odom
         scale_info: dict[str, Any] = {}
         if priors is not None and cfg.prior_scale_sigmas > 0:
