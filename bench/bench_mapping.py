@@ -105,9 +105,9 @@ def near_surface_pct(pts_room: np.ndarray, scene: dict[str, Any]) -> float:
 # The boxes hold the facing sides of the tables and their legs, from 10 cm above the floor to
 # just below the top surface (which would otherwise dominate the plane fit).
 # The last field is the faces' true normal (room frame) where they are planes: the gap read
-# along it too is the map's, free of the ruler's normal, which two 5 cm leg faces fix only to
-# about a degree (0.2-1.1 deg off on the TRUE-pose maps of seeds 7, 11-19; 9(c)'s 3-4 m long
-# faces <= 0.1 deg).
+# along it too is the map's, free of the ruler's normal, which two tables' edge faces (5 cm
+# legs and the top's rim) fix only to a fraction of a degree (0.13-0.96 deg off on the
+# TRUE-pose maps of seeds 7, 11-19; 9(c)'s 3-4 m long faces <= 0.12 deg).
 # The field after it is the nearest wall parallel to the faces (its name and a box around it
 # above the tables, room frame): the gap read along that wall's normal as the MAP has it
 # (`wheelgrid measure --normal-box`), a direction the user can take from the map alone.
