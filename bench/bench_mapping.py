@@ -39,7 +39,13 @@ import numpy as np
 
 from wheelgrid_common.fileio import read_tum
 from wheelgrid_mapping.cli_map import bag_frames, stray_frames
-from wheelgrid_mapping.cli_measure import angle_deg, measure, reference_plane
+from wheelgrid_mapping.cli_measure import (
+    angle_deg,
+    fit_face,
+    measure,
+    parallel_distance,
+    reference_plane,
+)
 from wheelgrid_mapping.loop_closure import LoopClosureConfig
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, complete_priors
 from wheelgrid_mapping.preprocess import (
@@ -192,10 +198,13 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
             note += f", {meas.unstable_pct:.0f} % of resamples beyond 4x that"
         if axis is None:
             note += f"; faces {meas.sideways:.2f} m apart sideways"
-            # the previous release's measure (no facing normals), printed for comparison only
-            prev = measure(pts_room, a, b, axis, normal_radius=0.0)
-            prev_dev = 100.0 * abs(prev.distance - true[key]) / true[key]
-            note += f"; previous measure {prev_dev:.3g} %"
+            # the previous release's measure (the faces' normal fitted on their facing points
+            # alone, without the rest of the planes' inliers), printed for comparison only
+            fa, fb = fit_face(pts_room, a), fit_face(pts_room, b)
+            prev_dev = (
+                100.0 * abs(parallel_distance(fa.support, fb.support) - true[key]) / true[key]
+            )
+            note += f"; previous release's measure {prev_dev:.3g} %"
         print(note)
         if true_normal is not None:
             # the same kept faces, read along the scene's true normal instead of their fitted one
