@@ -339,7 +339,7 @@ def measure(
     pb = fit_face(points, box_b, normal_radius)
     angle = angle_deg(pa.normal, pb.normal)
     ta, tb = tag_face(pa), tag_face(pb)
-    fitted = _common_normal([_rows(ta, DIRECTION), _rows(tb, DIRECTION)])[0]
+    fitted = faces_normal(ta, tb)
     ca, cb = pa.support.mean(axis=0), pb.support.mean(axis=0)
     if given is not None:
         n = given
@@ -391,6 +391,11 @@ def _rows(tagged: np.ndarray, column: int) -> np.ndarray:
     return sel if sel.shape[0] >= 3 else tagged[:, :3]
 
 
+def faces_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The common normal of two faces' plane inliers (:func:`tag_face` rows)."""
+    return _common_normal([_rows(a, DIRECTION), _rows(b, DIRECTION)])[0]
+
+
 def faces_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Distance between two faces (:func:`tag_face` rows): along the common normal of both
     faces' plane inliers, between the offsets of their facing points.
@@ -407,8 +412,7 @@ def faces_distance(a: np.ndarray, b: np.ndarray) -> float:
     one (worst 1.01) instead of 0.64 (1.42), and 9(a) read under 1 % on 30 of them instead of
     20; on the ten TRUE-pose maps 0.42 deg instead of 0.68 (figures in the README).
     """
-    n = _common_normal([_rows(a, DIRECTION), _rows(b, DIRECTION)])[0]
-    return parallel_distance(_rows(a, OFFSET), _rows(b, OFFSET), n)
+    return parallel_distance(_rows(a, OFFSET), _rows(b, OFFSET), faces_normal(a, b))
 
 
 def tagged_centroid_distance(a: np.ndarray, b: np.ndarray) -> float:
