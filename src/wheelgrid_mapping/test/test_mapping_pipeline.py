@@ -242,6 +242,36 @@ def test_a_loop_closure_that_fails_loses_nothing(where: str, monkeypatch) -> Non
     assert m.loop_info["nodes"] == 7
 
 
+def test_loops_close_about_the_floor_refined_on_every_online_frame(monkeypatch) -> None:
+    """`wheelgrid map` closes the loops without having asked for the map, the live node after
+    publishing it (which refines the floor): the graph must get the refined vertical either
+    way, or one bag gives two maps. Here the first floor fit is 1 deg off; the graph is told
+    the floor the six frames show, level in the sensor's body frame."""
+    import wheelgrid_mapping.pipeline as pipeline
+
+    rng = np.random.default_rng(23)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2), keep_frames=True)
+    for i in range(6):
+        assert m.add_frame(body_frame_room(rng, True), i * 1.0, "base_link").status == "used"
+    assert m.T_map_odom is not None
+    c, s = np.cos(np.radians(1.0)), np.sin(np.radians(1.0))
+    m.T_map_odom = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1.0]]) @ (
+        m.T_map_odom
+    )
+    seen: dict[str, np.ndarray] = {}
+    real = pipeline.close_loops
+
+    def spy(*args: object, **kwargs: object) -> object:
+        seen["up"] = np.asarray(kwargs["up"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "close_loops", spy)
+    m.close_loops(LoopClosureConfig(submap_seconds=1.0))
+    tilt = np.degrees(np.arccos(np.clip(seen["up"] @ [0.0, 0.0, 1.0], -1.0, 1.0)))
+    assert tilt < 0.1  # was the first fit's 1 deg
+    assert m.level_info["relevelled_at_frames"] == 6
+
+
 def test_prior_scale_fit_is_least_squares_with_its_scatter() -> None:
     """Steps of 10-20 cm whose ICP corrections say the prior measures 2 % too long, with 3 mm of
     ICP noise: the fit finds the 2 % and a standard error that matches the noise."""
