@@ -198,13 +198,13 @@ def truth_rows(label: str, pts_room: np.ndarray, scene: dict[str, Any]) -> None:
             note += f", {meas.unstable_pct:.0f} % of resamples beyond 4x that"
         if axis is None:
             note += f"; faces {meas.sideways:.2f} m apart sideways"
-            # the previous release's measure (the faces' normal fitted on their facing points
+            # the facing-points measure (the faces' normal fitted on their facing points
             # alone, without the rest of the planes' inliers), printed for comparison only
             fa, fb = fit_face(pts_room, a), fit_face(pts_room, b)
             prev_dev = (
                 100.0 * abs(parallel_distance(fa.support, fb.support) - true[key]) / true[key]
             )
-            note += f"; previous release's measure {prev_dev:.3g} %"
+            note += f"; facing-points measure {prev_dev:.3g} %"
         print(note)
         if true_normal is not None:
             # the same kept faces, read along the scene's true normal instead of their fitted one

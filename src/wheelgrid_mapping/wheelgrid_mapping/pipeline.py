@@ -347,8 +347,8 @@ class Mapper:
         if self.T_map_odom is not None and self.poses_odom:
             # The graph's vertical from the floor refined on every online frame, whoever asked
             # for the map before: the live node's publishing had refined it, `wheelgrid map`
-            # had not (it asks first when saving), and the same bag closed its loops about two
-            # verticals 0.0x deg apart, which moved the map's 9(a) by up to 0.6 points.
+            # had not (it asks only when saving), so one bag closed its loops about two
+            # verticals and gave two maps (9(a) 0.01 against 0.60 % on one simulated run).
             self.map_points()
         if self.T_map_odom is not None:
             up = self.T_map_odom[:3, :3].T @ np.array([0.0, 0.0, 1.0])
