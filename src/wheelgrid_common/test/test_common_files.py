@@ -65,6 +65,18 @@ def test_ply_and_tum_round_trip(tmp_path):
     assert np.allclose(quat_to_matrix(*matrix_to_quat(poses[1, :3, :3])), poses[1, :3, :3])
 
 
+def test_tum_writes_no_negative_zero(tmp_path):
+    """Two replays of one bag whose poses differ by 1e-17 m must write the same file."""
+    pose = np.eye(4)
+    pose[:3, 3] = [-1e-17, 1e-17, -3e-7]
+    write_tum(tmp_path / "a.tum", np.array([1.0]), pose[None])
+    pose[:3, 3] = [1e-17, -1e-17, 3e-7]
+    write_tum(tmp_path / "b.tum", np.array([1.0]), pose[None])
+    a = (tmp_path / "a.tum").read_text()
+    assert a == (tmp_path / "b.tum").read_text()
+    assert "-0.0" not in a and a.split()[1:4] == ["0.000000"] * 3
+
+
 def test_config_from_yaml_checks_types_and_names(tmp_path):
     from dataclasses import dataclass
 

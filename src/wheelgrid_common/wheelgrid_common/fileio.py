@@ -154,8 +154,10 @@ def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
     """Write poses (``(N, 4, 4)``) as TUM lines: ``t x y z qx qy qz qw`` (seconds, metres)."""
     with open(path, "w") as fh:
         for t, pose in zip(np.asarray(stamps, dtype=np.float64), np.asarray(poses), strict=True):
-            qx, qy, qz, qw = matrix_to_quat(pose[:3, :3])
-            x, y, z = pose[:3, 3]
+            # rounded first and -0.0 folded into 0.0: a coordinate of -1e-17 is no reason for
+            # two replays of one bag to write different files
+            x, y, z = (round(float(v), 6) + 0.0 for v in pose[:3, 3])
+            qx, qy, qz, qw = (round(v, 9) + 0.0 for v in matrix_to_quat(pose[:3, :3]))
             fh.write(f"{t:.9f} {x:.6f} {y:.6f} {z:.6f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}\n")
 
 
