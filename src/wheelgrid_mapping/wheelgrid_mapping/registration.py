@@ -118,10 +118,12 @@ class RegistrationConfig:
         3.0, "correspondence distance multiplier while relocalising", ""
     )
     threads: int = field(
-        1,
-        "KISS-ICP threads (0 = all cores); 1 keeps a replayed bag's trajectory the same from run "
-        "to run (threads sum in varying order, and loop closure can amplify the last digits), "
-        "and a second thread measured no faster on a 2-core machine",
+        2,
+        "KISS-ICP threads (0 = all cores; KISS-ICP takes it from a process's first registrar "
+        "and keeps it). Two threads meet their partial sums in varying order, so replays of "
+        "one bag differ in the last bits (micrometres after loop closure); 1 replays a bag to "
+        "the same online trajectory, bit for bit, at 1.65x the registration time (2 cores, "
+        "real frames: 58 against 35 ms a frame)",
         "",
     )
 
