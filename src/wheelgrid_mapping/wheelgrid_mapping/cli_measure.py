@@ -410,7 +410,7 @@ def faces_distance(a: np.ndarray, b: np.ndarray) -> float:
     points has none) fail the facing test. On forty registered maps of the simulated runs
     (``bench_mapping.py --draws 4``) the common normal came out a median 0.42 deg off the true
     one (worst 1.01) instead of 0.64 (1.42), and 9(a) read under 1 % on 30 of them instead of
-    20; on the ten TRUE-pose maps 0.42 deg instead of 0.68 (figures in the README).
+    20; on the ten TRUE-pose maps 0.42 deg instead of 0.68 (figures in docs/mapping-fidelity.md).
     """
     return parallel_distance(_rows(a, OFFSET), _rows(b, OFFSET), faces_normal(a, b))
 
