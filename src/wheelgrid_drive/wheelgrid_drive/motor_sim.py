@@ -342,7 +342,8 @@ class MotorSim:
         if self.state != proto.State.IDLE and silent > self.cfg.heartbeat_timeout:
             self._halt(proto.Result.WATCHDOG, f"no valid frame for {silent:.3f} s", t=now)
             self.flags |= proto.FLAG_WATCHDOG
-            self._event("watchdog", self.last_seq, f"{silent:.4f}", t=now)
+            # to the microsecond: at 0.1 ms a silence just past the timeout read as equal to it
+            self._event("watchdog", self.last_seq, f"{silent:.6f}", t=now)
 
     def _integrate(self, now: float) -> None:
         dt = (now - self._last_tick) * self.cfg.time_scale
