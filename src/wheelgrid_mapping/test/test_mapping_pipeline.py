@@ -435,3 +435,30 @@ def test_a_prior_scale_error_is_measured_where_the_view_sees_ahead_and_removed_w
     assert "prior_scale" not in info_off
     assert "scale" not in closed_note(info_off) and "loop edges kept of" in closed_note(info_off)
     assert along_error(m_off.poses_odom, k) > 0.1
+
+
+def test_kept_frames_pair_with_the_trajectory() -> None:
+    """``frames`` (what `bench_mapping.py --face-frames` asks which frame saw a face) holds one
+    sensor-frame cloud per pose of ``trajectory()``: placed at its pose, each lies on the map.
+    A Mapper that keeps no frames has none to give."""
+    import open3d as o3d
+
+    from wheelgrid_mapping.se3 import transform
+
+    rng = np.random.default_rng(25)
+    kept = Mapper(cfg=MapperConfig(level_min_frames=2), keep_frames=True)
+    plain = Mapper(cfg=MapperConfig(level_min_frames=2))
+    for i in range(4):
+        cloud = body_frame_room(rng, True)
+        assert kept.add_frame(cloud, i * 0.2, "base_link").status == "used"
+        plain.add_frame(cloud, i * 0.2, "base_link")
+    _, poses = kept.trajectory()
+    assert len(kept.frames) == len(poses) == 4
+    assert plain.frames == []
+    tree = o3d.geometry.KDTreeFlann(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept.map_points()))
+    )
+    for pts, pose in zip(kept.frames, poses, strict=True):
+        placed = transform(pts.astype(np.float64), pose)[::50]
+        gaps = [math.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in placed]
+        assert float(np.median(gaps)) < 0.03  # on the map, not beside it

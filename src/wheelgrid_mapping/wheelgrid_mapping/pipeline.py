@@ -567,6 +567,12 @@ class Mapper:
         return np.asarray(self.stamps), poses
 
     @property
+    def frames(self) -> list[np.ndarray]:
+        """The kept frames' filtered sensor-frame points (``keep_frames``), one per pose of
+        :meth:`trajectory`: what a caller needs to ask which frame saw what (empty otherwise)."""
+        return self._frames
+
+    @property
     def state(self) -> str:
         return self.registrar.state
 
