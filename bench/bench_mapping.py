@@ -254,6 +254,11 @@ def position_rmse(poses: Any, true: Any) -> float:
     return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
 
 
+def true_at(gt_stamps: np.ndarray, gt: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+    """The simulator's true poses (``poses_map.tum``) at the mapper's frame ``stamps``."""
+    return gt[np.clip(np.searchsorted(gt_stamps, stamps - 1e-4), 0, len(gt_stamps) - 1)]
+
+
 def fidelity(
     sim: Path, frames_limit: int, label: str, prior: bool, method: str, prior_scale: float = 1.0
 ) -> Mapper:
@@ -279,8 +284,7 @@ def fidelity(
     def matched() -> tuple[np.ndarray, np.ndarray]:
         """The mapper's poses and the true poses at the same stamps."""
         stamps, poses = m.trajectory()
-        idx = np.clip(np.searchsorted(gt_stamps, stamps - 1e-4), 0, len(gt_stamps) - 1)
-        return poses, gt[idx]
+        return poses, true_at(gt_stamps, gt, stamps)
 
     def trajectory_rmse() -> float:
         return position_rmse(*matched())
@@ -322,10 +326,13 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
             m = fidelity(sim, 10_000, name, True, "kiss")
         del ROWS[:]  # fidelity's own rows are not this mode's figures
         stamps, poses = m.trajectory()
-        gt_stamps, gt = read_tum(sim / "poses_map.tum")
-        true = gt[np.clip(np.searchsorted(gt_stamps, stamps - 1e-4), 0, len(gt_stamps) - 1)]
-        at_true = [room_from_map @ t for t in true]
+        true = true_at(*read_tum(sim / "poses_map.tum"), stamps)
         at_reg = [room_from_map @ p for p in poses]
+        # every kept frame at its TRUE pose, once: the faces' boxes select from these
+        there_all = [
+            transform(f.astype(np.float64), room_from_map @ t)
+            for f, t in zip(m.frames, true, strict=True)
+        ]
         pts_room = transform(m.map_points(), room_from_map)
         bars = scene.get("barriers", {})
         for label, a, b, key, axis, normal, _ in TABLE_I:
@@ -337,12 +344,11 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
                 lo, hi = np.asarray(box[:3]), np.asarray(box[3:])
                 moved: list[np.ndarray] = []
                 frames: list[int] = []
-                for i, pts in enumerate(m.frames):
-                    p = pts.astype(np.float64)
-                    there = transform(p, at_true[i])
+                for i, (pts, there) in enumerate(zip(m.frames, there_all, strict=True)):
                     inside = np.all((there >= lo) & (there <= hi), axis=1)
                     if inside.any():
-                        moved.append((transform(p[inside], at_reg[i]) - there[inside]) @ n)
+                        placed = transform(pts[inside].astype(np.float64), at_reg[i])
+                        moved.append((placed - there[inside]) @ n)
                         frames += [i] * int(inside.sum())
                 shift.append(float(np.mean(np.concatenate(moved))) if moved else float("nan"))
                 seen.append(frames)
@@ -671,6 +677,14 @@ def fresh_sim(out: Path, seed: int) -> Path:
     return out
 
 
+def simulated_runs(bundled: Path, seeds: list[int], tmp: Path) -> list[tuple[str, Path]]:
+    """``(label, run)`` of the bundled bag and a fresh simulation per seed (under ``tmp``)."""
+    sims = [("sim paper room (bundled bag)", bundled)]
+    for seed in seeds:
+        sims.append((f"sim seed {seed}", fresh_sim(tmp / str(seed), seed)))
+    return sims
+
+
 #: How far apart two draws of :func:`draws` set the first registration pass's ``prior_scale``:
 #: 1e-5 is a tenth of a millimetre over 10 m, nothing any sensor resolves.
 DRAW_NUDGE = 1e-5
@@ -811,10 +825,7 @@ def main(argv: list[str] | None = None) -> int:
         args.fresh_seed = [] if args.quick else list(range(11, 20))
     if args.face_frames:
         with tempfile.TemporaryDirectory() as tmp:
-            sims = [("sim paper room (bundled bag)", args.sim)]
-            for seed in args.fresh_seed:
-                sims.append((f"sim seed {seed}", fresh_sim(Path(tmp) / str(seed), seed)))
-            face_frames(sims)
+            face_frames(simulated_runs(args.sim, args.fresh_seed, Path(tmp)))
         if args.json:
             args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
         return 0
@@ -822,10 +833,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.draws < 1:
             ap.error("--draws needs at least 1")
         with tempfile.TemporaryDirectory() as tmp:
-            sims = [("sim paper room (bundled bag)", args.sim)]
-            for seed in args.fresh_seed:
-                sims.append((f"sim seed {seed}", fresh_sim(Path(tmp) / str(seed), seed)))
-            draws(sims, args.draws)
+            draws(simulated_runs(args.sim, args.fresh_seed, Path(tmp)), args.draws)
         if args.json:
             args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
         return 0
