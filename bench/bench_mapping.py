@@ -21,7 +21,9 @@ Figures (printed, and with ``--json FILE`` as ``{"rows": [...]}``):
 
 * ``--face-frames`` (on its own, about a minute a run): each simulated run with the prior once;
   Table I's gaps along their true normal against the gap the registered poses alone make, and
-  which frames see each face (whether a miss is the map's or the ruler's).
+  which frames see each face (whether a miss is the map's or the ruler's), cut into visits:
+  the gap the stretch that sees both faces makes alone, and how far a face's returns from
+  other stretches lie from it (two copies of one face).
 
 Run: ``python bench/bench_mapping.py [--quick] [--json out.json]``.
 """
@@ -36,6 +38,7 @@ import resource
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -316,8 +319,15 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
     normal, averaged over the face, is the face's shift. Face b's shift less face a's is the
     gap error the trajectory makes; what the map reads beyond that is the ruler's (noise, the
     legs' sides, the evidence filter). On the paper room's route 9(a)'s two faces are seen
-    from its two ends, so this says whether a miss is the map's or the ruler's."""
-    rows: dict[str, list[tuple[float, float]]] = {}
+    from its two ends, so this says whether a miss is the map's or the ruler's.
+
+    Each face's returns are also cut into visits (:func:`face_visits`). The visits during
+    which the other face is in view too are the gap's *common stretch*: the error those alone
+    make is what a map of that stretch would read, with no loop's odometry in it. A face's
+    returns from other visits (table B's from the start) lie apart from those by what the
+    loop between left in the map: two copies of one face."""
+    rows: dict[str, list[tuple[float, float, float]]] = {}
+    splits: dict[str, list[float]] = {}
     for name, sim in sims:
         scene = json.loads((sim / "scene.json").read_text())
         truth = json.loads((sim / "truth.json").read_text())
@@ -339,48 +349,122 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
             if normal is None or bars.get(key) is None:
                 continue
             n = np.asarray(normal, dtype=np.float64)
-            shift, seen = [], []
+            faces: list[list[Visit]] = []
             for box in (a, b):
                 lo, hi = np.asarray(box[:3]), np.asarray(box[3:])
-                moved: list[np.ndarray] = []
-                frames: list[int] = []
+                seen: dict[int, np.ndarray] = {}
                 for i, (pts, there) in enumerate(zip(m.frames, there_all, strict=True)):
                     inside = np.all((there >= lo) & (there <= hi), axis=1)
                     if inside.any():
                         placed = transform(pts[inside].astype(np.float64), at_reg[i])
-                        moved.append((placed - there[inside]) @ n)
-                        frames += [i] * int(inside.sum())
-                shift.append(float(np.mean(np.concatenate(moved))) if moved else float("nan"))
-                seen.append(frames)
+                        seen[i] = (placed - there[inside]) @ n
+                faces.append(face_visits(seen, stamps))
+            if not all(faces):
+                print(f"{name}: {label}: a face no frame sees")
+                continue
             try:
                 along = measure(pts_room, a, b, axis, along=normal)
             except ValueError as exc:
                 print(f"{name}: {label}: not measurable ({exc})")
                 continue
             read = 100.0 * (along.distance - bars[key])
+            shift = [visits_shift(v) for v in faces]
             made = 100.0 * (shift[1] - shift[0])
-            rows.setdefault(label, []).append((read, made))
+            # the gap the faces' common stretches alone make (a map of them would read it),
+            # and how far each face's returns from other stretches lie from those
+            common = [together(faces[0], faces[1]), together(faces[1], faces[0])]
+            shared = float("nan")  # the faces are never in view together
+            if common[0][0] and common[1][0]:
+                shared = 100.0 * (visits_shift(common[1][0]) - visits_shift(common[0][0]))
+            rows.setdefault(label, []).append((read, made, shared))
+            for inside, outside in common:
+                if outside:
+                    apart = visits_shift(outside) - visits_shift(inside)
+                    splits.setdefault(label, []).append(100.0 * abs(apart))
             where = "; ".join(
-                f"face {side} {len(f)} returns, frames {np.percentile(f, 10):.0f}-"
-                f"{np.percentile(f, 90):.0f} (median {np.median(f):.0f}), "
-                f"shift {100 * sh:+.2f} cm"
-                for side, f, sh in zip("ab", seen, shift, strict=True)
-                if f
+                f"face {side} {sum(x.returns for x in v)} returns, shift {100 * sh:+.2f} cm, "
+                + " + ".join(
+                    f"frames {x.first}-{x.last} ({x.returns} at {100 * x.shift:+.2f} cm)" for x in v
+                )
+                for side, v, sh in zip("ab", faces, shift, strict=True)
             )
             print(
                 f"{name}: {label} along the TRUE normal reads {read:+.2f} cm, the poses make "
                 f"{made:+.2f} cm; {where}",
                 flush=True,
             )
-    for label, pairs in rows.items():
-        read, made = np.array(pairs).T
-        runs = f"{label}, {len(pairs)} runs"
-        if len(pairs) > 2:
+    for label, runs_ in rows.items():
+        read, made, shared = np.array(runs_).T
+        runs = f"{label}, {len(runs_)} runs"
+        if len(runs_) > 2:
             r = float(np.corrcoef(read, made)[0, 1])
             row(f"{runs}: correlation, map's error against the poses'", r, "")
-        row(f"{runs}: same sign", int(np.sum(np.sign(read) == np.sign(made))), f"of {len(pairs)}")
+        row(f"{runs}: same sign", int(np.sum(np.sign(read) == np.sign(made))), f"of {len(runs_)}")
         row(f"{runs}: mean size of the error", float(np.mean(np.abs(read))), "cm")
         row(f"{runs}: mean size of what the poses leave", float(np.mean(np.abs(read - made))), "cm")
+        row(
+            f"{runs}: mean size of the error the common stretch makes",
+            float(np.nanmean(np.abs(shared))),
+            "cm",
+        )
+        if splits.get(label):
+            d = splits[label]
+            row(
+                f"{label}: {len(d)} faces also seen elsewhere: those returns apart from the "
+                "common stretch's by (mean)",
+                float(np.mean(d)),
+                "cm",
+            )
+
+
+@dataclass
+class Visit:
+    """One stretch of a run during which a face stays in view: its returns' mean shift."""
+
+    first: int  # first frame
+    last: int  # last frame
+    returns: int
+    shift: float  # m, mean displacement along the true normal at the registered poses
+
+
+#: A face out of view for longer than this and seen again: a second visit (the route's way
+#: back), whose poses carry the odometry of the loop between.
+VISIT_GAP_S = 3.0
+
+
+def face_visits(seen: dict[int, np.ndarray], stamps: np.ndarray) -> list[Visit]:
+    """A face's returns (``seen``: frame -> their shifts) cut into visits, in time order."""
+    out: list[Visit] = []
+    parts: list[np.ndarray] = []
+    prev = None
+    for i in sorted(seen):
+        if prev is None or stamps[i] - stamps[prev] > VISIT_GAP_S:
+            if parts:
+                out[-1].shift = float(np.mean(np.concatenate(parts)))
+            out.append(Visit(i, i, 0, 0.0))
+            parts = []
+        out[-1].last = i
+        out[-1].returns += len(seen[i])
+        parts.append(seen[i])
+        prev = i
+    if parts:
+        out[-1].shift = float(np.mean(np.concatenate(parts)))
+    return out
+
+
+def together(face: list[Visit], other: list[Visit]) -> tuple[list[Visit], list[Visit]]:
+    """``face``'s visits during which ``other`` is in view too, and the rest. A gap read from
+    the first alone carries only the odometry of one stretch; the rest carry a loop's."""
+
+    def overlaps(v: Visit) -> bool:
+        return any(v.first <= w.last and w.first <= v.last for w in other)
+
+    return [v for v in face if overlaps(v)], [v for v in face if not overlaps(v)]
+
+
+def visits_shift(visits: list[Visit]) -> float:
+    """The face's shift over all its returns, every visit weighted by its returns."""
+    return sum(v.shift * v.returns for v in visits) / max(sum(v.returns for v in visits), 1)
 
 
 def prior_scale_rows(label: str, lc: dict[str, Any]) -> None:
