@@ -373,12 +373,11 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
             # the gap the faces' common stretches alone make (a map of them would read it),
             # and how far each face's returns from other stretches lie from those
             common = [together(faces[0], faces[1]), together(faces[1], faces[0])]
-            shared = float("nan")  # the faces are never in view together
-            if common[0][0] and common[1][0]:
-                shared = 100.0 * (visits_shift(common[1][0]) - visits_shift(common[0][0]))
+            # (NaN where the faces are never in view together)
+            shared = 100.0 * (visits_shift(common[1][0]) - visits_shift(common[0][0]))
             rows.setdefault(label, []).append((read, made, shared))
             for inside, outside in common:
-                if outside:
+                if inside and outside:
                     apart = visits_shift(outside) - visits_shift(inside)
                     splits.setdefault(label, []).append(100.0 * abs(apart))
             where = "; ".join(
@@ -393,13 +392,13 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
                 f"{made:+.2f} cm; {where}",
                 flush=True,
             )
-    for label, runs_ in rows.items():
-        read, made, shared = np.array(runs_).T
-        runs = f"{label}, {len(runs_)} runs"
-        if len(runs_) > 2:
+    for label, per_run in rows.items():
+        read, made, shared = np.array(per_run).T
+        runs = f"{label}, {len(per_run)} runs"
+        if len(per_run) > 2:
             r = float(np.corrcoef(read, made)[0, 1])
             row(f"{runs}: correlation, map's error against the poses'", r, "")
-        row(f"{runs}: same sign", int(np.sum(np.sign(read) == np.sign(made))), f"of {len(runs_)}")
+        row(f"{runs}: same sign", int(np.sum(np.sign(read) == np.sign(made))), f"of {len(per_run)}")
         row(f"{runs}: mean size of the error", float(np.mean(np.abs(read))), "cm")
         row(f"{runs}: mean size of what the poses leave", float(np.mean(np.abs(read - made))), "cm")
         row(
@@ -417,7 +416,7 @@ def face_frames(sims: list[tuple[str, Path]]) -> None:
             )
 
 
-@dataclass
+@dataclass(frozen=True)
 class Visit:
     """One stretch of a run during which a face stays in view: its returns' mean shift."""
 
@@ -434,22 +433,20 @@ VISIT_GAP_S = 3.0
 
 def face_visits(seen: dict[int, np.ndarray], stamps: np.ndarray) -> list[Visit]:
     """A face's returns (``seen``: frame -> their shifts) cut into visits, in time order."""
-    out: list[Visit] = []
-    parts: list[np.ndarray] = []
-    prev = None
+    groups: list[list[int]] = []
     for i in sorted(seen):
-        if prev is None or stamps[i] - stamps[prev] > VISIT_GAP_S:
-            if parts:
-                out[-1].shift = float(np.mean(np.concatenate(parts)))
-            out.append(Visit(i, i, 0, 0.0))
-            parts = []
-        out[-1].last = i
-        out[-1].returns += len(seen[i])
-        parts.append(seen[i])
-        prev = i
-    if parts:
-        out[-1].shift = float(np.mean(np.concatenate(parts)))
-    return out
+        if not groups or stamps[i] - stamps[groups[-1][-1]] > VISIT_GAP_S:
+            groups.append([])
+        groups[-1].append(i)
+    return [
+        Visit(
+            g[0],
+            g[-1],
+            sum(len(seen[i]) for i in g),
+            float(np.mean(np.concatenate([seen[i] for i in g]))),
+        )
+        for g in groups
+    ]
 
 
 def together(face: list[Visit], other: list[Visit]) -> tuple[list[Visit], list[Visit]]:
@@ -463,8 +460,10 @@ def together(face: list[Visit], other: list[Visit]) -> tuple[list[Visit], list[V
 
 
 def visits_shift(visits: list[Visit]) -> float:
-    """The face's shift over all its returns, every visit weighted by its returns."""
-    return sum(v.shift * v.returns for v in visits) / max(sum(v.returns for v in visits), 1)
+    """The face's shift over all its returns, every visit weighted by its returns (NaN for no
+    visit: no returns, no shift)."""
+    returns = sum(v.returns for v in visits)
+    return sum(v.shift * v.returns for v in visits) / returns if returns else float("nan")
 
 
 def prior_scale_rows(label: str, lc: dict[str, Any]) -> None:
