@@ -210,6 +210,8 @@ class LoopClosureResult:
     prior_steps: int = 0  # steps between nodes given the prior's turn (ICP kept its drift)
     prior_drift_note: str = ""
     seconds: float = 0.0
+    node_frames: list[int] = dc_field(default_factory=list)  # each node's first frame
+    edges: list[LoopEdge] = dc_field(default_factory=list)  # measured, in the last solve
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -262,6 +264,29 @@ def closed_note(lc: dict[str, Any]) -> str:
 
 # A loop edge: source and target node, ICP result, its information and the horizontal projector.
 Edge = tuple[int, int, np.ndarray, np.ndarray, np.ndarray | None]
+
+
+@dataclass(frozen=True)
+class LoopEdge:
+    """A loop edge as the last solve saw it: what its ICP measured and whether the graph kept
+    it. Nothing downstream needs it; it is there so that a benchmark with the true poses can
+    tell an edge's own error from the graph's (``bench_mapping.py --loop-edges``)."""
+
+    source: int  # node
+    target: int  # node
+    transformation: np.ndarray  # 4x4: the ICP result, source node frame -> target node frame
+    information: np.ndarray  # 6x6, [omega, t], source frame (horizontal part with ``up``)
+    projector: np.ndarray | None  # 6x6 onto yaw and horizontal translation, or None
+    radius: float  # m, RMS distance of the source submap's points from its node
+    kept: bool  # the line process and the residual test left it in the graph
+
+    def observed_error(self, T: np.ndarray, true: np.ndarray, ratio: float) -> float:
+        """How far (m) a relative pose ``T`` of the edge's nodes lies from the ``true`` one
+        along the directions the edge observes, its rotation taken at the submap radius."""
+        x, _ = _observed_motion(
+            np.linalg.inv(true) @ T, self.information, self.projector, self.radius, ratio
+        )
+        return float(np.linalg.norm(x[3:]) + self.radius * np.linalg.norm(x[:3]))
 
 
 def observable_part(
@@ -330,6 +355,41 @@ def submap_groups(stamps: Sequence[float], seconds: float) -> list[list[int]]:
     return groups
 
 
+def submap(
+    frames: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    group: Sequence[int],
+    cfg: LoopClosureConfig,
+) -> tuple[Any, float]:
+    """The submap of frames ``group`` placed at ``poses``, in the frame of its first pose
+    (the node): an Open3D cloud on ``cfg.submap_voxel`` with normals for point-to-plane ICP,
+    and its points' RMS distance from the node (m; 1 for an empty one), which scales rotation
+    against translation in the edge's information."""
+    import open3d as o3d
+
+    a_inv = np.linalg.inv(poses[group[0]])
+    pts = np.vstack([transform(np.asarray(frames[i], np.float64), a_inv @ poses[i]) for i in group])
+    pts = voxel_downsample(pts, cfg.submap_voxel)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(cfg.normal_radius, 30))
+    radius = float(np.sqrt((pts**2).sum(axis=1).mean())) if pts.size else 1.0
+    return pc, radius
+
+
+def loop_icp(src: Any, tgt: Any, init: np.ndarray) -> np.ndarray:
+    """Multi-scale (20, 10, 5 cm) point-to-plane ICP of submap ``src`` onto ``tgt`` from
+    ``init``: the loop edge's measurement, before its unobserved part is dropped."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    est = reg.TransformationEstimationPointToPlane()
+    crit = reg.ICPConvergenceCriteria(max_iteration=30)
+    T = np.asarray(init, dtype=np.float64)
+    for d in (0.2, 0.1, 0.05):
+        T = reg.registration_icp(src, tgt, d, T, est, crit).transformation
+    return np.asarray(T)
+
+
 def close_loops(
     frames: Sequence[np.ndarray],
     poses: Sequence[np.ndarray],
@@ -367,6 +427,7 @@ def close_loops(
         raise ValueError("close_loops: priors and poses differ in length")
     groups = submap_groups([float(t) for t in stamps], cfg.submap_seconds)
     out.nodes = len(groups)
+    out.node_frames = [g[0] for g in groups]
     if len(groups) < 3:
         out.seconds = time.perf_counter() - t0
         return out
@@ -376,21 +437,16 @@ def close_loops(
         g_up = np.asarray(up, dtype=np.float64) / float(np.linalg.norm(up))
     subs, radii, boxes = [], [], []
     for g, a in zip(groups, anchors, strict=True):
-        a_inv = np.linalg.inv(a)
-        pts = np.vstack([transform(np.asarray(frames[i], np.float64), a_inv @ P[i]) for i in g])
-        pts = voxel_downsample(pts, cfg.submap_voxel)
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(cfg.normal_radius, 30))
+        pc, radius = submap(frames, P, g, cfg)
+        pts = np.asarray(pc.points)
         subs.append(pc)
-        radii.append(float(np.sqrt((pts**2).sum(axis=1).mean())) if pts.size else 1.0)
+        radii.append(radius)
         world = transform(pts, a) if pts.size else np.zeros((1, 3))
         boxes.append((world.min(axis=0), world.max(axis=0)))
 
     # Loop edges: ICP between overlapping submaps, once. ``T`` is the ICP result, ``H`` its
     # information (source frame, horizontal part only when ``up`` is known), ``S`` that
     # projector: later passes re-read the same measurement against the undrifted guess.
-    est = reg.TransformationEstimationPointToPlane()
-    crit = reg.ICPConvergenceCriteria(max_iteration=30)
     edges: list[Edge] = []
     refused = out.refused
     for i in range(len(groups)):
@@ -404,9 +460,7 @@ def close_loops(
             if pre.fitness < 0.5 * cfg.min_overlap:
                 continue
             out.candidates += 1
-            T = init
-            for d in (0.2, 0.1, 0.05):
-                T = reg.registration_icp(subs[i], subs[j], d, T, est, crit).transformation
+            T = loop_icp(subs[i], subs[j], init)
             g = anchors[i][:3, :3].T @ g_up if g_up is not None else None
             H, fitness = _point_to_plane_information(subs[i], subs[j], T, 0.03, g)
             if H is None or fitness < cfg.min_overlap:
@@ -469,6 +523,7 @@ def close_loops(
         out.drift_scale = (1.0 + out.drift_scale) * (1.0 + scale) - 1.0
         out.drift_deg_per_m += math.degrees(yaw)
     out.poses = corrected
+    out.edges = [LoopEdge(i, j, T, H, S, radii[i], (i, j) in kept) for i, j, T, H, S in edges]
     for p, q in zip(P, corrected, strict=True):
         out.max_shift_m = max(out.max_shift_m, float(np.linalg.norm(q[:3, 3] - p[:3, 3])))
         out.max_turn_deg = max(out.max_turn_deg, rotation_angle_deg(np.linalg.inv(p) @ q))
