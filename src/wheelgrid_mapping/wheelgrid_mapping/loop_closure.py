@@ -283,10 +283,9 @@ class LoopEdge:
     def observed_error(self, T: np.ndarray, true: np.ndarray, ratio: float) -> float:
         """How far (m) a relative pose ``T`` of the edge's nodes lies from the ``true`` one
         along the directions the edge observes, its rotation taken at the submap radius."""
-        x, _ = _observed_motion(
+        return _observed_distance(
             np.linalg.inv(true) @ T, self.information, self.projector, self.radius, ratio
         )
-        return float(np.linalg.norm(x[3:]) + self.radius * np.linalg.norm(x[:3]))
 
 
 def observable_part(
@@ -749,6 +748,17 @@ def _observed_motion(
     return observable_part(H, xw, radius, ratio)
 
 
+def _observed_distance(
+    M: np.ndarray, H: np.ndarray, S: np.ndarray | None, radius: float, ratio: float
+) -> float:
+    """How far (m) a source-node motion ``M`` moves an edge's overlap along the directions
+    it observes, rotation taken at the submap ``radius``: the one size in which a loop edge's
+    residual (:func:`_worst_loop_edge`) and its error against truth (:class:`LoopEdge`) are
+    both read."""
+    xo, _ = _observed_motion(M, H, S, radius, ratio)
+    return math.hypot(float(np.linalg.norm(xo[3:])), radius * float(np.linalg.norm(xo[:3])))
+
+
 def _solve(
     anchors: list[np.ndarray],
     edges: list[Edge],
@@ -866,8 +876,7 @@ def _worst_loop_edge(
         init = np.linalg.inv(anchors[j]) @ anchors[i]
         _, Te, _ = _edge_measurement(init, T, H, S, radii[i], cfg.observable_ratio)
         solved = np.linalg.inv(Te) @ np.linalg.inv(nodes[j]) @ nodes[i]
-        xo, _ = _observed_motion(solved, H, S, radii[i], cfg.observable_ratio)
-        r = math.hypot(float(np.linalg.norm(xo[3:])), radii[i] * float(np.linalg.norm(xo[:3])))
+        r = _observed_distance(solved, H, S, radii[i], cfg.observable_ratio)
         if r > worst_r:
             worst, worst_r = n, r
     return worst, worst_r
