@@ -59,6 +59,10 @@ def test_loop_closure_runs_and_is_reported(sim_dir: Path, tmp_path: Path, capsys
     assert f"{lc['loop_edges']} loop edges over {lc['nodes']} submaps" in line, line
     assert f"drift removed {lc['drift_scale_pct']:+.2f} % scale" in line, line
     assert lc["nodes"] == 6 and lc["loop_edges"] >= 1, lc
+    # and which submaps the room's right angles held (the paper room is square: all of them)
+    square = next(x for x in err.splitlines() if "right angles" in x)
+    assert lc["manhattan_nodes"] >= 4, lc
+    assert f"{lc['manhattan_nodes']} of {lc['nodes']} submaps held" in square, square
     assert lc["max_pose_shift_m"] < 0.1  # 6 s of a slow chair: drift, not a jump
     stamps, poses = read_tum(tmp_path / "lc" / "trajectory.tum")
     assert len(stamps) == rep["frames"]["used"]

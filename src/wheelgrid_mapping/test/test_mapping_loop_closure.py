@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from wheelgrid_mapping.levelling import rpy_matrix
 from wheelgrid_mapping.loop_closure import (
     LoopClosureConfig,
     PriorYaw,
+    RightAngles,
     _point_to_plane_information,
     close_loops,
     estimate_drift,
@@ -21,9 +23,12 @@ from wheelgrid_mapping.loop_closure import (
     observable_part,
     path_length,
     prior_yaw_drift,
+    right_angle_reading,
     solve_rejecting,
+    submap,
     submap_groups,
     undrift,
+    wide_normals,
 )
 from wheelgrid_mapping.pipeline import Mapper
 from wheelgrid_mapping.se3 import exp_se3, rotation_angle_deg
@@ -452,3 +457,141 @@ def test_close_loops_reads_the_prior_only_when_asked_and_given_whole(lap) -> Non
     off = close_loops(frames, prior, STAMPS, LoopClosureConfig(submap_seconds=1.0,
                       prior_drift=False), up=up, priors=prior)  # fmt: skip
     assert off.prior_drift_deg_per_m is None and "prior_drift_deg_per_m" not in off.summary()
+
+
+def reading_deg(frame: np.ndarray, T: np.ndarray) -> float | None:
+    """The right-angle reading of one sensor frame seen from ``T``, as a heading in the world
+    (deg, modulo 90)."""
+    pc, _ = submap([frame], [T], [0], LoopClosureConfig())
+    up = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    r = right_angle_reading(wide_normals(pc), up)
+    if r is None:
+        return None
+    reader = RightAngles([r], math.radians(5.0), 0.5, 0.0)
+    (angle,) = reader.world_angles([T], np.array([0.0, 0.0, 1.0]))
+    return (math.degrees(angle) + 45.0) % 90.0 - 45.0
+
+
+def test_a_submap_reads_its_walls_heading_modulo_a_right_angle() -> None:
+    """A view of the room turned 7 deg, then 52 deg: its walls read 7 and -38 deg (modulo 90)
+    in the world, whatever way the sensor looks; a view of the floor alone reads nothing."""
+    rng = np.random.default_rng(3)
+    for turn in (7.0, 52.0):
+        R = exp_se3(np.r_[0.0, 0.0, 0.0, 0.0, 0.0, math.radians(turn)])
+        world = (room_world(5) - [3.0, 2.5, 0.0]) @ R[:3, :3].T
+        for heading in (0.4, 2.0, -2.6):
+            T = pose(0.3, -0.2, heading)
+            got = reading_deg(sensor_view(world, T, rng), T)
+            want = (turn + 45.0) % 90.0 - 45.0
+            assert got is not None and got == pytest.approx(want, abs=0.15), (turn, heading)
+    floor = np.column_stack([rng.uniform(-2, 2, (4000, 2)), np.zeros(4000)])
+    T = pose(0.0, 0.0, 0.0)
+    T[:3, :3] = rpy_matrix(0.0, 1.2, 0.0)  # looking down at it
+    view = (floor - T[:3, 3]) @ T[:3, :3]
+    assert reading_deg(view, T) is None
+
+
+def test_the_right_angle_frame_is_what_most_submaps_agree_on() -> None:
+    """Readings at 1.0-1.3 deg and one submap 20 deg askew: the frame is the agreeing ones'
+    weighted mean, the askew one gets no edge; with too few agreeing, no frame at all."""
+    up = np.array([0.0, 0.0, 1.0])
+    anchors = [pose(0.5 * k, 0.0, 0.0) for k in range(5)]
+    degs = [1.0, 1.2, 1.1, 21.0, 1.3]
+    readings = [(math.radians(d), math.radians(0.1)) for d in degs]
+    psi, agree = RightAngles(readings, math.radians(5.0), 0.5, 0.0).frame(anchors, up)
+    assert math.degrees(psi) == pytest.approx(1.15, abs=1e-6) and agree == [0, 1, 2, 4]
+    # a turned anchor turns its reading with it: the heading is read in the world
+    turned = [*anchors[:2], exp_se3(np.r_[0, 0, 0, 0, 0, math.radians(30.0)]) @ anchors[2]]
+    assert RightAngles(readings[:3], math.radians(5.0), 0.5, 0.0).world_angles(turned, up)[
+        2
+    ] == pytest.approx(math.radians(31.1))
+    strict = RightAngles(readings, math.radians(5.0), 0.9, 0.0)
+    assert strict.frame(anchors, up)[1] == [] and "4 of 5 submaps agree" in strict.note
+    few = RightAngles([readings[0], None, None, None, readings[1]], math.radians(5.0), 0.5, 0.0)
+    assert few.edges(anchors, up, 1e-6, 1e-4) is None and "< 3" in few.note
+
+
+def test_the_right_angles_turn_back_a_stretch_no_loop_reaches(lap) -> None:
+    """Poses that turned 0.5 deg/m too far (1.5 deg by node 20), loops only among the second
+    half's nodes: the graph keeps the first half's turn. Each node's walls, read modulo 90 deg,
+    turn it back; poses already right stay right."""
+    frames, truth = lap
+    up = np.array([0.0, 0.0, 1.0])
+    prior = vio_drift(truth, 0.0, 0.5)
+    H = np.diag([4.0, 4.0, 4.0, 1.0, 1.0, 1.0])
+    S = np.zeros((6, 6))
+    S[:3, :3] = np.outer(up, up)
+    S[3:, 3:] = np.eye(3) - np.outer(up, up)
+
+    def edges() -> list:
+        pairs = [(i, j) for i in range(20, 40) for j in range(i + 5, 40, 5)]
+        return [(i, j, np.linalg.inv(truth[j]) @ truth[i], S @ H @ S, S) for i, j in pairs]
+
+    cfg = LoopClosureConfig()
+    readings = []
+    for k in range(len(frames)):
+        pc, _ = submap(frames, truth, [k], cfg)
+        readings.append(right_angle_reading(wide_normals(pc), truth[k][:3, :3].T @ up))
+    assert sum(r is not None for r in readings) >= 35
+    radii = [2.0] * len(truth)
+    plain, _, _ = solve_rejecting(prior, edges(), radii, cfg)
+    right = RightAngles(
+        readings,
+        math.radians(cfg.manhattan_gate_deg),
+        cfg.manhattan_min_share,
+        math.radians(cfg.manhattan_sigma_deg) ** 2,
+    )
+    # as close_loops does once the right angles are in: the online turns trusted less
+    loose = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
+    fixed, _, rejected = solve_rejecting(prior, edges(), radii, loose, None, up, right)
+    assert abs(heading_error_deg(plain, truth)[20]) > 1.0
+    assert rejected == 0 and right.used >= 35
+    assert np.abs(heading_error_deg(fixed, truth)).max() < 0.15
+    assert worst(fixed, truth)[0] < 0.3 * worst(plain, truth)[0]
+    np.testing.assert_allclose(fixed[0], prior[0], atol=1e-9)  # the reference stays
+    kept, _, _ = solve_rejecting(truth, edges(), radii, loose, None, up, right)
+    assert worst(kept, truth)[0] < 0.005 and worst(kept, truth)[1] < 0.1
+
+
+def test_close_loops_reports_the_right_angle_edges(lap) -> None:
+    """With the map's up, every submap of the lap reads the room's right angles and gets its
+    yaw edge (the summary says how many); without up, or switched off, none."""
+    frames, truth = lap
+    up = np.array([0.0, 0.0, 1.0])
+    odo = drifted(truth, 0.08, 0.0)
+    cfg = LoopClosureConfig(submap_seconds=1.0)
+    res = close_loops(frames, odo, STAMPS, cfg, up=up)
+    assert res.manhattan_nodes == res.nodes and res.summary()["manhattan_nodes"] == res.nodes
+    assert worst(res.poses, truth)[1] < 0.2
+    assert close_loops(frames, odo, STAMPS, cfg).manhattan_nodes == 0
+    off = LoopClosureConfig(submap_seconds=1.0, manhattan=False)
+    assert close_loops(frames, odo, STAMPS, off, up=up).manhattan_nodes == 0
+    with pytest.raises(ValueError, match="manhattan_gate_deg"):
+        LoopClosureConfig(manhattan_gate_deg=45.0)
+    for bad in ("manhattan_sigma_deg", "manhattan_odometry_sigma_deg"):
+        with pytest.raises(ValueError, match=bad):
+            LoopClosureConfig(**{bad: 0.0})
+
+
+def test_a_room_without_right_angles_gets_no_right_angle_edges(lap) -> None:
+    """A hexagonal room: its walls read 0, -30 and 30 deg modulo 90, no frame is agreed on by
+    half of the submaps, and the graph assumes nothing (the note says why); the odometry's
+    turns keep their usual trust."""
+    _, truth = lap
+    rng = np.random.default_rng(11)
+    walls = []
+    for k in range(6):
+        a0, a1 = 2 * math.pi * k / 6, 2 * math.pi * (k + 1) / 6
+        s = rng.uniform(0, 1, 25000)
+        z = rng.uniform(0, 2.6, 25000)
+        x = 3.0 + 3.2 * ((1 - s) * math.cos(a0) + s * math.cos(a1))
+        y = 2.5 + 3.2 * ((1 - s) * math.sin(a0) + s * math.sin(a1))
+        walls.append(np.column_stack([x, y, z]))
+    floor = np.column_stack([rng.uniform(0, 6, (20000, 2)) - [0.0, 0.5], np.zeros(20000)])
+    world = np.vstack([*walls, floor])
+    frames = [sensor_view(world, T, rng) for T in truth]
+    up = np.array([0.0, 0.0, 1.0])
+    res = close_loops(frames, truth, STAMPS, LoopClosureConfig(submap_seconds=1.0), up=up)
+    assert res.manhattan_nodes == 0 and "agree on a right-angle frame" in res.manhattan_note
+    assert "manhattan_note" in res.summary()
+    assert worst(res.poses, truth)[1] < 0.1  # consistent poses stay put

@@ -188,6 +188,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def right_angle_line(lc: dict[str, Any]) -> str:
+    """The summary line on the room's right angles (``loop_closure.manhattan``): how many
+    submaps were turned to them, or why none was, so a user mapping a room whose walls are not
+    square learns that the graph did not assume they were."""
+    if lc.get("manhattan_nodes"):
+        return (
+            f"loop closure: {lc['manhattan_nodes']} of {lc['nodes']} submaps held to the "
+            "room's right angles (walls, legs and edges read modulo 90 deg)"
+        )
+    return f"loop closure: the room's right angles not used ({lc['manhattan_note']})"
+
+
 def prior_scale_line(ps: dict[str, Any]) -> str:
     """One line on the pose prior's scale as online ICP measured it, and what was done."""
     se = "?" if ps["stderr_pct"] is None else f"{ps['stderr_pct']:.2f}"
@@ -296,6 +308,8 @@ def _run(args: argparse.Namespace) -> int:
                 + (f" ({lc['prior_drift_note']})" if "prior_drift_note" in lc else ""),
                 file=sys.stderr,
             )
+        if lc.get("manhattan_nodes") or "manhattan_note" in lc:
+            print(right_angle_line(lc), file=sys.stderr)
         if "prior_scale" in lc:
             print(prior_scale_line(lc["prior_scale"]), file=sys.stderr)
     try:

@@ -54,7 +54,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from dataclasses import field as dc_field
 from typing import Any
 
@@ -149,6 +149,39 @@ class LoopClosureConfig:
         "(a run's first leg) are turned right too",
         "",
     )
+    manhattan: bool = field(
+        True,
+        "with the map's up known: read each submap's walls, legs and edges modulo 90 deg (a room's "
+        "right angles) and give every submap whose reading agrees with the others' a yaw edge to "
+        "one free right-angle frame, so a heading error no loop reaches (a run's first leg) is "
+        "turned back too; not used where too few submaps agree (a room without right angles)",
+        "",
+    )
+    manhattan_gate_deg: float = field(
+        5.0,
+        "a submap whose vertical surfaces read farther than this from the right-angle frame the "
+        "submaps agree on gets no yaw edge (a wall at another angle, furniture askew)",
+        "deg",
+    )
+    manhattan_sigma_deg: float = field(
+        0.3,
+        "a right-angle reading is trusted to its points' scatter and never beyond this: how far "
+        "a room's walls may be from square, and the reading from its walls",
+        "deg",
+    )
+    manhattan_odometry_sigma_deg: float = field(
+        0.3,
+        "with the right angles in the graph, the online turn between consecutive submaps is "
+        "trusted to this instead of odometry_sigma_deg: the right angles hold the heading, and "
+        "online ICP's turn over a 2 s step was 0.2-0.6 deg off on the simulated runs",
+        "deg",
+    )
+    manhattan_min_share: float = field(
+        0.5,
+        "share of the submaps with a reading that must agree on one right-angle frame (within "
+        "manhattan_gate_deg) before any yaw edge is used",
+        "",
+    )
     prior_scale_sigmas: float = field(
         3.0,
         "with a pose prior: where online ICP measured the prior's scale error (its corrections "
@@ -184,6 +217,24 @@ class LoopClosureConfig:
             )
         if self.drift_passes < 1:
             raise ValueError(f"loop_closure drift_passes must be >= 1, not {self.drift_passes}")
+        if not 0.0 < self.manhattan_gate_deg < 45.0:
+            raise ValueError(
+                f"loop_closure manhattan_gate_deg must be in (0, 45), not {self.manhattan_gate_deg}"
+            )
+        if not self.manhattan_odometry_sigma_deg > 0.0:
+            raise ValueError(
+                "loop_closure manhattan_odometry_sigma_deg must be > 0, not "
+                f"{self.manhattan_odometry_sigma_deg}"
+            )
+        if not self.manhattan_sigma_deg > 0.0:
+            raise ValueError(
+                f"loop_closure manhattan_sigma_deg must be > 0, not {self.manhattan_sigma_deg}"
+            )
+        if not 0.0 <= self.manhattan_min_share <= 1.0:
+            raise ValueError(
+                f"loop_closure manhattan_min_share must be in [0, 1], not "
+                f"{self.manhattan_min_share}"
+            )
         if not 0.0 < self.min_overlap <= 1.0:
             raise ValueError(f"loop_closure min_overlap must be in (0, 1], not {self.min_overlap}")
 
@@ -209,6 +260,8 @@ class LoopClosureResult:
     prior_walk_deg_per_sqrt_s: float | None = None  # its heading's random walk beyond that
     prior_steps: int = 0  # steps between nodes given the prior's turn (ICP kept its drift)
     prior_drift_note: str = ""
+    manhattan_nodes: int = 0  # submaps given a yaw edge to the right-angle frame (last solve)
+    manhattan_note: str = ""
     seconds: float = 0.0
     node_frames: list[int] = dc_field(default_factory=list)  # each node's first frame
     edges: list[LoopEdge] = dc_field(default_factory=list)  # measured, in the last solve
@@ -240,6 +293,8 @@ class LoopClosureResult:
             ),
             **({"prior_steps": self.prior_steps} if self.prior_steps else {}),
             **({"prior_drift_note": self.prior_drift_note} if self.prior_drift_note else {}),
+            "manhattan_nodes": self.manhattan_nodes,
+            **({"manhattan_note": self.manhattan_note} if self.manhattan_note else {}),
             "seconds": round(self.seconds, 3),
         }
 
@@ -254,6 +309,8 @@ def closed_note(lc: dict[str, Any]) -> str:
         f"{lc['nodes']} submaps, poses moved <= {lc['max_pose_shift_m'] * 100:.1f} cm / "
         f"{lc['max_pose_turn_deg']:.2f} deg, {lc['seconds']:.1f} s"
     )
+    if lc.get("manhattan_nodes"):
+        note += f", {lc['manhattan_nodes']} submaps held to the room's right angles"
     ps = lc.get("prior_scale")
     if ps and ps["applied"]:
         note += (
@@ -359,14 +416,15 @@ def submap(
     poses: Sequence[np.ndarray],
     group: Sequence[int],
     cfg: LoopClosureConfig,
+    origin: int | None = None,
 ) -> tuple[Any, float]:
     """The submap of frames ``group`` placed at ``poses``, in the frame of its first pose
-    (the node): an Open3D cloud on ``cfg.submap_voxel`` with normals for point-to-plane ICP,
-    and its points' RMS distance from the node (m; 1 for an empty one), which scales rotation
-    against translation in the edge's information."""
+    (the node; or of frame ``origin``): an Open3D cloud on ``cfg.submap_voxel`` with normals
+    for point-to-plane ICP, and its points' RMS distance from the node (m; 1 for an empty
+    one), which scales rotation against translation in the edge's information."""
     import open3d as o3d
 
-    a_inv = np.linalg.inv(poses[group[0]])
+    a_inv = np.linalg.inv(poses[group[0] if origin is None else origin])
     pts = np.vstack([transform(np.asarray(frames[i], np.float64), a_inv @ poses[i]) for i in group])
     pts = voxel_downsample(pts, cfg.submap_voxel)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
@@ -442,6 +500,32 @@ def close_loops(
         radii.append(radius)
         world = transform(pts, a) if pts.size else np.zeros((1, 3))
         boxes.append((world.min(axis=0), world.max(axis=0)))
+    right = None
+    if g_up is not None and cfg.manhattan:
+        t = np.asarray(stamps, dtype=np.float64)
+        readings = []
+        for g, a in zip(groups, anchors, strict=True):
+            # the frames within half a submap either side of the node (no farther than the
+            # run goes on both sides): their headings' errors about the node's average out, so
+            # the reading is the node's own, not its submap's, which runs a node ahead of it
+            # (the reference node, with frames on one side only, reads from its own frame)
+            half = min(0.5 * cfg.submap_seconds, t[g[0]] - t[0], t[-1] - t[g[0]])
+            near = np.flatnonzero(np.abs(t - t[g[0]]) <= half + 1e-9)
+            pc, _ = submap(frames, P, list(near), cfg, origin=g[0])
+            readings.append(right_angle_reading(wide_normals(pc), a[:3, :3].T @ g_up))
+        right = RightAngles(
+            readings,
+            math.radians(cfg.manhattan_gate_deg),
+            cfg.manhattan_min_share,
+            math.radians(cfg.manhattan_sigma_deg) ** 2,
+        )
+        if right.frame(anchors, g_up)[1]:
+            # The right angles hold every submap's heading: the online turns between them
+            # need not be held as tightly as alone (every solve below, and the share of the
+            # prior's drift ICP kept, read the odometry's rotation sigma from ``cfg``).
+            cfg = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
+        else:
+            out.manhattan_note, right = right.note, None
 
     # Loop edges: ICP between overlapping submaps, once. ``T`` is the ICP result, ``H`` its
     # information (source frame, horizontal part only when ``up`` is known), ``S`` that
@@ -492,7 +576,7 @@ def close_loops(
     prior_yaw: PriorYaw | None = None
     for k in range(cfg.drift_passes):
         anchors = [current[g[0]] for g in groups]
-        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg, prior_yaw, g_up)
+        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg, prior_yaw, g_up, right)
         out.rejected += rejected
         out.pruned = len(edges) - len(kept)
         out.passes = k + 1
@@ -522,6 +606,8 @@ def close_loops(
         out.drift_scale = (1.0 + out.drift_scale) * (1.0 + scale) - 1.0
         out.drift_deg_per_m += math.degrees(yaw)
     out.poses = corrected
+    if right is not None:
+        out.manhattan_nodes, out.manhattan_note = right.used, right.note
     out.edges = [LoopEdge(i, j, T, H, S, radii[i], (i, j) in kept) for i, j, T, H, S in edges]
     for p, q in zip(P, corrected, strict=True):
         out.max_shift_m = max(out.max_shift_m, float(np.linalg.norm(q[:3, 3] - p[:3, 3])))
@@ -591,6 +677,172 @@ class PriorYaw:
         info = np.zeros((6, 6))
         info[:3, :3] = np.outer(g, g) / self.turn_variance(i)
         return init @ exp_se3(np.r_[0.0, 0.0, 0.0, turn * g]), info
+
+
+#: Radius (m) of the normals a submap's heading is read from (:func:`wide_normals`).
+_RIGHT_ANGLE_NORMAL_RADIUS = 0.3
+#: Vertical surfaces: normals within this of horizontal (|n . up| below it) carry a heading.
+_VERTICAL = 0.2
+#: A submap's reading needs this many vertical points agreeing within the window below.
+_MIN_RIGHT_ANGLE_POINTS = 100
+#: Window (deg) about a submap's right-angle frame in which its points' normals count.
+_RIGHT_ANGLE_WINDOW_DEG = 4.0
+#: Neighbouring normals share most of their neighbours (Open3D's 30): the points' scatter is
+#: worth about one independent reading per this many points.
+_NORMALS_PER_READING = 30
+
+
+def wide_normals(pc: Any) -> np.ndarray:
+    """Normals of a submap's points from their neighbours within
+    :data:`_RIGHT_ANGLE_NORMAL_RADIUS` (at most 100): for reading headings, not for ICP.
+
+    The loop ICP's 15 cm normals lean with the range noise: a wall seen at a slant, its
+    returns scattered 1-3 cm along the rays, tilts a 15 cm patch's normal towards the rays, and
+    a submap seen from one side reads its walls 0.1-0.2 deg turned (at the simulated runs' TRUE
+    poses; up to 1 deg on some submaps). Over 30 cm the wall's own extent outweighs the noise:
+    median 0.03 deg, no mean lean."""
+    import open3d as o3d
+
+    wide = o3d.geometry.PointCloud(pc.points)
+    wide.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(_RIGHT_ANGLE_NORMAL_RADIUS, 100))
+    return np.asarray(wide.normals)
+
+
+def horizontal_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors that span the plane normal to ``up``: where headings are read."""
+    up = np.asarray(up, dtype=np.float64)
+    a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(up, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
+def _fold(angle: np.ndarray | float) -> np.ndarray | float:
+    """An angle modulo 90 deg, in (-45, 45] deg (rad in, rad out): a right-angle frame's."""
+    return np.angle(np.exp(4j * np.asarray(angle))) / 4.0
+
+
+def right_angle_reading(normals: np.ndarray, up: np.ndarray) -> tuple[float, float] | None:
+    """``(angle, standard error)`` in rad: the heading, modulo 90 deg, of a submap's vertical
+    surfaces in its own frame (about ``up``, from :func:`horizontal_basis`), or None where too
+    few of them agree.
+
+    Indoors, walls meet at right angles and furniture mostly stands square to them: the
+    normals of a submap's vertical surfaces, folded modulo 90 deg, pile up at one angle. Its
+    robust mean (the normals within a few degrees of it) is a heading measurement that does
+    not drift: the same wall read from the start and from the far end of a run gives the same
+    angle in the map, whatever the odometry did in between. A diagonal wall, a chair askew or
+    a leg's noisy normals fall outside the window and do not move it."""
+    n = np.asarray(normals, dtype=np.float64)
+    n = n[np.abs(n @ up) < _VERTICAL]
+    if n.shape[0] < _MIN_RIGHT_ANGLE_POINTS:
+        return None
+    e1, e2 = horizontal_basis(up)
+    z = np.exp(4j * np.arctan2(n @ e2, n @ e1))
+    window = math.radians(_RIGHT_ANGLE_WINDOW_DEG)
+    m = float(np.angle(z.mean())) / 4.0
+    dev = np.zeros(0)
+    for _ in range(10):
+        dev = np.angle(z * np.exp(-4j * m)) / 4.0
+        dev = dev[np.abs(dev) < window]
+        if dev.shape[0] < _MIN_RIGHT_ANGLE_POINTS:
+            return None
+        step = float(dev.mean())
+        m += step
+        if abs(step) < 1e-6:
+            break
+    mad = 1.4826 * float(np.median(np.abs(dev - dev.mean())))
+    return float(_fold(m)), mad / math.sqrt(dev.shape[0] / _NORMALS_PER_READING)
+
+
+@dataclass
+class RightAngles:
+    """Each submap's right-angle reading (:func:`right_angle_reading`, in its node frame), and
+    how they enter the graph: one extra, free node holds the room's right-angle frame, and
+    every submap whose reading agrees with it gets a yaw edge to it, weighted by the reading's
+    standard error. The frame is a node, not a fixed heading, so the reference node keeps its
+    place and the readings decide only how the submaps turn relative to one another: a yaw no
+    loop edge reaches (a run's first leg, turned 0.4 deg by the odometry) is turned back."""
+
+    readings: list[tuple[float, float] | None]
+    gate: float  # rad
+    min_share: float
+    floor: float  # rad^2, added to every reading's variance (``manhattan_sigma_deg``)
+    used: int = 0  # submaps given an edge in the last solve
+    note: str = ""
+
+    def world_angles(self, anchors: Sequence[np.ndarray], up: np.ndarray) -> list[float | None]:
+        """Each reading as the heading (rad, about ``up`` in the anchors' frame) it has there."""
+        e1, e2 = horizontal_basis(up)
+        out: list[float | None] = []
+        for a, r in zip(anchors, self.readings, strict=True):
+            if r is None:
+                out.append(None)
+                continue
+            g = a[:3, :3].T @ up
+            f1, f2 = horizontal_basis(g)
+            w = a[:3, :3] @ (math.cos(r[0]) * f1 + math.sin(r[0]) * f2)
+            out.append(math.atan2(float(w @ e2), float(w @ e1)))
+        return out
+
+    def frame(self, anchors: Sequence[np.ndarray], up: np.ndarray) -> tuple[float, list[int]]:
+        """The heading (rad) the readings agree on at ``anchors``, and the submaps within the
+        gate of it (weighted robust mean; empty where fewer than ``min_share`` agree)."""
+        angles = self.world_angles(anchors, up)
+        idx = [k for k, a in enumerate(angles) if a is not None]
+        if len(idx) < 3:
+            self.note = f"{len(idx)} submaps read their vertical surfaces' heading, < 3"
+            return 0.0, []
+        a = np.array([angles[k] for k in idx])
+        w = np.array([1.0 / (self.readings[k][1] ** 2 + self.floor) for k in idx])
+        # start from the heading most readings lie near (a coarse vote), then refine on those
+        votes = [int((np.abs(_fold(a - c)) < self.gate).sum()) for c in a]
+        psi = float(a[int(np.argmax(votes))])
+        inside = np.zeros(len(a), dtype=bool)
+        for _ in range(10):
+            inside = np.abs(_fold(a - psi)) < self.gate
+            step = float((w[inside] * _fold(a[inside] - psi)).sum() / w[inside].sum())
+            psi += step
+            if abs(step) < 1e-9:
+                break
+        share = float(inside.mean())
+        if share < self.min_share:
+            self.note = (
+                f"only {int(inside.sum())} of {len(a)} submaps agree on a right-angle frame "
+                f"(< {100 * self.min_share:.0f} %): not used"
+            )
+            return psi, []
+        self.note = ""
+        return psi, [k for k, ok in zip(idx, inside, strict=True) if ok]
+
+    def edges(
+        self, anchors: Sequence[np.ndarray], up: np.ndarray, rot_var: float, trans_var: float
+    ) -> tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray]]] | None:
+        """The free frame node's starting pose and the graph edges ``(source node, T,
+        information)`` to it: its pin to node 0 in everything but yaw (``rot_var``,
+        ``trans_var``: the odometry's), then one yaw edge per agreeing submap. None where the
+        submaps do not agree."""
+        psi, agree = self.frame(anchors, up)
+        self.used = len(agree)
+        if not agree:
+            return None
+        frame = exp_se3(np.r_[0.0, 0.0, 0.0, psi * up])
+        angles = self.world_angles(anchors, up)
+        out = []
+        g0 = anchors[0][:3, :3].T @ up
+        pin = np.zeros((6, 6))
+        pin[:3, :3] = (np.eye(3) - np.outer(g0, g0)) / rot_var
+        pin[3:, 3:] = np.eye(3) / trans_var
+        out.append((0, np.linalg.inv(frame) @ anchors[0], pin))
+        for k in agree:
+            rel = np.linalg.inv(frame) @ anchors[k]
+            turn = -float(_fold(angles[k] - psi))  # the frame's own axes are e1, e2 too
+            target = exp_se3(np.r_[0.0, 0.0, 0.0, turn * up]) @ rel
+            g = anchors[k][:3, :3].T @ up
+            info = np.zeros((6, 6))
+            info[:3, :3] = np.outer(g, g) / (self.readings[k][1] ** 2 + self.floor)
+            out.append((k, target, info))
+        return frame, out
 
 
 _MIN_TURN_VARIANCE = math.radians(0.01) ** 2  # no step of any prior is trusted beyond this
@@ -766,6 +1018,7 @@ def _solve(
     cfg: LoopClosureConfig,
     prior_yaw: PriorYaw | None = None,
     up: np.ndarray | None = None,
+    right: RightAngles | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]]]:
     """Optimised node poses of the graph with odometry edges from ``anchors`` and the loop
     edges; and the ``(i, j)`` of the loop edges the line process kept. With ``prior_yaw`` (and
@@ -805,6 +1058,14 @@ def _solve(
     preference = weight / max(mean55, 1e-12)
     for i, T, info in prior_edges:  # certain, and not in the line process's mean above
         graph.edges.append(reg.PoseGraphEdge(i, i + 1, T, info, uncertain=False))
+    frame_edges = None
+    if right is not None and up is not None:
+        frame_edges = right.edges(anchors, up, rot_var, cfg.odometry_sigma**2)
+    if frame_edges is not None:  # certain too: each reading is gated and weighted by its error
+        frame, to_frame = frame_edges
+        graph.nodes.append(reg.PoseGraphNode(frame))
+        for i, T, info in to_frame:
+            graph.edges.append(reg.PoseGraphEdge(i, len(anchors), T, info, uncertain=False))
     level = o3d.utility.get_verbosity_level()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     try:
@@ -822,7 +1083,7 @@ def _solve(
     finally:
         o3d.utility.set_verbosity_level(level)
     kept = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
-    return [np.asarray(nd.pose) for nd in graph.nodes], kept
+    return [np.asarray(nd.pose) for nd in graph.nodes][: len(anchors)], kept
 
 
 def solve_rejecting(
@@ -832,6 +1093,7 @@ def solve_rejecting(
     cfg: LoopClosureConfig,
     prior_yaw: PriorYaw | None = None,
     up: np.ndarray | None = None,
+    right: RightAngles | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]], int]:
     """Node poses of the graph solved without the loop edges it cannot agree with; the
     ``(i, j)`` of the loop edges kept, and how many were rejected (removed from ``edges``).
@@ -842,7 +1104,7 @@ def solve_rejecting(
     by more than ``cfg.max_loop_residual`` goes, the worst first, and the graph is solved again
     (one at a time: the worst edge's pull is often what makes a good neighbour disagree).
     """
-    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up)
+    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right)
     rejected = 0
     while cfg.max_loop_residual > 0 and edges:
         worst, residual = _worst_loop_edge(anchors, nodes, edges, kept, radii, cfg)
@@ -850,7 +1112,7 @@ def solve_rejecting(
             break
         del edges[worst]
         rejected += 1
-        nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up)
+        nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right)
     return nodes, kept, rejected
 
 
