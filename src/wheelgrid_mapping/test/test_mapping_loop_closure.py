@@ -16,6 +16,7 @@ from wheelgrid_mapping.loop_closure import (
     LoopClosureConfig,
     PriorYaw,
     RightAngles,
+    Walls,
     _point_to_plane_information,
     close_loops,
     estimate_drift,
@@ -28,6 +29,7 @@ from wheelgrid_mapping.loop_closure import (
     submap,
     submap_groups,
     undrift,
+    wall_planes,
     wide_normals,
 )
 from wheelgrid_mapping.pipeline import Mapper
@@ -376,6 +378,18 @@ def heading_error_deg(poses: list[np.ndarray], truth: list[np.ndarray]) -> np.nd
     )  # fmt: skip
 
 
+def second_half_loops(truth: list[np.ndarray]) -> list:
+    """Exact loop edges (yaw and horizontal only) among the lap's second half: the first half
+    is a stretch no loop reaches."""
+    up = np.array([0.0, 0.0, 1.0])
+    H = np.diag([4.0, 4.0, 4.0, 1.0, 1.0, 1.0])
+    S = np.zeros((6, 6))
+    S[:3, :3] = np.outer(up, up)
+    S[3:, 3:] = np.eye(3) - np.outer(up, up)
+    pairs = [(i, j) for i in range(20, 40) for j in range(i + 5, 40, 5)]
+    return [(i, j, np.linalg.inv(truth[j]) @ truth[i], S @ H @ S, S) for i, j in pairs]
+
+
 def test_the_prior_turns_a_stretch_no_loop_reaches(lap) -> None:
     """Online poses that kept all of the prior's 0.5 deg/m (ICP took nothing out), loops only
     among the second half's nodes: no loop sees the first half's turn, and the graph keeps it
@@ -383,26 +397,17 @@ def test_the_prior_turns_a_stretch_no_loop_reaches(lap) -> None:
     _, truth = lap
     up = np.array([0.0, 0.0, 1.0])
     prior = vio_drift(truth, 0.0, 0.5)
-    H = np.diag([4.0, 4.0, 4.0, 1.0, 1.0, 1.0])
-    S = np.zeros((6, 6))
-    S[:3, :3] = np.outer(up, up)
-    S[3:, 3:] = np.eye(3) - np.outer(up, up)
-
-    def edges() -> list:
-        pairs = [(i, j) for i in range(20, 40) for j in range(i + 5, 40, 5)]
-        return [(i, j, np.linalg.inv(truth[j]) @ truth[i], S @ H @ S, S) for i, j in pairs]
-
     radii = [2.0] * len(truth)
     cfg = LoopClosureConfig()
-    plain, _, _ = solve_rejecting(prior, edges(), radii, cfg)
+    plain, _, _ = solve_rejecting(prior, second_half_loops(truth), radii, cfg)
     travelled = path_length(truth, up)
     yaw = PriorYaw(prior, travelled, np.array(STAMPS), math.radians(0.5), 1e-4, 1e-8)
-    fixed, _, rejected = solve_rejecting(prior, edges(), radii, cfg, yaw, up)
+    fixed, _, rejected = solve_rejecting(prior, second_half_loops(truth), radii, cfg, yaw, up)
     assert abs(heading_error_deg(plain, truth)[20]) > 1.0  # kept: 0.5 deg/m over 3 m
     assert rejected == 0 and np.abs(heading_error_deg(fixed, truth)).max() < 0.1
     assert worst(fixed, truth)[0] < 0.2 * worst(plain, truth)[0]
     # poses ICP already got right stay right: the prior's corrected turns agree with them
-    kept, _, _ = solve_rejecting(truth, edges(), radii, cfg, yaw, up)
+    kept, _, _ = solve_rejecting(truth, second_half_loops(truth), radii, cfg, yaw, up)
     assert worst(kept, truth)[0] < 0.005 and worst(kept, truth)[1] < 0.05
 
 
@@ -518,15 +523,6 @@ def test_the_right_angles_turn_back_a_stretch_no_loop_reaches(lap) -> None:
     frames, truth = lap
     up = np.array([0.0, 0.0, 1.0])
     prior = vio_drift(truth, 0.0, 0.5)
-    H = np.diag([4.0, 4.0, 4.0, 1.0, 1.0, 1.0])
-    S = np.zeros((6, 6))
-    S[:3, :3] = np.outer(up, up)
-    S[3:, 3:] = np.eye(3) - np.outer(up, up)
-
-    def edges() -> list:
-        pairs = [(i, j) for i in range(20, 40) for j in range(i + 5, 40, 5)]
-        return [(i, j, np.linalg.inv(truth[j]) @ truth[i], S @ H @ S, S) for i, j in pairs]
-
     cfg = LoopClosureConfig()
     readings = []
     for k in range(len(frames)):
@@ -534,7 +530,7 @@ def test_the_right_angles_turn_back_a_stretch_no_loop_reaches(lap) -> None:
         readings.append(right_angle_reading(wide_normals(pc), truth[k][:3, :3].T @ up))
     assert sum(r is not None for r in readings) >= 35
     radii = [2.0] * len(truth)
-    plain, _, _ = solve_rejecting(prior, edges(), radii, cfg)
+    plain, _, _ = solve_rejecting(prior, second_half_loops(truth), radii, cfg)
     right = RightAngles(
         readings,
         math.radians(cfg.manhattan_gate_deg),
@@ -543,13 +539,15 @@ def test_the_right_angles_turn_back_a_stretch_no_loop_reaches(lap) -> None:
     )
     # as close_loops does once the right angles are in: the online turns trusted less
     loose = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
-    fixed, _, rejected = solve_rejecting(prior, edges(), radii, loose, None, up, right)
+    fixed, _, rejected = solve_rejecting(
+        prior, second_half_loops(truth), radii, loose, None, up, right
+    )
     assert abs(heading_error_deg(plain, truth)[20]) > 1.0
     assert rejected == 0 and right.used >= 35
     assert np.abs(heading_error_deg(fixed, truth)).max() < 0.15
     assert worst(fixed, truth)[0] < 0.3 * worst(plain, truth)[0]
     np.testing.assert_allclose(fixed[0], prior[0], atol=1e-9)  # the reference stays
-    kept, _, _ = solve_rejecting(truth, edges(), radii, loose, None, up, right)
+    kept, _, _ = solve_rejecting(truth, second_half_loops(truth), radii, loose, None, up, right)
     assert worst(kept, truth)[0] < 0.005 and worst(kept, truth)[1] < 0.1
 
 
@@ -595,3 +593,104 @@ def test_a_room_without_right_angles_gets_no_right_angle_edges(lap) -> None:
     assert res.manhattan_nodes == 0 and "agree on a right-angle frame" in res.manhattan_note
     assert "manhattan_note" in res.summary()
     assert worst(res.poses, truth)[1] < 0.1  # consistent poses stay put
+
+
+def world_walls(frame: np.ndarray, T: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """The walls one sensor frame seen from ``T`` finds: (normal, offset) in the world."""
+    cfg = LoopClosureConfig()
+    pc, _ = submap([frame], [T], [0], cfg)
+    up = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    r = right_angle_reading(wide_normals(pc), up)
+    assert r is not None
+    out = []
+    for w in wall_planes(pc, up, r[0], cfg.wall_min_points, cfg.wall_sigma):
+        n = T[:3, :3] @ w.normal
+        out.append((n, w.offset + float(n @ T[:3, 3])))
+    return out
+
+
+def test_a_submap_finds_its_walls_and_nothing_else() -> None:
+    """Views of the 6 x 5 m room from four places: every plane found is one of its four walls,
+    square to it and within a centimetre of where it is; the table, crate, post and cupboard
+    (under a metre across or up) are none; all four walls are found."""
+    rng = np.random.default_rng(4)
+    world = room_world(5)
+    seen = set()
+    for x, y, heading in ((3.0, 2.5, 0.0), (3.0, 2.5, 1.4), (2.0, 3.0, 3.0), (4.0, 2.0, -1.7)):
+        T = pose(x, y, heading)
+        walls = world_walls(sensor_view(world, T, rng), T)
+        assert walls, (x, y, heading)
+        for n, c in walls:
+            axis = int(np.argmax(np.abs(n)))
+            assert axis < 2 and abs(n[axis]) > math.cos(math.radians(1.0))
+            where = c / n[axis]  # the wall's coordinate along its axis
+            assert min(abs(where - w) for w in ((0.0, 6.0), (0.0, 5.0))[axis]) < 0.01, (n, c)
+            # it faces the sensor: the sensor is on the plane's positive side
+            assert float(n @ T[:3, 3]) > c
+            seen.add((axis, round(where)))
+    assert len(seen) == 4
+
+
+def test_walls_hold_a_stretch_no_loop_reaches(lap) -> None:
+    """Poses whose every step is 3 % too long (7 cm off by the end of the lap), loops only
+    among the second half's nodes, right angles in: the graph keeps the first half's error.
+    The walls each view sees, tied between the views that share them, bring every pose to
+    within 1.5 cm (a fifth of the error left without them); poses already right stay
+    right."""
+    frames, truth = lap
+    up = np.array([0.0, 0.0, 1.0])
+    prior = vio_drift(truth, 0.03, 0.0)
+    cfg = LoopClosureConfig()
+    readings, planes = [], []
+    for k in range(len(frames)):
+        pc, _ = submap(frames, truth, [k], cfg)
+        g = truth[k][:3, :3].T @ up
+        r = right_angle_reading(wide_normals(pc), g)
+        readings.append(r)
+        planes.append(
+            [] if r is None else wall_planes(pc, g, r[0], cfg.wall_min_points, cfg.wall_sigma)
+        )
+    right = RightAngles(readings, math.radians(5.0), 0.5, math.radians(0.3) ** 2)
+    loose = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
+    radii = [2.0] * len(truth)
+
+    def error(poses: list[np.ndarray]) -> float:
+        return max(
+            float(np.linalg.norm(p[:3, 3] - t[:3, 3])) for p, t in zip(poses, truth, strict=True)
+        )
+
+    plain, _, _ = solve_rejecting(prior, second_half_loops(truth), radii, loose, None, up, right)
+    walls = Walls(planes, cfg.wall_gate, cfg.manhattan_gate_deg)
+    held, _, rejected = solve_rejecting(
+        prior, second_half_loops(truth), radii, loose, None, up, right, walls
+    )
+    assert error(plain) > 0.05
+    assert rejected == 0 and walls.used == 4 and walls.edges_used >= 40
+    assert error(held) < 0.015 and error(held) < 0.25 * error(plain)
+    np.testing.assert_allclose(held[0], prior[0], atol=1e-9)  # the reference stays
+    walls.associate(truth)
+    kept, _, _ = solve_rejecting(
+        truth, second_half_loops(truth), radii, loose, None, up, right, walls
+    )
+    assert error(kept) < 0.005
+
+
+def test_close_loops_reports_the_walls_only_when_asked(lap) -> None:
+    """``walls`` on: the lap's four walls, each seen from several submaps, give edges and the
+    summary says how many; off (the default), or without up, none and no summary keys."""
+    frames, truth = lap
+    up = np.array([0.0, 0.0, 1.0])
+    odo = drifted(truth, 0.0, 0.002)
+    on = LoopClosureConfig(submap_seconds=1.0, walls=True)
+    res = close_loops(frames, odo, STAMPS, on, up=up)
+    assert res.wall_count == 4 and res.wall_edges > 4
+    assert res.summary()["walls"] == 4 and res.summary()["wall_edges"] == res.wall_edges
+    assert worst(res.poses, truth)[0] < 0.02
+    off = close_loops(frames, odo, STAMPS, LoopClosureConfig(submap_seconds=1.0), up=up)
+    assert off.wall_edges == 0 and "walls" not in off.summary()
+    assert close_loops(frames, odo, STAMPS, on).wall_edges == 0
+    for bad in ("wall_sigma", "wall_seconds", "wall_gate"):
+        with pytest.raises(ValueError, match=bad):
+            LoopClosureConfig(**{bad: 0.0})
+    with pytest.raises(ValueError, match="wall_min_points"):
+        LoopClosureConfig(wall_min_points=2)
