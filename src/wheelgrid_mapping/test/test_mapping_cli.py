@@ -512,3 +512,19 @@ def test_measure_reports_resamples_that_tilt_apart_from_its_standard_error() -> 
     a[0, 1] = 0.5  # the same face without it
     se, unstable = cli_measure.bootstrap_stderr(a, b, fragile)
     assert unstable == 0.0 and 0.6 * textbook < se < 1.6 * textbook
+
+
+def test_the_right_angle_line_says_what_held_the_submaps() -> None:
+    """The summary line names the submaps held to the right angles, the walls that tied them
+    where ``loop_closure.walls`` was on, and why nothing was where the angles were not used."""
+    lc = {"nodes": 21, "manhattan_nodes": 20}
+    assert cli_map.right_angle_line(lc) == (
+        "loop closure: 20 of 21 submaps held to the room's right angles (walls, legs and edges "
+        "read modulo 90 deg)"
+    )
+    line = cli_map.right_angle_line({**lc, "walls": 4, "wall_edges": 13})
+    assert line.endswith("; 4 walls seen from several submaps tie them (13 edges)")
+    off = {"nodes": 21, "manhattan_nodes": 0, "manhattan_note": "2 submaps read, < 3"}
+    assert cli_map.right_angle_line(off) == (
+        "loop closure: the room's right angles not used (2 submaps read, < 3)"
+    )

@@ -193,9 +193,14 @@ def right_angle_line(lc: dict[str, Any]) -> str:
     submaps were turned to them, or why none was, so a user mapping a room whose walls are not
     square learns that the graph did not assume they were."""
     if lc.get("manhattan_nodes"):
+        walls = (
+            f"; {lc['walls']} walls seen from several submaps tie them ({lc['wall_edges']} edges)"
+            if lc.get("wall_edges")
+            else ""
+        )
         return (
             f"loop closure: {lc['manhattan_nodes']} of {lc['nodes']} submaps held to the "
-            "room's right angles (walls, legs and edges read modulo 90 deg)"
+            f"room's right angles (walls, legs and edges read modulo 90 deg){walls}"
         )
     return f"loop closure: the room's right angles not used ({lc['manhattan_note']})"
 
