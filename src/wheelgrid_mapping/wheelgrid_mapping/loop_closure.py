@@ -481,6 +481,34 @@ def submap(
     return pc, radius
 
 
+def _about_node(
+    frames: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    stamps: Sequence[float],
+    node: int,
+    half: float,
+    cfg: LoopClosureConfig,
+) -> Any:
+    """The submap of the frames within ``half`` seconds either side of frame ``node``, in its
+    frame: what a node's own heading and walls are read from. No farther than the run goes on
+    both sides, so the errors about the node stay balanced (the first node, with frames on one
+    side only, reads from its own frame)."""
+    t = np.asarray(stamps, dtype=np.float64)
+    half = min(half, t[node] - t[0], t[-1] - t[node])
+    near = np.flatnonzero(np.abs(t - t[node]) <= half + 1e-9)
+    return submap(frames, poses, list(near), cfg, origin=node)[0]
+
+
+def _yaw_and_horizontal(g: np.ndarray) -> np.ndarray:
+    """Projector (6 x 6, rotation then translation, in a node's frame) onto the rotation about
+    ``g`` (up in that frame) and the translation normal to it: what an edge may correct once
+    the floor fixes height, roll and pitch of every frame."""
+    S = np.zeros((6, 6))
+    S[:3, :3] = np.outer(g, g)
+    S[3:, 3:] = np.eye(3) - np.outer(g, g)
+    return S
+
+
 def loop_icp(src: Any, tgt: Any, init: np.ndarray) -> np.ndarray:
     """Multi-scale (20, 10, 5 cm) point-to-plane ICP of submap ``src`` onto ``tgt`` from
     ``init``: the loop edge's measurement, before its unobserved part is dropped."""
@@ -550,16 +578,12 @@ def close_loops(
         boxes.append((world.min(axis=0), world.max(axis=0)))
     right = None
     if g_up is not None and cfg.manhattan:
-        t = np.asarray(stamps, dtype=np.float64)
         readings = []
         for g, a in zip(groups, anchors, strict=True):
-            # the frames within half a submap either side of the node (no farther than the
-            # run goes on both sides): their headings' errors about the node's average out, so
-            # the reading is the node's own, not its submap's, which runs a node ahead of it
-            # (the reference node, with frames on one side only, reads from its own frame)
-            half = min(0.5 * cfg.submap_seconds, t[g[0]] - t[0], t[-1] - t[g[0]])
-            near = np.flatnonzero(np.abs(t - t[g[0]]) <= half + 1e-9)
-            pc, _ = submap(frames, P, list(near), cfg, origin=g[0])
+            # the frames within half a submap either side of the node: their headings' errors
+            # about the node's average out, so the reading is the node's own, not its
+            # submap's, which runs a node ahead of it
+            pc = _about_node(frames, P, stamps, g[0], 0.5 * cfg.submap_seconds, cfg)
             readings.append(right_angle_reading(wide_normals(pc), a[:3, :3].T @ g_up))
         right = RightAngles(
             readings,
@@ -576,16 +600,13 @@ def close_loops(
             out.manhattan_note, right = right.note, None
     walls = None
     if right is not None and cfg.walls:
-        t = np.asarray(stamps, dtype=np.float64)
         planes = []
         for k, (g, a) in enumerate(zip(groups, anchors, strict=True)):
             r = right.readings[k]
             if r is None:
                 planes.append([])
                 continue
-            half = min(cfg.wall_seconds, t[g[0]] - t[0], t[-1] - t[g[0]])
-            near = np.flatnonzero(np.abs(t - t[g[0]]) <= half + 1e-9)
-            pc, _ = submap(frames, P, list(near), cfg, origin=g[0])
+            pc = _about_node(frames, P, stamps, g[0], cfg.wall_seconds, cfg)
             planes.append(
                 wall_planes(pc, a[:3, :3].T @ g_up, r[0], cfg.wall_min_points, cfg.wall_sigma)
             )
@@ -615,11 +636,8 @@ def close_loops(
                 continue
             S = None
             if g_up is not None:
-                # Projector onto yaw (rotation about up) and horizontal translation, in the
-                # source node's frame; the graph then keeps the online height, roll and pitch.
-                S = np.zeros((6, 6))
-                S[:3, :3] = np.outer(g, g)
-                S[3:, 3:] = np.eye(3) - np.outer(g, g)
+                # the graph then keeps the online height, roll and pitch
+                S = _yaw_and_horizontal(g)
                 H = S @ H @ S
             xo, _, _ = _edge_measurement(init, T, H, S, radii[i], cfg.observable_ratio)
             shift = float(np.linalg.norm(xo[3:]))
@@ -1057,16 +1075,11 @@ class Walls:
                 groups.append((n, c, [(k, w)]))
         out = []
         for _, _, members in groups:
-            nodes = {k for k, _ in members}
-            if len(nodes) >= 2:
-                # one observation per submap: its best
-                seen: set[int] = set()
-                kept = []
-                for k, w in members:
-                    if k not in seen:
-                        seen.add(k)
-                        kept.append((k, w))
-                out.append(kept)
+            best: dict[int, WallPlane] = {}
+            for k, w in members:  # best seen first: each submap keeps its best
+                best.setdefault(k, w)
+            if len(best) >= 2:
+                out.append(list(best.items()))
         return out
 
     def edges(
@@ -1087,11 +1100,7 @@ class Walls:
                 u = X[:3, :3].T @ wr.normal
                 J = np.r_[np.cross(wi.centroid, u), u]
                 if up is not None:
-                    g = anchors[i][:3, :3].T @ up
-                    S = np.zeros((6, 6))
-                    S[:3, :3] = np.outer(g, g)
-                    S[3:, 3:] = np.eye(3) - np.outer(g, g)
-                    J = S @ J
+                    J = _yaw_and_horizontal(anchors[i][:3, :3].T @ up) @ J
                 info = np.outer(J, J) / (wi.sigma**2 + wr.sigma**2)
                 out.append((i, r, X, info))
         self.edges_used = len(out)
