@@ -941,10 +941,10 @@ def main(argv: list[str] | None = None) -> int:
         "loops, beside the odometry's): the previous release's graph, for comparison",
     )
     ap.add_argument(
-        "--walls",
+        "--no-walls",
         action="store_true",
-        help="loop closure with the walls (loop_closure.walls on, opt-in): every submap's "
-        "walls tie it to the submap that sees the same wall best; applies to every mode",
+        help="loop closure without the walls (loop_closure.walls off): the previous release's "
+        "graph, for comparison; applies to every mode",
     )
     ap.add_argument(
         "--no-right-angles",
@@ -1002,8 +1002,8 @@ def main(argv: list[str] | None = None) -> int:
         LOOP_OVERRIDES["prior_drift"] = False
     if args.no_right_angles:
         LOOP_OVERRIDES["manhattan"] = False
-    if args.walls:
-        LOOP_OVERRIDES["walls"] = True
+    if args.no_walls:
+        LOOP_OVERRIDES["walls"] = False
     if args.evidence_margin is not None:
         MAPPER_OVERRIDES["evidence_margin"] = args.evidence_margin
     if args.fresh_seed is None:

@@ -675,18 +675,19 @@ def test_walls_hold_a_stretch_no_loop_reaches(lap) -> None:
     assert error(kept) < 0.005
 
 
-def test_close_loops_reports_the_walls_only_when_asked(lap) -> None:
-    """``walls`` on: the lap's four walls, each seen from several submaps, give edges and the
-    summary says how many; off (the default), or without up, none and no summary keys."""
+def test_close_loops_reports_the_walls_only_when_used(lap) -> None:
+    """``walls`` on (the default): the lap's four walls, each seen from several submaps, give
+    edges and the summary says how many; off, or without up, none and no summary keys."""
     frames, truth = lap
     up = np.array([0.0, 0.0, 1.0])
     odo = drifted(truth, 0.0, 0.002)
-    on = LoopClosureConfig(submap_seconds=1.0, walls=True)
+    on = LoopClosureConfig(submap_seconds=1.0)
+    assert on.walls
     res = close_loops(frames, odo, STAMPS, on, up=up)
     assert res.wall_count == 4 and res.wall_edges > 4
     assert res.summary()["walls"] == 4 and res.summary()["wall_edges"] == res.wall_edges
     assert worst(res.poses, truth)[0] < 0.02
-    off = close_loops(frames, odo, STAMPS, LoopClosureConfig(submap_seconds=1.0), up=up)
+    off = close_loops(frames, odo, STAMPS, replace(on, walls=False), up=up)
     assert off.wall_edges == 0 and "walls" not in off.summary()
     assert close_loops(frames, odo, STAMPS, on).wall_edges == 0
     for bad in ("wall_sigma", "wall_seconds", "wall_gate"):
