@@ -40,6 +40,22 @@ def box_surface(lo: Sequence[float], hi: Sequence[float], spacing: float, rng: A
     return np.vstack(out)
 
 
+def body_frame_room(rng: np.random.Generator, with_floor: bool) -> np.ndarray:
+    """Body-convention sensor at 1 m height looking +x into a furnished corner."""
+    parts = [
+        np.column_stack([np.full(6000, 4.0), rng.random(6000) * 6 - 3, rng.random(6000) * 2.5 - 1]),
+        np.column_stack([rng.random(4000) * 4, np.full(4000, 3.0), rng.random(4000) * 2.5 - 1]),
+        np.column_stack(
+            [2 + rng.random(3000) * 0.5, -1 + rng.random(3000) * 0.5, -1 + rng.random(3000) * 0.8]
+        ),
+    ]
+    if with_floor:
+        parts.append(
+            np.column_stack([rng.random((15000, 2)) * [4, 6] - [0, 3], np.full(15000, -1.0)])
+        )
+    return np.vstack(parts) + rng.normal(0, 0.003, (sum(len(p) for p in parts), 3))
+
+
 def room_world(seed: int) -> np.ndarray:
     """A 6 x 5 x 2.6 m room shell with four boxes (a table, a cupboard, a post, a crate): enough
     structure for ICP in every direction, small enough for unit tests."""

@@ -10,27 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wheelgrid_common.testing import box_surface, sensor_view
+from wheelgrid_common.testing import body_frame_room, box_surface, sensor_view
 from wheelgrid_mapping.cli_map import prior_scale_line
 from wheelgrid_mapping.loop_closure import LoopClosureConfig, closed_note, submap_groups
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, load_configs
 from wheelgrid_mapping.registration import PriorScaleEstimate
-
-
-def body_frame_room(rng: np.random.Generator, with_floor: bool) -> np.ndarray:
-    """Body-convention sensor at 1 m height looking +x into a furnished corner."""
-    parts = [
-        np.column_stack([np.full(6000, 4.0), rng.random(6000) * 6 - 3, rng.random(6000) * 2.5 - 1]),
-        np.column_stack([rng.random(4000) * 4, np.full(4000, 3.0), rng.random(4000) * 2.5 - 1]),
-        np.column_stack(
-            [2 + rng.random(3000) * 0.5, -1 + rng.random(3000) * 0.5, -1 + rng.random(3000) * 0.8]
-        ),
-    ]
-    if with_floor:
-        parts.append(
-            np.column_stack([rng.random((15000, 2)) * [4, 6] - [0, 3], np.full(15000, -1.0)])
-        )
-    return np.vstack(parts) + rng.normal(0, 0.003, (sum(len(p) for p in parts), 3))
 
 
 def test_no_floor_no_map() -> None:

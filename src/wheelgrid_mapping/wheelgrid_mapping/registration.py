@@ -167,6 +167,31 @@ def point_to_plane_information(points: np.ndarray, cell: float) -> np.ndarray | 
     return (J.T @ J) / max(int(ok.sum()), 1)
 
 
+@dataclass(frozen=True)
+class FrameInputs:
+    """What registration reads from a frame's own points alone, before it knows any pose.
+
+    Split out so that it can be computed ahead, in another process, while the frame before is
+    registered (:mod:`.prefetch`): the point-to-plane information is a third of registration's
+    time on a 256x192 frame, and the same numbers come out wherever it is computed.
+    """
+
+    down: np.ndarray  # the frame at half the map voxel: overlap, degeneracy, the map update
+    source: np.ndarray  # at 1.5 map voxels: what ICP aligns
+    info: np.ndarray | None  # point_to_plane_information(down); None where not needed
+
+
+def frame_inputs(points: np.ndarray, cfg: RegistrationConfig) -> FrameInputs:
+    """:class:`FrameInputs` of filtered sensor-frame ``points`` under ``cfg``."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    down = voxel_downsample(pts, 0.5 * cfg.voxel_size) if pts.size else pts
+    source = voxel_downsample(down, 1.5 * cfg.voxel_size) if down.size else down
+    info = None
+    if cfg.degeneracy_ratio > 0 or cfg.reject_degenerate_ratio > 0:
+        info = point_to_plane_information(down, 0.5 * cfg.voxel_size)
+    return FrameInputs(down, source, info)
+
+
 def constrain_to_observable(
     points: np.ndarray,
     cell: float,
@@ -370,18 +395,25 @@ class Registrar:
         return np.asarray(res.transformation)
 
     def register(
-        self, points: np.ndarray, stamp: float, prior: np.ndarray | None = None
+        self,
+        points: np.ndarray,
+        stamp: float,
+        prior: np.ndarray | None = None,
+        inputs: FrameInputs | None = None,
     ) -> RegResult:
         """Register one filtered sensor-frame cloud; integrate it only if it passes the checks.
 
         ``prior`` is an optional pose of the sensor in ANY fixed frame (e.g. ARKit world); only
-        its motion since the last accepted frame is used, as the initial guess.
+        its motion since the last accepted frame is used, as the initial guess. ``inputs``:
+        :func:`frame_inputs` of ``points`` under this registrar's config, where computed ahead.
         """
         t0 = time.perf_counter()
         cfg = self.cfg
         self.counters.frames += 1
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        frame_down = voxel_downsample(pts, 0.5 * cfg.voxel_size) if pts.size else pts
+        if inputs is None:
+            inputs = frame_inputs(pts, cfg)
+        frame_down = inputs.down
         if frame_down.shape[0] < cfg.min_points // 4 or pts.shape[0] < cfg.min_points:
             return self._fail(f"too few points ({pts.shape[0]})", t0)
         first = self.last_stamp is None
@@ -409,7 +441,7 @@ class Registrar:
             guess = self.last_pose @ prior_step
         else:
             guess = self.last_pose @ self.last_delta
-        source = voxel_downsample(frame_down, 1.5 * cfg.voxel_size)
+        source = inputs.source
         with_prior = prior is not None and self.last_prior is not None
         if with_prior:
             sigma = cfg.prior_threshold
@@ -425,7 +457,7 @@ class Registrar:
         info = None
         ratio = cfg.degeneracy_ratio if with_prior else cfg.reject_degenerate_ratio
         if ratio > 0:
-            info = point_to_plane_information(frame_down, 0.5 * cfg.voxel_size)
+            info = inputs.info
             observed, degenerate = constrain_to_observable(
                 frame_down, 0.5 * cfg.voxel_size, corr, ratio, info
             )

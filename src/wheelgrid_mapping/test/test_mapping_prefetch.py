@@ -1,0 +1,133 @@
+"""Frames prepared one ahead in a second process: the same map as one process, nothing lost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.testing import body_frame_room
+from wheelgrid_mapping.pipeline import FrameOutcome, Mapper, MapperConfig
+from wheelgrid_mapping.prefetch import FramePipeline
+
+
+def frames(n: int = 8) -> list[tuple[np.ndarray, float]]:
+    """A sensor backing away from a furnished corner, 5 cm a frame at 5 Hz; frame 3 comes
+    0.05 s after frame 2 (a keyframe interval of 0.1 s skips it) and frame 5 is all NaN."""
+    rng = np.random.default_rng(7)
+    out = []
+    for i in range(n):
+        pts = body_frame_room(rng, True) - [0.05 * i, 0.0, 0.0]
+        stamp = i * 0.2 if i != 3 else 0.45
+        if i == 5:
+            pts = np.full_like(pts, np.nan)
+        out.append((pts, stamp))
+    return out
+
+
+def mapper() -> Mapper:
+    return Mapper(cfg=MapperConfig(level_min_frames=2, min_frame_interval=0.1))
+
+
+def reference() -> tuple[Mapper, list[tuple[float, str]]]:
+    m = mapper()
+    seen = [(t, m.add_frame(p, t, "base_link").status) for p, t in frames()]
+    return m, seen
+
+
+def run(pipe: FramePipeline, given: list[tuple[np.ndarray, float]]) -> list[tuple[float, str]]:
+    seen: list[tuple[float, FrameOutcome]] = []
+    for pts, stamp in given:
+        seen.extend(pipe.push(pts, stamp, "base_link"))
+    seen.extend(pipe.flush())
+    return [(t, o.status) for t, o in seen]
+
+
+def assert_same_map(a: Mapper, b: Mapper) -> None:
+    assert a.stamps == b.stamps
+    # KISS-ICP's two threads sum in varying order: the same map to the last bits
+    np.testing.assert_allclose(np.array(a.poses_odom), np.array(b.poses_odom), atol=1e-9)
+    ra, rb = a.report(), b.report()
+    assert ra["frames"] == rb["frames"] and ra["points"] == rb["points"]
+    np.testing.assert_allclose(a.map_points(), b.map_points(), atol=1e-6)
+
+
+@pytest.mark.parametrize("ahead", [True, False])
+def test_frames_prepared_ahead_make_the_map_add_frame_makes(ahead: bool) -> None:
+    ref, ref_seen = reference()
+    m = mapper()
+    pipe = FramePipeline(m, ahead)
+    try:
+        assert pipe.ahead == ahead
+        seen = run(pipe, frames())
+    finally:
+        pipe.close()
+    # every frame has its outcome once, in order, skipped and empty ones included
+    assert sorted(seen) == sorted(ref_seen)
+    assert [s for _, s in ref_seen].count("skipped") == 1
+    assert [s for _, s in ref_seen].count("empty") == 1
+    assert_same_map(ref, m)
+    assert m.timings["preprocess_s"] > 0
+
+
+def test_a_frame_that_raises_is_its_own_error_and_the_next_ones_are_mapped() -> None:
+    given = frames()
+    given.insert(4, (np.zeros(10), 0.7))  # 10 numbers: no (N, 3) cloud
+    m = mapper()
+    pipe = FramePipeline(m, True)
+    try:
+        seen = run(pipe, given)
+        assert pipe.ahead  # the second process survives a bad frame
+    finally:
+        pipe.close()
+    assert (0.7, "error") in seen
+    ref, _ = reference()
+    assert m.stamps == ref.stamps  # and every good frame is mapped as before
+    assert m.frames_read == ref.frames_read + 1
+
+
+def test_the_second_process_dying_loses_no_frame() -> None:
+    given = frames()
+    m = mapper()
+    pipe = FramePipeline(m, True)
+    try:
+        seen = run(pipe, given[:3])
+        assert pipe._worker is not None
+        pipe._worker.proc.kill()  # with frame 2 in it
+        pipe._worker.proc.join(5.0)
+        for pts, stamp in given[3:]:
+            seen.extend((t, o.status) for t, o in pipe.push(pts, stamp, "base_link"))
+        seen.extend((t, o.status) for t, o in pipe.flush())
+        assert not pipe.ahead and "second one failed" in pipe.note
+    finally:
+        pipe.close()
+    ref, ref_seen = reference()
+    assert sorted(seen) == sorted(ref_seen)
+    assert_same_map(ref, m)
+
+
+def test_a_reset_drops_the_frame_in_preparation_and_its_answer() -> None:
+    given = frames()
+    m = mapper()
+    pipe = FramePipeline(m, True)
+    try:
+        run(pipe, given[:2])
+        pipe.push(*given[6], "base_link")  # in the second process now
+        assert pipe.pending
+        pipe.discard()
+        m.reset()
+        assert not pipe.pending
+        seen = run(pipe, given)  # the answer for the dropped frame is not read as frame 0's
+    finally:
+        pipe.close()
+    ref, ref_seen = reference()
+    assert sorted(seen) == sorted(ref_seen)
+    assert_same_map(ref, m)
+
+
+def test_close_ends_the_second_process() -> None:
+    pipe = FramePipeline(mapper(), True)
+    assert pipe._worker is not None
+    proc = pipe._worker.proc
+    pipe.push(*frames()[0], "base_link")
+    pipe.close()
+    assert not proc.is_alive() and proc.exitcode is not None

@@ -1,0 +1,211 @@
+"""Frames prepared one ahead, in a second process, while the mapper registers the frame before.
+
+On two cores a 256x192 keyframe costs about 65 ms of preparation (filters, and registration's
+inputs: :func:`~.pipeline.prepare_frame`) and 50 ms of registering and integrating, one after
+the other in one process: that is slower than a keyframe every 0.1 s on a busy machine. The
+preparation needs nothing from the map, so a second process does it for frame k+1 while this
+one registers frame k; the map, the poses and the report are the same numbers as in one
+process (it is the same code on the same inputs), only sooner.
+
+A second *process* because both halves hold the GIL most of the time (numpy's small calls,
+KISS-ICP's binding), so a thread would not overlap them. It is started with ``spawn`` (a fork
+of a process running DDS threads is not safe), imports only numpy and this package, never ROS,
+and ends when its pipe closes: with the mapper, however that ends. Where it cannot start or
+dies, frames are prepared in this process instead, and nothing is lost: a frame is kept until
+its preparation has come back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import signal
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .pipeline import FrameOutcome, Mapper, PreparedFrame, prepare_frame
+from .preprocess import PreprocessConfig
+from .registration import RegistrationConfig
+
+
+def _serve(conn: Any) -> None:
+    """The second process: prepare each frame sent, until the pipe closes. Ctrl-C in a
+    terminal reaches the whole process group: the mapper decides when this one ends."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    while True:
+        try:
+            points, confidence, pre, reg = conn.recv()
+        except (EOFError, OSError, KeyboardInterrupt):
+            return
+        try:
+            conn.send(("ok", prepare_frame(points, confidence, pre, reg)))
+        except Exception as exc:  # the caller prepares it again itself, and sees the error
+            conn.send(("error", repr(exc)))
+
+
+class _Worker:
+    """One spawned process and its pipe; one frame in flight at a time."""
+
+    def __init__(self) -> None:
+        ctx = mp.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_serve, args=(child,), name="wheelgrid-prepare", daemon=True)
+        self.proc.start()
+        child.close()
+
+    def send(
+        self,
+        points: np.ndarray,
+        confidence: np.ndarray | None,
+        pre: PreprocessConfig,
+        reg: RegistrationConfig,
+    ) -> None:
+        self.conn.send((points, confidence, pre, reg))
+
+    def recv(self) -> tuple[str, Any]:
+        result: tuple[str, Any] = self.conn.recv()
+        return result
+
+    def close(self) -> None:
+        self.conn.close()  # the process sees EOF and returns
+        self.proc.join(timeout=2.0)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(timeout=2.0)
+
+
+@dataclass
+class _Pending:
+    """A frame admitted and sent, not yet added: its inputs are kept until it is."""
+
+    points: np.ndarray
+    confidence: np.ndarray | None
+    prior: np.ndarray | None
+    stamp: float
+    sent: bool  # to the worker (else it is prepared here when its turn comes)
+
+
+class FramePipeline:
+    """Feeds a :class:`~.pipeline.Mapper` with each frame prepared one frame ahead.
+
+    :meth:`push` admits a frame (in order: keyframe selection sees every frame as
+    :meth:`Mapper.add_frame` would), sends it to the worker, then adds the frame before it,
+    whose preparation has come back meanwhile, to the map. So a frame reaches the map one push
+    later than with ``add_frame``; :meth:`flush` adds the last one (before a loop closure,
+    saving, or the end of a bag). ``ahead=False`` prepares every frame in this process, in
+    order, with the same results: what ``add_frame`` does, through the same calls.
+    """
+
+    def __init__(self, mapper: Mapper, ahead: bool = True) -> None:
+        self.mapper = mapper
+        self._worker: _Worker | None = None
+        self.note = "off" if not ahead else "second process"
+        if ahead:
+            try:
+                self._worker = _Worker()
+            except Exception as exc:  # e.g. no /dev/shm or process limit: one process, slower
+                self.note = f"one process ({exc!r})"
+        self._pending: _Pending | None = None
+
+    @property
+    def ahead(self) -> bool:
+        return self._worker is not None
+
+    @property
+    def pending(self) -> bool:
+        return self._pending is not None
+
+    def push(
+        self,
+        points: np.ndarray,
+        stamp: float,
+        frame_id: str = "iphone_depth_optical_frame",
+        confidence: np.ndarray | None = None,
+        prior: np.ndarray | None = None,
+    ) -> list[tuple[float, FrameOutcome]]:
+        """Admit this frame and add the one before it: the ``(stamp, outcome)`` of every frame
+        finished by this call. A frame skipped between keyframes is finished at once, so its
+        outcome can come before that of the frame still in preparation."""
+        skipped = self.mapper.admit(stamp, frame_id)
+        if skipped is not None:
+            return [(stamp, skipped)]
+        previous = self._pending
+        prepared: PreparedFrame | BaseException | None = None
+        if previous is not None:
+            prepared = self._collect(previous)
+        self._pending = _Pending(points, confidence, prior, float(stamp), False)
+        if self._worker is not None:
+            try:
+                self._worker.send(points, confidence, self.mapper.pre, self.mapper.reg_cfg)
+                self._pending.sent = True
+            except Exception as exc:
+                self._give_up(exc)
+        done = [] if previous is None else [self._add(previous, prepared)]
+        if self._worker is None:  # one process: this frame at once, as add_frame would
+            done.extend(self.flush())
+        return done
+
+    def flush(self) -> list[tuple[float, FrameOutcome]]:
+        """Add the frame still in preparation, if any."""
+        previous = self._pending
+        if previous is None:
+            return []
+        prepared = self._collect(previous)
+        self._pending = None
+        return [self._add(previous, prepared)]
+
+    def _add(
+        self, frame: _Pending, prepared: PreparedFrame | BaseException | None
+    ) -> tuple[float, FrameOutcome]:
+        """The frame added to the map; an exception in its preparation or registration is its
+        outcome (``error``), as a bad frame must never stop the frames after it."""
+        if not isinstance(prepared, PreparedFrame):
+            self.mapper.drop_admitted()
+            return frame.stamp, FrameOutcome("error", repr(prepared))
+        try:
+            return frame.stamp, self.mapper.add_prepared(prepared, frame.prior)
+        except Exception as exc:
+            return frame.stamp, FrameOutcome("error", repr(exc))
+
+    def discard(self, mapper: Mapper | None = None) -> None:
+        """Forget the frame in preparation (a reset), and feed ``mapper`` from now on."""
+        if self._pending is not None and self._pending.sent and self._worker is not None:
+            try:
+                self._worker.recv()  # the answer must not be read as the next frame's
+            except Exception as exc:
+                self._give_up(exc)
+        self._pending = None
+        if mapper is not None:
+            self.mapper = mapper
+
+    def close(self) -> None:
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
+
+    def _collect(self, frame: _Pending) -> PreparedFrame | BaseException:
+        if frame.sent and self._worker is not None:
+            try:
+                kind, value = self._worker.recv()
+            except Exception as exc:
+                self._give_up(exc)
+            else:
+                if kind == "ok":
+                    prepared: PreparedFrame = value
+                    return prepared
+        # Not sent, the worker gone, or its error: here, which gives the error if there is one.
+        try:
+            return prepare_frame(
+                frame.points, frame.confidence, self.mapper.pre, self.mapper.reg_cfg
+            )
+        except Exception as exc:
+            return exc
+
+    def _give_up(self, exc: BaseException) -> None:
+        self.note = f"one process (the second one failed: {exc!r})"
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            with contextlib.suppress(Exception):
+                worker.close()
