@@ -56,6 +56,7 @@ from wheelgrid_mapping.cli_measure import (
 )
 from wheelgrid_mapping.loop_closure import LoopClosureConfig, loop_icp, submap
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, complete_priors
+from wheelgrid_mapping.prefetch import FramePipeline
 from wheelgrid_mapping.preprocess import (
     PreprocessConfig,
     PreprocessStats,
@@ -87,12 +88,19 @@ def run_mapper(
     keep: bool = False,
     pre: PreprocessConfig | None = None,
 ) -> Mapper:
+    """What ``wheelgrid map`` does with ``frames``: each filtered in a second process while
+    the one before registers, unless ``cfg.prepare_ahead`` is off (the same map either way)."""
     m = Mapper(pre or PreprocessConfig(), reg, cfg, keep_frames=keep)
-    for n, (pts, stamp, frame_id, conf, prior) in enumerate(frames):
-        if n >= total:
-            break
-        if pts.shape[0]:
-            m.add_frame(pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior)
+    pipe = FramePipeline(m, cfg.prepare_ahead)
+    try:
+        for n, (pts, stamp, frame_id, conf, prior) in enumerate(frames):
+            if n >= total:
+                break
+            if pts.shape[0]:
+                pipe.push(pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior)
+        pipe.flush()
+    finally:
+        pipe.close()
     return m
 
 
@@ -714,17 +722,21 @@ def speed(limit: int, big: int) -> None:
         print("speed: real frames not present, skipped")
         return
     res = {}
-    for method in ("kiss", "open3d"):
+    # (registration, prepared ahead in a second process): the baseline in one process
+    for method, ahead in (("kiss", True), ("kiss", False), ("open3d", False)):
         total, frames = stray_frames(stray, False)
         t0 = time.perf_counter()
         m = run_mapper(
             frames,
             min(total, limit),
             RegistrationConfig(method=method),
-            MapperConfig(**MAPPER_OVERRIDES),
+            MapperConfig(**{**MAPPER_OVERRIDES, "prepare_ahead": ahead}),
         )
-        res[method] = m.frames_read / (time.perf_counter() - t0)
-    row("every 256x192 frame: frames/s, KISS-ICP", res["kiss"], "frames/s", res["open3d"])
+        res[method, ahead] = m.frames_read / (time.perf_counter() - t0)
+    base = res["open3d", False]
+    row("every 256x192 frame: frames/s, KISS-ICP", res["kiss", True], "frames/s", base)
+    row("every 256x192 frame: frames/s, KISS-ICP in one process", res["kiss", False], "frames/s",
+        base)  # fmt: skip
     # ~7 M real points: ARKit-fused frames, then eq. 5 downsampling to 1.3 M + SOR + PFC.
     total, frames = stray_frames(stray, True)
     chunks, count = [], 0
@@ -778,35 +790,53 @@ def stream(limit: int, rate: float = 30.0) -> None:
     t_first = loaded[0][1]
     offsets = np.array([f[1] - t_first for f in loaded])
 
-    def replay(method: str, interval: float = 0.0) -> tuple[Mapper, list[float], float, float]:
+    def replay(
+        method: str, interval: float = 0.0, ahead: bool = True
+    ) -> tuple[Mapper, list[float], float, float]:
         """``interval`` 0: newest frame when free; > 0: every frame queued, keyframes every
-        ``interval`` s (the others skipped at once). Returns the mapper, the stamps of the
-        frames it mapped, the seconds it was busy, and how far behind the stream it ended."""
+        ``interval`` s (the others skipped at once). ``ahead``: each frame filtered in a second
+        process while the one before registers, as the node does (``prepare_ahead``). Returns
+        the mapper, the stamps of the frames it mapped, the seconds it was busy, and how far
+        behind the stream it ended."""
         reg = RegistrationConfig(method=method)
         cfg = MapperConfig(min_frame_interval=interval, **MAPPER_OVERRIDES)
         m = Mapper(PreprocessConfig(), reg, cfg)
+        pipe = FramePipeline(m, ahead)
+        time.sleep(2.0 if ahead else 0.0)  # the second process is up, as a node's is by now
         mapped: list[float] = []
         busy = 0.0
         taken = -1
         t0 = time.perf_counter()
-        while taken < len(loaded) - 1:
-            now = time.perf_counter() - t0
-            arrived = int(np.searchsorted(offsets, now, side="right")) - 1
-            if arrived <= taken:
-                time.sleep(max(0.0, offsets[taken + 1] - now))
-                continue
-            taken = arrived if interval == 0 else taken + 1
-            pts, stamp, frame_id, conf, prior = loaded[taken]
+        try:
+            while taken < len(loaded) - 1:
+                now = time.perf_counter() - t0
+                arrived = int(np.searchsorted(offsets, now, side="right")) - 1
+                if arrived <= taken:
+                    if pipe.pending:  # nothing new: the frame in preparation is added now
+                        t1 = time.perf_counter()
+                        done = pipe.flush()
+                        busy += time.perf_counter() - t1
+                        mapped.extend(t for t, out in done if out.status != "skipped")
+                        continue
+                    time.sleep(max(0.0, offsets[taken + 1] - now))
+                    continue
+                taken = arrived if interval == 0 else taken + 1
+                pts, stamp, frame_id, conf, prior = loaded[taken]
+                t1 = time.perf_counter()
+                done = pipe.push(pts, stamp, frame_id, conf, prior)
+                busy += time.perf_counter() - t1
+                mapped.extend(t for t, out in done if out.status != "skipped")
             t1 = time.perf_counter()
-            out = m.add_frame(pts, stamp, frame_id, conf, prior)
+            mapped.extend(t for t, out in pipe.flush() if out.status != "skipped")
             busy += time.perf_counter() - t1
-            if out.status != "skipped":
-                mapped.append(stamp)
-        return m, mapped, busy, time.perf_counter() - t0 - offsets[-1]
+        finally:
+            pipe.close()
+        return m, sorted(mapped), busy, time.perf_counter() - t0 - offsets[-1]
 
-    base = replay("open3d")[1]
+    base = replay("open3d", ahead=False)[1]
     m, mapped, busy, _ = replay("kiss")
     _, kf, kf_busy, behind = replay("kiss", 0.1)
+    _, kf1, kf1_busy, behind1 = replay("kiss", 0.1, ahead=False)
     duration = offsets[-1]
     gaps = np.diff(mapped)
     label = f"real capture as a {rate:.0f} fps stream, newest frame (node default)"
@@ -819,9 +849,12 @@ def stream(limit: int, rate: float = 30.0) -> None:
         row(f"{label}: of which {stage[:-2]}", 1000.0 * m.timings[stage] / len(mapped), "ms")
     row(f"{label}: frames failed", m.registrar.counters.failed, "frames")
     label = f"real capture as a {rate:.0f} fps stream, every frame queued, keyframes every 0.1 s"
-    row(f"{label}: mapper time per keyframe", 1000.0 * kf_busy / len(kf), "ms")
-    row(f"{label}: behind the stream at its end", behind, "s")
-    row(f"{label}: real-time factor", duration / (duration + behind), "x")
+    # the baseline beside it: the same replay in one process (prepare_ahead false)
+    row(f"{label}: mapper time per keyframe", 1000.0 * kf_busy / len(kf), "ms",
+        1000.0 * kf1_busy / len(kf1))  # fmt: skip
+    row(f"{label}: behind the stream at its end", behind, "s", behind1)
+    row(f"{label}: real-time factor", duration / (duration + behind), "x",
+        duration / (duration + behind1))  # fmt: skip
 
 
 def fresh_sim(out: Path, seed: int) -> Path:

@@ -170,6 +170,7 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         assert spin_until(ex, settled, 60.0), values()
         v = values()
         assert v["frames_malformed"] == "1"
+        assert v["prepare"] == "second process"  # frames filtered ahead, beside the node
         # Best effort QoS over loopback: at most one sample lost right after discovery.
         assert int(v["frames_received"]) >= len(clouds), v
         assert v["levelled"] == "True"

@@ -20,7 +20,8 @@ import numpy as np
 
 from wheelgrid_common.progress import Progress
 
-from .pipeline import Mapper, load_configs
+from .pipeline import FrameOutcome, Mapper, load_configs
+from .prefetch import FramePipeline
 from .registration import PRIOR_SCALE_MIN_STEP
 
 Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None]
@@ -251,31 +252,40 @@ def _run(args: argparse.Namespace) -> int:
     if args.no_loop_closure:
         loop.enabled = False
     mapper = Mapper(pre, reg, cfg, keep_frames=loop.enabled)
+    pipe = FramePipeline(mapper, cfg.prepare_ahead)
     t0 = time.perf_counter()
     n = 0
-    with Progress(total, "mapping", "frames") as bar:
-        for pts, stamp, frame_id, conf, prior in frames:
-            if n >= total:
-                break
-            n += 1
-            if pts.shape[0] == 0:
-                bar.update(1)
-                continue
-            out = mapper.add_frame(
-                pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior
-            )
+    index: dict[float, int] = {}  # a frame's number by its stamp, for the messages
+
+    def report(done: list[tuple[float, FrameOutcome]]) -> None:
+        for stamp, out in done:
+            k = index.pop(stamp, -1)
             if out.status == "failed":
                 print(
-                    f"\nWARNING frame {n - 1}: registration failed: {out.reason}; "
+                    f"\nWARNING frame {k}: registration failed: {out.reason}; "
                     "map integration paused, relocalising",
                     file=sys.stderr,
                 )
+            elif out.status == "error":
+                print(f"\nWARNING frame {k}: skipped, it raised {out.reason}", file=sys.stderr)
             elif out.relocalised:
-                print(
-                    f"\nframe {n - 1}: relocalised against the map; mapping resumed",
-                    file=sys.stderr,
-                )
-            bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
+                print(f"\nframe {k}: relocalised against the map; mapping resumed", file=sys.stderr)
+
+    try:
+        with Progress(total, "mapping", "frames") as bar:
+            for pts, stamp, frame_id, conf, prior in frames:
+                if n >= total:
+                    break
+                n += 1
+                if pts.shape[0] == 0:
+                    bar.update(1)
+                    continue
+                index[float(stamp)] = n - 1
+                report(pipe.push(pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior))
+                bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
+            report(pipe.flush())
+    finally:
+        pipe.close()
     if bad and len(bad) == n:
         raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
     if mapper.frames_empty == n - len(bad):

@@ -40,7 +40,8 @@ from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_
 from wheelgrid_common.ros_env import spin_node, tf2_available
 
 from .loop_closure import LoopClosureConfig, closed_note
-from .pipeline import Mapper, MapperConfig
+from .pipeline import FrameOutcome, Mapper, MapperConfig
+from .prefetch import FramePipeline
 from .preprocess import PreprocessConfig
 from .registration import RegistrationConfig
 
@@ -126,7 +127,9 @@ class MapperNode(Node):  # type: ignore[misc]
         except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
-        self._lock = threading.Lock()  # guards self.mapper
+        self._lock = threading.Lock()  # guards self.mapper and self._pipe
+        # each frame filtered in a second process while the one before registers (same map)
+        self._pipe = FramePipeline(self.mapper, cfg.prepare_ahead)
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()
         self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None]] = deque()
@@ -240,20 +243,34 @@ class MapperNode(Node):  # type: ignore[misc]
     def _work(self) -> None:
         while True:
             with self._slot_lock:
-                while not self._queue and not self._stop and self._loop_state != "requested":
+                while (
+                    not self._queue
+                    and not self._stop
+                    and self._loop_state != "requested"
+                    and not self._pipe.pending
+                ):
                     self._slot_lock.wait(0.5)
                 if self._stop:
                     return
-                if self._queue:  # frames received before a ~/close_loops are mapped first
-                    frame = self._queue.popleft()
-                else:
+                # frames received before a ~/close_loops are mapped first, and the one in
+                # preparation is finished
+                frame = self._queue.popleft() if self._queue else None
+                closing = (
+                    frame is None and not self._pipe.pending and self._loop_state == "requested"
+                )
+                if closing:
                     self._loop_state = "running"
-                    frame = None
                 generation = self._generation
-            if frame is None:
+            if closing:
                 self._close_loops()
                 continue
-            assert frame is not None
+            if frame is None and not self._pipe.pending:
+                continue
+            if frame is None:  # nothing new came: the frame in preparation is added now
+                with self._lock:
+                    done = self._pipe.flush() if generation == self._generation else []
+                self._report(done)
+                continue
             pts, stamp, frame_id, conf = frame
             if frame_id:
                 self._sensor_frame = frame_id
@@ -267,16 +284,21 @@ class MapperNode(Node):  # type: ignore[misc]
                     prior = self._prior_for(stamp)
                 if prior is None:
                     self._log_once("noprior", f"no pose on {self.prior_topic} near a frame")
-            try:
-                with self._lock:
-                    if generation != self._generation:  # ~/reset came while it was in hand
-                        self.counts["skipped_busy"] += 1
-                        continue
-                    out = self.mapper.add_frame(pts, stamp, frame_id, conf, prior)
-            except Exception as exc:  # a bad frame must never kill the mapper
-                self.get_logger().error(f"frame at {stamp:.3f} s failed: {exc!r}")
-                continue
-            if out.status == "failed":
+            with self._lock:
+                if generation != self._generation:  # ~/reset came while it was in hand
+                    self.counts["skipped_busy"] += 1
+                    continue
+                # this frame goes to the second process; the one before it to the map
+                done = self._pipe.push(pts, stamp, frame_id, conf, prior)
+            self._report(done)
+
+    def _report(self, done: list[tuple[float, FrameOutcome]]) -> None:
+        """Logs, the pose and the map's state for frames just added (never raises: a bad frame
+        must never kill the mapper)."""
+        for stamp, out in done:
+            if out.status == "error":
+                self.get_logger().error(f"frame at {stamp:.3f} s failed: {out.reason}")
+            elif out.status == "failed":
                 self.get_logger().warning(
                     f"registration failed at {stamp:.3f} s: {out.reason}; map integration "
                     "paused, relocalising"
@@ -405,6 +427,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "loop_closure": self._loop_state,
             "loop_closure_note": self._loop_note,
             "frames_after_close": self.counts["after_close"],
+            "prepare": self._pipe.note,  # where frames are filtered: second process | one ...
         }
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
@@ -441,6 +464,7 @@ class MapperNode(Node):  # type: ignore[misc]
             self.counts["skipped_busy"] += len(self._queue)
             self._queue.clear()
             self._generation += 1
+            self._pipe.discard()  # the frame in preparation belonged to the old map
             self.mapper.reset()  # kept frames go too; keep them again if max_kept_frames stopped it
             self.mapper.keep_frames = self.loop_cfg.enabled
             self.counts["after_close"] = 0
@@ -499,6 +523,13 @@ class MapperNode(Node):  # type: ignore[misc]
             self._stop = True
             self._slot_lock.notify()
         self._worker.join(timeout=10.0)
+        if self._lock.acquire(timeout=5.0):
+            try:  # the frame taken last is mapped, so that the map saved below has it
+                if not self._worker.is_alive():
+                    self._report(self._pipe.flush())
+            finally:
+                self._lock.release()
+        self._pipe.close()
         if self.save_on_exit:
             self._save_on_exit()
 
