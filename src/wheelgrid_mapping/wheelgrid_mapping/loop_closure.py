@@ -599,20 +599,6 @@ def close_loops(
             cfg = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
         else:
             out.manhattan_note, right = right.note, None
-    walls = None
-    if right is not None and cfg.walls:
-        planes = []
-        for k, (g, a) in enumerate(zip(groups, anchors, strict=True)):
-            r = right.readings[k]
-            if r is None:
-                planes.append([])
-                continue
-            pc = _about_node(frames, P, stamps, g[0], cfg.wall_seconds, cfg)
-            planes.append(
-                wall_planes(pc, a[:3, :3].T @ g_up, r[0], cfg.wall_min_points, cfg.wall_sigma)
-            )
-        walls = Walls(planes, cfg.wall_gate, cfg.manhattan_gate_deg)
-
     # Loop edges: ICP between overlapping submaps, once. ``T`` is the ICP result, ``H`` its
     # information (source frame, horizontal part only when ``up`` is known), ``S`` that
     # projector: later passes re-read the same measurement against the undrifted guess.
@@ -653,6 +639,23 @@ def close_loops(
     if not edges:
         out.seconds = time.perf_counter() - t0
         return out
+
+    # Every submap's walls, read about its node at its online pose, once there are loop edges
+    # to solve with (the walls join the last solve only, after the passes below).
+    walls = None
+    if right is not None and cfg.walls:
+        planes = []
+        for k, g in enumerate(groups):
+            r = right.readings[k]
+            if r is None:
+                planes.append([])
+                continue
+            a = P[g[0]]
+            pc = _about_node(frames, P, stamps, g[0], cfg.wall_seconds, cfg)
+            planes.append(
+                wall_planes(pc, a[:3, :3].T @ g_up, r[0], cfg.wall_min_points, cfg.wall_sigma)
+            )
+        walls = Walls(planes, cfg.wall_gate, cfg.manhattan_gate_deg)
 
     current = P
     length = float(path_length(P, g_up)[-1]) if g_up is not None else 0.0
