@@ -129,5 +129,9 @@ def test_close_ends_the_second_process() -> None:
     assert pipe._worker is not None
     proc = pipe._worker.proc
     pipe.push(*frames()[0], "base_link")
+    pipe.flush()
+    peak = pipe.worker_peak_bytes()  # its own pages (Linux), not those it was forked with
+    assert peak is not None and 20 * 2**20 < peak < 2**30
     pipe.close()
+    assert pipe.worker_peak_bytes() is None
     assert not proc.is_alive() and proc.exitcode is not None

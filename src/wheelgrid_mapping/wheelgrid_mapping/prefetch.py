@@ -180,6 +180,23 @@ class FramePipeline:
         if mapper is not None:
             self.mapper = mapper
 
+    def worker_peak_bytes(self) -> int | None:
+        """The second process's peak resident memory so far (Linux's ``VmHWM``), else None.
+        Read here because ``getrusage(RUSAGE_CHILDREN)`` is no measure of it: a spawned child
+        starts as a fork and keeps the high-water mark of the parent's pages it was forked
+        with (a replay that had decoded its frames up front read 495 MiB for a child that
+        itself never held 100)."""
+        if self._worker is None:
+            return None
+        try:
+            with open(f"/proc/{self._worker.proc.pid}/status") as f:
+                for line in f:
+                    if line.startswith("VmHWM:"):
+                        return int(line.split()[1]) * 1024
+        except (OSError, ValueError):
+            return None
+        return None
+
     def close(self) -> None:
         if self._worker is not None:
             self._worker.close()
