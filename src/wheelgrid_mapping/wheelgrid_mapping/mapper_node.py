@@ -183,8 +183,11 @@ class MapperNode(Node):  # type: ignore[misc]
         self.get_logger().info(
             f"mapper: {self.topic} -> /wheelgrid/map_cloud (prior: {self.prior_topic or 'none'}, "
             f"registration {reg.method} voxel {reg.voxel_size} m, loop closure "
-            f"{'on ~/close_loops' if self.loop_cfg.enabled else 'off'})"
+            f"{'on ~/close_loops' if self.loop_cfg.enabled else 'off'}, frames filtered in "
+            f"{'a second process' if self._pipe.ahead else 'this process'})"
         )
+        if cfg.prepare_ahead and not self._pipe.ahead:
+            self.get_logger().warning(f"frames filtered here, slower: {self._pipe.note}")
 
     # -- input -------------------------------------------------------------------------------
     def _log_once(self, key: str, text: str, warn: bool = True) -> None:
