@@ -55,7 +55,7 @@ from wheelgrid_mapping.cli_measure import (
     reference_plane,
 )
 from wheelgrid_mapping.loop_closure import LoopClosureConfig, loop_icp, submap
-from wheelgrid_mapping.pipeline import Mapper, MapperConfig, complete_priors
+from wheelgrid_mapping.pipeline import DEFAULT_FRAME_ID, Mapper, MapperConfig, complete_priors
 from wheelgrid_mapping.prefetch import FramePipeline
 from wheelgrid_mapping.preprocess import (
     PreprocessConfig,
@@ -97,7 +97,7 @@ def run_mapper(
             if n >= total:
                 break
             if pts.shape[0]:
-                pipe.push(pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior)
+                pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior)
         pipe.flush()
     finally:
         close_pipe(pipe)

@@ -55,12 +55,10 @@ def assert_same_map(a: Mapper, b: Mapper) -> None:
 def test_frames_prepared_ahead_make_the_map_add_frame_makes(ahead: bool) -> None:
     ref, ref_seen = reference()
     m = mapper()
-    pipe = FramePipeline(m, ahead)
-    try:
+    with FramePipeline(m, ahead) as pipe:
         assert pipe.ahead == ahead
         seen = run(pipe, frames())
-    finally:
-        pipe.close()
+    assert not pipe.ahead  # leaving the block ended the second process
     # every frame has its outcome once, in order, skipped and empty ones included
     assert sorted(seen) == sorted(ref_seen)
     assert [s for _, s in ref_seen].count("skipped") == 1
@@ -73,12 +71,9 @@ def test_a_frame_that_raises_is_its_own_error_and_the_next_ones_are_mapped() -> 
     given = frames()
     given.insert(4, (np.zeros(10), 0.7))  # 10 numbers: no (N, 3) cloud
     m = mapper()
-    pipe = FramePipeline(m, True)
-    try:
+    with FramePipeline(m, True) as pipe:
         seen = run(pipe, given)
         assert pipe.ahead  # the second process survives a bad frame
-    finally:
-        pipe.close()
     assert (0.7, "error") in seen
     ref, _ = reference()
     assert m.stamps == ref.stamps  # and every good frame is mapped as before
@@ -88,8 +83,7 @@ def test_a_frame_that_raises_is_its_own_error_and_the_next_ones_are_mapped() -> 
 def test_the_second_process_dying_loses_no_frame() -> None:
     given = frames()
     m = mapper()
-    pipe = FramePipeline(m, True)
-    try:
+    with FramePipeline(m, True) as pipe:
         seen = run(pipe, given[:3])
         assert pipe._worker is not None
         pipe._worker.proc.kill()  # with frame 2 in it
@@ -98,8 +92,6 @@ def test_the_second_process_dying_loses_no_frame() -> None:
             seen.extend((t, o.status) for t, o in pipe.push(pts, stamp, "base_link"))
         seen.extend((t, o.status) for t, o in pipe.flush())
         assert not pipe.ahead and "second one failed" in pipe.note
-    finally:
-        pipe.close()
     ref, ref_seen = reference()
     assert sorted(seen) == sorted(ref_seen)
     assert_same_map(ref, m)
@@ -108,8 +100,7 @@ def test_the_second_process_dying_loses_no_frame() -> None:
 def test_a_reset_drops_the_frame_in_preparation_and_its_answer() -> None:
     given = frames()
     m = mapper()
-    pipe = FramePipeline(m, True)
-    try:
+    with FramePipeline(m, True) as pipe:
         run(pipe, given[:2])
         pipe.push(*given[6], "base_link")  # in the second process now
         assert pipe.pending
@@ -117,8 +108,6 @@ def test_a_reset_drops_the_frame_in_preparation_and_its_answer() -> None:
         m.reset()
         assert not pipe.pending
         seen = run(pipe, given)  # the answer for the dropped frame is not read as frame 0's
-    finally:
-        pipe.close()
     ref, ref_seen = reference()
     assert sorted(seen) == sorted(ref_seen)
     assert_same_map(ref, m)

@@ -20,7 +20,7 @@ import numpy as np
 
 from wheelgrid_common.progress import Progress
 
-from .pipeline import FrameOutcome, Mapper, load_configs
+from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, load_configs
 from .prefetch import FramePipeline
 from .registration import PRIOR_SCALE_MIN_STEP
 
@@ -58,7 +58,7 @@ def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
             yield (
                 pts,
                 fr.stamp,
-                "iphone_depth_optical_frame",
+                DEFAULT_FRAME_ID,
                 conf,
                 (fr.pose if use_prior else None),
             )
@@ -271,21 +271,18 @@ def _run(args: argparse.Namespace) -> int:
             elif out.relocalised:
                 print(f"\nframe {k}: relocalised against the map; mapping resumed", file=sys.stderr)
 
-    try:
-        with Progress(total, "mapping", "frames") as bar:
-            for pts, stamp, frame_id, conf, prior in frames:
-                if n >= total:
-                    break
-                n += 1
-                if pts.shape[0] == 0:
-                    bar.update(1)
-                    continue
-                index[float(stamp)] = n - 1
-                report(pipe.push(pts, stamp, frame_id or "iphone_depth_optical_frame", conf, prior))
-                bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
-            report(pipe.flush())
-    finally:
-        pipe.close()
+    with pipe, Progress(total, "mapping", "frames") as bar:
+        for pts, stamp, frame_id, conf, prior in frames:
+            if n >= total:
+                break
+            n += 1
+            if pts.shape[0] == 0:
+                bar.update(1)
+                continue
+            index[float(stamp)] = n - 1
+            report(pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior))
+            bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
+        report(pipe.flush())
     if bad and len(bad) == n:
         raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
     if mapper.frames_empty == n - len(bad):

@@ -40,7 +40,7 @@ from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_
 from wheelgrid_common.ros_env import spin_node, tf2_available
 
 from .loop_closure import LoopClosureConfig, closed_note
-from .pipeline import FrameOutcome, Mapper, MapperConfig
+from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, MapperConfig
 from .prefetch import FramePipeline
 from .preprocess import PreprocessConfig
 from .registration import RegistrationConfig
@@ -144,7 +144,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._loop_state = "ready" if self.loop_cfg.enabled else "off"
         self._loop_note = ""
         self._loop_cancel = False
-        self._sensor_frame = "iphone_depth_optical_frame"
+        self._sensor_frame = DEFAULT_FRAME_ID
 
         self.map_pub = self.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
         self.odom_pub = self.create_publisher(Odometry, "/wheelgrid/odometry", SENSOR_QOS)
@@ -266,8 +266,6 @@ class MapperNode(Node):  # type: ignore[misc]
                 generation = self._generation
             if closing:
                 self._close_loops()
-                continue
-            if frame is None and not self._pipe.pending:
                 continue
             if frame is None:  # nothing new came: the frame in preparation is added now
                 with self._lock:

@@ -193,6 +193,7 @@ def load_configs(
 
 
 SECTIONS = ("preprocess", "registration", "mapper", "loop_closure")
+DEFAULT_FRAME_ID = "iphone_depth_optical_frame"  # a frame without one: the phone's depth camera
 
 
 @dataclass
@@ -299,7 +300,7 @@ class Mapper:
         self,
         points: np.ndarray,
         stamp: float,
-        frame_id: str = "iphone_depth_optical_frame",
+        frame_id: str = DEFAULT_FRAME_ID,
         confidence: np.ndarray | None = None,
         prior: np.ndarray | None = None,
     ) -> FrameOutcome:
@@ -319,9 +320,7 @@ class Mapper:
         if self._admitted:
             self._admitted.pop(0)
 
-    def admit(
-        self, stamp: float, frame_id: str = "iphone_depth_optical_frame"
-    ) -> FrameOutcome | None:
+    def admit(self, stamp: float, frame_id: str = DEFAULT_FRAME_ID) -> FrameOutcome | None:
         """The first half of :meth:`add_frame`, before any work on the points: counts the frame,
         and returns its outcome where it is not to be processed (between keyframes), else None,
         and the caller goes on with :meth:`add_prepared` for exactly this frame. Split out so

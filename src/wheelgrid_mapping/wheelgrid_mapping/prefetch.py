@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .pipeline import FrameOutcome, Mapper, PreparedFrame, prepare_frame
+from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, PreparedFrame, prepare_frame
 from .preprocess import PreprocessConfig
 from .registration import RegistrationConfig
 
@@ -121,7 +121,7 @@ class FramePipeline:
         self,
         points: np.ndarray,
         stamp: float,
-        frame_id: str = "iphone_depth_optical_frame",
+        frame_id: str = DEFAULT_FRAME_ID,
         confidence: np.ndarray | None = None,
         prior: np.ndarray | None = None,
     ) -> list[tuple[float, FrameOutcome]]:
@@ -132,9 +132,7 @@ class FramePipeline:
         if skipped is not None:
             return [(stamp, skipped)]
         previous = self._pending
-        prepared: PreparedFrame | BaseException | None = None
-        if previous is not None:
-            prepared = self._collect(previous)
+        prepared = self._collect(previous) if previous is not None else None
         self._pending = _Pending(points, confidence, prior, float(stamp), False)
         if self._worker is not None:
             try:
@@ -142,7 +140,7 @@ class FramePipeline:
                 self._pending.sent = True
             except Exception as exc:
                 self._give_up(exc)
-        done = [] if previous is None else [self._add(previous, prepared)]
+        done = [] if previous is None or prepared is None else [self._add(previous, prepared)]
         if self._worker is None:  # one process: this frame at once, as add_frame would
             done.extend(self.flush())
         return done
@@ -157,7 +155,7 @@ class FramePipeline:
         return [self._add(previous, prepared)]
 
     def _add(
-        self, frame: _Pending, prepared: PreparedFrame | BaseException | None
+        self, frame: _Pending, prepared: PreparedFrame | BaseException
     ) -> tuple[float, FrameOutcome]:
         """The frame added to the map; an exception in its preparation or registration is its
         outcome (``error``), as a bad frame must never stop the frames after it."""
@@ -169,16 +167,14 @@ class FramePipeline:
         except Exception as exc:
             return frame.stamp, FrameOutcome("error", repr(exc))
 
-    def discard(self, mapper: Mapper | None = None) -> None:
-        """Forget the frame in preparation (a reset), and feed ``mapper`` from now on."""
+    def discard(self) -> None:
+        """Forget the frame in preparation (a reset)."""
         if self._pending is not None and self._pending.sent and self._worker is not None:
             try:
                 self._worker.recv()  # the answer must not be read as the next frame's
             except Exception as exc:
                 self._give_up(exc)
         self._pending = None
-        if mapper is not None:
-            self.mapper = mapper
 
     def worker_peak_bytes(self) -> int | None:
         """The second process's peak resident memory so far (Linux's ``VmHWM``), else None.
@@ -197,7 +193,14 @@ class FramePipeline:
             return None
         return None
 
+    def __enter__(self) -> FramePipeline:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def close(self) -> None:
+        """End the second process (a frame still in preparation is not added: :meth:`flush`)."""
         if self._worker is not None:
             self._worker.close()
             self._worker = None
