@@ -90,6 +90,31 @@ def test_grid_knn_shell_search_merges_with_the_inner_cells() -> None:
     assert np.isinf(dist[~reach]).all() and (idx[~reach] == -1).all()
 
 
+def test_grid_knn_crowded_cells_and_a_huge_lattice_agree_with_brute_force() -> None:
+    # Several points a cell (not voxel_downsample output) take the per-slot table; two clusters
+    # 30 m apart make the lattice (600^3 cells) too big for the dense lookup, so cells are
+    # binary-searched. Distances are float32 offsets: 2e-6 m at 30 m.
+    rng = np.random.default_rng(5)
+    cell = 0.05
+    # 1-3 points in each of 500 cells of a 20 x 20 x 3 lattice (a cell keeps its first 4).
+    ijk = np.argwhere(np.ones((20, 20, 3), dtype=bool))[rng.permutation(1200)[:500]]
+    ijk = np.repeat(ijk, rng.integers(1, 4, size=500), axis=0)
+    blob = (ijk + rng.uniform(0.01, 0.99, size=ijk.shape)) * cell
+    for pts in (blob, np.vstack([blob, blob + np.full(3, 30.0)])):
+        idx, dist = grid_knn(pts, 5, cell)
+        full = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+        np.fill_diagonal(full, np.inf)
+        brute = np.sort(full, axis=1)[:, :5]
+        close = brute <= cell
+        assert close.sum() > 1000
+        assert np.allclose(dist[close], brute[close], rtol=0, atol=1e-5)
+        found = idx >= 0
+        assert np.allclose(np.linalg.norm(pts[idx[found]] - pts[np.nonzero(found)[0]], axis=1),
+                           dist[found], rtol=0, atol=1e-5)  # fmt: skip
+        assert (np.diff(dist, axis=1) >= 0).all()  # sorted, inf last
+        assert (idx != np.arange(len(pts))[:, None]).all()
+
+
 def test_smallest_eigenvector_matches_eigh() -> None:
     rng = np.random.default_rng(4)
     a = rng.normal(size=(2000, 3, 3))

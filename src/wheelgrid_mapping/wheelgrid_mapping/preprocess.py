@@ -205,19 +205,22 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
 def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """K nearest neighbours (self excluded) through the space subdivision (text after eq. 5).
 
-    Candidates are the points of the 3x3x3 cells around the point's cell; where fewer than
-    ``k`` are found the point is searched again in the surrounding 5x5x5 shell (the paper's
-    "expand the search area"). Neighbours closer than one cell are exact; farther ones are the
-    nearest among the candidates searched (a bounded search: enough for SOR and PFC, which only
-    need a local neighbourhood, and it is what keeps 1 M points to seconds without a k-d tree).
+    Candidates are the points of the 3x3x3 cells around the point's cell; where that block
+    holds fewer than ``k`` the point is searched in the whole 5x5x5 block (the paper's "expand
+    the search area"). Neighbours closer than one cell are exact; farther ones are the nearest
+    among the candidates searched (a bounded search: enough for SOR and PFC, which only need a
+    local neighbourhood, and it is what keeps 1 M points to seconds without a k-d tree).
     Meant for :func:`voxel_downsample` output at the same cell (one point per cell, same
     lattice); a cell holding more points contributes its first 4. Returns ``(idx (N,k) int64,
-    dist (N,k) float64)`` sorted by distance; missing neighbours have index -1 and distance
-    ``inf``.
+    dist (N,k) float64)`` sorted by distance, equal distances in lattice-offset order; missing
+    neighbours have index -1 and distance ``inf``.
 
-    The search runs offset by offset over chunks of queries, so each step is one gather of a
-    cache-sized column instead of an (N, 27, 3) temporary; that, and one packed sort key per
-    candidate, is what made it 1.5x faster than the first per-point version.
+    The candidates are gathered offset by offset over chunks of queries (one cache-sized
+    gather a step, not an (N, 27, 3) temporary) and kept only where a cell is occupied, as
+    (query, candidate) pairs that one flat sort of packed int64 keys orders. That, and counting
+    the 3x3x3 block before searching it, made it a third faster than the dense (query,
+    column) matrix it replaced (41 real frames at 3 cm, k = 10: 42.6 against 63.7 ms a frame;
+    the same distances, ties apart), which was 1.5x faster than the first per-point version.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = pts.shape[0]
@@ -257,9 +260,9 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
         pos = np.minimum(np.searchsorted(ucells, keys), ucells.shape[0] - 1)
         return np.where(ucells[pos] == keys, pos, -1).astype(np.int32)
 
-    # float32 halves the memory traffic (cm-exact here); the sentinel last point is far away.
+    # float32 halves the memory traffic (cm-exact here).
     rel = (pts - origin).astype(np.float32)
-    xs, ys, zs = (np.r_[rel[:, a], np.float32(1e9)] for a in range(3))
+    xs, ys, zs = (np.ascontiguousarray(rel[:, a]) for a in range(3))
 
     def offsets(inner: int, reach: int) -> list[int]:
         return [
@@ -270,61 +273,85 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
             if max(abs(a), abs(b), abs(c)) >= inner
         ]
 
-    def search(sel: np.ndarray, offs: list[int], keep_found: bool) -> None:
-        ncol = len(offs) * cap + (k if keep_found else 0)
+    def search(sel: np.ndarray, offs: list[int]) -> None:
         for s in range(0, sel.shape[0], 65_536):
             q = sel[s : s + 65_536]
             qkey = lin[q]
-            qx, qy, qz = xs[q], ys[q], zs[q]
-            # Candidate-major (column per row): each offset writes contiguous memory; and
-            # only the candidates that exist are gathered (in a frame ~15 % of the 5x5x5
-            # shell's cells are occupied), the rest stay -1 / inf.
-            cand = np.full((ncol, q.shape[0]), -1, dtype=np.int32)
-            d = np.full((ncol, q.shape[0]), np.inf, dtype=np.float32)
-            col = 0
+            # Only the candidates that exist become (query, candidate) pairs: in a frame ~15 %
+            # of the 5x5x5 shell's cells are occupied, so a dense (query, column) matrix was
+            # mostly padding to fill, transpose and partition.
+            hits: list[np.ndarray] = []
+            cands: list[np.ndarray] = []
+            lens: list[int] = []
+            col_off: list[int] = []
+            col_slot: list[int] = []
             for off in offs:
                 rows = cell_rows(qkey + off)
                 if direct:
-                    slots = [rows] if off != 0 else []  # own cell: only the query itself
+                    slots = [(0, rows)] if off != 0 else []  # own cell: only the query itself
                 else:
-                    slots = [table[r, rows] for r in range(cap)]
+                    slots = [(r, table[r, rows]) for r in range(cap)]
                     if off == 0:
-                        slots = [np.where(c == q, -1, c) for c in slots]
-                for c in slots:
+                        slots = [(r, np.where(c == q, -1, c)) for r, c in slots]
+                for r, c in slots:
                     hit = np.flatnonzero(c >= 0)
-                    if hit.size:
-                        ch = c[hit].astype(np.intp)
-                        cand[col, hit] = ch
-                        dx = xs[ch] - qx[hit]
-                        dd = dx * dx
-                        dx = ys[ch] - qy[hit]
-                        dd += dx * dx
-                        dx = zs[ch] - qz[hit]
-                        dd += dx * dx
-                        d[col, hit] = dd
-                    col += 1
-            if keep_found:  # merge with what the inner search found
-                cand[col : col + k] = idx_out[q].T
-                d[col : col + k] = np.square(dist_out[q]).T
-                col += k
-            cand = np.ascontiguousarray(cand[:col].T)
-            d = np.ascontiguousarray(d[:col].T)
-            kk = min(k, col)
-            # One sortable int64 per candidate: float32 bits (monotonic for d >= 0) | column.
-            key = (d.view(np.int32).astype(np.int64) << 12) | np.arange(col, dtype=np.int64)
-            if kk < col:
-                key = np.partition(key, kk - 1, axis=1)[:, :kk]
-            key.sort(axis=1)
-            dd = (key >> 12).astype(np.int32).view(np.float32)
-            ii = np.take_along_axis(cand, key & 4095, axis=1).astype(np.int64)
-            ii[~np.isfinite(dd)] = -1
-            dist_out[q, :kk] = np.sqrt(dd)
-            idx_out[q, :kk] = ii
+                    hits.append(hit)
+                    cands.append(c[hit])
+                    lens.append(hit.shape[0])
+                    col_off.append(off)
+                    col_slot.append(r)
+            qi = np.concatenate(hits)
+            ci = np.concatenate(cands).astype(np.intp)
+            qg = q[qi]
+            dx = xs[ci] - xs[qg]
+            dd = dx * dx
+            dx = ys[ci] - ys[qg]
+            dd += dx * dx
+            dx = zs[ci] - zs[qg]
+            dd += dx * dx
+            # One sortable int64 a pair: query (16 bits) | float32 distance bits (monotonic for
+            # d >= 0; 31 bits) | column (12 bits), so one flat sort orders every query's
+            # candidates by distance, ties by lattice offset.
+            key = (qi.astype(np.int64) << 43) | (dd.view(np.int32).astype(np.int64) << 12)
+            key |= np.repeat(np.arange(len(lens), dtype=np.int64), lens)
+            key.sort()
+            qsort = key >> 43
+            first = np.searchsorted(qsort, np.arange(q.shape[0]))
+            rank = np.arange(key.shape[0]) - first[qsort]
+            m = np.flatnonzero(rank < k)
+            km = key[m]
+            qm = q[qsort[m]]
+            cm = (km & 4095).astype(np.intp)
+            # The candidate of a kept pair, looked up again from its column rather than
+            # carried through the sort (an argsort costs twice a sort).
+            keys_m = lin[qm] + np.asarray(col_off, dtype=np.int64)[cm]
+            if direct:
+                cand = dense[keys_m]
+            else:
+                cand = table[np.asarray(col_slot, dtype=np.intp)[cm], cell_rows(keys_m)]
+            dist_out[qm, rank[m]] = np.sqrt(
+                ((km >> 12) & 0x7FFFFFFF).astype(np.int32).view(np.float32)
+            )
+            idx_out[qm, rank[m]] = cand
 
-    search(np.arange(n), offsets(0, 1), False)
-    short = np.flatnonzero(~np.isfinite(dist_out[:, -1]))
-    if short.size:
-        search(short, offsets(2, 2), True)
+    # How many candidates each point's 3x3x3 block holds, counted without their distances:
+    # the points with fewer than k (on a voxelised surface nearly all of them) are searched
+    # once over the whole 5x5x5 block instead of twice.
+    inner = offsets(0, 1)
+    found = np.zeros(n, dtype=np.int32)
+    if direct:
+        for off in inner:
+            if off != 0:
+                found += dense[lin + off] >= 0
+    else:
+        per_row = np.r_[np.minimum(counts, cap), 0].astype(np.int32)
+        for off in inner:
+            found += per_row[cell_rows(lin + off)]
+        found -= (table[:, cell_rows(lin)] == np.arange(n)).any(axis=0)
+    short = found < k
+    search(np.flatnonzero(~short), inner)
+    if short.any():
+        search(np.flatnonzero(short), offsets(2, 2) + inner)
     return idx_out, dist_out
 
 
