@@ -188,11 +188,11 @@ class EvidenceMap:
         # Only the samples short of each ray's reach (a ray's are a prefix of t), built
         # directly: the full (rays, steps, 3) block was 80 % discarded and cost half the time.
         per_ray = np.searchsorted(t, reach, side="left")
-        ray = np.repeat(np.arange(unit.shape[0]), per_ray)
         first = np.cumsum(per_ray) - per_ray
-        k = np.arange(ray.shape[0]) - np.repeat(first, per_ray)
+        k = np.arange(int(per_ray.sum())) - np.repeat(first, per_ray)
         tk = t[k]
-        columns = [origin[a] + unit[ray, a] * tk for a in range(3)]
+        # each ray's direction repeated along its samples (a repeat, not a gather by ray index)
+        columns = [origin[a] + np.repeat(unit[:, a], per_ray) * tk for a in range(3)]
         # every sample lies between the origin and its point: their box bounds the voxels (one
         # voxel wider, so no rounding can put a sample outside it)
         box = np.vstack([pts.min(axis=0), pts.max(axis=0), origin])
