@@ -9,6 +9,8 @@ from wheelgrid_mapping.preprocess import (
     PreprocessConfig,
     PreprocessStats,
     cell_for_target,
+    col_max,
+    col_min,
     grid_knn,
     plane_fit_criterion,
     preprocess,
@@ -113,6 +115,16 @@ def test_grid_knn_crowded_cells_and_a_huge_lattice_agree_with_brute_force() -> N
                            dist[found], rtol=0, atol=1e-5)  # fmt: skip
         assert (np.diff(dist, axis=1) >= 0).all()  # sorted, inf last
         assert (idx != np.arange(len(pts))[:, None]).all()
+
+
+def test_col_min_and_col_max_are_numpys_axis_0_reductions() -> None:
+    rng = np.random.default_rng(6)
+    for a in (rng.normal(size=(1000, 3)), rng.integers(-50, 50, size=(1000, 3)).astype(np.int32)):
+        for ours, ref in ((col_min(a), a.min(axis=0)), (col_max(a), a.max(axis=0))):
+            assert ours.dtype == ref.dtype and np.array_equal(ours, ref)
+    with_nan = rng.normal(size=(10, 3))
+    with_nan[4, 1] = np.nan  # propagates, as numpy's does
+    assert np.array_equal(col_min(with_nan), with_nan.min(axis=0), equal_nan=True)
 
 
 def test_smallest_eigenvector_matches_eigh() -> None:

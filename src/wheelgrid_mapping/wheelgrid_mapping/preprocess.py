@@ -106,6 +106,18 @@ def valid_mask(
     return mask
 
 
+def col_min(a: np.ndarray) -> np.ndarray:
+    """``a.min(axis=0)`` of an ``(N, 3)`` array, column by column: numpy reduces a C-ordered
+    (N, 3) array along axis 0 about 3x slower than it reduces its three columns one by one
+    (7 M points: 177 against 63 ms; int64: 126 against 39 ms). Exact, as min is."""
+    return np.array([a[:, i].min() for i in range(a.shape[1])], dtype=a.dtype)
+
+
+def col_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=0)``, column by column (see :func:`col_min`)."""
+    return np.array([a[:, i].max() for i in range(a.shape[1])], dtype=a.dtype)
+
+
 def subdivision_cell(n_points: int, extent: np.ndarray, per_cell: float) -> float:
     """Eq. 5: ``L = cbrt(n / N_a * dX * dY * dZ)`` - the cell edge giving ``n`` points a cell.
 
@@ -136,12 +148,12 @@ def voxel_downsample(points: np.ndarray, cell: float) -> np.ndarray:
         raise ValueError("cell size must be > 0")
     # Lattice anchored at 0 (not at the cloud's minimum) so grid_knn with the same cell sees
     # exactly one centroid per cell: a centroid never leaves its (convex) cell.
-    origin = np.floor(pts.min(axis=0) / cell) * cell
-    span = (pts.max(axis=0) - origin) / cell
+    origin = np.floor(col_min(pts) / cell) * cell
+    span = (col_max(pts) - origin) / cell
     if (span >= (1 << 21) - 1).any():
         raise ValueError(f"cloud too large for cell {cell} m (span {span.max():.0f} cells)")
     ijk = np.floor((pts - origin) / cell).astype(np.int64)
-    dims = ijk.max(axis=0) + 1
+    dims = col_max(ijk) + 1
     if int(dims.prod()) <= min(256_000_000, max(8 * pts.shape[0], 1 << 16)):
         # Dense lattice: cell index by a bitmap + cumulative sum instead of a sort (a big
         # cloud). A frame's box is mostly empty (30 k points in 1.6 M cells): sorting its
@@ -171,22 +183,22 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if target <= 0 or target >= pts.shape[0]:
         return 0.0
-    extent = pts.max(axis=0) - pts.min(axis=0)
+    extent = col_max(pts) - col_min(pts)
     cell = subdivision_cell(pts.shape[0], extent, pts.shape[0] / target)
     # Offsets from the minimum once, in float32: the count only steers the search, so 1e-6 m
     # rounding at a cell border does not matter, and every pass then reads half the bytes.
-    rel = (pts - pts.min(axis=0)).astype(np.float32)
+    rel = (pts - col_min(pts)).astype(np.float32)
 
     def count_full(c: float) -> int:
         # Occupied-cell count without sorting when the lattice fits a bitmap (O(N)); offsets
         # are >= 0, so truncation is floor.
         ijk = (rel * np.float32(1.0 / c)).astype(np.int32)
-        dims = ijk.max(axis=0).astype(np.int64) + 1
+        dims = col_max(ijk).astype(np.int64) + 1
         if int(dims.prod()) <= 256_000_000:
             occ = np.zeros(int(dims.prod()), dtype=bool)
             occ[(ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]] = True
             return int(np.count_nonzero(occ))
-        return int(np.unique(_cell_keys(pts, c, pts.min(axis=0))).shape[0])
+        return int(np.unique(_cell_keys(pts, c, col_min(pts))).shape[0])
 
     prev: tuple[float, int] | None = None
     for _ in range(iterations):
@@ -229,9 +241,9 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     if n < 2 or k < 1:
         return idx_out, dist_out
     # Same lattice as voxel_downsample, padded by 2 cells so that keys +-2 cells never wrap.
-    origin = (np.floor(pts.min(axis=0) / cell) - 2.0) * cell
+    origin = (np.floor(col_min(pts) / cell) - 2.0) * cell
     ijk = np.floor((pts - origin) / cell).astype(np.int64)
-    dims = ijk.max(axis=0) + 3
+    dims = col_max(ijk) + 3
     lin = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     order = np.argsort(lin, kind="stable")
     lin_sorted = lin[order]
