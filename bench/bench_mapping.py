@@ -283,7 +283,7 @@ def fidelity(
     m = run_mapper(
         frames,
         total,
-        RegistrationConfig(method=method, prior_scale=prior_scale),
+        RegistrationConfig(method=method, prior_scale=prior_scale, **REG_OVERRIDES),
         MapperConfig(**MAPPER_OVERRIDES),
         keep=True,
     )
@@ -699,7 +699,9 @@ def real_data(limit: int, interval: float) -> None:
     for label, prior in (("real ICP only", False), ("real ICP + ARKit prior", True)):
         total, frames = stray_frames(stray, prior)
         t0 = time.perf_counter()
-        m = run_mapper(frames, min(total, limit), RegistrationConfig(), cfg, keep=True)
+        m = run_mapper(
+            frames, min(total, limit), RegistrationConfig(**REG_OVERRIDES), cfg, keep=True
+        )
         wall = time.perf_counter() - t0
         row(f"{label}: frames failed", m.registrar.counters.failed, "frames")
         row(f"{label}: frames/s (every {interval:.2f} s)", m.frames_read / wall, "frames/s")
@@ -729,7 +731,7 @@ def speed(limit: int, big: int) -> None:
         m = run_mapper(
             frames,
             min(total, limit),
-            RegistrationConfig(method=method),
+            RegistrationConfig(method=method, **REG_OVERRIDES),
             MapperConfig(**{**MAPPER_OVERRIDES, "prepare_ahead": ahead}),
         )
         res[method, ahead] = m.frames_read / (time.perf_counter() - t0)
@@ -798,7 +800,7 @@ def stream(limit: int, rate: float = 30.0) -> None:
         process while the one before registers, as the node does (``prepare_ahead``). Returns
         the mapper, the stamps of the frames it mapped, the seconds it was busy, and how far
         behind the stream it ended."""
-        reg = RegistrationConfig(method=method)
+        reg = RegistrationConfig(method=method, **REG_OVERRIDES)
         cfg = MapperConfig(min_frame_interval=interval, **MAPPER_OVERRIDES)
         m = Mapper(PreprocessConfig(), reg, cfg)
         pipe = FramePipeline(m, ahead)
@@ -957,6 +959,7 @@ def draws(sims: list[tuple[str, Path]], count: int) -> None:
 # ``--evidence-margin`` set them, to measure the previous behaviour in the same run).
 LOOP_OVERRIDES: dict[str, Any] = {}
 MAPPER_OVERRIDES: dict[str, Any] = {}
+REG_OVERRIDES: dict[str, Any] = {}
 
 
 def evaluate(map_ply: Path, sim: Path) -> None:
@@ -1011,6 +1014,13 @@ def main(argv: list[str] | None = None) -> int:
         "which dropped a surface's noise on its free side)",
     )
     ap.add_argument(
+        "--convergence",
+        type=float,
+        metavar="C",
+        help="registration.convergence for every run (KISS-ICP's convergence_criterion; default "
+        "1e-4): how a looser ICP stop trades accuracy for speed",
+    )
+    ap.add_argument(
         "--evaluate",
         type=Path,
         metavar="MAP_PLY",
@@ -1056,6 +1066,8 @@ def main(argv: list[str] | None = None) -> int:
         LOOP_OVERRIDES["walls"] = False
     if args.evidence_margin is not None:
         MAPPER_OVERRIDES["evidence_margin"] = args.evidence_margin
+    if args.convergence is not None:
+        REG_OVERRIDES["convergence"] = args.convergence
     if args.fresh_seed is None:
         args.fresh_seed = [] if args.quick else list(range(11, 20))
     if args.face_frames:

@@ -177,6 +177,28 @@ def test_bad_registration_settings_are_refused() -> None:
         Registrar(cfg)
 
 
+def test_convergence_is_kiss_icps_stop_and_a_looser_one_stops_short(world: np.ndarray) -> None:
+    """``convergence`` is what ends KISS-ICP's iterations: the same two frames, registered with
+    KISS-ICP's default and with a stop every first update passes, land apart, the default on
+    the truth. Settings that could never stop (or always would) are refused."""
+    for bad in (0.0, -1e-4, float("nan")):
+        with pytest.raises(ValueError, match="convergence"):
+            RegistrationConfig(convergence=bad)
+    T0, T1 = pose(1.5, 2.0, 0.0), pose(1.58, 2.03, 0.04)
+    truth = np.linalg.inv(T0) @ T1
+    errors = {}
+    for conv in (1e-4, 1.0):
+        reg = Registrar(RegistrationConfig(convergence=conv))
+        assert reg._kcfg.registration.convergence_criterion == conv
+        rng = np.random.default_rng(21)  # the same two views for both
+        reg.register(view(world, T0, rng), 0.0)
+        res = reg.register(view(world, T1, rng), 0.2)
+        assert res.accepted, res.reason
+        errors[conv] = float(np.linalg.norm((np.linalg.inv(truth) @ res.pose)[:3, 3]))
+    assert errors[1e-4] < 0.01
+    assert errors[1.0] > 2.0 * errors[1e-4]
+
+
 def test_fitness_is_the_share_of_points_next_to_an_occupied_cell() -> None:
     """The overlap check keeps occupied cells and their neighbours as new cells arrive (no
     re-sort of the map per frame); it must still be: a point matches when its own fitness cell
