@@ -559,7 +559,14 @@ def prior_scale_rows(label: str, lc: dict[str, Any]) -> None:
 
 
 def largest_planes(pc: Any, count: int = 6, min_share: float = 0.02) -> list[np.ndarray]:
-    """Inlier sets of the largest planes of a cloud (RANSAC, 3 cm), biggest first."""
+    """Inlier sets of the largest planes of a cloud (RANSAC, 3 cm), biggest first.
+
+    Seeded: unseeded, Open3D's RANSAC picked other inliers each run, and the real capture's
+    plane rows, which are read against these planes, moved by up to 0.7 deg and 0.7 cm
+    between runs of the same map (97.36 % within 5 cm every time)."""
+    import open3d as o3d
+
+    o3d.utility.random.seed(0)
     rest, out = pc, []
     total = len(pc.points)
     for _ in range(count):
