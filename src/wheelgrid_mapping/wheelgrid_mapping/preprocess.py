@@ -183,11 +183,12 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if target <= 0 or target >= pts.shape[0]:
         return 0.0
-    extent = col_max(pts) - col_min(pts)
+    lo = col_min(pts)
+    extent = col_max(pts) - lo
     cell = subdivision_cell(pts.shape[0], extent, pts.shape[0] / target)
     # Offsets from the minimum once, in float32: the count only steers the search, so 1e-6 m
     # rounding at a cell border does not matter, and every pass then reads half the bytes.
-    rel = (pts - col_min(pts)).astype(np.float32)
+    rel = (pts - lo).astype(np.float32)
 
     def count_full(c: float) -> int:
         # Occupied-cell count without sorting when the lattice fits a bitmap (O(N)); offsets
@@ -198,7 +199,7 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
             occ = np.zeros(int(dims.prod()), dtype=bool)
             occ[(ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]] = True
             return int(np.count_nonzero(occ))
-        return int(np.unique(_cell_keys(pts, c, col_min(pts))).shape[0])
+        return int(np.unique(_cell_keys(pts, c, lo)).shape[0])
 
     prev: tuple[float, int] | None = None
     for _ in range(iterations):
