@@ -90,7 +90,7 @@ def run_mapper(
 ) -> Mapper:
     """What ``wheelgrid map`` does with ``frames``: each filtered in a second process while
     the one before registers, unless ``cfg.prepare_ahead`` is off (the same map either way)."""
-    m = Mapper(pre or PreprocessConfig(), reg, cfg, keep_frames=keep)
+    m = Mapper(pre or PreprocessConfig(**PRE_OVERRIDES), reg, cfg, keep_frames=keep)
     pipe = FramePipeline(m, cfg.prepare_ahead)
     try:
         for n, (pts, stamp, frame_id, conf, prior) in enumerate(frames):
@@ -624,7 +624,7 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     scene = json.loads((sim / "scene.json").read_text())
     truth = json.loads((sim / "truth.json").read_text())
     gt_stamps, gt = read_tum(sim / "poses_map.tum")
-    pre, ev = PreprocessConfig(), MapperConfig(**MAPPER_OVERRIDES).evidence_map()
+    pre, ev = PreprocessConfig(**PRE_OVERRIDES), MapperConfig(**MAPPER_OVERRIDES).evidence_map()
     total, frames, _ = bag_frames(sim / "scan", None, True)
     kept: list[np.ndarray] = []
     poses: list[np.ndarray] = []
@@ -686,7 +686,7 @@ def real_data(limit: int, interval: float) -> None:
     total, frames = stray_frames(stray, True)
     total = min(total, limit)
     ref_chunks, last = [], None
-    pre = PreprocessConfig()
+    pre = PreprocessConfig(**PRE_OVERRIDES)
     from wheelgrid_mapping.preprocess import preprocess
 
     T0 = None
@@ -809,7 +809,7 @@ def stream(limit: int, rate: float = 30.0) -> None:
         behind the stream it ended."""
         reg = RegistrationConfig(method=method, **REG_OVERRIDES)
         cfg = MapperConfig(min_frame_interval=interval, **MAPPER_OVERRIDES)
-        m = Mapper(PreprocessConfig(), reg, cfg)
+        m = Mapper(PreprocessConfig(**PRE_OVERRIDES), reg, cfg)
         pipe = FramePipeline(m, ahead)
         time.sleep(2.0 if ahead else 0.0)  # the second process is up, as a node's is by now
         mapped: list[float] = []
@@ -967,6 +967,7 @@ def draws(sims: list[tuple[str, Path]], count: int) -> None:
 LOOP_OVERRIDES: dict[str, Any] = {}
 MAPPER_OVERRIDES: dict[str, Any] = {}
 REG_OVERRIDES: dict[str, Any] = {}
+PRE_OVERRIDES: dict[str, Any] = {}
 
 
 def evaluate(map_ply: Path, sim: Path) -> None:
@@ -1028,6 +1029,13 @@ def main(argv: list[str] | None = None) -> int:
         "1e-4): how a looser ICP stop trades accuracy for speed",
     )
     ap.add_argument(
+        "--mixed-pixels",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="preprocess.mixed_pixels for every map of the run (the flying pixels at depth "
+        "edges dropped from organised frames)",
+    )
+    ap.add_argument(
         "--evaluate",
         type=Path,
         metavar="MAP_PLY",
@@ -1075,6 +1083,8 @@ def main(argv: list[str] | None = None) -> int:
         MAPPER_OVERRIDES["evidence_margin"] = args.evidence_margin
     if args.convergence is not None:
         REG_OVERRIDES["convergence"] = args.convergence
+    if args.mixed_pixels is not None:
+        PRE_OVERRIDES["mixed_pixels"] = args.mixed_pixels
     if args.fresh_seed is None:
         args.fresh_seed = [] if args.quick else list(range(11, 20))
     if args.face_frames:

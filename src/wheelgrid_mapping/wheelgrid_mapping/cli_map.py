@@ -53,7 +53,8 @@ def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
                 fr = export.frame(i)
             except ValueError as exc:
                 raise InputError(str(exc)) from exc
-            pts = depth_to_points(fr.depth, fr.K)
+            # organised (H, W, 3): the pixel grid, for the mixed-pixel test
+            pts = depth_to_points(fr.depth, fr.K).reshape(*fr.depth.shape, 3)
             conf = None if fr.confidence is None else fr.confidence.reshape(-1)
             yield (
                 pts,
@@ -148,6 +149,8 @@ def bag_frames(
                 )
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
+                if int(msg.height) > 1:  # organised: the pixel grid, for the mixed-pixel test
+                    pts = pts.reshape(int(msg.height), int(msg.width), 3)
                 yield pts, stamp, msg.header.frame_id, conf, prior_for(stamp)
         except BagError as exc:
             raise InputError(str(exc)) from exc

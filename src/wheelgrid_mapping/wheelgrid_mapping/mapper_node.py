@@ -213,6 +213,8 @@ class MapperNode(Node):  # type: ignore[misc]
         try:
             pts = read_fields(msg)
             conf = read_fields(msg, ("confidence",))[:, 0] if has_field(msg, "confidence") else None
+            if int(msg.height) > 1:  # organised: the pixel grid, for the mixed-pixel test
+                pts = pts.reshape(int(msg.height), int(msg.width), 3)
         except CloudError as exc:
             self.counts["malformed"] += 1
             self._log_once(exc.cause, f"skipping malformed PointCloud2 ({exc}); logged once")

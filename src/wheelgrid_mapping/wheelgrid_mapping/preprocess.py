@@ -60,6 +60,21 @@ class PreprocessConfig:
     )
     enable_sor: bool = field(True, "run the statistical outlier removal", "")
     enable_pfc: bool = field(True, "run the plane fitting criterion", "")
+    mixed_pixels: bool = field(
+        False,
+        "in an organised cloud, drop a pixel whose range lies between two opposite "
+        "neighbours' by more than mixed_jump on both sides (a mixed pixel: a depth edge's "
+        "foreground and background light in one return). For sensors without a confidence "
+        "channel; off: it clears false obstacles behind posts but has not made the simulated "
+        "maps more accurate (docs/mapping-fidelity.md)",
+        "",
+    )
+    mixed_jump: float = field(
+        0.08, "range gap to a nearer and to a farther neighbour that marks a mixed pixel", "m"
+    )
+    mixed_jump_fraction: float = field(
+        0.03, "plus this fraction of the pixel's range (noise and grazing floors grow with it)", ""
+    )
 
     def __post_init__(self) -> None:
         self.validate()
@@ -77,6 +92,8 @@ class PreprocessConfig:
             raise ValueError(
                 f"preprocess needs sor_k >= 1 and pfc_k >= 3, not {self.sor_k}, {self.pfc_k}"
             )
+        if not (self.mixed_jump > 0 and self.mixed_jump_fraction >= 0):
+            raise ValueError("mixed_jump must be > 0 and mixed_jump_fraction >= 0")
         if self.pfc_min_offset < 0:
             raise ValueError(f"preprocess pfc_min_offset must be >= 0, not {self.pfc_min_offset}")
 
@@ -104,6 +121,39 @@ def valid_mask(
             raise ValueError(f"confidence has {conf.shape[0]} values for {pts.shape[0]} points")
         mask &= conf >= min_confidence
     return mask
+
+
+def mixed_pixel_mask(points: np.ndarray, jump: float, fraction: float = 0.0) -> np.ndarray:
+    """``(H, W)`` bool: the pixels of an organised ``(H, W, 3)`` sensor-frame cloud to drop as
+    mixed (flying) pixels.
+
+    A time-of-flight pixel across a depth edge returns a range between the foreground's and
+    the background's. Such a pixel lies between two opposite neighbours (across a row, a
+    column or a diagonal: along a jagged edge the foreground is often only a diagonal step
+    away), one nearer and one farther by more than ``jump + fraction * range``. Opposite, not
+    any two: a real pixel beside one of the sensor's wild returns has a nearer neighbour too,
+    but rarely a farther one right across from it. The points fill the shadow behind a thin post or
+    a table leg, a shadow no ray of that view crosses, so the evidence map cannot carve them
+    and they pile up, frame after frame, into a false obstacle there. A real surface pixel
+    has a neighbour on its own surface: a 5 cm bar's edge pixel has the bar beside it and
+    the background beyond, never a nearer neighbour, so thin obstacles keep every pixel. A
+    floor seen at a grazing angle steps by a few centimetres a row, under the threshold.
+    Invalid pixels (NaN) are never neighbours and never dropped here."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 3 or pts.shape[2] != 3:
+        raise ValueError(f"an organised cloud is (H, W, 3), not {pts.shape}")
+    r = np.sqrt(np.einsum("ijk,ijk->ij", pts, pts))
+    h, w = r.shape
+    gap = jump + fraction * np.nan_to_num(r)
+    padded = np.full((h + 2, w + 2), np.nan)  # NaN compares False: no neighbour there
+    padded[1:-1, 1:-1] = r
+    mixed = np.zeros(r.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):  # the four lines through a pixel
+            a = padded[1 + di : 1 + di + h, 1 + dj : 1 + dj + w] - r
+            b = padded[1 - di : 1 - di + h, 1 - dj : 1 - dj + w] - r
+            mixed |= ((a < -gap) & (b > gap)) | ((a > gap) & (b < -gap))
+    return mixed
 
 
 def col_min(a: np.ndarray) -> np.ndarray:
@@ -542,9 +592,13 @@ def preprocess(
 ) -> np.ndarray:
     """The whole chain on one sensor-frame cloud: valid -> downsample -> SOR -> PFC."""
     st = stats if stats is not None else PreprocessStats()
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    organised = np.asarray(points, dtype=np.float64)
+    pts = organised.reshape(-1, 3)
     st.input = int(pts.shape[0])
-    pts = pts[valid_mask(pts, cfg.min_range, cfg.max_range, confidence, cfg.min_confidence)]
+    keep = valid_mask(pts, cfg.min_range, cfg.max_range, confidence, cfg.min_confidence)
+    if cfg.mixed_pixels and organised.ndim == 3:
+        keep &= ~mixed_pixel_mask(organised, cfg.mixed_jump, cfg.mixed_jump_fraction).reshape(-1)
+    pts = pts[keep]
     st.valid = int(pts.shape[0])
     if pts.shape[0] == 0:
         st.downsampled = st.after_sor = st.after_pfc = 0

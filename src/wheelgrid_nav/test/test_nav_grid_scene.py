@@ -115,8 +115,10 @@ def _voxel(points: np.ndarray, size: float) -> np.ndarray:
 
 
 def _drop_depth_edges(xyz: np.ndarray) -> np.ndarray:
-    """Organised (rows, cols, 3) -> valid points away from depth discontinuities: what a
-    flying-pixel filter in the mapper removes (range jump > 5 cm + 3 % to a 4-neighbour)."""
+    """Organised (rows, cols, 3) -> valid points away from depth discontinuities (range jump
+    > 5 cm + 3 % to a 4-neighbour): every pixel at an edge, a cruder cut than the mapper's
+    optional mixed-pixel test (``preprocess.mixed_pixels``), which keeps a thin obstacle's own
+    edge pixels."""
     rng = np.linalg.norm(xyz, axis=2)
     valid = np.isfinite(rng)
     r = np.where(valid, rng, np.inf)

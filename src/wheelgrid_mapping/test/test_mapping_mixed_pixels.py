@@ -1,0 +1,110 @@
+"""The mixed-pixel test on organised clouds, against the simulator's own depth camera.
+
+The simulator corrupts depth the way a time-of-flight sensor does: half the pixels at a depth
+edge return a range mixed between the foreground's and the background's. Those points fill the
+shadow behind a thin post, where no ray of that view passes to carve them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from wheelgrid_mapping.preprocess import PreprocessConfig, mixed_pixel_mask, preprocess
+from wheelgrid_sim.camera import DepthCamera, depth_to_points
+from wheelgrid_sim.scene import Box, Scene
+from wheelgrid_sim.trajectory import camera_pose
+
+POST = ((1.50, -0.025, 0.0), (1.55, 0.025, 1.5))  # a 5 cm post, 2.5 m in front of the wall
+BAR = ((3.0, 0.4, 0.72), (3.05, 1.4, 0.77))  # a 5 cm bar across the view, Barrier 1's height
+
+
+def scene() -> Scene:
+    return Scene(
+        room=(0.0, -1.5, 4.0, 1.5),
+        boxes=[
+            Box("floor", "floor", (-0.2, -1.7, -0.2), (4.2, 1.7, 0.0)),
+            Box("wall", "wall", (4.0, -1.7, 0.0), (4.2, 1.7, 2.7)),
+            Box("post", "post", *POST),
+            Box("bar", "bar", *BAR),
+        ],
+    )
+
+
+def inside(pts: np.ndarray, box: tuple, pad: float) -> np.ndarray:
+    lo, hi = np.asarray(box[0]) - pad, np.asarray(box[1]) + pad
+    return (pts >= lo).all(axis=1) & (pts <= hi).all(axis=1)
+
+
+@pytest.fixture(scope="module")
+def views() -> list[tuple[np.ndarray, np.ndarray]]:
+    """Organised (H, W, 3) optical-frame clouds and their room_from_optical poses, from the
+    simulator's noisy camera (flying pixels, range noise, wild returns)."""
+    cam, sc, rng = DepthCamera(), scene(), np.random.default_rng(5)
+    out = []
+    for y in (-0.3, -0.1, 0.1, 0.3):
+        T = camera_pose(0.0, y, 1.0, 0.0, math.radians(15))
+        depth = cam.render(sc, T, rng)
+        pts = depth_to_points(depth, cam.intrinsics()).reshape(cam.rows, cam.cols, 3)
+        out.append((pts, T))
+    return out
+
+
+def room(pts: np.ndarray, T: np.ndarray) -> np.ndarray:
+    p = pts.reshape(-1, 3)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def test_mixed_pixels_leave_the_posts_shadow_and_keep_the_post_bar_and_floor(views) -> None:
+    shadow = ((1.6, -0.04, 0.05), (3.9, 0.04, 1.4))  # behind the post, nothing real there
+    counts = {"shadow": [0, 0], "post": [0, 0], "bar": [0, 0], "floor": [0, 0]}
+    for pts, T in views:
+        drop = mixed_pixel_mask(pts, 0.08, 0.03).reshape(-1)
+        every = room(pts, T)
+        ok = np.isfinite(every).all(axis=1)
+        for name, sel in (
+            ("shadow", inside(every, shadow, 0.0) & ~inside(every, BAR, 0.03)),
+            ("post", inside(every, POST, 0.01)),
+            ("bar", inside(every, BAR, 0.01)),
+            ("floor", ok & (np.abs(every[:, 2]) < 0.03) & (every[:, 0] < 3.9)),
+        ):
+            counts[name][0] += int(sel.sum())
+            counts[name][1] += int((sel & ~drop).sum())
+    before, after = counts["shadow"]
+    assert before >= 40, counts  # the camera does put flying pixels there
+    assert after <= 0.2 * before, counts
+    for name in ("post", "bar"):  # thin obstacles keep their pixels
+        assert counts[name][0] >= 100, counts
+        assert counts[name][1] >= 0.98 * counts[name][0], counts
+    assert counts["floor"][1] >= 0.999 * counts["floor"][0], counts
+
+
+def test_preprocess_applies_it_to_organised_clouds_only_and_only_when_asked(views) -> None:
+    pts, _ = views[0]
+    flat = pts.reshape(-1, 3)
+    off, on = PreprocessConfig(), PreprocessConfig(mixed_pixels=True)
+    # off (the default): the organised cloud gives what its flattened points give
+    assert np.array_equal(preprocess(pts, off), preprocess(flat, off))
+    # on: the mixed pixels are gone before the rest of the chain; a flat cloud has no
+    # neighbours to compare, so nothing changes for it
+    assert np.array_equal(preprocess(flat, on), preprocess(flat, off))
+    drop = mixed_pixel_mask(pts, on.mixed_jump, on.mixed_jump_fraction)
+    kept = preprocess(pts, PreprocessConfig(mixed_pixels=True, enable_sor=False, enable_pfc=False))
+    alone = preprocess(
+        flat[~drop.reshape(-1)], PreprocessConfig(enable_sor=False, enable_pfc=False)
+    )
+    assert drop.sum() > 0
+    assert np.array_equal(kept, alone)
+
+
+def test_mixed_pixel_mask_checks_its_input() -> None:
+    with pytest.raises(ValueError, match="organised"):
+        mixed_pixel_mask(np.zeros((10, 3)), 0.08)
+    with pytest.raises(ValueError, match="mixed_jump"):
+        PreprocessConfig(mixed_jump=0.0)
+    # NaN pixels are no neighbours: a lone pixel between two holes is kept
+    pts = np.full((1, 3, 3), np.nan)
+    pts[0, 1] = (0.0, 0.0, 2.0)
+    assert not mixed_pixel_mask(pts, 0.08).any()
