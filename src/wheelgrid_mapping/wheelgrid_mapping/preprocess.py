@@ -65,8 +65,8 @@ class PreprocessConfig:
         "in an organised cloud, drop a pixel whose range lies between two opposite "
         "neighbours' by more than mixed_jump on both sides (a mixed pixel: a depth edge's "
         "foreground and background light in one return). For sensors without a confidence "
-        "channel; off: it clears false obstacles behind posts but has not made the simulated "
-        "maps more accurate (docs/mapping-fidelity.md)",
+        "channel; off: it clears false obstacles behind posts, but the simulated and the real "
+        "maps came out less accurate with it (docs/mapping-fidelity.md)",
         "",
     )
     mixed_jump: float = field(
