@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from wheelgrid_common.pointcloud2 import CloudError, read_fields, read_xyz, to_pointcloud2
+from wheelgrid_common.pointcloud2 import (
+    CloudError,
+    organised,
+    read_fields,
+    read_xyz,
+    to_pointcloud2,
+)
 
 
 def _cloud(n=12, height=3):
@@ -23,6 +29,16 @@ def test_round_trip_keeps_order_nan_and_extra_fields():
     np.testing.assert_allclose(back[[0, 2, 3]], pts[[0, 2, 3]].astype(np.float32), rtol=0)
     assert read_fields(msg, ("confidence",))[:, 0].tolist() == list(range(12))
     assert read_xyz(msg).shape == (11, 3)
+
+
+def test_organised_lays_the_rows_back_on_the_pixel_grid():
+    _, msg = _cloud()
+    rows = read_fields(msg, ("x", "y", "z"))
+    grid = organised(rows, msg)
+    assert grid.shape == (3, 4, 3)
+    np.testing.assert_array_equal(grid[1, 2], rows[1 * 4 + 2])  # pixel (r, c) is row r*W + c
+    _, flat = _cloud(height=1)
+    assert organised(read_fields(flat), flat).shape == (12, 3)
 
 
 def test_big_endian_and_row_padding_are_honoured():

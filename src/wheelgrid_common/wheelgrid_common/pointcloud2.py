@@ -123,6 +123,15 @@ def read_xyz(msg: Any, *, drop_invalid: bool = True) -> np.ndarray:
     return xyz
 
 
+def organised(points: np.ndarray, msg: Any) -> np.ndarray:
+    """``read_fields``' rows laid back on the cloud's pixel grid, ``(height, width, k)``, when
+    the cloud is organised (height > 1): per-pixel filters need each point's neighbours.
+    An unorganised cloud's rows are returned as they are."""
+    if int(msg.height) > 1:
+        return points.reshape(int(msg.height), int(msg.width), -1)
+    return points
+
+
 def has_field(msg: Any, name: str) -> bool:
     return any(f.name == name for f in msg.fields)
 

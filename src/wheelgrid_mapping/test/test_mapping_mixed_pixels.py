@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_mapping.preprocess import PreprocessConfig, mixed_pixel_mask, preprocess
+from wheelgrid_mapping.se3 import transform
 from wheelgrid_sim.camera import DepthCamera, depth_to_points
 from wheelgrid_sim.scene import Box, Scene
 from wheelgrid_sim.trajectory import camera_pose
@@ -52,17 +53,12 @@ def views() -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def room(pts: np.ndarray, T: np.ndarray) -> np.ndarray:
-    p = pts.reshape(-1, 3)
-    return p @ T[:3, :3].T + T[:3, 3]
-
-
 def test_mixed_pixels_leave_the_posts_shadow_and_keep_the_post_bar_and_floor(views) -> None:
     shadow = ((1.6, -0.04, 0.05), (3.9, 0.04, 1.4))  # behind the post, nothing real there
     counts = {"shadow": [0, 0], "post": [0, 0], "bar": [0, 0], "floor": [0, 0]}
     for pts, T in views:
         drop = mixed_pixel_mask(pts, 0.08, 0.03).reshape(-1)
-        every = room(pts, T)
+        every = transform(pts.reshape(-1, 3), T)
         ok = np.isfinite(every).all(axis=1)
         for name, sel in (
             ("shadow", inside(every, shadow, 0.0) & ~inside(every, BAR, 0.03)),

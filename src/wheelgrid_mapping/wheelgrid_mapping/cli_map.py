@@ -97,7 +97,7 @@ def bag_frames(
     ARKit) gives each frame a pose prior: the odometry message nearest in time (<= 0.1 s).
     """
     from wheelgrid_common.bagio import BagError, BagReader
-    from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields
+    from wheelgrid_common.pointcloud2 import CloudError, has_field, organised, read_fields
 
     bad: list[str] = []
     holder = BagReader(path)
@@ -149,9 +149,8 @@ def bag_frames(
                 )
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
-                if int(msg.height) > 1:  # organised: the pixel grid, for the mixed-pixel test
-                    pts = pts.reshape(int(msg.height), int(msg.width), 3)
-                yield pts, stamp, msg.header.frame_id, conf, prior_for(stamp)
+                # the pixel grid, for the mixed-pixel test
+                yield organised(pts, msg), stamp, msg.header.frame_id, conf, prior_for(stamp)
         except BagError as exc:
             raise InputError(str(exc)) from exc
         finally:

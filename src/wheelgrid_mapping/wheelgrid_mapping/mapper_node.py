@@ -36,7 +36,13 @@ import numpy as np
 
 from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
 from wheelgrid_common.params import declare_dataclass, field
-from wheelgrid_common.pointcloud2 import CloudError, has_field, read_fields, to_pointcloud2
+from wheelgrid_common.pointcloud2 import (
+    CloudError,
+    has_field,
+    organised,
+    read_fields,
+    to_pointcloud2,
+)
 from wheelgrid_common.ros_env import spin_node, tf2_available
 
 from .loop_closure import LoopClosureConfig, closed_note
@@ -211,10 +217,8 @@ class MapperNode(Node):  # type: ignore[misc]
             )
             return
         try:
-            pts = read_fields(msg)
+            pts = organised(read_fields(msg), msg)  # the pixel grid, for the mixed-pixel test
             conf = read_fields(msg, ("confidence",))[:, 0] if has_field(msg, "confidence") else None
-            if int(msg.height) > 1:  # organised: the pixel grid, for the mixed-pixel test
-                pts = pts.reshape(int(msg.height), int(msg.width), 3)
         except CloudError as exc:
             self.counts["malformed"] += 1
             self._log_once(exc.cause, f"skipping malformed PointCloud2 ({exc}); logged once")

@@ -128,17 +128,19 @@ def mixed_pixel_mask(points: np.ndarray, jump: float, fraction: float = 0.0) -> 
     mixed (flying) pixels.
 
     A time-of-flight pixel across a depth edge returns a range between the foreground's and
-    the background's. Such a pixel lies between two opposite neighbours (across a row, a
-    column or a diagonal: along a jagged edge the foreground is often only a diagonal step
-    away), one nearer and one farther by more than ``jump + fraction * range``. Opposite, not
-    any two: a real pixel beside one of the sensor's wild returns has a nearer neighbour too,
-    but rarely a farther one right across from it. The points fill the shadow behind a thin post or
-    a table leg, a shadow no ray of that view crosses, so the evidence map cannot carve them
-    and they pile up, frame after frame, into a false obstacle there. A real surface pixel
-    has a neighbour on its own surface: a 5 cm bar's edge pixel has the bar beside it and
-    the background beyond, never a nearer neighbour, so thin obstacles keep every pixel. A
-    floor seen at a grazing angle steps by a few centimetres a row, under the threshold.
-    Invalid pixels (NaN) are never neighbours and never dropped here."""
+    the background's. Such points fill the shadow behind a thin post or a table leg, a shadow
+    no ray of that view crosses, so the evidence map cannot carve them and they pile up,
+    frame after frame, into a false obstacle there.
+
+    A mixed pixel lies between two opposite neighbours (across a row, a column or a
+    diagonal: along a jagged edge the foreground is often only a diagonal step away), one
+    nearer and one farther by more than ``jump + fraction * range``. A real surface pixel
+    has a neighbour on its own surface: a 5 cm bar's edge pixel has the bar on one side and
+    the background on the other, never a nearer neighbour. Opposite, not any two: a real
+    pixel beside one of the sensor's wild returns has a nearer neighbour too, but rarely a
+    farther one right across from it (such pixels are the 1-2 % of a thin obstacle's that
+    go). A floor seen at a grazing angle steps by a few centimetres a row, under the
+    threshold. Invalid pixels (NaN) are never neighbours and never dropped here."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 3 or pts.shape[2] != 3:
         raise ValueError(f"an organised cloud is (H, W, 3), not {pts.shape}")
