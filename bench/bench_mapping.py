@@ -619,7 +619,7 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     it moves a perfect trajectory is the loop closure's own error, a floor under the
     registered runs' trajectory error."""
     from wheelgrid_mapping.loop_closure import close_loops
-    from wheelgrid_mapping.preprocess import preprocess
+    from wheelgrid_mapping.preprocess import preprocess_for_map
 
     scene = json.loads((sim / "scene.json").read_text())
     truth = json.loads((sim / "truth.json").read_text())
@@ -634,8 +634,8 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
         if n >= min(total, frames_limit):
             break
         pose = gt[int(np.argmin(np.abs(gt_stamps - stamp)))]
-        filtered = preprocess(pts, pre, conf)
-        ev.add(transform(filtered, pose), pose[:3, 3])
+        filtered, map_keep = preprocess_for_map(pts, pre, conf)
+        ev.add(transform(filtered if map_keep is None else filtered[map_keep], pose), pose[:3, 3])
         if filtered.shape[0]:
             kept.append(filtered)
             poses.append(pose)
@@ -1036,6 +1036,13 @@ def main(argv: list[str] | None = None) -> int:
         "edges dropped from organised frames)",
     )
     ap.add_argument(
+        "--map-mixed-pixels",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="preprocess.map_mixed_pixels for every map of the run (the same pixels left out "
+        "of the map only; registration still sees them)",
+    )
+    ap.add_argument(
         "--evaluate",
         type=Path,
         metavar="MAP_PLY",
@@ -1085,6 +1092,8 @@ def main(argv: list[str] | None = None) -> int:
         REG_OVERRIDES["convergence"] = args.convergence
     if args.mixed_pixels is not None:
         PRE_OVERRIDES["mixed_pixels"] = args.mixed_pixels
+    if args.map_mixed_pixels is not None:
+        PRE_OVERRIDES["map_mixed_pixels"] = args.map_mixed_pixels
     if args.fresh_seed is None:
         args.fresh_seed = [] if args.quick else list(range(11, 20))
     if args.face_frames:

@@ -32,7 +32,12 @@ from .levelling import (
     map_from_mount,
 )
 from .loop_closure import LoopClosureConfig, LoopClosureResult, close_loops, submap_groups
-from .preprocess import PreprocessConfig, PreprocessStats, preprocess, voxel_downsample
+from .preprocess import (
+    PreprocessConfig,
+    PreprocessStats,
+    preprocess_for_map,
+    voxel_downsample,
+)
 from .registration import FrameInputs, Registrar, RegistrationConfig, frame_inputs, transform
 from .se3 import is_rigid
 
@@ -216,6 +221,11 @@ class PreparedFrame:
     stats: PreprocessStats
     inputs: FrameInputs | None  # None where no point is valid
     seconds: float  # what it took
+    map_keep: np.ndarray | None = None  # which points the map may keep (None: all)
+
+    @property
+    def map_points(self) -> np.ndarray:
+        return self.points if self.map_keep is None else self.points[self.map_keep]
 
 
 def prepare_frame(
@@ -227,9 +237,9 @@ def prepare_frame(
     """:class:`PreparedFrame` of one sensor-frame cloud (``(N, 3)``, NaN allowed)."""
     t0 = time.perf_counter()
     st = PreprocessStats()
-    pts = preprocess(points, pre, confidence, st)
+    pts, map_keep = preprocess_for_map(points, pre, confidence, st)
     inputs = frame_inputs(pts, reg) if st.valid else None
-    return PreparedFrame(pts, st, inputs, time.perf_counter() - t0)
+    return PreparedFrame(pts, st, inputs, time.perf_counter() - t0, map_keep)
 
 
 class Mapper:
@@ -267,6 +277,7 @@ class Mapper:
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
+        self._map_keep: list[np.ndarray | None] = []  # per kept frame: PreparedFrame.map_keep
         self._priors: list[np.ndarray | None] = []  # the pose prior of each kept frame
         self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
         self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
@@ -275,7 +286,14 @@ class Mapper:
         self.frames_empty = 0
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
         self.failures: list[dict[str, Any]] = []
-        self.points = {"input": 0, "valid": 0, "downsampled": 0, "after_sor": 0, "after_pfc": 0}
+        self.points = {
+            "input": 0,
+            "valid": 0,
+            "downsampled": 0,
+            "after_sor": 0,
+            "after_pfc": 0,
+            "mixed_out_of_map": 0,
+        }
         self.timings = {
             "preprocess_s": 0.0,
             "registration_s": 0.0,
@@ -293,6 +311,7 @@ class Mapper:
         """
         self.keep_frames = False
         self._frames = []
+        self._map_keep = []
         self._priors = []
 
     # -- per frame ----------------------------------------------------------------------------
@@ -373,9 +392,10 @@ class Mapper:
         self.poses_odom.append(res.pose)
         if self.keep_frames:
             self._frames.append(pts.astype(np.float32))
+            self._map_keep.append(prep.map_keep)
             self._priors.append(None if prior is None else np.asarray(prior, dtype=np.float64))
         t2 = time.perf_counter()
-        self._evidence.add(transform(pts, res.pose), res.pose[:3, 3])
+        self._evidence.add(transform(prep.map_points, res.pose), res.pose[:3, 3])
         self.timings["evidence_s"] += time.perf_counter() - t2
         self._dirty += pts.shape[0]
         used = len(self.poses_odom)
@@ -422,8 +442,9 @@ class Mapper:
         # failure anywhere (the graph, memory while rebuilding) leaves the online map, poses
         # and frames exactly as they were, and the caller can still save or extend them.
         evidence = self.cfg.evidence_map()
-        for pts, pose in zip(self._frames, res.poses, strict=True):
-            evidence.add(transform(pts.astype(np.float64), pose), pose[:3, 3])
+        for pts, keep, pose in zip(self._frames, self._map_keep, res.poses, strict=True):
+            map_pts = pts if keep is None else pts[keep]
+            evidence.add(transform(map_pts.astype(np.float64), pose), pose[:3, 3])
         self.poses_odom = res.poses
         self._evidence = evidence
         self._dirty = 1
