@@ -723,6 +723,22 @@ def real_data(limit: int, interval: float) -> None:
         row(f"{label}: submaps held to the right angles", lc.get("manhattan_nodes", 0), "submaps")
         prior_scale_rows(label, lc)
         arkit_agreement(label, m.map_odom(), ref, ref_pc, planes)
+        gravity_row(label, m, np.linalg.inv(T0)[:3, :3] @ np.array([0.0, 1.0, 0.0]))
+
+
+def gravity_row(label: str, m: Mapper, up_odom: np.ndarray) -> None:
+    """The levelled map frame's vertical against ARKit's gravity (ARKit's world y, here in the
+    first frame's camera axes, the odom frame of the map and of the reference): the map frame
+    is found from the floor alone, and the reference's planes cannot see a tilt of the frame."""
+    m.map_points()  # the frame as saved, re-levelled on the whole map
+    assert m.T_map_odom is not None
+    up = m.T_map_odom[2, :3]  # the map's z axis in odom
+    cos = float(up @ up_odom / np.linalg.norm(up_odom))
+    row(
+        f"{label}: map frame's vertical against ARKit's gravity",
+        np.degrees(np.arccos(min(cos, 1.0))),
+        "deg",
+    )
 
 
 def speed(limit: int, big: int) -> None:

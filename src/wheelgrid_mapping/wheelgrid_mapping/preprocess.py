@@ -74,8 +74,9 @@ class PreprocessConfig:
         False,
         "leave the mixed pixels (the mixed_pixels test) out of the map only: registration "
         "still sees every pixel, the map gets a point where most of its cell's pixels passed. "
-        "Off: with convergence 1e-3 it keeps the demo's grid true, but the real capture's map "
-        "after loop closure read 0.6-0.8 points fewer within 5 cm (docs/mapping-fidelity.md)",
+        "Off: with convergence 1e-3 it keeps the demo's grid true, but on the real capture its "
+        "0.1 % of points tipped the first floor fit to another plane (map frame 2 deg off "
+        "gravity, 0.6-0.8 points fewer within 5 cm of ARKit's map; docs/mapping-fidelity.md)",
         "",
     )
     mixed_jump: float = field(
