@@ -13,7 +13,12 @@ import numpy as np
 import pytest
 
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, prepare_frame
-from wheelgrid_mapping.preprocess import PreprocessConfig, mixed_pixel_mask, preprocess
+from wheelgrid_mapping.preprocess import (
+    PreprocessConfig,
+    mixed_pixel_mask,
+    preprocess,
+    preprocess_for_map,
+)
 from wheelgrid_mapping.registration import RegistrationConfig
 from wheelgrid_mapping.se3 import transform
 from wheelgrid_sim.camera import DepthCamera, depth_to_points
@@ -159,7 +164,22 @@ def test_mixed_pixel_mask_checks_its_input() -> None:
         mixed_pixel_mask(np.zeros((10, 3)), 0.08)
     with pytest.raises(ValueError, match="mixed_jump"):
         PreprocessConfig(mixed_jump=0.0)
+    with pytest.raises(ValueError, match="mixed_jump_pitches"):
+        PreprocessConfig(mixed_jump_pitches=-1.0)
     # NaN pixels are no neighbours: a lone pixel between two holes is kept
     pts = np.full((1, 3, 3), np.nan)
     pts[0, 1] = (0.0, 0.0, 2.0)
     assert not mixed_pixel_mask(pts, 0.08).any()
+
+
+def test_map_mixed_pixels_on_a_flat_or_an_empty_frame(views) -> None:
+    """A flat cloud has no pixel grid: every point may reach the map (no mask at all). A frame
+    with no valid pixel gives no points and an empty mask, not an error."""
+    only = PreprocessConfig(map_mixed_pixels=True)
+    pts, _ = views[0]
+    flat, keep = preprocess_for_map(pts.reshape(-1, 3), only)
+    assert keep is None
+    assert np.array_equal(flat, preprocess(pts.reshape(-1, 3), PreprocessConfig()))
+    empty, keep = preprocess_for_map(np.full((4, 5, 3), np.nan), only)
+    assert empty.shape == (0, 3)
+    assert keep is not None and keep.shape == (0,)
