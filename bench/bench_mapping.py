@@ -921,6 +921,20 @@ def simulated_runs(bundled: Path, seeds: list[int], tmp: Path) -> list[tuple[str
 DRAW_NUDGE = 1e-5
 
 
+def floor_note(level: dict[str, Any]) -> str:
+    """What the check on the first floor fit found (:meth:`Mapper._check_floor`): a run whose
+    map frame was taken from the floor found on the whole map is another draw of the frame."""
+    check = level.get("floor_check")
+    if not isinstance(check, dict) or "turn_deg" not in check:
+        return ""
+    verdict = "RE-FOUND" if "floor_refound" in level else "kept"
+    return (
+        f"; first floor fit {verdict} (whole map's floor {check['turn_deg']:.2f} deg, "
+        f"{100 * check['moved_m']:+.1f} cm off; {check['points_on_floor_found']} against "
+        f"{check['points_on_z0']} points)"
+    )
+
+
 def draws(sims: list[tuple[str, Path]], count: int) -> None:
     """Each simulated run ``count`` times, the prior's scale nudged by :data:`DRAW_NUDGE` from
     draw to draw (draw 0 is the run `make bench` makes): how much of one run's figures is
@@ -943,7 +957,7 @@ def draws(sims: list[tuple[str, Path]], count: int) -> None:
         for k in range(count):
             mark = len(ROWS)
             with contextlib.redirect_stdout(io.StringIO()):
-                fidelity(sim, 10_000, f"{name} draw {k}", True, "kiss", 1.0 + k * DRAW_NUDGE)
+                m = fidelity(sim, 10_000, f"{name} draw {k}", True, "kiss", 1.0 + k * DRAW_NUDGE)
             values = {r["figure"].split(": ", 1)[1]: r["value"] for r in ROWS[mark:]}
             del ROWS[mark:]  # the draws' own rows stay out of the table and the JSON
             for key, figure in keys.items():
@@ -952,7 +966,7 @@ def draws(sims: list[tuple[str, Path]], count: int) -> None:
             print(
                 f"  {name} draw {k + 1}/{count}: trajectory RMSE {100 * got['rmse'][-1]:.1f} cm, "
                 f"{got['near'][-1]:.1f} % within 5 cm, 9(a) {got['9a'][-1]:.2f} % "
-                f"(along the true normal {got['9a_true'][-1]:.2f} %)",
+                f"(along the true normal {got['9a_true'][-1]:.2f} %)" + floor_note(m.level_info),
                 file=sys.stderr,
                 flush=True,
             )

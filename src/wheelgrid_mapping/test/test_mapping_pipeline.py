@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.testing import body_frame_room, box_surface, sensor_view
-from wheelgrid_mapping.cli_map import prior_scale_line
+from wheelgrid_mapping.cli_map import floor_refound_line, prior_scale_line
+from wheelgrid_mapping.levelling import rpy_matrix
 from wheelgrid_mapping.loop_closure import LoopClosureConfig, closed_note, submap_groups
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, load_configs
 from wheelgrid_mapping.registration import PriorScaleEstimate
@@ -153,6 +154,78 @@ def test_a_floor_first_missed_is_found_when_seen() -> None:
         m2.add_frame(body_frame_room(rng, True), i * 0.2, "base_link")
     m2.map_points()
     assert "floor_lowered_m" not in m2.level_info
+
+
+def room_behind(rng: np.random.Generator) -> np.ndarray:
+    """What a body-convention sensor 1 m up sees once it has turned round: the floor behind it
+    and two more walls (the map more than doubles)."""
+    parts = [
+        np.column_stack([rng.random((20000, 2)) * [4, 6] - [4, 3], np.full(20000, -1.0)]),
+        np.column_stack(
+            [np.full(10000, -4.0), rng.random(10000) * 6 - 3, rng.random(10000) * 2.5 - 1]
+        ),
+        np.column_stack(
+            [rng.random(10000) * 4 - 4, np.full(10000, -3.0), rng.random(10000) * 2.5 - 1]
+        ),
+    ]
+    return np.vstack(parts) + rng.normal(0, 0.003, (40000, 3))
+
+
+def frame_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1))))
+
+
+@pytest.mark.parametrize("first_fit", ["right", "20 cm under, 3.5 deg"])
+def test_the_first_floor_fit_is_checked_on_the_whole_map(first_fit: str, monkeypatch) -> None:
+    """On the real capture the first fit (three frames that held too little floor) landed on
+    planes 3.3-4.6 deg off gravity, one of them 20 cm under the floor and tilted 3.5 deg; the
+    relevelling refines the plane it has and the lower-floor search only moves down, so the
+    map frame stayed there. Now the floor is found again on the whole map once it has doubled:
+    a first fit that landed elsewhere is replaced; one the whole map agrees with is left
+    as it was (the same frame as with no check)."""
+    import wheelgrid_mapping.pipeline as pipeline
+
+    def run(check: bool) -> Mapper:
+        rng = np.random.default_rng(26)
+        m = Mapper(cfg=MapperConfig(level_min_frames=2))
+        for i in range(2):
+            m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link")
+        assert m.T_map_odom is not None
+        if first_fit != "right":  # where the real capture's first fit put z = 0
+            wrong = np.eye(4)
+            wrong[:3, :3] = rpy_matrix(np.radians(3.5), 0.0, 0.0)
+            wrong[2, 3] = 0.2
+            m.T_map_odom = wrong @ m.T_map_odom
+        for i in range(2, 6):
+            m.add_frame(
+                np.vstack([body_frame_room(rng, True), room_behind(rng)]), i * 0.2, "base_link"
+            )
+        monkeypatch.setattr(pipeline, "FLOOR_CHECK_GROWTH", 2.0 if check else float("inf"))
+        m.map_points()
+        return m
+
+    m = run(True)
+    assert m.level_info["floor_checks"] == 1
+    truth = np.eye(4)
+    truth[2, 3] = 1.0  # the first pose: level, 1 m above the floor, looking along x
+    first = m.trajectory()[1][0]
+    assert frame_angle_deg(first, truth) < 0.2
+    assert np.abs(first[:3, 3] - truth[:3, 3]).max() < 0.01
+    if first_fit == "right":
+        assert "floor_refound" not in m.level_info
+        check = m.level_info["floor_check"]
+        assert check["points_on_floor_found"] <= 1.1 * check["points_on_z0"]
+        # the same frame as with no check (to rounding: two runs differ by 1e-19 m)
+        assert np.allclose(m.T_map_odom, run(False).T_map_odom, rtol=0.0, atol=1e-12)
+    else:
+        check = m.level_info["floor_check"]
+        assert check["points_on_floor_found"] > 2 * check["points_on_z0"]
+        assert m.level_info["floor_refound"]["moved_m"] == pytest.approx(-0.2, abs=0.03)
+        unchecked = run(False).trajectory()[1][0]  # how it was: still off
+        assert frame_angle_deg(unchecked, truth) > 1.0
+        line = floor_refound_line(m.level_info)  # `wheelgrid map` and the node say so
+        assert line is not None and "turned 3.4" in line and "cm lower" in line
+    assert (floor_refound_line(m.level_info) is None) == (first_fit == "right")
 
 
 def test_what_lies_below_the_floor_but_is_no_floor_is_searched_again_only_when_it_grows() -> None:

@@ -225,6 +225,23 @@ def prior_scale_line(ps: dict[str, Any]) -> str:
     return line + f"; {ps.get('note', 'kept')}"
 
 
+def floor_refound_line(level: dict[str, Any]) -> str | None:
+    """One line when the map frame was taken from the floor found on the whole map (the first
+    fit, on the first frames, was another plane): a user comparing two maps of one room, or
+    a grid with an earlier one, must know the frame moved. None when it did not."""
+    got = level.get("floor_refound")
+    if not got:
+        return None
+    moved = got["moved_m"]
+    return (
+        f"levelling: the floor the first frames gave was not the whole map's: z = 0 moved to "
+        f"the floor found at {got['at_frames']} frames, turned {got['turn_deg']:.2f} deg, the "
+        f"first pose {100 * abs(moved):.1f} cm {'lower' if moved < 0 else 'higher'} above it "
+        f"({got['points_on_floor_found']} map points on it against {got['points_on_z0']} on "
+        f"the old z = 0)"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -338,6 +355,9 @@ def _run(args: argparse.Namespace) -> int:
     except RuntimeError as exc:
         print(f"wheelgrid map: cannot level the map: {exc}", file=sys.stderr)
         return 1
+    refound = floor_refound_line(rep["levelling"])
+    if refound:
+        print(refound, file=sys.stderr)
     fr = rep["frames"]
     wall = time.perf_counter() - t0
     print(

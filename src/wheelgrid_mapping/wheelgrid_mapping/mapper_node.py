@@ -141,6 +141,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None]] = deque()
         self._stop = False
         self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
+        self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
         self._logged: set[str] = set()
         self._map_dirty = False
         self._saved: tuple[int, int, str] | None = None  # what ~/save_map last wrote
@@ -405,10 +406,21 @@ class MapperNode(Node):  # type: ignore[misc]
                     self._log_once("nolevel", f"map not published yet: {exc}")
             if pts is not None:
                 self._map_dirty = False
+                self._warn_floor_refound()
                 msg = to_pointcloud2(pts.astype(np.float32), self.map_frame)
                 msg.header.stamp = self.get_clock().now().to_msg()
                 self.map_pub.publish(msg)
         self._publish_status()
+
+    def _warn_floor_refound(self) -> None:
+        """Say so when the map frame jumped to the floor found on the whole map: the map, the
+        poses and any grid made from an earlier map cloud move with it."""
+        from .cli_map import floor_refound_line
+
+        got = self.mapper.level_info.get("floor_refound")
+        if got and got is not self._floor_refound_seen:
+            self._floor_refound_seen = got
+            self.get_logger().warning(f"mapper: {floor_refound_line(self.mapper.level_info)}")
 
     def _publish_status(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -431,6 +443,9 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_empty": self.mapper.frames_empty,
             "priors_refused": self.mapper.priors_refused,
             "levelled": self.mapper.T_map_odom is not None,
+            "floor_refound_at_frames": (self.mapper.level_info.get("floor_refound") or {}).get(
+                "at_frames", "no"
+            ),
             "loop_closure": self._loop_state,
             "loop_closure_note": self._loop_note,
             "frames_after_close": self.counts["after_close"],
