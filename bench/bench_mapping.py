@@ -766,7 +766,8 @@ def speed(limit: int, big: int) -> None:
     total, frames = stray_frames(stray, True)
     chunks, count = [], 0
     T0 = None
-    for pts, _, _, _, pose in frames:
+    for grid, _, _, _, pose in frames:
+        pts = grid.reshape(-1, 3)  # the frames come organised (H, W, 3), for the mixed pixels
         ok = np.isfinite(pts).all(axis=1)
         T0 = pose if T0 is None else T0
         chunks.append(transform(pts[ok].astype(np.float64), np.linalg.inv(T0) @ pose))
