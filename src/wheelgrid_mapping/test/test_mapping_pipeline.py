@@ -226,6 +226,14 @@ def test_the_first_floor_fit_is_checked_on_the_whole_map(first_fit: str, monkeyp
         line = floor_refound_line(m.level_info)  # `wheelgrid map` and the node say so
         assert line is not None and "turned 3.4" in line and "cm lower" in line
     assert (floor_refound_line(m.level_info) is None) == (first_fit == "right")
+    # one more view of the same room: relevelled, but not checked again (it has not doubled)
+    frame = m.T_map_odom.copy()
+    rng = np.random.default_rng(27)
+    monkeypatch.setattr(pipeline, "FLOOR_CHECK_GROWTH", 2.0)
+    m.add_frame(np.vstack([body_frame_room(rng, True), room_behind(rng)]), 1.2, "base_link")
+    m.map_points()
+    assert m.level_info["relevelled_at_frames"] == 7 and m.level_info["floor_checks"] == 1
+    assert frame_angle_deg(m.T_map_odom, frame) < 0.05
 
 
 def test_what_lies_below_the_floor_but_is_no_floor_is_searched_again_only_when_it_grows() -> None:
