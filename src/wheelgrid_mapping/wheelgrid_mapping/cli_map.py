@@ -235,8 +235,9 @@ def floor_refound_line(level: dict[str, Any]) -> str | None:
     moved = got["moved_m"]
     return (
         f"levelling: the floor the first frames gave was not the whole map's: z = 0 moved to "
-        f"the floor found at {got['at_frames']} frames, turned {got['turn_deg']:.2f} deg, the "
-        f"first pose {100 * abs(moved):.1f} cm {'lower' if moved < 0 else 'higher'} above it "
+        f"the floor found at {got['at_frames']} frames, turned {got['turn_deg']:.2f} deg; the "
+        f"first pose is {level.get('sensor_height_m', float('nan')):.2f} m above it, "
+        f"{100 * abs(moved):.1f} cm {'less' if moved < 0 else 'more'} than above the old z = 0 "
         f"({got['points_on_floor_found']} map points on it against {got['points_on_z0']} on "
         f"the old z = 0)"
     )
