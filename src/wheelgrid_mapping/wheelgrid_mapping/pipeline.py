@@ -643,15 +643,21 @@ class Mapper:
         info["floor_check"] = check
         if found <= FLOOR_CHECK_GAIN * held:
             return False
+        self._level_on(n, d, first_odom)
+        info["floor_refound"] = check
+        info["sensor_height_m"] = height
+        return True
+
+    def _level_on(self, n: np.ndarray, d: float, first_odom: np.ndarray) -> None:
+        """Make the plane ``n . p + d = 0`` (``p`` in the current map frame) the map frame's
+        floor: the floor searches that replace z = 0 find their plane in the map frame."""
+        assert self.T_map_odom is not None
         # the plane in odom: n . (R p + t) + d = 0
         R, t = self.T_map_odom[:3, :3], self.T_map_odom[:3, 3]
         self.T_map_odom = map_from_floor(
             R.T @ n, float(n @ t + d), self.convention or "optical", first_odom
         )
         self._dirty = 1
-        info["floor_refound"] = check
-        info["sensor_height_m"] = height
-        return True
 
     def _refind_lower_floor(self, pts: np.ndarray, used: int) -> bool:
         """Move z = 0 down to a large level plane found below the floor; True if it did.
@@ -686,12 +692,8 @@ class Mapper:
             self._lower_floor_tried = below.shape[0]
             return False
         self._lower_floor_tried = 0
-        # the plane in odom: n . (R p + t) + d = 0
-        R, t = self.T_map_odom[:3, :3], self.T_map_odom[:3, 3]
-        n_odom, d_odom = R.T @ n, float(n @ t + d)
         height = float(n @ first[:3, 3] + d)  # the first sensor pose above the new floor
-        self.T_map_odom = map_from_floor(n_odom, d_odom, self.convention or "optical", first_odom)
-        self._dirty = 1
+        self._level_on(n, d, first_odom)
         self.level_info["sensor_height_m"] = height
         self.level_info["floor_lowered_m"] = round(
             self.level_info.get("floor_lowered_m", 0.0) + height - float(first[2, 3]), 4
