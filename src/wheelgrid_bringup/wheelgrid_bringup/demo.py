@@ -97,7 +97,15 @@ def build_parser() -> argparse.ArgumentParser:
         default="down",
         help="chair heading on the start cell (default down, as in Table II)",
     )
-    p.add_argument("--timeout", type=float, default=170.0, help="give up after S seconds")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=170.0,
+        metavar="S",
+        help="the replay may take S seconds; the drive gets what is left of S since the start, "
+        "and never less than 10 s + 4 s a move (the other stages keep their own limits: nodes "
+        "60 s, mapping 60 s, loop closure 300 s, grid 20 s, motor link 10 s)",
+    )
     p.add_argument(
         "--close-loops",
         action=argparse.BooleanOptionalAction,
