@@ -723,13 +723,17 @@ def real_data(limit: int, interval: float) -> None:
         row(f"{label}: submaps held to the right angles", lc.get("manhattan_nodes", 0), "submaps")
         prior_scale_rows(label, lc)
         arkit_agreement(label, m.map_odom(), ref, ref_pc, planes)
-        gravity_row(label, m, np.linalg.inv(T0)[:3, :3] @ np.array([0.0, 1.0, 0.0]))
+        # ARKit's gravity: its world's y, which stray_frames turns into the prior's z (up)
+        gravity_row(label, m, np.linalg.inv(T0)[:3, :3] @ np.array([0.0, 0.0, 1.0]))
 
 
 def gravity_row(label: str, m: Mapper, up_odom: np.ndarray) -> None:
     """The levelled map frame's vertical against ARKit's gravity (ARKit's world y, here in the
-    first frame's camera axes, the odom frame of the map and of the reference): the map frame
-    is found from the floor alone, and the reference's planes cannot see a tilt of the frame."""
+    first frame's camera axes, the odom frame of the map and of the reference): the reference's
+    planes cannot see a tilt of the frame. The map frame is the map's own floor; with the
+    prior (``MapperConfig.prior_gravity``) its first fit took the prior's vertical, which the
+    relevelling and the floor check then refine on the map, so on that run this row says how
+    far the map's floor leans from gravity rather than how well the vertical was found."""
     m.map_points()  # the frame as saved, re-levelled on the whole map
     assert m.T_map_odom is not None
     up = m.T_map_odom[2, :3]  # the map's z axis in odom

@@ -155,6 +155,10 @@ def test_map_from_the_real_stray_export(tmp_path: Path, stray_capture: Path) -> 
     assert code == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["read"] == 6 and rep["frames"]["used"] >= 5
+    # ARKit's pose reaches the Mapper as REP-105 odom (z up), so its z is gravity: the first
+    # floor fit took its vertical from it (ARKit's own y-up world was once passed as it was)
+    level = rep["levelling"]
+    assert level["vertical"] == "pose prior's gravity" and level["prior_gravity_deg"] < 2.0
     pts = read_ply(out / "map.ply")
     # SOURCE.md: floor, a table top ~0.7 m above it, ceiling ~2.65 m. All at their heights.
     z = pts[:, 2]

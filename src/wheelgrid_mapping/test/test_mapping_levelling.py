@@ -12,10 +12,12 @@ from wheelgrid_mapping.levelling import (
     convention_for_frame,
     find_floor,
     floor_of_map,
+    lean_within,
     map_from_floor,
     map_from_mount,
     rpy_matrix,
 )
+from wheelgrid_mapping.pipeline import PRIOR_FLOOR_LEAN_DEG, Mapper, MapperConfig
 
 # optical (x right, y down, z forward) expressed in body (x forward, y left, z up)
 BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -165,3 +167,122 @@ def test_a_map_with_nothing_level_below_the_sensor_has_no_floor_to_check() -> No
     walls = walls[(walls[:, 2] > 0.1) & (walls[:, 2] < 2.5)]
     with pytest.raises(FloorNotFoundError):
         floor_of_map(walls, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.4]))
+
+
+def leaning_patch_view(rng: np.random.Generator, lean_deg: float) -> np.ndarray:
+    """What the real capture's first frames saw, in the body convention (z up, sensor 1.6 m up):
+    two walls and a table, and of the floor only a 1 x 1 m patch 3 m ahead whose points lean
+    ``lean_deg`` (range noise and lens distortion at a grazing view)."""
+    walls = np.vstack(
+        [
+            np.column_stack(
+                [np.full(6000, 5.0), rng.random(6000) * 6 - 3, rng.random(6000) * 2.5 - 1.6]
+            ),
+            np.column_stack(
+                [rng.random(4000) * 5, np.full(4000, 3.0), rng.random(4000) * 2.5 - 1.6]
+            ),
+            np.column_stack(
+                [1 + rng.random(3000), -1 + rng.random(3000), np.full(3000, 0.75 - 1.6)]
+            ),
+        ]
+    )
+    xy = rng.random((1500, 2)) + np.array([2.5, -0.5])
+    patch = np.column_stack([xy, -1.6 + math.tan(math.radians(lean_deg)) * (xy[:, 0] - 3.0)])
+    pts = np.vstack([walls, patch])
+    return pts + rng.normal(0, 0.003, pts.shape)
+
+
+def test_a_known_vertical_fits_only_the_floors_height() -> None:
+    """With gravity known (a gravity-aligned pose prior), a floor patch that leans 3.3 deg no
+    longer tilts the floor: fitted as a plane it puts z = 0 16 cm off under the sensor, 3 m
+    away (the real capture's first fit: 17-21 cm); along the known vertical it is right."""
+    rng = np.random.default_rng(33)
+    pts = leaning_patch_view(rng, 3.3)
+    down = np.array([0.0, 0.0, -1.0])
+    n, d = find_floor(pts, down)
+    assert math.degrees(math.acos(float(n[2]))) > 2.5 and abs(d - 1.6) > 0.12
+    n, d = find_floor(pts, down, vertical=True)
+    assert np.array_equal(n, np.array([0.0, 0.0, 1.0]))
+    assert d == pytest.approx(1.6, abs=0.005)
+    # the table top, 85 cm under the sensor, is still not the floor
+    assert find_floor(pts[pts[:, 2] > -1.0], down, vertical=True)[1] == pytest.approx(
+        0.85, abs=0.005
+    )
+
+
+def test_nan_points_do_not_move_the_floor_of_a_map() -> None:
+    """A map is filtered before it is checked, but NaN or inf points (a bad frame, a bad
+    file) must not change the floor found, nor raise."""
+    rng = np.random.default_rng(34)
+    world = warped_room(rng)
+    sensor = np.array([0.0, 0.0, 1.4])
+    up = np.array([0.0, 0.0, 1.0])
+    bad = world.copy()
+    bad[::7] = np.nan
+    bad[1::11, 2] = np.inf
+    clean = bad[np.isfinite(bad).all(axis=1)]
+    n, d = floor_of_map(bad, up, sensor)
+    n2, d2 = floor_of_map(clean, up, sensor)
+    assert np.array_equal(n, n2) and d == d2
+    assert float(n @ sensor + d) == pytest.approx(1.4, abs=0.01)
+
+
+@pytest.mark.parametrize("prior", ["gravity", "gravity, ignored", "y-up VIO"])
+def test_the_mapper_takes_its_first_vertical_from_a_gravity_aligned_prior(prior: str) -> None:
+    """The Mapper's first fit on the leaning patch: with a prior whose z is gravity (ARKit
+    through the Stray adapter or the bridge, REP-105 odom) z = 0 is right under the sensor and
+    the report gives the map frame's angle to the prior's gravity; with ``prior_gravity`` off,
+    or a prior whose frame is not gravity-aligned (its z 90 deg from this upright sensor's
+    up), the floor's own plane, as before, and the report says why."""
+    rng = np.random.default_rng(35)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2, prior_gravity=prior != "gravity, ignored"))
+    pose = np.eye(4)  # the sensor stands still, level: its body frame's z is up
+    if prior == "y-up VIO":
+        pose[:3, :3] = rpy_matrix(math.pi / 2, 0.0, 0.0)  # the prior's world y is up
+    for i in range(2):
+        out = m.add_frame(leaning_patch_view(rng, 3.3), i * 0.2, "base_link", prior=pose)
+        assert out.status == "used"
+    assert m.T_map_odom is not None
+    info = m.report()["levelling"]
+    height = info["sensor_height_m"]
+    if prior == "gravity":
+        assert info["vertical"] == "pose prior's gravity"
+        assert height == pytest.approx(1.6, abs=0.01)
+        assert info["prior_gravity_deg"] < 0.05
+        assert "prior_not_gravity_deg" not in info
+        # the relevelling fits the map's floor, the patch, but leans at most 1.5 deg from
+        # gravity (the live node relevels each map it publishes, from the first frames on)
+        m.map_points()
+        info = m.report()["levelling"]
+        assert info["relevelled_tilt_deg"] > 1.0
+        assert info["prior_gravity_deg"] == pytest.approx(PRIOR_FLOOR_LEAN_DEG, abs=0.01)
+    else:
+        assert info["vertical"] == "floor plane" and abs(height - 1.6) > 0.12
+        assert "prior_gravity_deg" not in info
+        if prior == "y-up VIO":
+            assert info["prior_not_gravity_deg"] == pytest.approx(90.0, abs=0.5)
+
+
+def test_lean_within_turns_toward_up_in_the_common_plane_only_as_far_as_needed() -> None:
+    up = np.array([0.0, 0.0, 1.0])
+    n = np.array([math.sin(math.radians(4.0)), 0.0, math.cos(math.radians(4.0))])
+    kept = lean_within(n, up, 1.5)
+    assert math.degrees(math.acos(float(kept @ up))) == pytest.approx(1.5, abs=1e-9)
+    assert kept[1] == 0.0 and kept[0] > 0.0 and np.linalg.norm(kept) == pytest.approx(1.0)
+    assert lean_within(n, up, 5.0) is n
+
+
+def test_the_floor_of_a_map_leans_no_more_than_allowed_from_a_known_gravity() -> None:
+    """With gravity known, the whole-map floor search keeps its normal within ``max_lean_deg``
+    of it and takes the floor's height along that normal."""
+    rng = np.random.default_rng(36)
+    world = warped_room(rng)
+    tilt = rpy_matrix(math.radians(3.0), 0.0, 0.0)
+    pts = world @ tilt.T  # the map leans 3 deg against gravity (z)
+    sensor = tilt @ np.array([0.0, 0.0, 1.4])
+    up = np.array([0.0, 0.0, 1.0])
+    free, _ = floor_of_map(pts, up, sensor)
+    assert math.degrees(math.acos(float(free @ up))) == pytest.approx(3.0, abs=0.3)
+    n, d = floor_of_map(pts, up, sensor, max_lean_deg=1.0)
+    assert math.degrees(math.acos(float(n @ up))) == pytest.approx(1.0, abs=1e-6)
+    assert float(n @ sensor + d) == pytest.approx(1.4, abs=0.02)

@@ -36,8 +36,14 @@ def is_stray(path: Path) -> bool:
 
 
 def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
-    """Frames of a Stray export as optical-frame clouds (+ confidence, + ARKit pose prior)."""
-    from .depth import depth_to_points
+    """Frames of a Stray export as optical-frame clouds (+ confidence, + ARKit pose prior).
+
+    The prior is ARKit's pose turned into a REP-105 odom (z up), as the iPhone bridge
+    publishes it: the registration rescales the prior's x, y steps only and the Mapper takes
+    the prior's z as gravity, and ARKit's own world has y up (it was passed as it was until
+    2026-11-27, so a rescale would have scaled the phone's climbs and left out its forward z).
+    """
+    from .depth import arkit_pose_to_ros, depth_to_points
     from .stray import StrayExport
 
     try:
@@ -61,7 +67,7 @@ def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
                 fr.stamp,
                 DEFAULT_FRAME_ID,
                 conf,
-                (fr.pose if use_prior else None),
+                (arkit_pose_to_ros(fr.pose) if use_prior and fr.pose is not None else None),
             )
 
     return len(export), gen()

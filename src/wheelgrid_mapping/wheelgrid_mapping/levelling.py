@@ -56,6 +56,7 @@ def find_floor(
     min_points: int = 200,
     max_planes: int = 8,
     seed: int = 0,
+    vertical: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Floor plane ``(n, d)`` with ``n . p + d = 0``, ``n`` pointing UP (against ``down``).
 
@@ -63,6 +64,12 @@ def find_floor(
     within ``max_tilt_deg`` of vertical, at least ``min_fraction`` of the points, and must lie
     below the sensor. The LOWEST candidate wins (a table top is also horizontal and can be big,
     but it is never below the floor). The normal is then refined by least squares on the inliers.
+
+    ``vertical``: ``down`` is gravity itself (a gravity-aligned pose prior's), so the plane keeps
+    it as its normal and only the height is fitted: the median, along it, of the points within
+    ``distance`` of the candidate's. Why: the first frames may see only a patch of floor, and a
+    plane fitted to a patch tilts with its noise; on the real capture it leaned 3.3 deg, which
+    put z = 0 17 cm off the floor below the first pose, 3 m from the patch.
     """
     import open3d as o3d
 
@@ -97,7 +104,10 @@ def find_floor(
             # Height of the sensor above this plane; the floor is below the sensor.
             below = float(n @ origin + d)
             if below > 0.1:
-                n, d = _refine_plane(plane_pts, n)
+                if vertical:
+                    n, d = _height_along(remaining, plane_pts, -down, distance)
+                else:
+                    n, d = _refine_plane(plane_pts, n)
                 below = float(n @ origin + d)
                 if best is None or below > best[0]:
                     best = (below, n, d)
@@ -108,6 +118,33 @@ def find_floor(
             f"({pts.shape[0]} points); check sensor_convention or give mount_xyz_rpy"
         )
     return best[1], best[2]
+
+
+def _height_along(
+    pts: np.ndarray, plane_pts: np.ndarray, up: np.ndarray, distance: float
+) -> tuple[np.ndarray, float]:
+    """The level plane (normal ``up``) through a candidate's points: the median height of its
+    inliers, then of every point within ``distance`` of that height (a slab that leans with the
+    noise holds only a strip of a level floor)."""
+    h = float(np.median(plane_pts @ up))
+    heights = pts @ up
+    near = heights[np.abs(heights - h) < distance]
+    if near.size:
+        h = float(np.median(near))
+    return up.copy(), -h
+
+
+def lean_within(n: np.ndarray, up: np.ndarray, max_deg: float) -> np.ndarray:
+    """``n`` (unit) turned toward ``up`` (unit) in their common plane until it is at most
+    ``max_deg`` from it; ``n`` itself if it already is."""
+    cos = float(np.clip(n @ up, -1.0, 1.0))
+    angle = math.acos(cos)
+    limit = math.radians(max_deg)
+    if angle <= limit:
+        return n
+    side = n - cos * up  # the way n leans, orthogonal to up
+    side /= np.linalg.norm(side)
+    return math.cos(limit) * up + math.sin(limit) * side
 
 
 def _refine_plane(pts: np.ndarray, n_up: np.ndarray) -> tuple[np.ndarray, float]:
@@ -196,6 +233,7 @@ def floor_of_map(
     min_fraction: float = 0.03,
     band: float = 0.05,
     gate: float = 0.03,
+    max_lean_deg: float | None = None,
 ) -> tuple[np.ndarray, float]:
     """Floor plane ``(n, d)`` (``n`` up) of a whole map whose vertical ``up`` is known to within
     a few degrees: for checking a floor that :func:`find_floor` found on the first frames.
@@ -214,6 +252,10 @@ def floor_of_map(
 
     Deterministic, and ~0.2 s on a 450 k-point map (the normals are found on ``voxel``
     centroids, so dense and sparse parts vote alike).
+
+    ``max_lean_deg``: ``up`` is gravity itself (a gravity-aligned pose prior's), and the
+    plane's normal may lean at most this much from it; the height is then the median of the
+    fitted floor points along the normal kept.
     """
     import open3d as o3d
 
@@ -264,4 +306,9 @@ def floor_of_map(
             raise FloorNotFoundError("the floor peak holds too few points to fit a plane")
         n, d = _refine_plane(flat[sel], u)
         sel = np.abs(flat @ n + d) < gate
+    if max_lean_deg is not None:
+        g = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+        kept = lean_within(n, g, max_lean_deg)
+        if kept is not n and sel.any():
+            n, d = kept, -float(np.median(flat[sel] @ kept))
     return n, d

@@ -427,6 +427,7 @@ class MapperNode(Node):  # type: ignore[misc]
 
         c = self.mapper.registrar.counters
         state = self.mapper.state
+        level = self.mapper.levelling_report()
         st = DiagnosticStatus()
         st.name = "wheelgrid mapper"
         st.hardware_id = self._sensor_frame
@@ -443,6 +444,10 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_empty": self.mapper.frames_empty,
             "priors_refused": self.mapper.priors_refused,
             "levelled": self.mapper.T_map_odom is not None,
+            # where the first floor fit's vertical came from, and the map frame's angle to the
+            # pose prior's gravity (the one check of the frame a user can read live)
+            "vertical": level.get("vertical", "unknown"),
+            "prior_gravity_deg": level.get("prior_gravity_deg", "no prior"),
             "floor_refound_at_frames": (self.mapper.level_info.get("floor_refound") or {}).get(
                 "at_frames", "no"
             ),

@@ -11,6 +11,7 @@ as a map: a map in the wrong frame would put obstacles in the wrong place.
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -29,6 +30,7 @@ from .levelling import (
     convention_for_frame,
     find_floor,
     floor_of_map,
+    lean_within,
     map_from_floor,
     map_from_mount,
 )
@@ -58,6 +60,14 @@ class MapperConfig:
         [], "sensor pose on a levelled base (z=0 floor): x y z roll pitch yaw; [] = from floor", ""
     )
     floor_max_tilt_deg: float = field(40.0, "the floor normal may differ this much from up", "deg")
+    prior_gravity: bool = field(
+        True,
+        "a pose prior's frame has z up along gravity (REP-105 odom; ARKit through the Stray "
+        "adapter and the iPhone bridge): the first floor fit takes its vertical from the prior "
+        "and fits only the floor's height, and the report gives the map frame's angle to it; "
+        "false: the floor's own plane alone",
+        "",
+    )
     level_min_frames: int = field(3, "frames integrated before the floor is looked for", "")
     min_frame_interval: float = field(
         0.0, "frames closer in time than this to the last processed one are skipped", "s"
@@ -131,6 +141,14 @@ class MapperConfig:
 LOWER_FLOOR_GAP = 0.15
 # A failed search below the floor is repeated once the points there have grown by this factor.
 LOWER_FLOOR_RETRY = 1.25
+# With a gravity-aligned prior, a first-floor candidate may lean this much from its vertical
+# (a patch of floor seen by three frames: 3.3 deg on the real capture).
+PRIOR_FLOOR_MAX_TILT_DEG = 10.0
+# ... and the map's floor, refitted as the map grows, this much: on the real capture plane
+# fits to the first 4 s of floor leaned 1.4-3.7 deg from ARKit's gravity (1.5-2.5 deg on the
+# map fused from ARKit's own poses, whose floor along gravity stayed within 3 cm), and the
+# whole maps' floors 0.6-1.1 deg (ICP's tilt drifts against ARKit's; z = 0 follows the map).
+PRIOR_FLOOR_LEAN_DEG = 1.5
 # The floor is checked on the whole map each time the map has grown by this factor (points).
 FLOOR_CHECK_GROWTH = 2.0
 # The floor found on the whole map holding this many times the map points within 3 cm that
@@ -139,13 +157,20 @@ FLOOR_CHECK_GAIN = 1.1
 
 
 def floor_correction(
-    pts: np.ndarray, band: float = 0.08, gate: float = 0.03, max_tilt_deg: float = 3.0
+    pts: np.ndarray,
+    band: float = 0.08,
+    gate: float = 0.03,
+    max_tilt_deg: float = 3.0,
+    up: np.ndarray | None = None,
+    max_lean_deg: float = PRIOR_FLOOR_LEAN_DEG,
 ) -> np.ndarray | None:
     """Small rigid correction making the map's floor exactly z = 0 (None if not confident).
 
     Least-squares plane through the points within ``band`` of z = 0, refit twice on the points
     within ``gate`` of it (table legs and wall feet drop out); rotated about the map origin so
-    the origin stays below the first pose and x keeps its direction.
+    the origin stays below the first pose and x keeps its direction. ``up``: gravity in the
+    map frame (a gravity-aligned pose prior's); the plane may lean at most ``max_lean_deg``
+    from it, and its height is taken along the normal kept.
     """
     sel = np.abs(pts[:, 2]) < band
     if sel.sum() < 500:
@@ -160,6 +185,8 @@ def floor_correction(
             return None
     n = np.array([-coef[0], -coef[1], 1.0])
     n /= np.linalg.norm(n)
+    if up is not None:
+        n = lean_within(n, np.asarray(up, dtype=np.float64) / np.linalg.norm(up), max_lean_deg)
     tilt = float(np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0))))
     if tilt > max_tilt_deg:
         return None
@@ -288,6 +315,9 @@ class Mapper:
         self._frames: list[np.ndarray] = []
         self._map_keep: list[np.ndarray | None] = []  # per kept frame: PreparedFrame.map_keep
         self._priors: list[np.ndarray | None] = []  # the pose prior of each kept frame
+        # sum over the registered frames with a prior of the prior's up (its z) in odom
+        self._prior_up_sum = np.zeros(3)
+        self._prior_not_vertical = False  # its z is no up an upright sensor could have
         self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
         self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
         self.frames_read = 0
@@ -399,6 +429,9 @@ class Mapper:
             return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
         self.stamps.append(float(stamp))
         self.poses_odom.append(res.pose)
+        if prior is not None:
+            # up in odom = R_odom_sensor R_world_sensor^T e_z: the prior's third rotation row
+            self._prior_up_sum += res.pose[:3, :3] @ np.asarray(prior, dtype=np.float64)[2, :3]
         if self.keep_frames:
             self._frames.append(pts.astype(np.float32))
             self._map_keep.append(prep.map_keep)
@@ -455,6 +488,11 @@ class Mapper:
             map_pts = pts if keep is None else pts[keep]
             evidence.add(transform(map_pts.astype(np.float64), pose), pose[:3, 3])
         self.poses_odom = res.poses
+        if priors is not None:
+            self._prior_up_sum = sum(
+                (p[:3, :3] @ q[2, :3] for p, q in zip(res.poses, priors, strict=True)),
+                np.zeros(3),
+            )
         self._evidence = evidence
         self._dirty = 1
         self._relevelled_at = -1
@@ -529,6 +567,36 @@ class Mapper:
             self._dirty = 0
         return self._map_odom
 
+    def prior_up(self) -> np.ndarray | None:
+        """Gravity's up in odom as the pose priors give it (their mean over the registered
+        frames), or None without priors or with ``prior_gravity`` off.
+
+        Why: a visual-inertial prior (ARKit) holds its vertical to the IMU's gravity to a
+        fraction of a degree for the whole session, where a floor fitted to the first frames
+        leans with whatever patch of floor they saw."""
+        norm = float(np.linalg.norm(self._prior_up_sum))
+        if not self.cfg.prior_gravity or self._prior_not_vertical or norm < 1e-9:
+            return None
+        return self._prior_up_sum / norm
+
+    def _prior_up_in_map(self) -> np.ndarray | None:
+        up = self.prior_up()
+        return None if up is None or self.T_map_odom is None else self.T_map_odom[:3, :3] @ up
+
+    def _upright_prior_up(self, down: np.ndarray) -> tuple[np.ndarray | None, dict[str, float]]:
+        """:meth:`prior_up` if this sensor could stand upright on it (within
+        ``floor_max_tilt_deg`` of the sensor's own down hint), else None and the angle, for the
+        report: a prior whose frame is not gravity-aligned (a y-up VIO) is no vertical, and the
+        floor alone is used, as without a prior."""
+        up = self.prior_up()
+        if up is None:
+            return None, {}
+        lean = math.degrees(math.acos(float(np.clip(-(up @ down), -1.0, 1.0))))
+        if lean > self.cfg.floor_max_tilt_deg:
+            self._prior_not_vertical = True
+            return None, {"prior_not_gravity_deg": round(lean, 1)}
+        return up, {}
+
     def try_level(self) -> bool:
         """Find ``T_map_odom`` (mount parameter or floor); True once known."""
         if self.T_map_odom is not None:
@@ -544,13 +612,25 @@ class Mapper:
                 pts = self.map_odom()
                 first = self.poses_odom[0] if self.poses_odom else np.eye(4)
                 down = first[:3, :3] @ DOWN_HINT[conv]
-                n, d = find_floor(pts, down, first[:3, 3], self.cfg.floor_max_tilt_deg)
+                up, not_gravity = self._upright_prior_up(down)
+                if up is None:
+                    n, d = find_floor(pts, down, first[:3, 3], self.cfg.floor_max_tilt_deg)
+                else:
+                    n, d = find_floor(
+                        pts,
+                        -up,
+                        first[:3, 3],
+                        min(self.cfg.floor_max_tilt_deg, PRIOR_FLOOR_MAX_TILT_DEG),
+                        vertical=True,
+                    )
                 self.T_map_odom = map_from_floor(n, d, conv, first)
                 self._floor_checked_at = pts.shape[0]
                 self._dirty = 1  # the map again, now with the vertical for the margin
                 tilt = float(np.degrees(np.arccos(np.clip(-(n @ down), -1, 1))))
                 self.level_info = {
                     "method": "floor",
+                    "vertical": "floor plane" if up is None else "pose prior's gravity",
+                    **not_gravity,
                     "sensor_height_m": float(n @ first[:3, 3] + d),
                     "first_view_tilt_deg": tilt,
                 }
@@ -586,7 +666,7 @@ class Mapper:
     def _relevel(self, pts: np.ndarray, used: int) -> np.ndarray:
         """``pts`` (the map in the map frame) after :func:`floor_correction`, if it made one."""
         assert self.T_map_odom is not None
-        corr = floor_correction(pts)
+        corr = floor_correction(pts, up=self._prior_up_in_map())
         if corr is None:
             return pts
         # The refined floor (z = 0 after ``corr``), the convention applied afresh: the
@@ -625,8 +705,12 @@ class Mapper:
         info["floor_checks"] = info.get("floor_checks", 0) + 1
         first_odom = self.poses_odom[0] if self.poses_odom else np.eye(4)
         first = self.T_map_odom @ first_odom
+        g = self._prior_up_in_map()
         try:
-            n, d = floor_of_map(pts, np.array([0.0, 0.0, 1.0]), first[:3, 3])
+            if g is None:
+                n, d = floor_of_map(pts, np.array([0.0, 0.0, 1.0]), first[:3, 3])
+            else:
+                n, d = floor_of_map(pts, g, first[:3, 3], max_lean_deg=PRIOR_FLOOR_LEAN_DEG)
         except FloorNotFoundError as exc:
             info["floor_check"] = {"at_frames": used, "error": str(exc)}
             return False
@@ -679,14 +763,16 @@ class Mapper:
         self.level_info["lower_floor_searches"] = self.level_info.get("lower_floor_searches", 0) + 1
         first_odom = self.poses_odom[0] if self.poses_odom else np.eye(4)
         first = self.T_map_odom @ first_odom
+        g = self._prior_up_in_map()
         try:
             n, d = find_floor(
                 below,
-                np.array([0.0, 0.0, -1.0]),
+                np.array([0.0, 0.0, -1.0]) if g is None else -g,
                 first[:3, 3],
                 max_tilt_deg=10.0,
                 min_fraction=0.0,
                 min_points=need,
+                vertical=g is not None,
             )
         except FloorNotFoundError:
             self._lower_floor_tried = below.shape[0]
@@ -744,7 +830,7 @@ class Mapper:
             "failures": self.failures[:200],
             "points": dict(self.points, map=int(self.map_odom().shape[0])),
             "timings": {k: round(v, 3) for k, v in self.timings.items()},
-            "levelling": self.level_info,
+            "levelling": self.levelling_report(),
             "loop_closure": self.loop_info or {"run": False},
             "map_frame": "z up, z=0 floor, origin below first sensor pose, x = first view on floor",
             "config": {
@@ -753,6 +839,16 @@ class Mapper:
                 "mapper": asdict(self.cfg),
             },
         }
+
+    def levelling_report(self) -> dict[str, Any]:
+        """``level_info`` and, with a gravity-aligned prior, the map frame's vertical against
+        the prior's: the one check of the map frame a user without ground truth can read."""
+        rep = dict(self.level_info)
+        up = self.prior_up()
+        if up is not None and self.T_map_odom is not None:
+            cos = float(np.clip(self.T_map_odom[2, :3] @ up, -1.0, 1.0))
+            rep["prior_gravity_deg"] = round(math.degrees(math.acos(cos)), 3)
+        return rep
 
     def save(self, out_dir: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """Write map.ply, trajectory.tum, report.json into ``out_dir``; returns the report."""
