@@ -58,6 +58,27 @@ def test_prior_seeds_a_large_motion(world: np.ndarray) -> None:
     assert np.linalg.norm(err[:3, 3]) < 0.03
 
 
+@pytest.mark.parametrize("tilt_gain", [0.0, -1.0])
+def test_a_tilt_gain_of_0_keeps_the_priors_tilt(world: np.ndarray, tilt_gain: float) -> None:
+    """A prior whose second pose is rolled 1 deg against the truth (its z still up): with
+    ``prior_tilt_gain`` 0 the pose keeps the prior's roll; with the rotation gain (1 here) ICP
+    turns it back. The turn about the vertical is ICP's either way."""
+    rng = np.random.default_rng(16)
+    cfg = RegistrationConfig(prior_rotation_gain=1.0, prior_tilt_gain=tilt_gain)
+    reg = Registrar(cfg)
+    T0, T1 = pose(1.5, 2.0, 0.0), pose(1.6, 2.05, 0.05)
+    rolled = T1.copy()
+    rolled[:3, :3] = rpy_matrix(np.radians(1.0), 0.0, 0.0) @ T1[:3, :3]  # about the world x
+    assert reg.register(view(world, T0, rng), 0.0, prior=T0).accepted
+    res = reg.register(view(world, T1, rng), 0.2, prior=rolled)
+    assert res.accepted, res.reason
+    err = np.linalg.inv(np.linalg.inv(T0) @ T1) @ res.pose
+    if tilt_gain == 0.0:
+        assert rotation_angle_deg(err) == pytest.approx(1.0, abs=0.15)
+    else:
+        assert rotation_angle_deg(err) < 0.2
+
+
 def test_failures_pause_integration_and_relocalise(world: np.ndarray) -> None:
     rng = np.random.default_rng(14)
     reg = Registrar(RegistrationConfig())
@@ -163,7 +184,31 @@ def test_blend_correction_scales_rotation_and_translation_apart() -> None:
     assert np.allclose(blend_correction(corr, 0.25, 1.0)[:3, 3], 0.25 * corr[:3, 3])
 
 
+def test_blend_correction_splits_the_turn_about_gravity_from_the_tilt_against_it() -> None:
+    """With gravity known in the correction's frame, the turn about it and the tilt against it
+    take their own gains: a tilt gain of 0 keeps the prior's tilt (an IMU's gravity)."""
+    yaw, roll = np.radians(2.0), np.radians(1.0)
+    corr = np.eye(4)
+    corr[:3, :3] = rpy_matrix(roll, 0.0, yaw)
+    corr[:3, 3] = [0.04, -0.02, 0.01]
+    up = np.array([0.0, 0.0, 1.0])
+    kept = blend_correction(corr, 1.0, 1.0, 0.0, up)
+    # what is left turns about up only: it keeps the guess's vertical
+    assert np.allclose(kept[:3, :3] @ up, up, atol=1e-12)
+    assert rotation_angle_deg(kept) == pytest.approx(2.0, abs=0.02)
+    half = blend_correction(corr, 1.0, 0.5, 0.0, up)
+    assert rotation_angle_deg(half) == pytest.approx(1.0, abs=0.02)
+    # equal gains, or no up: the one rotation gain, as before
+    assert np.allclose(blend_correction(corr, 1.0, 0.5, 0.5, up), blend_correction(corr, 1.0, 0.5))
+    assert np.allclose(
+        blend_correction(corr, 1.0, 0.5, 0.0, None), blend_correction(corr, 1.0, 0.5)
+    )
+
+
 def test_bad_registration_settings_are_refused() -> None:
+    with pytest.raises(ValueError, match="prior_tilt_gain"):
+        RegistrationConfig(prior_tilt_gain=1.5)
+    assert RegistrationConfig(prior_tilt_gain=-1.0).prior_tilt_gain == -1.0  # the rotation gain's
     with pytest.raises(ValueError, match="prior_rotation_gain"):
         RegistrationConfig(prior_rotation_gain=1.5)
     with pytest.raises(ValueError, match="prior_translation_gain"):
