@@ -1100,6 +1100,19 @@ def main(argv: list[str] | None = None) -> int:
         "share within 5 cm of a true surface, Table I",
     )
     ap.add_argument(
+        "--prior-tilt-gain",
+        type=float,
+        metavar="G",
+        help="registration.prior_tilt_gain (default: the rotation gain's); 0 holds the tilt to "
+        "the prior's gravity",
+    )
+    ap.add_argument(
+        "--real-only",
+        action="store_true",
+        help="only the real capture mapped with and without the ARKit prior, against the map "
+        "fused from ARKit's poses (about 5 min)",
+    )
+    ap.add_argument(
         "--stream-only",
         action="store_true",
         help="only the real capture replayed as a 30 fps stream (about a minute): frames mapped "
@@ -1140,6 +1153,8 @@ def main(argv: list[str] | None = None) -> int:
         MAPPER_OVERRIDES["evidence_margin"] = args.evidence_margin
     if args.convergence is not None:
         REG_OVERRIDES["convergence"] = args.convergence
+    if args.prior_tilt_gain is not None:
+        REG_OVERRIDES["prior_tilt_gain"] = args.prior_tilt_gain
     if args.mixed_pixels is not None:
         PRE_OVERRIDES["mixed_pixels"] = args.mixed_pixels
     if args.map_mixed_pixels is not None:
@@ -1168,6 +1183,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.evaluate is not None:
         evaluate(args.evaluate, args.sim)
+        if args.json:
+            args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
+        return 0
+    if args.real_only:
+        real_data(10_000, 0.1)
         if args.json:
             args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
         return 0
