@@ -286,3 +286,25 @@ def test_the_floor_of_a_map_leans_no_more_than_allowed_from_a_known_gravity() ->
     n, d = floor_of_map(pts, up, sensor, max_lean_deg=1.0)
     assert math.degrees(math.acos(float(n @ up))) == pytest.approx(1.0, abs=1e-6)
     assert float(n @ sensor + d) == pytest.approx(1.4, abs=0.02)
+
+
+def test_a_prior_that_begins_later_and_is_no_vertical_does_not_tilt_the_floor() -> None:
+    """The first fit came from the floor alone (no prior yet); then a y-up prior arrives. The
+    later fits must not take its z (horizontal here) for up: it is refused and said, and the
+    floor stays at z = 0."""
+    from wheelgrid_common.testing import body_frame_room
+
+    rng = np.random.default_rng(37)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+    for i in range(2):
+        assert m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link").status == "used"
+    assert m.level_info["vertical"] == "floor plane"
+    y_up = np.eye(4)
+    y_up[:3, :3] = rpy_matrix(math.pi / 2, 0.0, 0.0)
+    for i in range(2, 4):
+        m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link", prior=y_up)
+    pts = m.map_points()
+    info = m.report()["levelling"]
+    assert info["prior_not_gravity_deg"] == pytest.approx(90.0, abs=0.5)
+    assert "prior_gravity_deg" not in info
+    assert np.mean(np.abs(pts[:, 2]) < 0.03) > 0.3  # the floor is still at z = 0

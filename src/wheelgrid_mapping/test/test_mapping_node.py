@@ -174,6 +174,9 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         # Best effort QoS over loopback: at most one sample lost right after discovery.
         assert int(v["frames_received"]) >= len(clouds), v
         assert v["levelled"] == "True"
+        # the simulator's odometry is gravity-aligned (z up): the floor's vertical came from it
+        assert v["vertical"] == "pose prior's gravity", v
+        assert float(v["prior_gravity_deg"]) < 2.0, v
         # With the pose prior the in-place turn at the start of the bag registers cleanly.
         assert v["frames_failed"] == "0" and int(v["frames_used"]) >= len(clouds) - 2
 

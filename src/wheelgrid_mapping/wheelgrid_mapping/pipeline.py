@@ -580,8 +580,20 @@ class Mapper:
         return self._prior_up_sum / norm
 
     def _prior_up_in_map(self) -> np.ndarray | None:
+        """:meth:`prior_up` in the map frame, for the floor's later fits; None (and said in
+        the report, once) where it lies more than :data:`PRIOR_FLOOR_MAX_TILT_DEG` from the
+        frame's z: a prior that began after the first fit and is not gravity-aligned must not
+        turn the floor toward a wall."""
         up = self.prior_up()
-        return None if up is None or self.T_map_odom is None else self.T_map_odom[:3, :3] @ up
+        if up is None or self.T_map_odom is None:
+            return None
+        g = self.T_map_odom[:3, :3] @ up
+        if g[2] < math.cos(math.radians(PRIOR_FLOOR_MAX_TILT_DEG)):
+            self._prior_not_vertical = True
+            lean = math.degrees(math.acos(float(np.clip(g[2], -1.0, 1.0))))
+            self.level_info["prior_not_gravity_deg"] = round(lean, 1)
+            return None
+        return g
 
     def _upright_prior_up(self, down: np.ndarray) -> tuple[np.ndarray | None, dict[str, float]]:
         """:meth:`prior_up` if this sensor could stand upright on it (within
