@@ -220,7 +220,8 @@ def map_from_mount(xyz_rpy: list[float] | tuple[float, ...], convention: str) ->
 
 
 def tilt_deg(T_map_odom: np.ndarray, down_in_odom: np.ndarray) -> float:
-    """Angle between the map's -z and a known gravity direction in odom (for tests/benches)."""
+    """Angle between the map's -z and a known gravity direction in odom (the pose prior's
+    gravity against the map frame: the report's ``prior_gravity_deg``)."""
     g = T_map_odom[:3, :3] @ (np.asarray(down_in_odom) / np.linalg.norm(down_in_odom))
     return math.degrees(math.acos(float(np.clip(-g[2], -1.0, 1.0))))
 

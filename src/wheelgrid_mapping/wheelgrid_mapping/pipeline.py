@@ -33,6 +33,7 @@ from .levelling import (
     lean_within,
     map_from_floor,
     map_from_mount,
+    tilt_deg,
 )
 from .loop_closure import LoopClosureConfig, LoopClosureResult, close_loops, submap_groups
 from .preprocess import (
@@ -200,6 +201,12 @@ def floor_correction(
     corr[:3, :3] = rot
     corr[2, 3] = -float(np.median((pts[sel] @ rot.T)[:, 2]))
     return corr
+
+
+def prior_up_in_odom(pose_odom: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """The prior's world z (its up) in odom, as one frame's registered pose and prior relate
+    the two: ``R_odom_sensor R_world_sensor^T e_z``, the prior's third rotation row turned."""
+    return pose_odom[:3, :3] @ np.asarray(prior, dtype=np.float64)[2, :3]
 
 
 def complete_priors(priors: list[np.ndarray | None]) -> list[np.ndarray] | None:
@@ -430,8 +437,7 @@ class Mapper:
         self.stamps.append(float(stamp))
         self.poses_odom.append(res.pose)
         if prior is not None:
-            # up in odom = R_odom_sensor R_world_sensor^T e_z: the prior's third rotation row
-            self._prior_up_sum += res.pose[:3, :3] @ np.asarray(prior, dtype=np.float64)[2, :3]
+            self._prior_up_sum += prior_up_in_odom(res.pose, prior)
         if self.keep_frames:
             self._frames.append(pts.astype(np.float32))
             self._map_keep.append(prep.map_keep)
@@ -490,7 +496,7 @@ class Mapper:
         self.poses_odom = res.poses
         if priors is not None:
             self._prior_up_sum = sum(
-                (p[:3, :3] @ q[2, :3] for p, q in zip(res.poses, priors, strict=True)),
+                (prior_up_in_odom(p, q) for p, q in zip(res.poses, priors, strict=True)),
                 np.zeros(3),
             )
         self._evidence = evidence
@@ -587,13 +593,12 @@ class Mapper:
         up = self.prior_up()
         if up is None or self.T_map_odom is None:
             return None
-        g = self.T_map_odom[:3, :3] @ up
-        if g[2] < math.cos(math.radians(PRIOR_FLOOR_MAX_TILT_DEG)):
+        lean = tilt_deg(self.T_map_odom, -up)
+        if lean > PRIOR_FLOOR_MAX_TILT_DEG:
             self._prior_not_vertical = True
-            lean = math.degrees(math.acos(float(np.clip(g[2], -1.0, 1.0))))
             self.level_info["prior_not_gravity_deg"] = round(lean, 1)
             return None
-        return g
+        return self.T_map_odom[:3, :3] @ up
 
     def _upright_prior_up(self, down: np.ndarray) -> tuple[np.ndarray | None, dict[str, float]]:
         """:meth:`prior_up` if this sensor could stand upright on it (within
@@ -858,8 +863,7 @@ class Mapper:
         rep = dict(self.level_info)
         up = self.prior_up()
         if up is not None and self.T_map_odom is not None:
-            cos = float(np.clip(self.T_map_odom[2, :3] @ up, -1.0, 1.0))
-            rep["prior_gravity_deg"] = round(math.degrees(math.acos(cos)), 3)
+            rep["prior_gravity_deg"] = round(tilt_deg(self.T_map_odom, -up), 3)
         return rep
 
     def save(self, out_dir: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
