@@ -107,7 +107,7 @@ def test_map_mixed_pixels_leaves_registration_alone_and_the_shadow_out_of_the_ma
     """The map-only option: the same frame to register (points, ICP inputs), the shadow's
     cells out of the points the map may keep, and a map without them."""
     shadow = ((1.6, -0.04, 0.05), (3.9, 0.04, 1.4))
-    off, only = PreprocessConfig(), PreprocessConfig(map_mixed_pixels=True)
+    off, only = PreprocessConfig(map_mixed_pixels=False), PreprocessConfig(map_mixed_pixels=True)
     reg = RegistrationConfig()
     in_shadow = [0, 0]
     for pts, T in views:

@@ -69,11 +69,13 @@ class RegistrationConfig:
     )
     max_iterations: int = field(100, "ICP iterations at most", "")
     convergence: float = field(
-        1e-4,
+        1e-3,
         "ICP stops once an iteration's update (KISS-ICP's convergence_criterion: the norm of the "
-        "twist, metres and radians together) is below this. The default is KISS-ICP's own; "
-        "1e-3 halves registration on the real capture (24.5 -> 12.4 ms a 0.1 s keyframe) but "
-        "moves its trajectory by up to 2.4 cm: see docs/mapping-fidelity.md before raising it",
+        "twist, metres and radians together) is below this. KISS-ICP's own 1e-4 registers a "
+        "real keyframe in about twice the time; over fifty simulated runs it read Table I 9(a) "
+        "under 1 % on 35 against 39 (with preprocess.map_mixed_pixels, also the default); on "
+        "the real capture with its prior the loop-closed map, rigidly aligned, agrees with "
+        "ARKit's as closely (99.4 against 99.5 % within 5 cm; docs/mapping-fidelity.md)",
         "",
     )
     min_points: int = field(150, "a frame with fewer points after filtering fails", "points")
