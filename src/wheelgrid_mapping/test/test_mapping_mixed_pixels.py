@@ -15,6 +15,7 @@ import pytest
 from wheelgrid_mapping.pipeline import Mapper, MapperConfig, prepare_frame
 from wheelgrid_mapping.preprocess import (
     PreprocessConfig,
+    median_angle,
     mixed_pixel_mask,
     preprocess,
     preprocess_for_map,
@@ -183,3 +184,17 @@ def test_map_mixed_pixels_on_a_flat_or_an_empty_frame(views) -> None:
     empty, keep = preprocess_for_map(np.full((4, 5, 3), np.nan), only)
     assert empty.shape == (0, 3)
     assert keep is not None and keep.shape == (0,)
+
+
+def test_median_angle_is_numpys_median_of_the_angles_bit_for_bit() -> None:
+    """The mask's pixel pitch skips the arccos of every pixel: it must still be exactly the
+    median of the angles (odd and even counts, NaN left out, cosines past +-1 clipped), so
+    that the mask, on by default for the map, is the one every figure was measured with."""
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 4, 9, 10, 1001, 1002):
+        cos = rng.uniform(-1.05, 1.05, n)
+        cos[rng.random(n) < 0.1] = np.nan
+        finite = cos[np.isfinite(cos)]
+        want = float(np.median(np.arccos(np.clip(finite, -1.0, 1.0)))) if finite.size else 0.0
+        assert median_angle(cos) == want, n
+    assert median_angle(np.full(5, np.nan)) == 0.0
