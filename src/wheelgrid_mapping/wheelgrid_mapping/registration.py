@@ -117,9 +117,10 @@ class RegistrationConfig:
         "adapter or bridge), the share of the part of ICP's rotation correction that tilts the "
         "sensor against gravity; the turn about the vertical keeps prior_rotation_gain. 0 holds "
         "the tilt to the prior's (an IMU's gravity): on the real capture the online map as a "
-        "whole turned 0.05 instead of 0.25 deg from ARKit's, the same shape; on 24 simulated "
-        "runs 9(a) under 1 % on 18 against 15, but the worst run worse, 1.80 against 1.53 % "
-        "(docs/mapping-fidelity.md). < 0 = prior_rotation_gain",
+        "whole turned 0.05 instead of 0.25 deg from ARKit's, the same shape; with convergence "
+        "1e-4, on 24 simulated runs 9(a) under 1 % on 18 against 15, but the worst run worse, "
+        "1.80 against 1.53 %; with the default 1e-3 and map_mixed_pixels, 7 of 9 against 9, one "
+        "at 2.43 % (docs/mapping-fidelity.md). < 0 = prior_rotation_gain",
         "",
     )
     reject_degenerate_ratio: float = field(
