@@ -675,7 +675,7 @@ def arkit_agreement(
     # whole map that sits 2 cm or 0.2 deg off the first camera frame as off. This share is the
     # shape's; how far the alignment moves the map's points and its turn say how far the
     # whole map sits off. Its translation alone would not: it is the move of the first camera
-    # (the frame's origin), and a 0.2 deg turn about it moves points 4 m away by 1.5 cm.
+    # (the frame's origin), and a 0.2 deg turn about it moves points 4 m away by 1.4 cm.
     fit = o3d.pipelines.registration.registration_icp(cloud, ref_pc, 0.05, np.eye(4))
     T = np.asarray(fit.transformation)
     moves = np.linalg.norm(pts @ T[:3, :3].T + T[:3, 3] - pts, axis=1)

@@ -202,7 +202,8 @@ def mixed_pixel_mask(points: np.ndarray, jump: float, pitches: float = 0.0) -> n
 def median_angle(cos: np.ndarray) -> float:
     """rad: ``np.median(np.arccos(np.clip(cos, -1, 1)))`` over the finite ``cos``, bit for bit,
     without an arccos per pixel: arccos falls monotonically, so the middle angle is the
-    arccos of the middle cosine (the mean of the two middle ones for an even count)."""
+    arccos of the middle cosine (for an even count the mean of the two middle angles, added
+    in ascending order as ``np.median`` adds them: hence the reversal)."""
     cos = cos[np.isfinite(cos)]
     n = cos.size
     if n == 0:
