@@ -223,8 +223,12 @@ def test_the_first_floor_fit_is_checked_on_the_whole_map(first_fit: str, monkeyp
         assert m.level_info["floor_refound"]["moved_m"] == pytest.approx(-0.2, abs=0.03)
         unchecked = run(False).trajectory()[1][0]  # how it was: still off
         assert frame_angle_deg(unchecked, truth) > 1.0
+        # the 3.5 deg put in, turned back (3.4x deg with KISS-ICP's own convergence 1e-4)
+        turn = m.level_info["floor_refound"]["turn_deg"]
+        assert turn == pytest.approx(3.5, abs=0.15)
         line = floor_refound_line(m.level_info)  # `wheelgrid map` and the node say so
-        assert line is not None and "turned 3.4" in line and "1.00 m above it, 19." in line
+        assert line is not None and f"turned {turn:.2f} deg" in line
+        assert "1.00 m above it, 19." in line
     assert (floor_refound_line(m.level_info) is None) == (first_fit == "right")
     # one more view of the same room: relevelled, but not checked again (it has not doubled)
     frame = m.T_map_odom.copy()
