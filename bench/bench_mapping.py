@@ -678,8 +678,9 @@ def arkit_agreement(
     # (the frame's origin), and a 0.2 deg turn about it moves points 4 m away by 1.4 cm.
     fit = o3d.pipelines.registration.registration_icp(cloud, ref_pc, 0.05, np.eye(4))
     T = np.asarray(fit.transformation)
-    moves = np.linalg.norm(pts @ T[:3, :3].T + T[:3, 3] - pts, axis=1)
-    moved = o3d.geometry.PointCloud(cloud).transform(T)
+    aligned = transform(pts, T)  # once: the moves and the distances both read it
+    moves = np.linalg.norm(aligned - pts, axis=1)
+    moved = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(aligned))
     d = np.asarray(moved.compute_point_cloud_distance(ref_pc))
     row(
         f"{label}: points within 5 cm of the ARKit map, rigidly aligned",
