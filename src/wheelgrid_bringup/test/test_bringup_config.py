@@ -88,3 +88,52 @@ def test_help_lists_every_command_and_unknown_commands_exit_2(capsys):
         assert name in out
     assert main(["no-such-command"]) == 2
     assert main([]) == 2
+
+
+def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, capsys):
+    """rcl refuses a bad parameter file only inside each node (a traceback in its log, exit 1
+    naming a dead node); the launch reads it first and names the file and the line."""
+    import pytest
+
+    from wheelgrid_bringup.launcher import check_params_file
+    from wheelgrid_bringup.launcher import main as launch_main
+
+    check_params_file(default_params_file())
+    nested = tmp_path / "ns.yaml"
+    nested.write_text("chair:\n  mapper:\n    ros__parameters: {topic: /x}\n")
+    check_params_file(nested)  # nodes under a namespace, as rcl reads them
+    bad = tmp_path / "bad.yaml"
+    for text, says in (
+        ("mapper:\n  ros__parameters: {topic: [/x\n", "bad.yaml: not valid YAML at line 3"),
+        ("preprocess: {voxel_size: 0.03}\n", "'preprocess/voxel_size' must hold a ros__param"),
+        ("mapper:\n  ros__parameters: 5\n", "mapper's ros__parameters must be a mapping"),
+        ("- mapper\n", "expected a mapping of node name"),
+    ):
+        bad.write_text(text)
+        with pytest.raises(ValueError, match="") as info:
+            check_params_file(bad)
+        assert says in str(info.value), (text, str(info.value))
+    assert launch_main(["--params", str(bad), "--no-drive", "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "expected a mapping of node name" in err and "Traceback" not in err
+
+
+def test_a_replay_stopped_before_it_started_stops_cleanly():
+    """``wheelgrid launch`` opens the bag before it starts the nodes, so a node that dies while
+    the chain starts stops a player whose thread never ran: that must not raise (joining an
+    unstarted thread does) and so hide the dead node's own message."""
+    import rclpy
+
+    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_common.testing import rclpy_context
+
+    bag = PKG.parents[1] / "bags" / "paper_room" / "scan"
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_stop_test", context=ctx)
+        try:
+            player = BagPlayer(node, bag)
+            assert player.total > 0
+            player.stop()
+            assert player.published == 0
+        finally:
+            node.destroy_node()

@@ -17,6 +17,7 @@ from pathlib import Path
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.supervisor import Supervisor, default_params_file
 from wheelgrid_common.bagio import BagError
+from wheelgrid_common.params import read_yaml
 from wheelgrid_common.ros_env import child_env, configure_ros_env
 
 
@@ -35,6 +36,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_params_file(path: Path) -> None:
+    """``ValueError`` unless ``path`` is a ROS 2 parameter file (``node: {ros__parameters:
+    {...}}`` per node): rcl would refuse it only inside each node, as a traceback in that
+    node's log after the chain had started, and the launch would end with exit 1 naming a
+    dead node instead of the file's line."""
+    data = read_yaml(path)
+    if not isinstance(data, dict) or not data:
+        raise ValueError(f"{path}: expected a mapping of node name: {{ros__parameters: ...}}")
+
+    def check(name: str, body: object) -> None:  # a node, or a namespace holding nodes
+        if isinstance(body, dict) and "ros__parameters" in body:
+            if not isinstance(body["ros__parameters"], dict):
+                raise ValueError(f"{path}: {name}'s ros__parameters must be a mapping")
+            return
+        if not isinstance(body, dict) or not body:
+            raise ValueError(
+                f"{path}: {name!r} must hold a ros__parameters mapping (or nodes under a "
+                "namespace), as a ROS 2 params file does"
+            )
+        for key, inner in body.items():
+            check(f"{name}/{key}", inner)
+
+    for node, body in data.items():
+        check(str(node), body)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.rate <= 0:
@@ -48,6 +75,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if not params.exists():
         print(f"wheelgrid launch: no such params file {params}", file=sys.stderr)
+        return 2
+    try:
+        check_params_file(params)
+    except (OSError, ValueError) as exc:
+        print(f"wheelgrid launch: {exc}", file=sys.stderr)
         return 2
     names = ["mapper", "grid", "planner"]
     if not args.no_drive:
@@ -76,6 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     player = None
     code = 0
     try:
+        if args.bag:  # opened before any node starts: a wrong path costs no node start-up
+            try:
+                player = BagPlayer(monitor.node, args.bag, args.topic, args.rate)
+            except BagError as exc:
+                print(f"wheelgrid launch: {exc}", file=sys.stderr)
+                return 2
         for name in names:
             overrides: dict[str, object] = {}
             if name == "drive" and args.motor_port:
@@ -88,12 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{sup.procs[name].log_path})",
                 flush=True,
             )
-        if args.bag:
-            try:
-                player = BagPlayer(monitor.node, args.bag, args.topic, args.rate)
-            except BagError as exc:
-                print(f"wheelgrid launch: {exc}", file=sys.stderr)
-                return 2
+        if player is not None:
             # let the nodes' subscriptions match first: a frame sent before is lost
             deadline = time.monotonic() + 30.0
             while player.unsubscribed() and time.monotonic() < deadline and not stop["flag"]:
@@ -136,7 +169,10 @@ def main(argv: list[str] | None = None) -> int:
         monitor.close()
         if ctx.ok():
             rclpy.shutdown(context=ctx)
-        print("launch: stopped " + ", ".join(f"{n} ({c})" for n, c in codes.items()), flush=True)
+        if codes:
+            print(
+                "launch: stopped " + ", ".join(f"{n} ({c})" for n, c in codes.items()), flush=True
+            )
     return code
 
 

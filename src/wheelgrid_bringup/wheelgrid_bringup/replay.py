@@ -68,8 +68,11 @@ class BagPlayer:
         self._thread.start()
 
     def stop(self) -> None:
+        """Safe before ``start``: the launch opens the bag first and may stop the chain (a
+        node that died while starting) before the replay began."""
         self._stop.set()
-        self._thread.join(timeout=5.0)
+        if self._thread.ident is not None:
+            self._thread.join(timeout=5.0)
 
     def _run(self) -> None:
         try:

@@ -91,6 +91,14 @@ def test_config_from_yaml_checks_types_and_names(tmp_path):
         from_mapping(Cfg, {"safe_hieght": 1.0})
     with pytest.raises(ValueError, match="integer"):
         from_mapping(Cfg, {"cells": 1.5})
+    with pytest.raises(ValueError, match="expected a mapping of parameter: value, got 5"):
+        from_mapping(Cfg, 5)  # type: ignore[arg-type]
+    (tmp_path / "c.yaml").write_text("grid: 2.0\n")
+    with pytest.raises(ValueError, match="section 'grid' must be a mapping"):
+        load_yaml(Cfg, tmp_path / "c.yaml", section="grid")
+    (tmp_path / "c.yaml").write_text("grid:\n  safe_height: [2\n")
+    with pytest.raises(ValueError, match=r"c.yaml: not valid YAML at line 3, column 1"):
+        load_yaml(Cfg, tmp_path / "c.yaml", section="grid")
 
 
 def test_long_metadata_stays_one_yaml_comment(tmp_path):

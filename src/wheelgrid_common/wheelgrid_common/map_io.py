@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .params import read_yaml
+
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
 PIX_FREE, PIX_OCCUPIED, PIX_UNKNOWN = 254, 0, 205
 OCCUPIED_THRESH = 0.65
@@ -132,7 +134,7 @@ def read_pgm(path: str | Path) -> np.ndarray:
 def read_map(yaml_path: str | Path) -> Grid:
     """Load a map_server YAML the way nav2_map_server does (trinary / scale / raw)."""
     yaml_path = Path(yaml_path)
-    doc = yaml.safe_load(yaml_path.read_text())
+    doc = read_yaml(yaml_path)
     if not isinstance(doc, dict) or "image" not in doc or "resolution" not in doc:
         raise ValueError(f"{yaml_path}: not a map_server YAML (needs image and resolution)")
     image_path = Path(doc["image"])

@@ -57,8 +57,24 @@ def _coerce(value: Any, typ: Any, name: str) -> Any:
     return value
 
 
+def read_yaml(path: str | Path) -> Any:
+    """A YAML file's document, a syntax error turned into a ``ValueError`` that names the file
+    and the line: every CLI reports ``ValueError`` as a one-line error with exit 2, and a
+    user who mistyped a bracket needs the line, not PyYAML's traceback."""
+    text = Path(path).read_text()
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ValueError(f"{path}: not valid YAML{where}: {problem}") from None
+
+
 def from_mapping(cls: type[T], values: dict[str, Any], *, strict: bool = True) -> T:
     """Build ``cls`` from a mapping, type-checking each value; unknown keys are errors."""
+    if not isinstance(values, dict):
+        raise ValueError(f"{cls.__name__}: expected a mapping of parameter: value, got {values!r}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - names)
@@ -76,11 +92,15 @@ def load_yaml(cls: type[T], path: str | Path | None, section: str | None = None)
     """
     if path is None:
         return cls()
-    data = yaml.safe_load(Path(path).read_text()) or {}
+    data = read_yaml(path) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
     if section and section in data:
         data = data[section]
+        if not isinstance(data, dict):
+            raise ValueError(
+                f"{path}: section {section!r} must be a mapping of parameter: value, got {data!r}"
+            )
     if isinstance(data, dict) and "ros__parameters" in data:
         data = data["ros__parameters"]
     elif isinstance(data, dict) and len(data) == 1:
