@@ -120,6 +120,66 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
         assert "Traceback" not in err and says in err, err
 
 
+def test_a_broken_config_or_output_path_stops_before_the_first_frame(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """A YAML syntax error, a section that is not a mapping, an --out that is a file and a
+    negative --max-frames each end in one line and exit 2, before any frame is mapped: the
+    output path used to be made only when the finished map was saved, so a typo there cost
+    the whole run and a traceback."""
+    scan = str(sim_dir / "scan")
+    cfg = tmp_path / "c.yaml"
+    for text, says in (
+        ("preprocess: {voxel_size: [0.03\n", "c.yaml: not valid YAML at line 2"),
+        ("preprocess: 5\n", "section 'preprocess' must be a mapping of parameter: value"),
+    ):
+        cfg.write_text(text)
+        out = tmp_path / "o"
+        assert cli_map.main([scan, "--out", str(out), "--config", str(cfg)]) == 2, text
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and says in err and not out.exists(), err
+    a_file = tmp_path / "a_file"
+    a_file.write_text("keep me\n")
+    assert cli_map.main([scan, "--out", str(a_file), "--prior", "arkit"]) == 2
+    captured = capsys.readouterr()
+    assert "--out" in captured.err and "cannot make the output folder" in captured.err
+    assert "mapping" not in captured.err and a_file.read_text() == "keep me\n"
+    assert cli_map.main([scan, "--out", str(tmp_path / "o3"), "--max-frames", "-1"]) == 2
+    assert "--max-frames must be >= 0" in capsys.readouterr().err
+
+
+def test_an_unreadable_frame_of_a_stray_export_is_skipped_and_counted(
+    tmp_path: Path, capsys, stray_capture: Path
+) -> None:
+    """Ten real frames, the first and the fifth depth PNGs broken (a capture cut off by a full
+    phone): the map is made from the other eight, the summary and report.json count the two,
+    where one bad file used to end the run with PIL's traceback. The first frame being broken
+    matters: it used to set the export's resolution."""
+    cap = tmp_path / "cap"
+    (cap / "depth").mkdir(parents=True)
+    (cap / "confidence").mkdir()
+    shutil.copy(stray_capture / "camera_matrix.csv", cap)
+    rows = (stray_capture / "odometry.csv").read_text().splitlines()
+    (cap / "odometry.csv").write_text("\n".join(rows[:11]) + "\n")
+    for i in range(10):
+        for sub in ("depth", "confidence"):
+            shutil.copy(stray_capture / sub / f"{i:06d}.png", cap / sub)
+    for i in (0, 4):
+        (cap / "depth" / f"{i:06d}.png").write_bytes(b"\x89PNG cut off")
+    out = tmp_path / "o"
+    assert cli_map.main([str(cap), "--out", str(out), "--prior", "arkit"]) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert "WARNING frame 0: skipped" in err and "WARNING frame 4: skipped" in err
+    assert "10 frames read, 2 unreadable skipped" not in err  # the summary is on stdout
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"]["read"] == 8 and rep["malformed_frames"] == {"unreadable image": 2}
+    for i in range(10):
+        (cap / "depth" / f"{i:06d}.png").write_bytes(b"not a png")
+    assert cli_map.main([str(cap), "--out", str(tmp_path / "o2")]) == 2
+    assert "none of the 10 depth images reads" in capsys.readouterr().err
+
+
 def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:
     from wheelgrid_common.bagio import BagWriter
     from wheelgrid_common.pointcloud2 import to_pointcloud2

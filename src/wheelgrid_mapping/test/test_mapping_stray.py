@@ -76,6 +76,24 @@ def test_not_an_export_is_a_clear_error(tmp_path: Path) -> None:
         StrayExport(cap)
 
 
+def test_a_broken_image_fails_its_frame_only(tmp_path: Path) -> None:
+    """The resolution comes from the first image that reads; a broken one raises ValueError
+    naming its file when its frame is read (every reader skips that frame), not an
+    UnidentifiedImageError; depth frames odometry.csv has no row for are counted."""
+    cap = make_export(tmp_path / "cap", 4)
+    (cap / "depth" / "000000.png").write_bytes(b"\x89PNG cut off")
+    (cap / "confidence" / "000002.png").write_bytes(b"")
+    rows = (cap / "odometry.csv").read_text().splitlines()
+    (cap / "odometry.csv").write_text("\n".join(rows[:3]) + "\n")  # frames 0 and 1 only
+    exp = StrayExport(cap)
+    assert (exp.height, exp.width) == (6, 8) and exp.frames_without_pose == 2
+    with pytest.raises(ValueError, match=r"depth/000000\.png: cannot read the image"):
+        exp.frame(0)
+    with pytest.raises(ValueError, match=r"confidence/000002\.png: cannot read the image"):
+        exp.frame(2)
+    assert exp.frame(1).pose is not None and exp.frame(3).pose is None
+
+
 def _world_cloud(exp: StrayExport, i: int, arkit_camera_axes: bool = False) -> np.ndarray:
     f = exp.frame(i)
     assert f.pose is not None

@@ -77,6 +77,29 @@ def test_import_stray_bad_input_exit_2(
     assert "--start" in capsys.readouterr().err
 
 
+def test_import_stray_skips_an_unreadable_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """A broken depth PNG costs its frame, said on stderr and in the summary; the bag holds
+    the others (it used to end the import there with exit 1)."""
+    import shutil
+
+    cap = tmp_path / "cap"
+    for sub in ("depth", "confidence"):
+        (cap / sub).mkdir(parents=True)
+        for i in range(4):
+            shutil.copy(stray_capture / sub / f"{i:06d}.png", cap / sub)
+    shutil.copy(stray_capture / "camera_matrix.csv", cap)
+    (cap / "depth" / "000002.png").write_bytes(b"\x89PNG cut off")
+    out = tmp_path / "bag"
+    assert import_main([str(cap), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "frame 2 skipped" in captured.err and "1 unreadable frames skipped" in captured.out
+    assert "wrote 3 frames" in captured.out
+    with BagReader(out) as bag:
+        assert {t.name: t.count for t in bag.topics()}["/iphone/points"] == 3
+
+
 def test_stream_stray_exit_codes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
 ) -> None:

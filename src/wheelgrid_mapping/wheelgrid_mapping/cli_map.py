@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -35,8 +36,14 @@ def is_stray(path: Path) -> bool:
     return path.is_dir() and (path / "depth").is_dir() and not (path / "metadata.yaml").exists()
 
 
-def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
+def stray_frames(
+    path: Path, use_prior: bool, bad: list[str] | None = None
+) -> tuple[int, Iterator[Frame]]:
     """Frames of a Stray export as optical-frame clouds (+ confidence, + ARKit pose prior).
+
+    A frame whose images do not read is skipped with a warning, as a bag's malformed
+    message is: an empty frame in its place, its cause appended to ``bad``. One bad file in
+    a capture of thousands must not throw away the minutes of mapping before it.
 
     The prior is ARKit's pose turned into a REP-105 odom (z up), as the iPhone bridge
     publishes it: the registration rescales the prior's x, y steps only and the Mapper takes
@@ -52,13 +59,24 @@ def stray_frames(path: Path, use_prior: bool) -> tuple[int, Iterator[Frame]]:
         raise InputError(str(exc)) from exc
     if use_prior and not export.has_poses:
         raise InputError(f"{path}: --prior arkit needs odometry.csv, which this export lacks")
+    if use_prior and export.frames_without_pose:
+        print(
+            f"wheelgrid map: warning: odometry.csv has no pose for {export.frames_without_pose} "
+            f"of {len(export)} depth frames; those register without the prior, and the loop "
+            "closure does without it",
+            file=sys.stderr,
+        )
 
     def gen() -> Iterator[Frame]:
         for i in range(len(export)):
             try:
                 fr = export.frame(i)
             except ValueError as exc:
-                raise InputError(str(exc)) from exc
+                print(f"\nWARNING frame {i}: skipped: {exc}", file=sys.stderr)
+                if bad is not None:
+                    bad.append("unreadable image")
+                yield np.empty((0, 3)), export.stamp(i), DEFAULT_FRAME_ID, None, None
+                continue
             # organised (H, W, 3): the pixel grid, for the mixed-pixel test
             pts = depth_to_points(fr.depth, fr.K).reshape(*fr.depth.shape, 3)
             conf = None if fr.confidence is None else fr.confidence.reshape(-1)
@@ -193,7 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
         "only nav_msgs/Odometry topic (the bridge's /iphone/odometry)",
     )
     p.add_argument("--method", choices=["kiss", "open3d"], help="override registration.method")
-    p.add_argument("--max-frames", type=int, default=0, help="stop after this many frames")
+    p.add_argument(
+        "--max-frames", type=int, default=0, help="stop after this many frames (0: every frame)"
+    )
     return p
 
 
@@ -249,6 +269,17 @@ def floor_refound_line(level: dict[str, Any]) -> str | None:
     )
 
 
+def ensure_out_dir(out: Path) -> None:
+    """The output folder made (or found writable) before the first frame is mapped: a typo in
+    ``--out`` must cost a second, not a mapping run of minutes that then cannot be saved."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot make the output folder ({exc.strerror})") from exc
+    if not os.access(out, os.W_OK):
+        raise InputError(f"--out {out}: the output folder is not writable")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -259,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.max_frames < 0:
+        raise InputError(f"--max-frames must be >= 0 (0: every frame), got {args.max_frames}")
     try:
         pre, reg, cfg, loop = load_configs(args.config)
     except (OSError, ValueError) as exc:
@@ -270,11 +303,12 @@ def _run(args: argparse.Namespace) -> int:
     if is_stray(path):
         if args.topic:
             raise InputError("--topic applies to bags, not to a Stray export")
-        total, frames = stray_frames(path, args.prior == "arkit")
+        total, frames = stray_frames(path, args.prior == "arkit", bad)
     else:
         total, frames, bad = bag_frames(path, args.topic, args.prior == "arkit")
     if args.max_frames > 0:
         total = min(total, args.max_frames)
+    ensure_out_dir(args.out)
     if args.no_loop_closure:
         loop.enabled = False
     mapper = Mapper(pre, reg, cfg, keep_frames=loop.enabled)
@@ -362,13 +396,17 @@ def _run(args: argparse.Namespace) -> int:
     except RuntimeError as exc:
         print(f"wheelgrid map: cannot level the map: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:
+        print(f"wheelgrid map: cannot write the map to {args.out}: {exc}", file=sys.stderr)
+        return 1
     refound = floor_refound_line(rep["levelling"])
     if refound:
         print(refound, file=sys.stderr)
     fr = rep["frames"]
     wall = time.perf_counter() - t0
+    skipped = f", {len(bad)} unreadable skipped" if bad else ""
     print(
-        f"map: {fr['read']} frames read, {fr['used']} used, {fr['failed']} failed "
+        f"map: {fr['read']} frames read{skipped}, {fr['used']} used, {fr['failed']} failed "
         f"({fr['relocalised']} relocalised), {rep['points']['map']} points -> "
         f"{args.out / 'map.ply'} in {wall:.1f} s ({fr['read'] / max(wall, 1e-9):.1f} frames/s)"
     )

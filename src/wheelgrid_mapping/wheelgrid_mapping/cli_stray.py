@@ -92,6 +92,18 @@ class StreamStats:
     capture_s: float = 0.0
     late_frames: int = 0  # sent more than 50 ms after their real-time slot
     max_lag_s: float = 0.0
+    skipped: int = 0  # frames whose images do not read: not sent, as a phone drops a frame
+
+
+def _read_or_warn(exp: StrayExport, i: int) -> StrayFrame | None:
+    """Frame ``i``, or None with a warning when its images do not read: one broken file in a
+    long capture skips that frame (the mapper copes with a gap, as with a dropped one) and
+    does not end a stream or an import at that point."""
+    try:
+        return exp.frame(i)
+    except ValueError as exc:
+        print(f"\nwheelgrid: warning: frame {i} skipped: {exc}", file=sys.stderr)
+        return None
 
 
 def stream_export(
@@ -115,7 +127,10 @@ def stream_export(
         t_first = exp.stamp(idx[0])
         t0 = time.monotonic()
         for seq, i in enumerate(idx):
-            sf = exp.frame(i)
+            sf = _read_or_warn(exp, i)
+            if sf is None:
+                stats.skipped += 1
+                continue
             data = encode_frame(
                 sf.stamp,
                 sf.K,
@@ -182,6 +197,7 @@ def stream_main(argv: list[str]) -> int:
         f"sent {stats.frames_sent} frames ({stats.bytes_sent / 1e6:.1f} MB) in "
         f"{stats.wall_s:.2f} s (capture {stats.capture_s:.2f} s, rate {args.rate}); "
         f"late > 50 ms: {stats.late_frames}, max lag {stats.max_lag_s * 1000:.1f} ms"
+        + (f"; {stats.skipped} unreadable frames skipped" if stats.skipped else "")
     )
     return 0
 
@@ -214,10 +230,16 @@ def import_main(argv: list[str]) -> int:
     except _UsageError as exc:
         return _fail(2, str(exc))
     counts: dict[str, int] = {}
+    skipped = 0
     try:
         with BagWriter(args.out, args.storage) as bag, Progress(len(idx), "import-stray") as bar:
             for seq, i in enumerate(idx):
-                frame = stray_to_frame(exp.frame(i), seq)
+                sf = _read_or_warn(exp, i)
+                if sf is None:
+                    skipped += 1
+                    bar.update()
+                    continue
+                frame = stray_to_frame(sf, seq)
                 stamp_ns = round(frame.stamp * 1e9)
                 for topic, msgtype, msg in frame_messages(
                     frame, frame.stamp, min_confidence=args.min_confidence, organized=not args.dense
@@ -230,5 +252,8 @@ def import_main(argv: list[str]) -> int:
     except (OSError, ValueError) as exc:
         return _fail(1, f"import failed: {exc}")
     listing = ", ".join(f"{t} {n}" for t, n in sorted(counts.items()))
-    print(f"wrote {len(idx)} frames to {args.out} ({args.storage}): {listing}")
+    print(
+        f"wrote {len(idx) - skipped} frames to {args.out} ({args.storage}): {listing}"
+        + (f"; {skipped} unreadable frames skipped" if skipped else "")
+    )
     return 0

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.fileio import write_ply, write_tum
-from wheelgrid_common.params import field, from_mapping
+from wheelgrid_common.params import field, from_mapping, read_yaml
 
 from .evidence import EvidenceMap
 from .levelling import (
@@ -221,16 +221,20 @@ def load_configs(
     path: str | Path | None,
 ) -> tuple[PreprocessConfig, RegistrationConfig, MapperConfig, LoopClosureConfig]:
     """Read ``preprocess:``, ``registration:``, ``mapper:``, ``loop_closure:`` from one YAML."""
-    import yaml
-
     if path is None:
         return PreprocessConfig(), RegistrationConfig(), MapperConfig(), LoopClosureConfig()
-    data = yaml.safe_load(Path(path).read_text()) or {}
+    data = read_yaml(path) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping with preprocess/registration/mapper")
     unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
         raise ValueError(f"{path}: unknown section(s) {unknown}; use {'/'.join(SECTIONS)}")
+    for name in SECTIONS:
+        if not isinstance(data.get(name) or {}, dict):
+            raise ValueError(
+                f"{path}: section {name!r} must be a mapping of parameter: value, "
+                f"got {data[name]!r}"
+            )
     return (
         from_mapping(PreprocessConfig, data.get("preprocess") or {}),
         from_mapping(RegistrationConfig, data.get("registration") or {}),

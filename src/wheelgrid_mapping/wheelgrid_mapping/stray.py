@@ -47,12 +47,17 @@ class StrayFrame:
 
 
 def _read_image(path: Path) -> np.ndarray:
-    if path.suffix == ".npy":
-        return np.load(path, allow_pickle=False)
-    from PIL import Image
+    """An image as an array; a file that does not decode (cut off by a full phone, a stray
+    non-image) raises ``ValueError`` naming it, the error every reader of an export handles."""
+    try:
+        if path.suffix == ".npy":
+            return np.load(path, allow_pickle=False)
+        from PIL import Image
 
-    with Image.open(path) as im:
-        return np.array(im)
+        with Image.open(path) as im:
+            return np.array(im)
+    except (OSError, ValueError, EOFError) as exc:  # PIL's UnidentifiedImageError is an OSError
+        raise ValueError(f"{path}: cannot read the image ({exc})") from exc
 
 
 def _read_camera_matrix(path: Path) -> np.ndarray:
@@ -121,7 +126,7 @@ class StrayExport:
         odo = self.path / "odometry.csv"
         self._odometry = _read_odometry(odo) if odo.exists() else {}
         self._conf_dir = self.path / "confidence"
-        first = _read_image(files[0])
+        first = self._first_readable(files)
         if first.ndim != 2:
             raise ValueError(f"{files[0]}: depth image must be single-channel, got {first.shape}")
         self.height, self.width = (int(s) for s in first.shape)
@@ -131,9 +136,28 @@ class StrayExport:
         self.K = K
         self.K.setflags(write=False)
 
+    @staticmethod
+    def _first_readable(files: list[Path]) -> np.ndarray:
+        """The first depth image that decodes: it sets the export's resolution, and one broken
+        file at the start must not refuse a capture whose other frames read (each frame that
+        does not is skipped when it is read)."""
+        first_error: ValueError | None = None
+        for f in files:
+            try:
+                return _read_image(f)
+            except ValueError as exc:
+                first_error = first_error or exc
+        raise ValueError(f"none of the {len(files)} depth images reads; the first: {first_error}")
+
     @property
     def has_poses(self) -> bool:
         return bool(self._odometry)
+
+    @property
+    def frames_without_pose(self) -> int:
+        """Depth frames that odometry.csv has no row for (a capture cut short writes depth
+        first): with ``--prior arkit`` those frames register without a prior."""
+        return sum(int(p.stem) not in self._odometry for p in self._depth_files)
 
     def __len__(self) -> int:
         return len(self._depth_files)
