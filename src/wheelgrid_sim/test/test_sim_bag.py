@@ -157,6 +157,24 @@ def test_cli_writes_everything_and_refuses_to_overwrite(
     assert not (tmp_path / "x").exists()
 
 
+def test_cli_drives_the_path_at_the_chairs_speed_unless_told_otherwise(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The whole path is spread over the frames, so the frame count is a speed: by default the
+    chair drives at 0.8 m/s (the README's; 120 frames used to drive it at 1.4), and a count
+    that drives faster than the paper's 3 km/h says so and names the count that does not."""
+    argv = ["--rate", "2", "--stride", "32", "--no-odometry", "--out"]
+    assert cli_main([*argv, str(tmp_path / "a")]) == 0
+    captured = capsys.readouterr()
+    summary = captured.out.strip().splitlines()[-1]
+    assert "wrote 84 frames (2 Hz" in summary and "driving 0.80 m/s" in summary, summary
+    assert "warning" not in captured.err
+    assert cli_main([*argv, str(tmp_path / "b"), "--frames", "30"]) == 0
+    err = capsys.readouterr().err
+    assert "drive the path at 2.30 m/s, faster than a chair's 3 km/h" in err, err
+    assert "--frames 84 drives it at 0.8 m/s" in err
+
+
 def test_odometry_is_arkit_like(sim_clean: Path) -> None:
     """Gravity-aligned, starts at the first camera pose, drifts about a percent, never zero."""
     from wheelgrid_common.fileio import quat_to_matrix

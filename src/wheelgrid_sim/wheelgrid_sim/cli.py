@@ -7,7 +7,10 @@ import sys
 
 from wheelgrid_common.bagio import BagError
 from wheelgrid_common.progress import Progress
-from wheelgrid_sim.simulate import simulate
+from wheelgrid_sim.simulate import make_scene, simulate
+from wheelgrid_sim.trajectory import SPEED, nominal_duration
+
+CHAIR_SPEED = 3.0 / 3.6  # m/s: the paper's chair drives at <= 3 km/h
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +28,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--seed", type=int, default=7, help="noise, trajectory and random-scene seed (default 7)"
     )
-    p.add_argument("--frames", type=int, default=120, help="number of depth frames (default 120)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="number of depth frames; the whole path is spread over them, so fewer frames "
+        "drive faster (default: the path at 0.8 m/s, 210 frames at 5 Hz in the paper room)",
+    )
     p.add_argument("--rate", type=float, default=5.0, help="frame rate in Hz (default 5)")
     p.add_argument(
         "--scene",
@@ -55,12 +64,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.frames < 1:
+    if args.frames is not None and args.frames < 1:
         print("wheelgrid simulate: --frames must be >= 1", file=sys.stderr)
         return 2
     if not args.rate > 0:
         print("wheelgrid simulate: --rate must be > 0 Hz", file=sys.stderr)
         return 2
+    nominal = nominal_duration(make_scene(args.scene, args.seed))  # s at SPEED
+    if args.frames is None:
+        args.frames = round(nominal * args.rate) + 1
+    speed = SPEED * nominal * args.rate / max(args.frames - 1, 1)
     if not 1 <= args.stride <= 32:
         print("wheelgrid simulate: --stride must be in 1..32", file=sys.stderr)
         return 2
@@ -84,8 +97,17 @@ def main(argv: list[str] | None = None) -> int:
     bar.close()
     rows, cols = res.grid_shape
     topics = "/iphone/points" + ("" if args.no_odometry else " + /iphone/odometry")
+    if speed > CHAIR_SPEED:
+        print(
+            f"wheelgrid simulate: warning: {res.frames} frames at {args.rate:g} Hz drive the path "
+            f"at {speed:.2f} m/s, faster than a chair's 3 km/h ({CHAIR_SPEED:.2f} m/s); the "
+            f"mapper refuses steps over registration.max_speed. --frames "
+            f"{round(nominal * args.rate) + 1} drives it at {SPEED:g} m/s",
+            file=sys.stderr,
+        )
     print(
         f"wrote {res.frames} frames ({args.rate:g} Hz, {res.frames / args.rate:.1f} s, "
+        f"driving {speed:.2f} m/s, "
         f"{res.points_per_frame} points/frame, {100 * res.valid_fraction:.0f} % valid) to "
         f"{res.bag} ({args.storage}, {res.bag_bytes / 1e6:.1f} MB, {topics}) + ground truth "
         f"({rows}x{cols} grid of 1.2 m cells, {res.occupied_cells} occupied) in "
