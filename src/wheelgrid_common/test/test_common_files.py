@@ -107,3 +107,13 @@ def test_long_metadata_stays_one_yaml_comment(tmp_path):
     text = (tmp_path / "g.yaml").read_text()
     assert sum(line.startswith("# wheelgrid:") for line in text.splitlines()) == 1
     assert read_map(tmp_path / "g.yaml").data.tolist() == [[0, 0], [0, 0]]
+
+
+def test_a_zero_quaternion_pose_is_all_nan_for_the_mapper_to_refuse():
+    from types import SimpleNamespace as Ns
+
+    from wheelgrid_common.fileio import pose_or_nan
+
+    T = pose_or_nan(Ns(x=1.0, y=2.0, z=3.0), Ns(x=0.0, y=0.0, z=0.0, w=2.0))
+    np.testing.assert_allclose(T, [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+    assert np.isnan(pose_or_nan(Ns(x=1.0, y=2.0, z=3.0), Ns(x=0.0, y=0.0, z=0.0, w=0.0))).all()

@@ -7,6 +7,7 @@ whatever Open3D version is installed; the reader accepts any binary/ascii PLY wi
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -89,6 +90,22 @@ def read_ply(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: truncated ({len(raw) - body_start} B of {need} B of vertices)")
     table = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
     return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
+
+
+def pose_or_nan(position: Any, orientation: Any) -> np.ndarray:
+    """4x4 pose from a geometry_msgs Pose's ``position`` and ``orientation``; all NaN when the
+    quaternion is zero. An ARKit bridge or a bag can carry a zero quaternion before tracking
+    starts: as a NaN pose it reaches the mapper, which refuses and counts a pose that is no
+    rigid transform, instead of raising inside a subscription callback (which ends the node)
+    or ending ``wheelgrid map`` with a traceback."""
+    o = orientation
+    T = np.eye(4)
+    try:
+        T[:3, :3] = quat_to_matrix(o.x, o.y, o.z, o.w)
+    except ValueError:
+        return np.full((4, 4), np.nan)
+    T[:3, 3] = [position.x, position.y, position.z]
+    return T
 
 
 def quat_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:

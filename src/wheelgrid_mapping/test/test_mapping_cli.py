@@ -46,6 +46,42 @@ def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
 
 
+def test_a_zero_quaternion_in_the_odometry_costs_its_frames_prior_only(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """A bridge or bag can carry a zero quaternion (before ARKit tracks): it used to end
+    `wheelgrid map --prior arkit` with a traceback from quat_to_matrix. Now that frame goes
+    without a prior, the mapper counts it, and the run says so."""
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    bag = tmp_path / "zero_q"
+    with Reader(sim_dir / "scan") as reader:
+        writer = Writer(bag, version=8)
+        writer.open()
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                 for c in reader.connections}  # fmt: skip
+        odometry = 0
+        for conn, t, raw in reader.messages():
+            if conn.topic == "/iphone/odometry":
+                odometry += 1
+                if odometry == 4:
+                    msg = store.deserialize_cdr(raw, conn.msgtype)
+                    q = msg.pose.pose.orientation
+                    q.x = q.y = q.z = q.w = 0.0
+                    raw = store.serialize_cdr(msg, conn.msgtype)
+            writer.write(conns[conn.id], t, raw)
+        writer.close()
+    out = tmp_path / "map"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--max-frames", "8"]
+    assert cli_map.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "1 pose priors were no rigid transform" in err, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"]["priors_refused"] == 1 and rep["frames"]["read"] == 8
+
+
 def test_loop_closure_runs_and_is_reported(sim_dir: Path, tmp_path: Path, capsys) -> None:
     y = tmp_path / "c.yaml"
     y.write_text("loop_closure: {submap_seconds: 1.0}\n")

@@ -96,16 +96,12 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 
 def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """(stamps, 4x4 poses) of an Odometry topic: the pose prior for bags."""
-    from wheelgrid_common.fileio import quat_to_matrix
+    from wheelgrid_common.fileio import pose_or_nan
 
     stamps, poses = [], []
     for _, t_ns, msg in reader.messages([topic]):  # type: ignore[attr-defined]
         p = msg.pose.pose
-        T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(
-            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w
-        )
-        T[:3, 3] = [p.position.x, p.position.y, p.position.z]
+        T = pose_or_nan(p.position, p.orientation)  # the Mapper refuses and counts NaN poses
         st = msg.header.stamp
         stamps.append(st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9)
         poses.append(T)
@@ -405,6 +401,12 @@ def _run(args: argparse.Namespace) -> int:
     fr = rep["frames"]
     wall = time.perf_counter() - t0
     skipped = f", {len(bad)} unreadable skipped" if bad else ""
+    if fr.get("priors_refused"):
+        print(
+            f"wheelgrid map: warning: {fr['priors_refused']} pose priors were no rigid transform "
+            "(NaN, a zero quaternion); those frames registered without one",
+            file=sys.stderr,
+        )
     print(
         f"map: {fr['read']} frames read{skipped}, {fr['used']} used, {fr['failed']} failed "
         f"({fr['relocalised']} relocalised), {rep['points']['map']} points -> "

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
+from wheelgrid_common.fileio import matrix_to_quat, pose_or_nan
 from wheelgrid_common.params import declare_dataclass, field
 from wheelgrid_common.pointcloud2 import (
     CloudError,
@@ -236,11 +236,7 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_prior(self, msg: Any) -> None:
         p = msg.pose.pose
-        T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(
-            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w
-        )
-        T[:3, 3] = [p.position.x, p.position.y, p.position.z]
+        T = pose_or_nan(p.position, p.orientation)  # a NaN pose is refused and counted later
         self._priors.append((_stamp_seconds(msg.header.stamp), T))
 
     def _prior_for(self, stamp: float) -> np.ndarray | None:
