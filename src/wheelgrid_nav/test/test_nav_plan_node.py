@@ -175,6 +175,19 @@ def test_planner_node_plans_replans_and_stops(tmp_path):
             n = len(h.paths)
             h.goal_pub.publish(goal_msg(grid, (3, 0)))
             assert h.next_path(n).poses == []
+
+            # a start with a zero quaternion is ignored (the start stays), a goal with NaN
+            # gets an empty path and is dropped, so a later grid change does not plan to it
+            bad_start = start_msg(grid, (0, 0), 0.0)
+            q = bad_start.pose.pose.orientation
+            q.x = q.y = q.z = q.w = 0.0
+            h.init_pub.publish(bad_start)
+            n = len(h.paths)
+            bad_goal = goal_msg(grid, (6, 5))
+            bad_goal.pose.position.x = float("nan")
+            h.goal_pub.publish(bad_goal)
+            assert h.next_path(n).poses == [] and planner.goal is None
+            assert planner.start[:2] == pytest.approx(grid.cell_center(2, 0))
         finally:
             ex.remove_node(planner)
             planner.destroy_node()
@@ -224,3 +237,17 @@ def test_bad_parameters_stop_the_node_with_exit_2(param):
     proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "FATAL" in proc.stderr + proc.stdout
+
+
+def test_pose_problem_names_what_cannot_place_the_chair():
+    from types import SimpleNamespace as Ns
+
+    from wheelgrid_nav.planner_node import pose_problem
+
+    def pose(x=1.0, qw=1.0, qz=0.0):
+        return Ns(position=Ns(x=x, y=2.0, z=0.0), orientation=Ns(x=0.0, y=0.0, z=qz, w=qw))
+
+    assert pose_problem(pose()) is None and pose_problem(pose(qw=0.0, qz=2.0)) is None
+    assert pose_problem(pose(x=float("nan"))) == "a NaN or infinite coordinate"
+    assert pose_problem(pose(qw=float("inf"))) == "a NaN or infinite coordinate"
+    assert pose_problem(pose(qw=0.0)) == "a zero quaternion"

@@ -56,6 +56,19 @@ def heading_from_yaw(yaw: float, grid_yaw: float) -> str:
     return min(_DIR_ANGLE, key=lambda d: abs(math.remainder(rel - _DIR_ANGLE[d], 2 * math.pi)))
 
 
+def pose_problem(pose: Any) -> str | None:
+    """Why a geometry_msgs Pose cannot place the chair or its goal, or None. A NaN position
+    falls outside every grid, but a NaN or zero quaternion used to give a heading all the
+    same (the first direction tried, or +x), and the route's Table II actions follow it."""
+    p, q = pose.position, pose.orientation
+    values = [float(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)]
+    if not all(math.isfinite(v) for v in values):
+        return "a NaN or infinite coordinate"
+    if math.hypot(*values[3:]) < 1e-6:
+        return "a zero quaternion"
+    return None
+
+
 def forward_yaw(q: Any, child_frame: str = "") -> float:
     """Map-frame yaw of a pose's forward axis.
 
@@ -174,11 +187,23 @@ def _make_node_class() -> type:
             if not self._frame_ok(msg.header.frame_id, "goal"):
                 self._publish_route(None, [])
                 return
+            problem = pose_problem(msg.pose)
+            if problem:  # the chair stops: an empty path, as for an unreachable goal
+                self.get_logger().warning(f"goal refused: {problem}; publishing an empty path")
+                self.goal = None
+                self._publish_route(self.grid, [])
+                return
             self.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
             self._plan()
 
         def _set_start(self, pose: Any, frame: str, child: str) -> bool:
             if not self._frame_ok(frame, "start pose"):
+                return False
+            problem = pose_problem(pose)
+            if problem:
+                self.get_logger().warning(
+                    f"start pose ignored: {problem}", throttle_duration_sec=2.0
+                )
                 return False
             self.start = (
                 float(pose.position.x),
