@@ -73,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     nominal = nominal_duration(make_scene(args.scene, args.seed))  # s at SPEED
     if args.frames is None:
         args.frames = round(nominal * args.rate) + 1
-    speed = SPEED * nominal * args.rate / max(args.frames - 1, 1)
+    # one frame stands at the start: it drives nothing
+    speed = SPEED * nominal * args.rate / (args.frames - 1) if args.frames > 1 else 0.0
     if not 1 <= args.stride <= 32:
         print("wheelgrid simulate: --stride must be in 1..32", file=sys.stderr)
         return 2
