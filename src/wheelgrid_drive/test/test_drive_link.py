@@ -191,3 +191,22 @@ def test_a_new_move_is_never_taken_for_a_retry_after_the_seq_wraps(make_sim, mak
     assert second != first
     assert [e.detail for e in sim.events if e.what == "move"] == ["FORWARD", "FORWARD"]
     assert abs(sim.status().x - 0.10) < 0.01
+
+
+def test_a_second_host_process_is_not_taken_for_a_retry_of_the_first(make_sim, make_link):
+    """Each host process numbers its frames from 1; the controller remembers the last move it
+    accepted from anyone. Two `wheelgrid drive` runs with the same one-cell plan sent the same
+    first FORWARD with the same SEQ: the second was ACKed as a retry and the chair did not
+    move, while the host reported the step done and planned on from the next cell."""
+    sim = make_sim(time_scale=50.0)
+    for run in (1, 2):
+        link = make_link(sim.slave_path, heartbeat=False)  # a fresh link, as a new process
+        link.status()  # the CLI reads the status first; the link must not rely on it
+        _, st = link.execute("FORWARD", 0.05, 3.0)
+        assert st.result == proto.Result.DONE
+        assert st.x == pytest.approx(0.05 * run, abs=0.01), f"run {run} did not move"
+        link.close()
+    fresh = make_link(sim.slave_path, heartbeat=False)  # no status read before the move
+    fresh.execute("FORWARD", 0.05, 3.0)
+    assert [e.detail for e in sim.events if e.what == "move"] == ["FORWARD"] * 3
+    assert sim.status().x == pytest.approx(0.15, abs=0.01)

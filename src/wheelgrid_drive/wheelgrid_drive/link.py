@@ -360,6 +360,13 @@ class MotorLink:
         payload = proto.pack_move(distance_m, min(speed_kmh, proto.MAX_SPEED_KMH))
         mtype = proto.MOVE_TYPES[action]
         try:
+            if self._last_move_seq is None:
+                # A new link (a new process) numbers its frames from 1, but the controller
+                # remembers the last move it accepted, from whoever sent it: a first move with
+                # that SEQ, type and payload would be taken as its retry and ACKed without
+                # moving (protocol rule 4), and the host would plan on from the wrong cell.
+                # So the first move avoids the SEQ the controller reports.
+                self._last_move_seq = self.status().last_seq
             frame = self.request(mtype, payload, avoid_seq=self._last_move_seq)
         except LinkError:
             self.stop()
