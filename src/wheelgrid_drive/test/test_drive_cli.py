@@ -110,6 +110,7 @@ def test_a_step_into_an_occupied_or_unknown_cell_is_refused(make_sim, tmp_path, 
         err = capsys.readouterr().err
         assert rc == 1
         assert "(2, 3)" in err and ("occupied" if value == 100 else "unknown") in err
+        assert "chair stopped" in err and "NOT CONFIRMED" not in err  # the STOP was ACKed
         assert sim_moves(sim) == ["LEFT_FORWARD", "FORWARD"]  # never the move into (2, 3)
         assert sim.state == proto.State.IDLE
 
@@ -130,6 +131,17 @@ def test_a_step_into_an_occupied_or_unknown_cell_is_refused(make_sim, tmp_path, 
             "Table II",
         ),
         ([1, 2], [], "JSON object"),
+        # int() used to truncate these to cells, or to raise from inside load_plan
+        ({"cells": [[2.9, 0.7], [3.9, 0.2]]}, ["--heading", "down"], "of integers"),
+        ({"cells": [[True, 0], [1, 0]]}, ["--heading", "down"], "of integers"),
+        ({"cells": [["2", 0], [3, 0]]}, ["--heading", "down"], "of integers"),
+        ({"cells": [[1e400, 0], [1, 0]]}, ["--heading", "down"], "of integers"),
+        ({"cells": [{"a": 1, "b": 2}, [1, 0]]}, ["--heading", "down"], "of integers"),
+        (
+            {"cells": [[2, 0], [3, 0], [4, 0]], "actions": [{"heading": "down"}, 5]},
+            [],
+            "list of objects",
+        ),
     ],
 )
 def test_bad_plans_exit_2_without_moving(make_sim, tmp_path, capsys, doc, extra, message):
@@ -137,6 +149,45 @@ def test_bad_plans_exit_2_without_moving(make_sim, tmp_path, capsys, doc, extra,
     rc = main([write(tmp_path, doc), "--port", sim.slave_path, *extra])
     assert rc == 2
     assert message in capsys.readouterr().err
+    assert not any(e.what == "rx" for e in sim.events)
+
+
+def test_a_plan_nested_too_deep_is_bad_input(tmp_path, capsys):
+    plan = tmp_path / "deep.json"
+    plan.write_text("[" * 100_000)
+    assert main([str(plan), "--dry-run"]) == 2
+    assert "RecursionError" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--cell-size", "0"], "outside [0.001, 2]"),  # `or 1.2` made it 1.2 m silently
+        (["--cell-size", "0.0004"], "outside [0.001, 2]"),  # 0 mm: refused only when sent
+        (["--cell-size", "nan"], "outside [0.001, 2]"),
+        (["--speed", "0.001"], "--speed must be >= 0.1 km/h"),  # never ends in its timeout
+        (["--speed", "nan"], "--speed must be >= 0.1 km/h"),
+        (["--reply-timeout", "0"], "--reply-timeout must be in (0, 10] s"),
+        (["--reply-timeout", "1e12"], "--reply-timeout must be in (0, 10] s"),  # OverflowError
+        (["--reply-timeout", "nan"], "--reply-timeout must be in (0, 10] s"),
+        (["--retries", "-1"], "--retries must be in 0..20"),  # no frame, STOP included, sent
+        (["--baud", "0"], "--baud must be > 0"),  # baud 0 hangs up a real line
+    ],
+)
+def test_bad_settings_exit_2_before_any_frame(make_sim, tmp_path, capsys, extra, message):
+    sim = make_sim()
+    rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, *extra])
+    assert rc == 2
+    assert message in capsys.readouterr().err
+    assert not any(e.what == "rx" for e in sim.events)
+
+
+def test_set_pose_beyond_what_the_controller_holds_is_bad_input(make_sim, tmp_path, capsys):
+    sim = make_sim()
+    doc = {"cells": [[0, 3_000_000], [0, 3_000_001]]}  # 3600 km east: int32 mm overflowed
+    argv = [write(tmp_path, doc), "--port", sim.slave_path, "--heading", "right", "--set-pose"]
+    assert main(argv) == 2
+    assert "--set-pose: the start cell's pose" in capsys.readouterr().err
     assert not any(e.what == "rx" for e in sim.events)
 
 
@@ -150,7 +201,10 @@ def test_silent_controller_exits_1_and_stops(make_sim, tmp_path, capsys):
     sim.drop_rx_next = 10**6  # the controller hears nothing any more: every request times out
     rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--retries", "1"])
     assert rc == 1
-    assert "chair stopped" in capsys.readouterr().err
+    # STOP was sent, but a silent controller cannot confirm it: "chair stopped" would be a
+    # claim nobody checked, so the user is told to check the chair
+    err = capsys.readouterr().err
+    assert "STOP NOT CONFIRMED" in err and "chair stopped" not in err, err
 
 
 def test_planner_spelling_of_actions_is_accepted():

@@ -210,3 +210,52 @@ def test_a_second_host_process_is_not_taken_for_a_retry_of_the_first(make_sim, m
     fresh.execute("FORWARD", 0.05, 3.0)
     assert [e.detail for e in sim.events if e.what == "move"] == ["FORWARD"] * 3
     assert sim.status().x == pytest.approx(0.15, abs=0.01)
+
+
+def test_link_settings_it_cannot_run_with_are_refused():
+    from wheelgrid_drive.link import check_link_settings
+
+    check_link_settings(115200, 0.1, 3, 0.1, 0.5)
+    for kw, message in (
+        ({"baud": 0}, "baud must be > 0"),
+        ({"reply_timeout": float("nan")}, "reply_timeout"),
+        ({"reply_timeout": 1e12}, "reply_timeout"),
+        ({"retries": -1}, "retries"),
+        ({"heartbeat_period": 0.5}, "half the controller's 0.5 s watchdog"),
+        ({"reconnect_period": 0.0}, "reconnect_period"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            MotorLink("/dev/null", **kw)  # type: ignore[arg-type]
+
+
+def test_a_set_pose_the_status_could_not_report_is_refused(make_sim, make_link):
+    """A CRC-valid SET_POSE at the edge of int32 mm used to be taken; the next move then
+    overflowed the STATUS pose and killed the controller's thread."""
+    import struct
+
+    sim = make_sim()
+    link = make_link(sim.slave_path, heartbeat=False)
+    reply = link.request(proto.MsgType.SET_POSE, struct.pack(">iii", 2_000_000_000, 0, 0))
+    assert reply.type == proto.MsgType.NAK and reply.payload[1] == proto.Nak.BAD_POSE
+    with pytest.raises(ValueError, match="outside"):
+        proto.pack_pose(2_000_000.0, 0.0, 0.0)  # the host refuses to build it at all
+    _, st = link.execute("FORWARD", 0.05, 3.0)
+    assert st.result == proto.Result.DONE and st.x == pytest.approx(0.05, abs=0.01)
+
+
+def test_motor_sim_refuses_settings_that_break_it_and_never_deletes_a_file(tmp_path, capsys):
+    from wheelgrid_drive.motor_sim import main as sim_main
+
+    precious = tmp_path / "precious.txt"
+    precious.write_text("keep me\n")
+    assert sim_main(["--link", str(precious)]) == 2
+    assert precious.read_text() == "keep me\n" and "not a symlink" in capsys.readouterr().err
+    for flag in ("--heartbeat-timeout", "--x", "--delay"):  # NaN: no watchdog, a dead thread
+        assert sim_main([flag, "nan"]) == 2
+        assert f"{flag} must be finite" in capsys.readouterr().err
+    assert sim_main(["--x", "1e10"]) == 2
+    assert "int32 mm" in capsys.readouterr().err
+    port = tmp_path / "ttyWG"
+    assert sim_main(["--link", str(port), "--pose-log", str(tmp_path / "no" / "log.csv")]) == 1
+    assert "cannot open the pose log" in capsys.readouterr().err
+    assert not os.path.lexists(port)  # no link left pointing at a closed pty

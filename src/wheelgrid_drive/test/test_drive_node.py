@@ -318,3 +318,15 @@ def test_a_plan_that_arrives_before_the_grid_waits_for_it(make_sim):
         h.pub_grid.publish(to_occupancy_grid(grid))
         assert h.spin(lambda: len(h.cmds) >= 9, 20.0), h.cmds
         assert [c["action"] for c in h.cmds] == TABLE_II_ACTIONS
+
+
+def test_link_settings_it_cannot_run_with_stop_the_node_with_exit_2():
+    import subprocess
+    import sys
+
+    from wheelgrid_common.ros_env import child_env
+
+    args = [sys.executable, "-m", "wheelgrid_drive.drive_node", "--ros-args", "-p", "retries:=-1"]
+    done = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "invalid parameters: retries must be in 0..20" in done.stderr + done.stdout

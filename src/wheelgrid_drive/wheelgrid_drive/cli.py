@@ -11,14 +11,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
 
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
-from wheelgrid_drive.link import LinkError, MotorLink
+from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
 from wheelgrid_drive.runner import CellCheck, grid_cell_check, run_steps
+
+MIN_SPEED_KMH = 0.1  # slower, a cell's move cannot end within the link's move timeout
 
 
 class PlanError(ValueError):
@@ -34,12 +37,13 @@ def load_plan(
     cells_raw = doc.get("cells")
     if not isinstance(cells_raw, list) or not cells_raw:
         raise PlanError("plan has no 'cells' list")
-    try:
-        cells = [(int(c[0]), int(c[1])) for c in cells_raw if len(c) == 2]
-    except (TypeError, ValueError, IndexError) as exc:
-        raise PlanError(f"'cells' must be [[row, col], ...]: {exc}") from exc
-    if len(cells) != len(cells_raw):
-        raise PlanError("'cells' must be [[row, col], ...]")
+    # Integers only: int() truncated [2.9, 0.7] to (2, 0) and took true and "3" as cells, and
+    # a wheelchair must not guess which cell a plan meant.
+    if not all(
+        isinstance(c, list) and len(c) == 2 and all(type(v) is int for v in c) for c in cells_raw
+    ):
+        raise PlanError("'cells' must be [[row, col], ...] of integers")
+    cells = [(int(c[0]), int(c[1])) for c in cells_raw]
     try:
         moves = actions.moves_from_cells(cells)
     except ValueError as exc:
@@ -52,7 +56,7 @@ def load_plan(
     acts = doc.get("actions")
     plan_heading = None
     if acts:
-        if not isinstance(acts, list) or not isinstance(acts[0], dict):
+        if not isinstance(acts, list) or not all(isinstance(a, dict) for a in acts):
             raise PlanError("'actions' must be a list of objects")
         plan_heading = str(acts[0].get("heading", "")).lower() or None
     if heading and plan_heading and heading.lower() != plan_heading:
@@ -123,14 +127,18 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
     try:
         doc = json.loads(Path(args.plan).read_text())
-    except (OSError, ValueError) as exc:
-        return _err(f"cannot read plan {args.plan}: {exc}")
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
+        return _err(f"cannot read plan {args.plan}: {type(exc).__name__}: {exc}")
     try:
         steps, cells = load_plan(doc, args.heading)
     except PlanError as exc:
         return _err(str(exc))
-    if not (args.speed > 0):
-        return _err("--speed must be > 0")
+    if not args.speed >= MIN_SPEED_KMH:  # NaN too
+        return _err(f"--speed must be >= {MIN_SPEED_KMH:g} km/h, not {args.speed:g}")
+    try:
+        check_link_settings(args.baud, args.reply_timeout, args.retries, 0.1, 0.5)
+    except ValueError as exc:
+        return _err(f"--{str(exc).replace('_', '-')}")
     if args.speed > proto.MAX_SPEED_KMH:
         print(
             f"wheelgrid drive: --speed {args.speed:g} km/h capped at {proto.MAX_SPEED_KMH:g} km/h",
@@ -147,9 +155,11 @@ def main(argv: list[str] | None = None) -> int:
             return _err(f"cannot read grid {args.grid}: {exc}")
         if args.cell_size is not None and abs(args.cell_size - grid.resolution) > 1e-6:
             return _err(f"--cell-size {args.cell_size} != grid resolution {grid.resolution}")
-    cell_size = grid.resolution if grid is not None else (args.cell_size or 1.2)
-    if not 0 < cell_size * 1000 <= proto.MAX_DISTANCE_MM:
-        return _err(f"cell size {cell_size} m outside (0, {proto.MAX_DISTANCE_MM / 1000:g}] m")
+    cell_size = grid.resolution if grid is not None else args.cell_size
+    if cell_size is None:
+        cell_size = 1.2
+    if not (math.isfinite(cell_size) and 1 <= round(cell_size * 1000) <= proto.MAX_DISTANCE_MM):
+        return _err(f"cell size {cell_size} m outside [0.001, {proto.MAX_DISTANCE_MM / 1000:g}] m")
     check: CellCheck | None = grid_cell_check(lambda: grid) if grid is not None else None
     if check is not None:
         bad = check(cells[0])
@@ -167,6 +177,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.port:
         return _err("--port is required (or --dry-run)")
+    start_pose = None
+    if args.set_pose:
+        x, y = _cell_xy(cells[0], cell_size, grid)
+        yaw = actions.YAW[steps[0].heading] + (grid.origin[2] if grid is not None else 0.0)
+        try:
+            proto.pack_pose(x, y, yaw)
+        except ValueError as exc:
+            return _err(f"--set-pose: the start cell's {exc}")
+        start_pose = (x, y, yaw)
 
     def on_event(kind: str, message: str) -> None:
         if kind not in ("timeout",):
@@ -205,32 +224,42 @@ def main(argv: list[str] | None = None) -> int:
             msg = "the controller reports a move in progress; stopped"
             print(f"wheelgrid drive: {msg}", file=sys.stderr)
             return 1
-        if args.set_pose:
-            x, y = _cell_xy(cells[0], cell_size, grid)
-            yaw = actions.YAW[steps[0].heading] + (grid.origin[2] if grid is not None else 0.0)
-            link.set_pose(x, y, yaw)
+        if start_pose is not None:
+            link.set_pose(*start_pose)
         result = run_steps(
             link, steps, distance_m=cell_size, speed_kmh=speed, cell_check=check, on_step=on_step
         )
+        # the runner sent STOP already; once more, to learn whether the controller heard it
+        stop_note = "" if result.ok else _stopped(link)
     except LinkError as exc:
-        link.stop()
-        print(f"wheelgrid drive: {exc}; chair stopped", file=sys.stderr)
+        print(f"wheelgrid drive: {exc}; {_stopped(link)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        link.stop()
-        print("wheelgrid drive: interrupted; chair stopped", file=sys.stderr)
+        print(f"wheelgrid drive: interrupted; {_stopped(link)}", file=sys.stderr)
         return 130
     finally:
         link.close()
     if not result.ok:
         print(
             f"wheelgrid drive: step {result.done + 1}/{result.total} failed: {result.error}; "
-            "chair stopped",
+            f"{stop_note}",
             file=sys.stderr,
         )
         return 1
     print(f"wheelgrid drive: {result.done}/{result.total} steps done; stats {link.stats}")
     return 0
+
+
+STOP_UNCONFIRMED = (
+    "STOP NOT CONFIRMED by the controller: the chair may still be moving (its own watchdog "
+    "stops it 0.5 s after the last frame); check the chair"
+)
+
+
+def _stopped(link: MotorLink) -> str:
+    """STOP sent now, and what to tell the user: "chair stopped" only when the controller
+    acknowledged it (a vanished port or a dead controller cannot)."""
+    return "chair stopped" if link.stop() else STOP_UNCONFIRMED
 
 
 def _describe(s: actions.Step) -> str:

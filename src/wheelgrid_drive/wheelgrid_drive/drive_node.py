@@ -111,16 +111,20 @@ class DriveNode(Node):
         self.create_subscription(Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS)
         self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
 
-        self.link = MotorLink(
-            c.port,
-            c.baud,
-            reply_timeout=c.reply_timeout,
-            retries=c.retries,
-            heartbeat_period=c.heartbeat_period,
-            reconnect_period=c.reconnect_period,
-            on_status=self._on_status,
-            on_event=self._on_link_event,
-        )
+        try:
+            self.link = MotorLink(
+                c.port,
+                c.baud,
+                reply_timeout=c.reply_timeout,
+                retries=c.retries,
+                heartbeat_period=c.heartbeat_period,
+                reconnect_period=c.reconnect_period,
+                on_status=self._on_status,
+                on_event=self._on_link_event,
+            )
+        except ValueError as exc:  # as the other nodes: one FATAL line, exit 2
+            self.get_logger().fatal(f"invalid parameters: {exc}")
+            raise SystemExit(2) from exc
         if not c.port:
             self._set_state(ERROR, "no port parameter: cannot reach the motor controller")
         else:

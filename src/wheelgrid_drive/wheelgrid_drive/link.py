@@ -93,6 +93,7 @@ class MotorLink:
         on_event: EventCallback | None = None,
         serial_factory: Callable[[str, int], Any] = _default_serial_factory,
     ) -> None:
+        check_link_settings(baud, reply_timeout, retries, heartbeat_period, reconnect_period)
         self.port = port
         self.baud = baud
         self.reply_timeout = reply_timeout
@@ -463,6 +464,29 @@ def _nak_reason(frame: proto.Frame) -> str:
         return proto.Nak(frame.payload[1]).name
     except ValueError:
         return f"reason {frame.payload[1]}"
+
+
+def check_link_settings(
+    baud: int, reply_timeout: float, retries: int, heartbeat_period: float, reconnect_period: float
+) -> None:
+    """``ValueError`` naming the first setting the link cannot run with. Unchecked, a NaN or
+    huge timeout killed the heartbeat thread (OverflowError), ``retries`` -1 never sent a
+    frame (STOP included), and a heartbeat slower than the controller's watchdog would let it
+    stop the chair in the middle of every move."""
+    if baud <= 0:
+        raise ValueError(f"baud must be > 0, not {baud}")
+    if not 0.0 < reply_timeout <= 10.0:
+        raise ValueError(f"reply_timeout must be in (0, 10] s, not {reply_timeout}")
+    if not 0 <= retries <= 20:
+        raise ValueError(f"retries must be in 0..20, not {retries}")
+    watchdog = proto.DEFAULT_HEARTBEAT_TIMEOUT_S
+    if not 0.0 < heartbeat_period <= watchdog / 2:
+        raise ValueError(
+            f"heartbeat_period must be in (0, {watchdog / 2:g}] s (half the controller's "
+            f"{watchdog:g} s watchdog), not {heartbeat_period}"
+        )
+    if not 0.0 < reconnect_period <= 60.0:
+        raise ValueError(f"reconnect_period must be in (0, 60] s, not {reconnect_period}")
 
 
 def move_timeout(distance_m: float, speed_kmh: float, turn_s: float = 6.0) -> float:

@@ -113,18 +113,23 @@ class MotorSim:
     # ---- life cycle ---------------------------------------------------------------------------
 
     def start(self) -> MotorSim:
+        """Open the pty (and the pose log, the link) and start the thread. ``ValueError`` when
+        ``link`` names something that is not a symlink: only an old link is replaced, never a
+        file that happens to have the name (it used to be deleted)."""
+        link = Path(self.cfg.link) if self.cfg.link else None
+        if link is not None and os.path.lexists(link) and not link.is_symlink():
+            raise ValueError(f"--link {link}: exists and is not a symlink; not replaced")
+        if self.cfg.pose_log:  # before the pty and the link: nothing to undo if it fails
+            self._log = open(self.cfg.pose_log, "w", encoding="utf-8")  # noqa: SIM115
+            self._log.write("t,x,y,yaw,state,result,last_seq\n")
         self._master, self._slave = os.openpty()
         # Raw mode at once: a cooked pty echoes and rewrites bytes before any client configures it.
         tty.setraw(self._slave)
         self.slave_path = os.ttyname(self._slave)
-        if self.cfg.link:
-            link = Path(self.cfg.link)
+        if link is not None:
             with contextlib.suppress(FileNotFoundError):
                 link.unlink()
             link.symlink_to(self.slave_path)
-        if self.cfg.pose_log:
-            self._log = open(self.cfg.pose_log, "w", encoding="utf-8")  # noqa: SIM115
-            self._log.write("t,x,y,yaw,state,result,last_seq\n")
         self._last_rx = self._last_tick = self._t0 = time.monotonic()
         self._log_pose(force=True)
         self._stop.clear()
@@ -253,6 +258,8 @@ class MotorSim:
                 self._nak(f, proto.Nak.BAD_LENGTH)
             elif self.state != proto.State.IDLE:
                 self._nak(f, proto.Nak.BUSY)
+            elif max(map(abs, proto.unpack_pose(f.payload)[:2])) > proto.MAX_POSE_M:
+                self._nak(f, proto.Nak.BAD_POSE)  # STATUS could not report it after a move
             else:
                 self.x, self.y, self.yaw = proto.unpack_pose(f.payload)
                 self._log_pose(force=True)
@@ -422,10 +429,27 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    floats = ("x", "y", "yaw", "heartbeat_timeout", "turn_rate", "time_scale", "noise")
+    for name in (*floats, "noise_deg", "drop", "corrupt", "delay", "vanish_after"):
+        if not math.isfinite(getattr(args, name)):  # a NaN timeout switched the watchdog off
+            flag = name.replace("_", "-")
+            print(f"wheelgrid motor-sim: --{flag} must be finite", file=sys.stderr)
+            return 2
     for name in ("heartbeat_timeout", "turn_rate", "time_scale"):
         if getattr(args, name) <= 0:
             print(f"wheelgrid motor-sim: --{name.replace('_', '-')} must be > 0", file=sys.stderr)
             return 2
+    for name in ("noise", "noise_deg", "delay"):
+        if getattr(args, name) < 0:
+            print(f"wheelgrid motor-sim: --{name.replace('_', '-')} must be >= 0", file=sys.stderr)
+            return 2
+    if max(abs(args.x), abs(args.y)) > proto.MAX_POSE_M:
+        print(
+            f"wheelgrid motor-sim: --x/--y must be within +-{proto.MAX_POSE_M:g} m (the STATUS "
+            "pose is int32 mm)",
+            file=sys.stderr,
+        )
+        return 2
     for name in ("drop", "corrupt"):
         if not 0.0 <= getattr(args, name) <= 1.0:
             print(f"wheelgrid motor-sim: --{name} must be in [0, 1]", file=sys.stderr)
@@ -451,8 +475,12 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: done.set())
     try:
         sim = MotorSim(cfg).start()
+    except ValueError as exc:
+        print(f"wheelgrid motor-sim: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
-        print(f"wheelgrid motor-sim: cannot open a pty: {exc}", file=sys.stderr)
+        what = "the pose log" if exc.filename == args.pose_log else "a pty"
+        print(f"wheelgrid motor-sim: cannot open {what}: {exc}", file=sys.stderr)
         return 1
     where = f" (link {args.link})" if args.link else ""
     print(f"wheelgrid motor-sim: pty {sim.slave_path}{where}")

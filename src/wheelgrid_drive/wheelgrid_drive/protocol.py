@@ -28,6 +28,7 @@ FRAME_OVERHEAD = HEADER_LEN + 2
 MAX_SPEED_KMH = 3.0
 MAX_SPEED_MM_S = int(MAX_SPEED_KMH / 3.6 * 1000.0)  # 833
 MAX_DISTANCE_MM = 2000  # one grid cell is at most 2 m; anything longer is a corrupt command
+MAX_POSE_M = 1_000_000.0  # |x|, |y| a SET_POSE may set: int32 mm holds 2147 km, with room to drive
 DEFAULT_HEARTBEAT_TIMEOUT_S = 0.5
 
 
@@ -64,6 +65,7 @@ class Nak(IntEnum):
     BUSY = 3  # a move is running: the host must wait for it (or STOP) first
     SPEED_OVER_CAP = 4
     BAD_DISTANCE = 5
+    BAD_POSE = 6  # SET_POSE beyond MAX_POSE_M: the int32 mm STATUS pose could not report it
 
 
 class State(IntEnum):
@@ -211,6 +213,10 @@ def unpack_move(payload: bytes) -> tuple[int, int]:
 
 
 def pack_pose(x: float, y: float, yaw: float) -> bytes:
+    """``ValueError`` for a pose the controller could not hold (beyond ``MAX_POSE_M``, NaN),
+    where ``struct`` raised its own error from deep inside a run."""
+    if not (abs(x) <= MAX_POSE_M and abs(y) <= MAX_POSE_M and math.isfinite(yaw)):
+        raise ValueError(f"pose ({x}, {y}, {yaw}) outside +-{MAX_POSE_M:g} m or not finite")
     yaw = math.atan2(math.sin(yaw), math.cos(yaw))
     return _POSE.pack(round(x * 1000.0), round(y * 1000.0), round(yaw * 1000.0))
 
