@@ -117,3 +117,70 @@ def test_a_zero_quaternion_pose_is_all_nan_for_the_mapper_to_refuse():
     T = pose_or_nan(Ns(x=1.0, y=2.0, z=3.0), Ns(x=0.0, y=0.0, z=0.0, w=2.0))
     np.testing.assert_allclose(T, [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
     assert np.isnan(pose_or_nan(Ns(x=1.0, y=2.0, z=3.0), Ns(x=0.0, y=0.0, z=0.0, w=0.0))).all()
+
+
+def test_ply_elements_before_the_vertices_and_cut_ascii_bodies(tmp_path):
+    """A sensor element before the vertices used to shift every coordinate (a garbage cloud
+    whose grid was all free); an ASCII body shorter than its header read as half a room."""
+    pts = np.arange(12, dtype=np.float32).reshape(4, 3)
+    head = b"ply\nformat binary_little_endian 1.0\nelement sensor 2\nproperty float id\n"
+    verts = b"element vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+    body = np.array([7, 8], "<f4").tobytes() + pts.tobytes()
+    (tmp_path / "s.ply").write_bytes(head + verts + b"end_header\n" + body)
+    np.testing.assert_array_equal(read_ply(tmp_path / "s.ply"), pts)
+    ascii_head = "ply\nformat ascii 1.0\nelement camera 1\nproperty float f\n" + verts.decode()
+    lines = "\n".join(" ".join(f"{v:g}" for v in p) for p in pts)
+    (tmp_path / "a.ply").write_text(ascii_head + "end_header\n5\n" + lines + "\n")
+    np.testing.assert_array_equal(read_ply(tmp_path / "a.ply"), pts)
+    (tmp_path / "a.ply").write_text(ascii_head + "end_header\n5\n" + lines.split("\n")[0])
+    with pytest.raises(ValueError, match="truncated \\(1 of 4 vertex lines\\)"):
+        read_ply(tmp_path / "a.ply")
+    (tmp_path / "n.ply").write_bytes(verts.replace(b"4", b"-1").join([b"ply\nformat ascii 1.0\n",
+                                                                       b"end_header\n"]))  # fmt: skip
+    with pytest.raises(ValueError, match="negative count"):
+        read_ply(tmp_path / "n.ply")
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        ("free_thresh: 1.5\n", "need 0 <= free_thresh < occupied_thresh <= 1"),
+        ("free_thresh: 0.7\n", "need 0 <= free_thresh < occupied_thresh <= 1"),
+        ("origin: null\n", "origin must be [x, y, yaw]"),
+        ("origin: [0]\n", "origin must be [x, y, yaw]"),
+        ("origin: [0, .nan, 0]\n", "origin must be [x, y, yaw]"),
+        ("negate: null\n", "negate must be 0 or 1"),
+        ("occupied_thresh: null\n", "occupied_thresh must be a finite number"),
+        ("mode: fuzzy\n", "mode must be trinary, scale or raw"),
+    ],
+)
+def test_a_map_yaml_that_would_misread_cells_is_refused(tmp_path, yaml_text, message):
+    write_map(tmp_path / "g.yaml", Grid(np.array([[0, 100, -1]], np.int8), 1.2))
+    head = "image: g.pgm\nresolution: 1.2\n"
+    (tmp_path / "bad.yaml").write_text(head + yaml_text)
+    with pytest.raises(ValueError, match=message.replace("[", "\\[")):
+        read_map(tmp_path / "bad.yaml")
+    for res in ("0", "-1.2", "null"):
+        (tmp_path / "bad.yaml").write_text(f"image: g.pgm\nresolution: {res}\n")
+        with pytest.raises(ValueError, match="resolution must be"):
+            read_map(tmp_path / "bad.yaml")
+
+
+def test_map_savers_unknown_gray_stays_unknown_whatever_free_thresh(tmp_path):
+    """Nav2's map_saver writes free_thresh 0.25, at which its own unknown gray (205, an
+    occupancy of 0.196) would read as free: for a wheelchair it stays unknown."""
+    write_map(tmp_path / "g.yaml", Grid(np.array([[0, 100, -1]], np.int8), 1.2))
+    (tmp_path / "n.yaml").write_text("image: g.pgm\nresolution: 1.2\nfree_thresh: 0.25\n")
+    assert read_map(tmp_path / "n.yaml").data.tolist() == [[0, 100, -1]]
+
+
+def test_pgm_samples_above_maxval_or_a_zero_maxval_are_refused(tmp_path):
+    (tmp_path / "g.yaml").write_text("image: g.pgm\nresolution: 1.2\n")
+    for pgm, message in (
+        (b"P2\n3 1\n100\n254 0 205\n", "exceeds maxval 100"),  # scaled past 255: unknown free
+        (b"P5\n3 1\n0\n\xfe\x00\xcd", "bad PGM header"),  # ZeroDivisionError before
+        (b"P2\n3 1\n255\n254 0\n", "truncated"),
+    ):
+        (tmp_path / "g.pgm").write_bytes(pgm)
+        with pytest.raises(ValueError, match=message):
+            read_map(tmp_path / "g.yaml")

@@ -50,45 +50,83 @@ def write_ply(path: str | Path, points: np.ndarray, comment: str = "") -> None:
 
 
 def read_ply(path: str | Path) -> np.ndarray:
-    """Read the vertex x y z of a PLY file as ``(N, 3)`` float64; ValueError if unreadable."""
+    """Read the vertex x y z of a PLY file as ``(N, 3)`` float64; ValueError if unreadable.
+
+    Elements before ``vertex`` (a sensor, a camera) are skipped by their size, not taken for
+    vertices, and the vertex count is checked against the body in both formats: a shifted or
+    cut-off read is a cloud of garbage or of half a room, and a grid made from either marks
+    space free that nobody saw."""
     raw = Path(path).read_bytes()
     end = raw.find(b"end_header")
     if not raw.startswith(b"ply") or end < 0:
         raise ValueError(f"{path}: not a PLY file")
     body_start = raw.index(b"\n", end) + 1
-    lines = raw[:end].decode("ascii", "replace").splitlines()
     fmt = ""
-    count = 0
-    props: list[tuple[str, str]] = []
-    in_vertex = False
-    for line in lines:
+    # (name, count, scalar properties, has a list property), in file order
+    elements: list[tuple[str, int, list[tuple[str, str]], bool]] = []
+    for line in raw[:end].decode("ascii", "replace").splitlines():
         parts = line.split()
         if not parts:
             continue
-        if parts[0] == "format":
+        if parts[0] == "format" and len(parts) > 1:
             fmt = parts[1]
         elif parts[0] == "element":
-            in_vertex = parts[1] == "vertex"
-            if in_vertex:
+            try:
                 count = int(parts[2])
-        elif parts[0] == "property" and in_vertex:
+            except (IndexError, ValueError) as exc:
+                raise ValueError(f"{path}: bad element line {line!r}") from exc
+            if count < 0:
+                raise ValueError(f"{path}: element {parts[1]} has a negative count {count}")
+            elements.append((parts[1], count, [], False))
+        elif parts[0] == "property" and elements:
+            name, count, props, has_list = elements[-1]
             if parts[1] == "list":
-                raise ValueError(f"{path}: list properties on vertices are not supported")
-            props.append((parts[2], _PLY_TYPES[parts[1]]))
+                elements[-1] = (name, count, props, True)
+            elif len(parts) < 3 or parts[1] not in _PLY_TYPES:
+                raise ValueError(f"{path}: bad property line {line!r}")
+            else:
+                props.append((parts[2], _PLY_TYPES[parts[1]]))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"{path}: unknown PLY format {fmt!r}")
+    at = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+    if at is None:
+        raise ValueError(f"{path}: no vertex element")
+    _, count, props, has_list = elements[at]
+    if has_list:
+        raise ValueError(f"{path}: list properties on vertices are not supported")
     names = [p[0] for p in props]
     if not {"x", "y", "z"} <= set(names):
         raise ValueError(f"{path}: vertex element has no x y z")
+    cols = [names.index("x"), names.index("y"), names.index("z")]
+    before = elements[:at]
+    if any(e[3] for e in before):
+        raise ValueError(f"{path}: an element with list properties comes before the vertices")
     if fmt == "ascii":
-        table = np.loadtxt(
-            raw[body_start:].decode().splitlines()[:count], ndmin=2, dtype=np.float64
-        )
-        return table[:, [names.index("x"), names.index("y"), names.index("z")]]
+        rows = raw[body_start:].decode("ascii", "replace").splitlines()
+        skip = sum(e[1] for e in before)
+        body = rows[skip : skip + count]
+        if len(body) < count:
+            raise ValueError(f"{path}: truncated ({len(body)} of {count} vertex lines)")
+        if count == 0:
+            return np.empty((0, 3))
+        try:
+            table = np.loadtxt(body, ndmin=2, dtype=np.float64)
+        except ValueError as exc:
+            raise ValueError(f"{path}: bad vertex line ({exc})") from exc
+        if table.shape[1] != len(props):
+            raise ValueError(f"{path}: vertex lines hold {table.shape[1]} values, not {len(props)}")
+        return table[:, cols]
     order = "<" if fmt == "binary_little_endian" else ">"
+    offset = body_start
+    for _, n, before_props, _ in before:
+        offset += np.dtype([(q, order + t) for q, t in before_props]).itemsize * n
     dtype = np.dtype([(n, order + t) for n, t in props])
     need = dtype.itemsize * count
-    if len(raw) - body_start < need:
-        raise ValueError(f"{path}: truncated ({len(raw) - body_start} B of {need} B of vertices)")
-    table = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
+    if len(raw) - offset < need:
+        raise ValueError(
+            f"{path}: truncated ({max(len(raw) - offset, 0)} B of {need} B of vertices)"
+        )
+    table = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
     return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
 
 

@@ -120,6 +120,8 @@ def read_pgm(path: str | Path) -> np.ndarray:
             pos += 1
         tokens.append(raw[start:pos])
     magic, width, height, maxval = tokens[0], int(tokens[1]), int(tokens[2]), int(tokens[3])
+    if width < 1 or height < 1 or not 1 <= maxval <= 65535:
+        raise ValueError(f"{path}: bad PGM header ({width}x{height}, maxval {maxval})")
     if magic == b"P5":
         dtype = ">u2" if maxval > 255 else "u1"
         body = np.frombuffer(raw, dtype=dtype, count=width * height, offset=pos + 1)
@@ -127,30 +129,76 @@ def read_pgm(path: str | Path) -> np.ndarray:
         body = np.array(raw[pos:].split()[: width * height], dtype=np.int64)
     else:
         raise ValueError(f"{path}: not a PGM (magic {magic!r})")
+    if body.size != width * height:
+        raise ValueError(f"{path}: truncated ({body.size} of {width * height} pixels)")
+    if int(body.max()) > maxval:  # scaled past 255, an unknown gray read as free
+        raise ValueError(f"{path}: a pixel of {int(body.max())} exceeds maxval {maxval}")
     img = body.reshape(height, width).astype(np.float64)
     return img * (255.0 / maxval)
 
 
+def _number(doc: dict[str, Any], key: str, default: float, path: Path) -> float:
+    value = doc.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{path}: {key} must be a finite number, not {value!r}")
+    return float(value)
+
+
 def read_map(yaml_path: str | Path) -> Grid:
-    """Load a map_server YAML the way nav2_map_server does (trinary / scale / raw)."""
+    """Load a map_server YAML the way nav2_map_server does (trinary / scale / raw).
+
+    Every field is checked (a null origin, a zero resolution, a threshold above 1 are
+    errors, not tracebacks or a mirrored map), and two readings that would make a cell free
+    that is not are refused or corrected: ``free_thresh >= occupied_thresh`` (the free test
+    overwrote occupied cells), and in trinary mode map_saver's unknown gray (205), which any
+    ``free_thresh`` above 0.196 (Nav2 map_saver's default is 0.25) reads as free, stays
+    unknown here."""
     yaml_path = Path(yaml_path)
     doc = read_yaml(yaml_path)
     if not isinstance(doc, dict) or "image" not in doc or "resolution" not in doc:
         raise ValueError(f"{yaml_path}: not a map_server YAML (needs image and resolution)")
+    if not isinstance(doc["image"], str) or not doc["image"]:
+        raise ValueError(f"{yaml_path}: image must be a file name, not {doc['image']!r}")
+    resolution = _number(doc, "resolution", 0.0, yaml_path)
+    if resolution <= 0:
+        raise ValueError(f"{yaml_path}: resolution must be > 0, not {resolution}")
+    occ_t = _number(doc, "occupied_thresh", OCCUPIED_THRESH, yaml_path)
+    free_t = _number(doc, "free_thresh", FREE_THRESH, yaml_path)
+    if not 0.0 <= free_t < occ_t <= 1.0:
+        raise ValueError(
+            f"{yaml_path}: need 0 <= free_thresh < occupied_thresh <= 1, got {free_t} and {occ_t}"
+        )
+    mode = str(doc.get("mode", "trinary")).lower()
+    if mode not in ("trinary", "scale", "raw"):
+        raise ValueError(f"{yaml_path}: mode must be trinary, scale or raw, not {mode!r}")
+    negate = doc.get("negate", 0)
+    if negate not in (0, 1):  # True and False compare equal to 1 and 0
+        raise ValueError(f"{yaml_path}: negate must be 0 or 1, not {negate!r}")
+    origin = doc.get("origin", [0.0, 0.0, 0.0])
+    if (
+        not isinstance(origin, list)
+        or len(origin) not in (2, 3)
+        or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            for v in origin
+        )
+    ):
+        raise ValueError(
+            f"{yaml_path}: origin must be [x, y, yaw] of finite numbers, not {origin!r}"
+        )
     image_path = Path(doc["image"])
     if not image_path.is_absolute():
         image_path = yaml_path.parent / image_path
     if image_path.suffix.lower() == ".pgm":
         img = read_pgm(image_path)
     else:
-        from PIL import Image
+        from PIL import Image, UnidentifiedImageError
 
-        with Image.open(image_path) as im:
-            img = np.asarray(im.convert("L"), dtype=np.float64)
-    mode = str(doc.get("mode", "trinary")).lower()
-    negate = bool(int(doc.get("negate", 0)))
-    occ_t = float(doc.get("occupied_thresh", OCCUPIED_THRESH))
-    free_t = float(doc.get("free_thresh", FREE_THRESH))
+        try:
+            with Image.open(image_path) as im:
+                img = np.asarray(im.convert("L"), dtype=np.float64)
+        except UnidentifiedImageError as exc:
+            raise ValueError(f"{image_path}: not an image ({exc})") from exc
     if mode == "raw":
         value = 255.0 - img if negate else img
         data = np.where((value >= 0) & (value <= 100), value, UNKNOWN).astype(np.int8)
@@ -163,10 +211,12 @@ def read_map(yaml_path: str | Path) -> Grid:
         if mode == "scale":
             mid = (occ >= free_t) & (occ <= occ_t)
             data[mid] = np.rint(99.0 * (occ[mid] - free_t) / (occ_t - free_t)).astype(np.int8)
-    origin = doc.get("origin", [0.0, 0.0, 0.0])
+        else:
+            gray = 255.0 - PIX_UNKNOWN if negate else PIX_UNKNOWN
+            data[np.rint(img) == gray] = UNKNOWN
     return Grid(
         data=data,
-        resolution=float(doc["resolution"]),
+        resolution=resolution,
         origin=(float(origin[0]), float(origin[1]), float(origin[2]) if len(origin) > 2 else 0.0),
     )
 

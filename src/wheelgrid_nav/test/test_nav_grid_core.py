@@ -296,3 +296,25 @@ def test_invalid_config_is_rejected():
         build_grid(cloud, GridConfig(cell_size=1.23))
     with pytest.raises(ValueError, match="alignment"):
         build_grid(cloud, GridConfig(alignment="diagonal"))
+    # Each of these crashed (OverflowError, ZeroDivisionError, a 2.6 PiB allocation, an
+    # IndexError) or, worse, made cells free that nobody saw.
+    for kw, message in (
+        ({"cell_size": math.inf}, "cell_size must be finite"),
+        ({"pixel_size": 0.0}, "must be > 0"),
+        ({"pixel_size": 0.001, "cell_size": 1.2}, "pixel_size must be >= 0.01"),
+        ({"boundary_margin": math.nan}, "boundary_margin must be finite"),
+        ({"fine_margin": math.inf}, "fine_margin must be finite"),
+        ({"min_observed_fraction": 0.0}, "less than half observed"),
+        ({"floor_fill": 60}, "invents 3 m of floor"),
+        ({"min_floor_points": 0}, "min_floor_points must be >= 1"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            build_grid(cloud, GridConfig(**kw))  # type: ignore[arg-type]
+
+
+def test_a_raster_too_fine_for_the_floor_is_refused_before_it_is_allocated():
+    rng = np.random.default_rng(1)
+    floor = np.column_stack([rng.uniform(0, 90, (20000, 2)), np.zeros(20000)])
+    with pytest.raises(GridError, match="raise pixel_size") as info:
+        build_grid(floor, GridConfig(pixel_size=0.01, cell_size=1.2))  # 9000 x 9000 pixels
+    assert info.value.cause == "too_large"

@@ -59,6 +59,9 @@ _ALIGN_REFINE_POINTS = 12_000
 _EXTENT_MAX_POINTS = 200_000
 # Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels, ~0.5 GB of rasters.
 _MAX_EXTENT = 200.0
+_MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pixels
+MIN_PIXEL_SIZE = 0.01  # m
+MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
 # height_classes: number of thresholds (-drop_depth, floor_clearance, safe_height) below z ->
 # class (drop 2, floor 0, band 1, above 3).
 _CLASS_OF_LEVEL = np.array([2, 0, 1, 3], dtype=np.uint8)
@@ -168,8 +171,17 @@ class GridConfig:
 
     def cell_pixels(self) -> int:
         """Pixels per cell side (m = n); ValueError unless cell_size is a whole number of them."""
+        if not (math.isfinite(self.cell_size) and math.isfinite(self.pixel_size)):
+            raise ValueError(
+                f"cell_size and pixel_size must be finite, not {self.cell_size} and "
+                f"{self.pixel_size}"
+            )
+        if self.pixel_size <= 0 or self.cell_size <= 0:
+            raise ValueError(
+                f"cell_size and pixel_size must be > 0, not {self.cell_size} and {self.pixel_size}"
+            )
         k = self.cell_size / self.pixel_size
-        if self.pixel_size <= 0 or self.cell_size <= 0 or abs(k - round(k)) > 1e-6 or k < 1:
+        if abs(k - round(k)) > 1e-6 or k < 1:
             raise ValueError(
                 f"cell_size {self.cell_size} m must be a whole number of pixel_size "
                 f"{self.pixel_size} m"
@@ -177,14 +189,40 @@ class GridConfig:
         return round(k)
 
     def validate(self) -> None:
-        """Raise ValueError on values that would make the grid meaningless or unsafe."""
+        """Raise ValueError on values that would make the grid meaningless or unsafe.
+
+        Besides the ranges each value needs, three bounds keep a cell from being called free
+        on too little: a cell is free only when at least half its area was observed
+        (``min_observed_fraction`` 0 made every unseen cell free), and neither ``floor_fill``
+        (at most 20 cm of invented floor) nor ``boundary_margin`` (at most a cell) may stretch
+        what was seen. ``pixel_size`` is at least 1 cm: a 1 mm raster of a room took 7 GB."""
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"{f.name} must be finite, not {value}")
         self.cell_pixels()
+        if self.pixel_size < MIN_PIXEL_SIZE:
+            raise ValueError(f"pixel_size must be >= {MIN_PIXEL_SIZE} m, not {self.pixel_size}")
+        if not 0.5 <= self.min_observed_fraction <= 1.0:
+            raise ValueError(
+                "min_observed_fraction must be in [0.5, 1]: a cell less than half observed is "
+                f"not known to be free (got {self.min_observed_fraction})"
+            )
+        if self.floor_fill * self.pixel_size > MAX_FLOOR_FILL_M:
+            raise ValueError(
+                f"floor_fill {self.floor_fill} pixels invents "
+                f"{self.floor_fill * self.pixel_size:g} m of floor; at most {MAX_FLOOR_FILL_M} m"
+            )
+        if self.min_floor_points < 1:
+            raise ValueError(f"min_floor_points must be >= 1, not {self.min_floor_points}")
+        if not 0.0 <= self.extent_tolerance < self.cell_size:
+            raise ValueError("extent_tolerance must be in [0, cell_size)")
+        if self.boundary_margin > self.cell_size or not 0.0 <= self.fine_margin <= 5.0:
+            raise ValueError("boundary_margin must be <= cell_size and fine_margin in [0, 5] m")
         if not self.safe_height > self.floor_clearance:
             raise ValueError("safe_height must be above floor_clearance")
         if not 0.0 <= self.density_threshold < 1.0:
             raise ValueError("density_threshold must be in [0, 1)")
-        if not 0.0 <= self.min_observed_fraction <= 1.0:
-            raise ValueError("min_observed_fraction must be in [0, 1]")
         if self.alignment not in ALIGNMENTS:
             raise ValueError(f"alignment must be one of {ALIGNMENTS}, not {self.alignment!r}")
         if not 0.0 <= self.extent_quantile < 0.25:
@@ -568,6 +606,12 @@ def build_grid(
             f"the floor spans {rows * cfg.cell_size:.0f} x {cols * cfg.cell_size:.0f} m, more "
             f"than {_MAX_EXTENT:.0f} m: not one indoor map (or not levelled)",
         )
+    if h * w > _MAX_PIXELS:
+        raise GridError(
+            "too_large",
+            f"{h} x {w} pixels of {ps} m for a {rows * cfg.cell_size:.0f} x "
+            f"{cols * cfg.cell_size:.0f} m floor, more than {_MAX_PIXELS:,}: raise pixel_size",
+        )
 
     counts = _raster_classes(u, v, cls, u0, v0, ps, h, w)
     obstacle_counts = counts[1] + counts[2]
@@ -653,6 +697,8 @@ def _fine_map(pts: np.ndarray, cls: np.ndarray, grid: Grid, cfg: GridConfig, fra
     hi = np.ceil((corners.max(axis=0) + cfg.fine_margin) / ps) * ps
     w = round((hi[0] - lo[0]) / ps)
     h = round((hi[1] - lo[1]) / ps)
+    if h * w > 2 * _MAX_PIXELS:  # a turned grid's footprint: up to twice its own area
+        raise GridError("too_large", f"the fine map would be {h} x {w} pixels: raise pixel_size")
     counts = _raster_classes(pts[:, 0], pts[:, 1], cls, lo[0], lo[1], ps, h, w)
     black = (counts[1] + counts[2]) >= cfg.min_points_per_pixel
     floor = _dilate(counts[0] > 0, cfg.floor_fill) & ~black
