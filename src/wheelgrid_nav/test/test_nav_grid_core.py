@@ -312,6 +312,15 @@ def test_invalid_config_is_rejected():
             build_grid(cloud, GridConfig(**kw))  # type: ignore[arg-type]
 
 
+def test_a_map_far_from_its_origin_is_refused_not_gridded_as_unknown():
+    """UTM-sized coordinates: the float32 pass lost half a metre and every cell came out
+    unknown, exit 0. Safe, but useless without saying why."""
+    cloud = room_cloud([], size=(2.4, 2.4), spacing=SPACING)
+    with pytest.raises(GridError, match="re-centre the map") as info:
+        build_grid(cloud + np.array([0.0, 5e6, 0.0]))
+    assert info.value.cause == "too_large"
+
+
 def test_a_raster_too_fine_for_the_floor_is_refused_before_it_is_allocated():
     rng = np.random.default_rng(1)
     floor = np.column_stack([rng.uniform(0, 90, (20000, 2)), np.zeros(20000)])

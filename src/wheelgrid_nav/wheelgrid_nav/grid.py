@@ -59,6 +59,7 @@ _ALIGN_REFINE_POINTS = 12_000
 _EXTENT_MAX_POINTS = 200_000
 # Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels, ~0.5 GB of rasters.
 _MAX_EXTENT = 200.0
+_MAX_COORDINATE = 50_000.0  # m from the origin: beyond it the float32 pass loses millimetres
 _MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pixels
 MIN_PIXEL_SIZE = 0.01  # m
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
@@ -544,6 +545,13 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
         pts = pts[np.isfinite(pts).all(axis=1)]
     if pts.shape[0] == 0:
         raise GridError("empty", "the map has no (finite) points")
+    far = float(np.abs(pts[:, :2]).max())
+    if far > _MAX_COORDINATE:  # float32 spacing there is over 4 mm (0.5 m at UTM's 5e6 m)
+        raise GridError(
+            "too_large",
+            f"points lie {far / 1000:.0f} km from the map origin, where float32 keeps less than "
+            f"millimetres: re-centre the map (a wheelgrid map's origin is under the first pose)",
+        )
     cls = height_classes(pts[:, 2], cfg)
     class_counts = np.bincount(cls, minlength=4)
     if class_counts[3] == pts.shape[0]:
