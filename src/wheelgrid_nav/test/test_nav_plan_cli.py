@@ -1,6 +1,7 @@
 """``wheelgrid plan`` end to end on map_server files: JSON, Table II text, PNG, exit codes."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -121,6 +122,8 @@ def test_heading_method_table_and_png(paper_yaml, tmp_path, capsys):
         ("3,0", "6,5", "start cell (3,0) is not free"),
         ("2,0", "0,7", "goal cell (0,7) is not free"),
         ("2,0", "8,0", "outside"),
+        ("-1,0", "6,5", "start cell (-1,0) is outside"),  # a negative value, not an option
+        ("0,7", "0,7", "goal cell (0,7) is not free"),  # unknown start may not be the goal
     ],
 )
 def test_bad_cells_exit_2(paper_yaml, capsys, start, goal, message):
@@ -161,3 +164,64 @@ def test_flag_errors_exit_2(paper_yaml, tmp_path, capsys):
         capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--method", "qlearning-heading"
     )
     assert code == 2 and "heading" in err
+
+
+def test_negative_seed_exit_2(paper_yaml, tmp_path, capsys):
+    code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--seed", "-1")
+    assert code == 2 and "seed must be a non-negative integer" in err and "Traceback" not in err
+    cfg = tmp_path / "seed.yaml"
+    cfg.write_text("seed: -5\n")
+    code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--config", cfg)
+    assert code == 2 and "got -5" in err
+
+
+def test_huge_check_every_is_refused_not_a_hang(paper_yaml, tmp_path, capsys):
+    cfg = tmp_path / "ce.yaml"
+    cfg.write_text("check_every: 1000000000\nmax_seconds: 1\n")
+    code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--config", cfg)
+    assert code == 2 and "check_every must be from 1 to" in err
+
+
+@pytest.mark.parametrize("where", ["missing/plan.png", "."])
+def test_unwritable_png_exit_2_before_planning(paper_yaml, tmp_path, capsys, where):
+    png = tmp_path / where
+    code, out, err = run(
+        capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--json", "--png", png
+    )
+    assert code == 2 and "cannot write --png" in err and "Traceback" not in err
+    assert out == ""  # refused before training, so no result is printed
+
+
+def test_negative_map_coordinates(tmp_path, capsys):
+    """argparse reads "-0.5,1" as an option; the coordinate flags must take it as a value."""
+    g = np.zeros((4, 4), dtype=np.int8)
+    yaml_path = write_map(tmp_path / "neg.yaml", Grid(g, 1.0, (-3.0, -2.0, 0.0)))
+    # (-2.5, 1.5) is column 0, row 4 - 1 - 3 = 0; (-0.5, -1.5) is column 2, row 3
+    code, out, err = run(
+        capsys, yaml_path, "--start-xy", "-2.5,1.5", "--goal-xy", "-0.5,-1.5", "--json"
+    )
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["cells"][0] == [0, 0] and doc["cells"][-1] == [3, 2]
+    # an abbreviated flag and a quoted value with a space work too
+    code, out, err = run(capsys, yaml_path, "--start-x", "-2.5, 1.5", "--goal", "3,2", "--json")
+    assert code == 0, err
+    assert json.loads(out)["cells"][0] == [0, 0]
+    # a negative point off the grid is an ordinary one-line refusal
+    code, _, err = run(capsys, yaml_path, "--start-xy", "-9,1", "--goal", "3,2")
+    assert code == 2 and "outside" in err
+
+
+@pytest.mark.parametrize("xy", ["nan,1", "1,inf", "-inf,1", "-nan,0"])
+def test_non_finite_coordinates_exit_2(paper_yaml, capsys, xy):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy RuntimeWarning on the way
+        code, _, err = run(capsys, paper_yaml, "--start-xy", xy, "--goal", "6,5")
+    assert code == 2 and "is not finite" in err and "Traceback" not in err
+
+
+def test_far_coordinates_exit_2_without_overflow(paper_yaml, capsys):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal-xy", "1e300,-1e300")
+    assert code == 2 and "outside the 8x8 grid" in err

@@ -93,6 +93,16 @@ def test_budget_exhausted_means_no_route():
     assert res.bfs_length > 0
 
 
+def test_time_budget_bounds_training_whatever_check_every_is():
+    """max_seconds is checked every step: with the largest check_every allowed (no
+    convergence check for a million steps) training still stops at the time limit."""
+    g = maze(21, np.random.default_rng(0))
+    cfg = PlannerConfig(check_every=1_000_000, max_seconds=0.2)
+    res = plan(g, (1, 1), (19, 19), cfg)
+    assert not res.ok and res.reason == "not converged" and res.cells == []
+    assert res.seconds < 2.0 and 0 < res.steps < 1_000_000
+
+
 def test_random_grids_and_mazes_match_bfs_exactly():
     """~100 grids: every plan is exactly BFS-short, or there is no path and none is given."""
     rng = np.random.default_rng(42)
@@ -185,6 +195,17 @@ def test_bad_configs_and_methods_are_rejected():
         plan(g, (2, 0), (6, 5), method="astar")
     with pytest.raises(PlanInputError, match="heading"):
         plan(g, (2, 0), (6, 5), method="qlearning-heading")
+    # numpy refuses negative seeds with a bare ValueError; the planner says what is wrong
+    with pytest.raises(PlanInputError, match="seed must be a non-negative integer"):
+        plan(g, (2, 0), (6, 5), PlannerConfig(seed=-1))
+    # no convergence check ever (0) or only after an impractical number of steps
+    for every in (0, -3, 1_000_001, 1_000_000_000):
+        with pytest.raises(PlanInputError, match="check_every"):
+            plan(g, (2, 0), (6, 5), PlannerConfig(check_every=every))
+    # a NaN time limit compares false and would never stop the training
+    for seconds in (math.nan, math.inf, 0.0, -1.0):
+        with pytest.raises(PlanInputError, match="max_seconds"):
+            plan(g, (2, 0), (6, 5), PlannerConfig(max_seconds=seconds))
 
 
 def test_smaller_learning_rate_and_discount_still_verified():

@@ -34,3 +34,17 @@ def test_unknown_start_can_be_refused_and_occupied_start_always_is():
 def test_unknown_goal_is_still_refused():
     with pytest.raises(PlanInputError, match="not free"):
         plan(_grid(), (0, 0), (1, 1))
+
+
+def test_unknown_start_does_not_make_the_same_cell_an_acceptable_goal():
+    """The start relaxation is for the chair's own cell only: asked to "plan" from an unknown
+    cell to itself, the planner must refuse the goal, not report a converged empty route."""
+    g = np.zeros((8, 8), dtype=np.int8)
+    g[7, 7] = -1
+    with pytest.raises(PlanInputError, match=r"goal cell \(7,7\) is not free"):
+        plan(g, (7, 7), (7, 7))
+    g[7, 7] = 100
+    with pytest.raises(PlanInputError, match="not free"):
+        plan(g, (7, 7), (7, 7))
+    # a known free start may still be its own goal (a zero-move route)
+    assert plan(g, (0, 0), (0, 0)).cells == [(0, 0)]

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -20,15 +22,56 @@ from wheelgrid_common.params import describe, load_yaml
 from wheelgrid_nav.actions import MOVES, moves_to_actions
 from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, PlanResult, plan
 
+# Options whose value may start with "-" (a negative row/column or map coordinate), and what
+# such a value looks like. argparse takes "-0.5,1" for an option (only plain numbers such as
+# "-0.5" pass), so these values are attached with "=" before parsing; -inf/-nan are attached
+# too, so that the user hears they are not finite rather than "expected one argument".
+_COORD_OPTIONS = ("--start", "--goal", "--start-xy", "--goal-xy")
+_NEGATIVE_VALUE = re.compile(r"-\s*(?:\d|\.\d|inf|nan)", re.IGNORECASE)
+
+
+def _attach_negative_values(argv: list[str]) -> list[str]:
+    """Rewrite ``--start-xy -0.5,1`` as ``--start-xy=-0.5,1`` (and the same for --goal-xy,
+    --start, --goal, or an unambiguous abbreviation argparse would accept) so a negative
+    coordinate is read as the option's value. Anything after ``--`` is left alone."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok == "--":
+            out += argv[i:]
+            break
+        if (
+            i + 1 < len(argv)
+            and len(tok) > 2
+            and tok.startswith("--")
+            and "=" not in tok
+            and any(opt.startswith(tok) for opt in _COORD_OPTIONS)
+            and _NEGATIVE_VALUE.match(argv[i + 1])
+        ):
+            out.append(f"{tok}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(tok)
+        i += 1
+    return out
+
 
 def _pair(text: str, kind: type, what: str) -> tuple[Any, Any]:
     parts = text.replace(" ", "").split(",")
     if len(parts) != 2:
         raise PlanInputError(f"{what} must be two comma-separated numbers, got {text!r}")
     try:
-        return kind(parts[0]), kind(parts[1])
+        a, b = kind(parts[0]), kind(parts[1])
     except ValueError:
         raise PlanInputError(f"{what}: cannot read {text!r} as two {kind.__name__}s") from None
+    # float() accepts "nan" and "inf"; a cell computed from them is garbage (numpy casts NaN
+    # to INT_MIN), so refuse them here with the value the user typed
+    if kind is float:
+        for value, raw in ((a, parts[0]), (b, parts[1])):
+            if not math.isfinite(value):
+                raise PlanInputError(f"{what}: coordinate {raw!r} is not finite")
+    return a, b
 
 
 def _cell(grid: Grid, rc: str | None, xy: str | None, what: str) -> tuple[int, int]:
@@ -37,7 +80,25 @@ def _cell(grid: Grid, rc: str | None, xy: str | None, what: str) -> tuple[int, i
     if rc is not None:
         return _pair(rc, int, f"--{what}")
     x, y = _pair(str(xy), float, f"--{what}-xy")
+    # No point of the grid is farther from its origin than rows + cols cells. Refusing farther
+    # points here also keeps huge values (1e300) away from the float -> int cast in cell_of,
+    # which would overflow into a bogus cell number.
+    x0, y0 = grid.origin[0], grid.origin[1]
+    if not math.hypot(x - x0, y - y0) <= (grid.rows + grid.cols) * grid.resolution:
+        raise PlanInputError(
+            f"--{what}-xy ({x:g}, {y:g}) m is outside the {grid.rows}x{grid.cols} grid"
+        )
     return grid.cell_of(x, y)
+
+
+def _png_problem(path: str) -> str | None:
+    """Why ``--png PATH`` cannot be written, checked before any training; None if it can."""
+    target = Path(path)
+    if target.is_dir():
+        return f"{path} is a directory"
+    if not target.parent.is_dir():
+        return f"directory {target.parent} does not exist"
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -119,7 +180,8 @@ def format_table(res: PlanResult, heading: str | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(_attach_negative_values(argv))
     try:
         cfg = load_yaml(PlannerConfig, args.config, section="planner")
     except (OSError, ValueError) as exc:
@@ -127,6 +189,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.seed is not None:
         cfg.seed = args.seed
+    if args.png and (problem := _png_problem(args.png)):
+        print(f"wheelgrid plan: cannot write --png: {problem}", file=sys.stderr)
+        return 2
     try:
         grid = read_map(args.grid)
     except (OSError, ValueError) as exc:
@@ -142,7 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.png:
         from wheelgrid_nav.plan_png import save_plan_png
 
-        save_plan_png(args.png, grid.data, res.cells, start, goal)
+        try:
+            save_plan_png(args.png, grid.data, res.cells, start, goal)
+        except OSError as exc:  # e.g. no permission: the early check cannot foresee all
+            print(f"wheelgrid plan: cannot write --png {args.png}: {exc}", file=sys.stderr)
+            return 2
     if args.json:
         print(json.dumps(result_json(res, args.heading)))
     if res.reason == "unreachable":

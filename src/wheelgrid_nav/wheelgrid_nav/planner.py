@@ -39,6 +39,9 @@ from wheelgrid_nav.actions import DELTAS, LEFT_OF, MOVES, OPPOSITE, RIGHT_OF, ce
 METHODS: tuple[str, ...] = ("qlearning", "qlearning-heading")
 _DELTA = np.array([DELTAS[m] for m in MOVES], dtype=np.int64)  # (4, 2) row/col steps
 _HEADING_INDEX = {m: i for i, m in enumerate(MOVES)}
+# A convergence check costs about one training step, so checking rarely saves nothing; a
+# larger interval only means no route is accepted within any practical budget.
+MAX_CHECK_EVERY = 1_000_000
 
 
 @dataclass
@@ -81,12 +84,16 @@ class PlannerConfig:
     )
     max_episode_steps: int = pfield(0, "steps before an episode is cut; 0 = 2 x number of states")
     max_episodes: int = pfield(2_000_000, "training budget in episodes (all agents together)")
-    max_seconds: float = pfield(10.0, "training budget in wall-clock time", "s")
-    check_every: int = pfield(8, "training steps between convergence checks")
+    max_seconds: float = pfield(
+        10.0, "training budget in wall-clock time (checked every step, > 0 and finite)", "s"
+    )
+    check_every: int = pfield(
+        8, f"training steps between convergence checks (1 to {MAX_CHECK_EVERY})"
+    )
     stable_checks: int = pfield(
         2, "consecutive checks the greedy route must stay the same and optimal to converge"
     )
-    seed: int = pfield(0, "random seed; the same seed and grid give the same route")
+    seed: int = pfield(0, "random seed (>= 0); the same seed and grid give the same route")
     allow_unknown_start: bool = pfield(
         True,
         "the chair's own cell may be unknown (a sensor on the chair never sees the floor under "
@@ -416,7 +423,7 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
     nonterminal = np.nonzero(~mdp.terminal)[0]
     B = cfg.agents if cfg.agents > 0 else len(nonterminal)
     max_ep_steps = cfg.max_episode_steps if cfg.max_episode_steps > 0 else 2 * S
-    check_every = max(1, cfg.check_every)
+    check_every = cfg.check_every  # check_config keeps it in [1, MAX_CHECK_EVERY]
     H = max(0, cfg.replay)
     alpha, gamma, eps = cfg.learning_rate, cfg.discount, cfg.epsilon
     rewards = [cfg.reward_step, cfg.reward_blocked, cfg.reward_turn, cfg.reward_backward]
@@ -490,8 +497,10 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
             if stable >= cfg.stable_checks:
                 converged = True
                 break
-            if episodes >= cfg.max_episodes or time.perf_counter() - t0 > cfg.max_seconds:
-                break
+        # The budgets are checked every step, not only at convergence checks: with a large
+        # check_every the time limit would otherwise not bound the training at all.
+        if episodes >= cfg.max_episodes or time.perf_counter() - t0 > cfg.max_seconds:
+            break
     return {
         "Q": Q2,
         "route": route if converged else None,
@@ -528,14 +537,17 @@ def plan(
     if method == "qlearning-heading" and heading is None:
         raise PlanInputError("method qlearning-heading needs the start heading")
     arr = np.asarray(data)
-    free = arr if arr.dtype == bool else free_mask(arr)
+    grid_free = arr if arr.dtype == bool else free_mask(arr)
+    free = grid_free
     if cfg.allow_unknown_start and arr.dtype != bool:
         r0, c0 = int(start[0]), int(start[1])
         if 0 <= r0 < arr.shape[0] and 0 <= c0 < arr.shape[1] and arr[r0, c0] < 0:
             free = free.copy()
             free[r0, c0] = True  # the chair stands there; a shortest route never returns to it
     s = check_cell(free, start, "start")
-    g = check_cell(free, goal, "goal")
+    # The goal is judged on the grid as given: the relaxation above is for the chair's own
+    # cell only, and must not make an unknown goal "free" when the goal is that same cell.
+    g = check_cell(grid_free, goal, "goal")
     t0 = time.perf_counter()
     dist = bfs_distances(free, g)
     bfs_len = int(dist[s])
@@ -593,3 +605,10 @@ def check_config(cfg: PlannerConfig) -> None:
         raise PlanInputError("q_init must be heuristic, optimistic or zero")
     if cfg.stable_checks < 1:
         raise PlanInputError("stable_checks must be at least 1")
+    if not 1 <= cfg.check_every <= MAX_CHECK_EVERY:
+        raise PlanInputError(f"check_every must be from 1 to {MAX_CHECK_EVERY}")
+    # NaN would compare false and silently remove the time limit, so refuse it explicitly
+    if not (math.isfinite(cfg.max_seconds) and cfg.max_seconds > 0):
+        raise PlanInputError("max_seconds must be a positive finite number")
+    if cfg.seed < 0:  # numpy's generators take only non-negative seeds
+        raise PlanInputError(f"seed must be a non-negative integer, got {cfg.seed}")
