@@ -20,3 +20,13 @@ def test_call_without_such_a_service_says_so_and_exits_2() -> None:
     )  # fmt: skip
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "no service /nobody/close_loops" in proc.stdout and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("name", ["", "1abc", "bad//name"])
+def test_a_service_name_rclpy_refuses_is_one_line_and_exit_2(name: str, capsys) -> None:
+    """rclpy raised its own traceback for these, after DDS had started."""
+    from wheelgrid_bringup.call import main
+
+    assert main([name, "--timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"wheelgrid call: {name!r}: ") and ", at /" not in err, err

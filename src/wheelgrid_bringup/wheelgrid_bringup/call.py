@@ -9,6 +9,7 @@ answered success, 1 when it refused or never answered, 2 when no such service ap
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 from wheelgrid_common.ros_env import configure_ros_env
@@ -26,6 +27,21 @@ def main(argv: list[str] | None = None) -> int:
         "--timeout", type=float, default=30.0, help="seconds to wait in all (default 30)"
     )
     args = p.parse_args(argv)
+    if not args.timeout > 0:
+        print(f"wheelgrid call: --timeout must be > 0, not {args.timeout}", file=sys.stderr)
+        return 2
+    from rclpy.exceptions import InvalidServiceNameException
+    from rclpy.expand_topic_name import expand_topic_name
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    try:  # before DDS starts: rclpy's own traceback otherwise
+        validate_full_topic_name(
+            expand_topic_name(args.service, "wheelgrid_call", "/"), is_service=True
+        )
+    except (InvalidServiceNameException, ValueError) as exc:
+        why = str(exc).splitlines()[0].split(", at /")[0]  # rcl's source location: noise
+        print(f"wheelgrid call: {args.service!r}: {why}", file=sys.stderr)
+        return 2
     configure_ros_env()
     import rclpy
     from rclpy.context import Context

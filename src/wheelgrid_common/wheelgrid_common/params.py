@@ -117,6 +117,7 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "") -> T:
     usual ``--ros-args -p`` / ``--params-file`` mechanisms.
     """
     from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import ParameterException
 
     docs = describe(type(cfg))
     values = {}
@@ -125,6 +126,15 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "") -> T:
         default = getattr(cfg, f.name)
         if isinstance(default, tuple):
             default = list(default)
-        node.declare_parameter(name, default, ParameterDescriptor(description=docs[f.name]))
+        # rclpy types an empty list as a byte array, and then refuses every real value for
+        # it (a mount transform could not be set at all): such a parameter takes any type,
+        # and from_mapping checks what arrives.
+        descriptor = ParameterDescriptor(
+            description=docs[f.name], dynamic_typing=isinstance(default, list) and not default
+        )
+        try:
+            node.declare_parameter(name, default, descriptor)
+        except ParameterException as exc:  # a value of the wrong type: one line, not a trace
+            raise ValueError(f"parameter {name}: {exc}") from None
         values[f.name] = node.get_parameter(name).value
     return from_mapping(type(cfg), values)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import array
 import contextlib
+import copy
 import os
 import re
 import shutil
@@ -153,6 +154,9 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
             odom_pub.publish(odom)
             if i == 1:
                 pub.publish(bad)
+                nameless = copy.deepcopy(msg)  # axes unknown: levelled on a wall when guessed
+                nameless.header.frame_id = ""
+                pub.publish(nameless)
 
         assert spin_until(ex, lambda: bool(maps), 60.0), "no map cloud published"
         pts = read_xyz(maps[-1])
@@ -169,7 +173,7 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
 
         assert spin_until(ex, settled, 60.0), values()
         v = values()
-        assert v["frames_malformed"] == "1"
+        assert v["frames_malformed"] == "2"
         assert v["prepare"] == "second process"  # frames filtered ahead, beside the node
         # Best effort QoS over loopback: at most one sample lost right after discovery.
         assert int(v["frames_received"]) >= len(clouds), v
@@ -197,7 +201,16 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    "param", ["registration.prior_rotation_gain:=2.0", "registration.method:=ndt"]
+    "param",
+    [
+        "registration.prior_rotation_gain:=2.0",
+        "registration.method:=ndt",
+        # each of these was a traceback (exit 1), a busy loop or a failure on every frame
+        "publish_period:=0.0",
+        "topic:=1abc",
+        "max_queue:=abc",
+        "registration.voxel_size:=-1.0",
+    ],
 )
 def test_bad_parameters_stop_the_mapper_with_exit_2(param: str) -> None:
     from wheelgrid_common.ros_env import child_env
@@ -206,6 +219,35 @@ def test_bad_parameters_stop_the_mapper_with_exit_2(param: str) -> None:
     proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "FATAL" in proc.stderr + proc.stdout and "Traceback" not in proc.stderr
+
+
+def test_an_empty_list_parameter_takes_a_real_value() -> None:
+    """rclpy typed the mount transform's empty default as a byte array and refused every
+    real value for it, from -p and from a params file alike."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_common.params import declare_dataclass
+    from wheelgrid_common.testing import rclpy_context
+    from wheelgrid_mapping.pipeline import MapperConfig
+
+    mount = [0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    with rclpy_context() as ctx:
+        node = Node(
+            "mount_test",
+            context=ctx,
+            parameter_overrides=[Parameter("mapper.mount_xyz_rpy", value=mount)],
+        )
+        try:
+            cfg = declare_dataclass(node, MapperConfig(), "mapper.")
+            assert list(cfg.mount_xyz_rpy) == mount
+        finally:
+            node.destroy_node()
+        plain = Node("mount_default", context=ctx)
+        try:
+            assert list(declare_dataclass(plain, MapperConfig(), "mapper.").mount_xyz_rpy) == []
+        finally:
+            plain.destroy_node()
 
 
 @pytest.mark.ros

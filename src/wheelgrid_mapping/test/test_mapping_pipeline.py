@@ -531,3 +531,16 @@ def test_kept_frames_pair_with_the_trajectory() -> None:
         placed = transform(pts.astype(np.float64), pose)[::50]
         gaps = [math.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in placed]
         assert float(np.median(gaps)) < 0.03  # on the map, not beside it
+
+
+def test_a_frame_stamped_in_the_future_does_not_stop_the_keyframes() -> None:
+    """With keyframes 0.1 s apart, one frame stamped 1e6 s ahead (or a publisher restarted
+    with an older clock) used to put every later frame "between keyframes": the map stopped
+    without a word. The keyframe clock restarts at a stamp that goes back, and it is counted."""
+    m = Mapper(cfg=MapperConfig(min_frame_interval=0.1))
+    stamps = [0.0, 0.2, 1e6, 0.4, 0.6, 0.65, 0.8]
+    outcomes = [m.admit(t, "base_link") for t in stamps]
+    admitted = [t for t, out in zip(stamps, outcomes, strict=True) if out is None]
+    assert admitted == [0.0, 0.2, 1e6, 0.4, 0.6, 0.8]  # 0.65 is between keyframes
+    assert m.clock_jumps == 1 and m.frames_skipped == 1
+    assert m.report()["frames"]["clock_jumps"] == 1

@@ -115,16 +115,9 @@ class MapperNode(Node):  # type: ignore[misc]
 
         from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
 
-        node_cfg = declare_dataclass(self, MapperNodeConfig())
-        self.topic = node_cfg.topic
-        self.prior_topic = node_cfg.pose_prior_topic
-        self.output_dir = node_cfg.output_dir
-        self.save_on_exit = node_cfg.save_on_exit
-        self.map_frame = node_cfg.map_frame
-        self.publish_period = node_cfg.publish_period
-        self.max_queue = max(1, node_cfg.max_queue)
-        self.max_kept_frames = max(0, node_cfg.max_kept_frames)
         try:
+            node_cfg = declare_dataclass(self, MapperNodeConfig())
+            self._check_node_config(node_cfg)
             pre = declare_dataclass(self, PreprocessConfig(), "preprocess.")
             reg = declare_dataclass(self, RegistrationConfig(), "registration.")
             cfg = declare_dataclass(self, MapperConfig(), "mapper.")
@@ -133,6 +126,14 @@ class MapperNode(Node):  # type: ignore[misc]
         except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
+        self.topic = node_cfg.topic
+        self.prior_topic = node_cfg.pose_prior_topic
+        self.output_dir = node_cfg.output_dir
+        self.save_on_exit = node_cfg.save_on_exit
+        self.map_frame = node_cfg.map_frame
+        self.publish_period = node_cfg.publish_period
+        self.max_queue = node_cfg.max_queue
+        self.max_kept_frames = node_cfg.max_kept_frames
         self._lock = threading.Lock()  # guards self.mapper and self._pipe
         # each frame filtered in a second process while the one before registers (same map)
         self._pipe = FramePipeline(self.mapper, cfg.prepare_ahead)
@@ -197,6 +198,30 @@ class MapperNode(Node):  # type: ignore[misc]
             self.get_logger().warning(f"frames filtered here, slower: {self._pipe.note}")
 
     # -- input -------------------------------------------------------------------------------
+    def _check_node_config(self, c: MapperNodeConfig) -> None:
+        """``ValueError`` for node parameters it cannot run with: rclpy raised its own
+        tracebacks for a bad topic name or a negative timer period, a period of 0 spun a core,
+        and a negative queue was clamped without a word."""
+        from rclpy.exceptions import InvalidTopicNameException
+        from rclpy.expand_topic_name import expand_topic_name
+        from rclpy.validate_full_topic_name import validate_full_topic_name
+
+        for what, name in (("topic", c.topic), ("pose_prior_topic", c.pose_prior_topic)):
+            if what == "pose_prior_topic" and not name:
+                continue  # no prior
+            try:
+                full = expand_topic_name(name, self.get_name(), self.get_namespace())
+                validate_full_topic_name(full)
+            except (InvalidTopicNameException, ValueError) as exc:
+                why = str(exc).splitlines()[0].split(", at /")[0]  # rcl's source location
+                raise ValueError(f"{what} {name!r}: {why}") from None
+        if not 0.05 <= c.publish_period <= 3600.0:
+            raise ValueError(f"publish_period must be in [0.05, 3600] s, not {c.publish_period}")
+        if c.max_queue < 1 or c.max_kept_frames < 0:
+            raise ValueError("max_queue must be >= 1 and max_kept_frames >= 0")
+        if not c.map_frame:
+            raise ValueError("map_frame must not be empty")
+
     def _log_once(self, key: str, text: str, warn: bool = True) -> None:
         if key not in self._logged:
             self._logged.add(key)
@@ -223,6 +248,16 @@ class MapperNode(Node):  # type: ignore[misc]
         except CloudError as exc:
             self.counts["malformed"] += 1
             self._log_once(exc.cause, f"skipping malformed PointCloud2 ({exc}); logged once")
+            return
+        if not msg.header.frame_id and self.mapper.cfg.sensor_convention == "auto":
+            # The frame's name is what says optical or body (REP-103): guessed, a first frame
+            # taken the wrong way levels the whole map on a wall.
+            self.counts["malformed"] += 1
+            self._log_once(
+                "no_frame_id",
+                "skipping PointCloud2 without a frame_id: its axes are unknown (set "
+                "mapper.sensor_convention to optical or body to map such clouds); logged once",
+            )
             return
         if msg.is_bigendian:
             self._log_once("bigendian", "big-endian PointCloud2 converted to host order", False)
@@ -436,6 +471,8 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_failed": c.failed,
             "frames_relocalised": c.relocalised,
             "frames_skipped_busy": self.counts["skipped_busy"],
+            "frames_between_keyframes": self.mapper.frames_skipped,
+            "clock_jumps": self.mapper.clock_jumps,
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,
             "priors_refused": self.mapper.priors_refused,

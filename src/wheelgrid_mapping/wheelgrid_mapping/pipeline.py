@@ -333,6 +333,7 @@ class Mapper:
         self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
         self.frames_read = 0
         self.frames_skipped = 0
+        self.clock_jumps = 0  # frames stamped before the last keyframe (the clock went back)
         self.frames_empty = 0
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
         self.failures: list[dict[str, Any]] = []
@@ -401,6 +402,13 @@ class Mapper:
         self.frames_read += 1
         if self.convention is None:
             self.convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
+        if self._last_processed is not None and stamp < self._last_processed:
+            # A stamp before the last keyframe's: a publisher restarted, a clock was set, or
+            # one frame came stamped in the future. The keyframe clock restarts here; kept on
+            # the old stamp, every frame after a future one would fall "between keyframes"
+            # and the map would stop without a word.
+            self.clock_jumps += 1
+            self._last_processed = None
         if (
             self.cfg.min_frame_interval > 0
             and self._last_processed is not None
@@ -844,6 +852,7 @@ class Mapper:
                 "failed": c.failed,
                 "empty": self.frames_empty,
                 "skipped": self.frames_skipped,
+                "clock_jumps": self.clock_jumps,
                 "relocalised": c.relocalised,
                 "priors_refused": self.priors_refused,
             },

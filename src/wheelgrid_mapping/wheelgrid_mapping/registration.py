@@ -25,6 +25,8 @@ the baseline the benchmarks compare against.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
@@ -155,8 +157,33 @@ class RegistrationConfig:
     def validate(self) -> None:
         """ValueError for settings that cannot work (checked again when a Registrar starts,
         because a caller may change a field after construction)."""
-        if not self.convergence > 0:
-            raise ValueError(f"registration convergence must be > 0, not {self.convergence}")
+        for f in dataclasses.fields(self):  # a NaN passes every range test below
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"registration {f.name} must be finite, not {value}")
+        # Lengths and times that must be positive: a voxel of -1 m failed every frame with
+        # the same error, a fitness cell of 0 called every frame "low overlap".
+        for name in (
+            "voxel_size", "max_range", "initial_threshold", "prior_threshold", "fitness_cell",
+            "max_speed", "max_turn_rate", "min_dt", "max_prior_deviation",
+            "max_prior_deviation_deg", "relocalise_scale", "convergence",
+        ):  # fmt: skip
+            if not getattr(self, name) > 0:
+                raise ValueError(f"registration {name} must be > 0, not {getattr(self, name)}")
+        for name in ("fixed_threshold", "min_motion_th"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"registration {name} must be >= 0, not {getattr(self, name)}")
+        for name in ("min_fitness", "degeneracy_ratio", "reject_degenerate_ratio"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(
+                    f"registration {name} must be in [0, 1], not {getattr(self, name)}"
+                )
+        if self.max_points_per_voxel < 1 or self.max_iterations < 1 or self.min_points < 3:
+            raise ValueError(
+                "registration max_points_per_voxel and max_iterations must be >= 1, min_points >= 3"
+            )
+        if self.threads < 0:
+            raise ValueError(f"registration threads must be >= 0 (0 = all), not {self.threads}")
         if self.method not in ("kiss", "open3d"):
             raise ValueError(f"registration method must be kiss or open3d, not {self.method!r}")
         if not 0.5 <= self.prior_scale <= 2.0:
