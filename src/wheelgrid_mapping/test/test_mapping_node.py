@@ -277,7 +277,11 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
             assert done is not None and done.success, done
             assert spin_until(
                 ex,
-                lambda: values().get("loop_closure") == "ready" and values()["frames_used"] == "0",
+                lambda: (
+                    values().get("loop_closure") == "ready"
+                    and values()["frames_used"] == "0"
+                    and values()["frames_received"] == "0"
+                ),  # the node's own counters too
                 10.0,
             ), values()
             pub.publish(pair[0])
@@ -286,6 +290,10 @@ def test_mapper_node_closes_loops_on_request(tmp_path: Path) -> None:
 
         refused = call_service(ex, close, Trigger.Request)
         assert refused is not None and not refused.success and "nothing to close" in refused.message
+        empty = call_service(
+            ex, save, Trigger.Request
+        )  # said "need 200 (points) to find the floor"
+        assert empty is not None and not empty.success and "no frame mapped yet" in empty.message
 
         for msg, odom in pairs[:40]:
             pub.publish(msg)

@@ -505,6 +505,12 @@ class MapperNode(Node):  # type: ignore[misc]
                 "/wheelgrid/mapper_status says loop_closure: closed"
             )
             return response
+        if self.mapper.registrar.counters.accepted == 0:
+            response.success = False
+            response.message = (
+                f"nothing to save: no frame mapped yet ({self.counts['received']} received)"
+            )
+            return response
         try:
             with self._lock:
                 rep = self.mapper.save(out, {"node_counts": dict(self.counts)})
@@ -527,7 +533,8 @@ class MapperNode(Node):  # type: ignore[misc]
             self._pipe.discard()  # the frame in preparation belonged to the old map
             self.mapper.reset()  # kept frames go too; keep them again if max_kept_frames stopped it
             self.mapper.keep_frames = self.loop_cfg.enabled
-            self.counts["after_close"] = 0
+            for key in self.counts:  # "counters cleared" means the node's own too
+                self.counts[key] = 0
             self._loop_state = "ready" if self.loop_cfg.enabled else "off"
             self._loop_note = ""
             self._loop_cancel = False
