@@ -12,6 +12,12 @@ from wheelgrid_common.pointcloud2 import (
 )
 
 
+def _field(name, offset, datatype=7):
+    from sensor_msgs.msg import PointField
+
+    return PointField(name=name, offset=offset, datatype=datatype, count=1)
+
+
 def _cloud(n=12, height=3):
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(n, 3))
@@ -73,6 +79,10 @@ def test_big_endian_and_row_padding_are_honoured():
         (lambda m: setattr(m, "data", bytes(m.data)[:-5]), "truncated_data"),
         (lambda m: (setattr(m, "width", 0), setattr(m, "height", 0)), "empty"),
         (lambda m: setattr(m, "row_step", 3), "bad_row_step"),
+        # a second x over the y bytes: which one is x is anyone's guess
+        (lambda m: setattr(m, "fields", [*m.fields, _field("x", 4)]), "duplicate_fields"),
+        # one row more than the header says: the header does not describe the data
+        (lambda m: setattr(m, "data", bytes(m.data) + bytes(m.row_step)), "excess_data"),
     ],
 )
 def test_malformed_clouds_raise_a_named_cause(mutate, cause):
@@ -81,3 +91,14 @@ def test_malformed_clouds_raise_a_named_cause(mutate, cause):
     with pytest.raises(CloudError) as err:
         read_xyz(msg)
     assert err.value.cause == cause
+
+
+def test_a_repeated_field_is_refused_only_where_it_is_read():
+    """Two fields named ``confidence`` make that field ambiguous, not x y z: the points are
+    still read, the confidence is refused with a cause the node logs once."""
+    pts, msg = _cloud()
+    msg.fields = [*msg.fields, _field("confidence", 12, 2)]
+    np.testing.assert_allclose(read_xyz(msg), pts[np.isfinite(pts).all(1)].astype(np.float32))
+    with pytest.raises(CloudError) as err:
+        read_fields(msg, ("confidence",))
+    assert err.value.cause == "duplicate_fields" and "confidence" in str(err.value)

@@ -73,7 +73,15 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     if height * width == 0:
         raise CloudError("empty", f"cloud has {height}x{width} points")
-    specs = {f.name: f for f in _field_specs(msg)}
+    fields = _field_specs(msg)
+    # A name given twice leaves which field holds the values to the decoder's whim (the last
+    # one, silently): refused, as sensor_msgs_py's numpy dtype would. Only the names read are
+    # checked: a repeated field the caller does not read cannot change what it gets.
+    given = [f.name for f in fields]
+    repeated = sorted({n for n in names if given.count(n) > 1})
+    if repeated:
+        raise CloudError("duplicate_fields", f"field(s) {repeated} defined more than once")
+    specs = {f.name: f for f in fields}
     missing = [n for n in names if n not in specs]
     if missing:
         raise CloudError("missing_fields", f"no field(s) {missing}; has {sorted(specs)}")
@@ -98,6 +106,14 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
         raise CloudError(
             "truncated_data",
             f"data has {raw.size} B, expected row_step {row_step} x height {height}",
+        )
+    if raw.size > row_step * height:
+        # ROS defines the data as exactly row_step x height bytes. More means the header does
+        # not describe the data (a height, width or row_step too small): reading its first
+        # part would drop points silently or take the rows from the wrong bytes.
+        raise CloudError(
+            "excess_data",
+            f"data has {raw.size} B, more than row_step {row_step} x height {height}",
         )
     dtype = np.dtype(
         {

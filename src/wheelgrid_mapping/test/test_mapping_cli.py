@@ -628,3 +628,109 @@ def test_the_right_angle_line_says_what_held_the_submaps() -> None:
     assert cli_map.right_angle_line(off) == (
         "loop closure: the room's right angles not used (2 submaps read, < 3)"
     )
+
+
+def _two_walls(tmp_path: Path) -> list[str]:
+    """Two parallel 1 m walls 1.2 m apart (300 noisy points each), and the measure argv."""
+    rng = np.random.default_rng(0)
+    a = np.column_stack([np.full(300, 1.0), rng.random(300), rng.random(300)])
+    b = np.column_stack([np.full(300, 2.2), rng.random(300), rng.random(300)])
+    ply = tmp_path / "walls.ply"
+    write_ply(ply, np.vstack([a, b]) + rng.normal(0, 0.002, (600, 3)))
+    box_a, box_b = [0.9, 0, 0, 1.1, 1, 1], [2.1, 0, 0, 2.3, 1, 1]
+    return [str(ply), "--box-a", *map(str, box_a), "--box-b", *map(str, box_b)]
+
+
+def _strict_json(text: str) -> dict:
+    """json.loads that refuses NaN and Infinity, as JSON itself does."""
+
+    def refuse(name: str) -> None:
+        raise AssertionError(f"{name} in the JSON output")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_measure_refuses_a_true_distance_that_is_none(tmp_path: Path, capsys) -> None:
+    """``--true 0`` was taken for "not given", ``-1.2`` printed a deviation of -200 % and
+    ``nan`` put NaN into the JSON: a true distance must be finite and > 0 (exit 2, one line)."""
+    argv = _two_walls(tmp_path)
+    for bad in ("0", "-1.2", "nan", "inf"):
+        assert cli_measure.main([*argv, "--true", bad, "--json"]) == 2, bad
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and "--true must be a distance > 0" in err
+    assert cli_measure.main([*argv, "--true", "1.2", "--json"]) == 0
+    out = _strict_json(capsys.readouterr().out)
+    assert out["true"] == 1.2 and out["deviation_pct"] < 1.0
+
+
+def test_measure_refuses_boxes_whose_points_fix_no_plane(tmp_path: Path, capsys) -> None:
+    """One point repeated in each box (a map's duplicates) left a face with fewer than three
+    rows after np.unique and ended in an IndexError; one row of points fixed a plane turning
+    freely about it. Both are a one-line error naming the box, exit 2."""
+    dup = tmp_path / "dup.ply"
+    write_ply(dup, np.vstack([np.zeros((50, 3)), np.ones((50, 3))]))
+    argv = [str(dup), "--box-a", *["-.1"] * 3, *[".1"] * 3, "--box-b", *[".9"] * 3, *["1.1"] * 3]
+    for extra in ([], ["--json"], ["--normal-radius", "0"], ["--normal", "1", "1", "1"]):
+        assert cli_measure.main([*argv, *extra]) == 2, extra
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1
+        assert "--box-a: a plane needs >= 3 distinct points, the box holds 50 but 1" in err
+    line = tmp_path / "line.ply"
+    x = np.linspace(0.0, 1.0, 50)
+    zero = np.zeros_like(x)
+    write_ply(
+        line, np.vstack([np.column_stack([x, zero, zero]), np.column_stack([x, zero + 1, zero])])
+    )
+    argv = [str(line), "--box-a", "-.1", "-.1", "-.1", "1.1", ".1", ".1"]
+    assert cli_measure.main([*argv, "--box-b", "-.1", ".9", "-.1", "1.1", "1.1", ".1"]) == 2
+    assert "--box-a: a plane needs points not all on one line" in capsys.readouterr().err
+    # three distinct points among duplicates still fix one
+    tri = np.repeat([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], 5, axis=0)
+    assert abs(cli_measure.fit_plane(tri).normal[0]) == pytest.approx(1.0)
+
+
+def test_measure_json_is_never_nan_or_infinity(tmp_path: Path, capsys) -> None:
+    """Coordinates near float64's range overflow the fits (rms and the sideways offset came
+    out inf) and json.dumps printed Infinity: the reading is refused instead (exit 2)."""
+    rng = np.random.default_rng(1)
+    s = 1e200
+    a = np.column_stack([np.full(100, 1.0), rng.random(100), rng.random(100)]) * s
+    b = np.column_stack([np.full(100, 2.2), rng.random(100), rng.random(100)]) * s
+    ply = tmp_path / "huge.ply"
+    header = "ply\nformat ascii 1.0\nelement vertex 200\n"
+    header += "".join(f"property double {k}\n" for k in "xyz") + "end_header\n"
+    ply.write_text(
+        header + "".join(f"{x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in np.vstack([a, b]))
+    )
+    box_a = [str(v * s) for v in (0.9, 0, 0, 1.1, 1, 1)]
+    box_b = [str(v * s) for v in (2.1, 0, 0, 2.3, 1, 1)]
+    for extra in (["--json"], []):
+        assert cli_measure.main([str(ply), "--box-a", *box_a, "--box-b", *box_b, *extra]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and "not finite" in err
+    argv = _two_walls(tmp_path)  # an ordinary map still reads, as strict JSON
+    assert cli_measure.main([*argv, "--json"]) == 0
+    assert _strict_json(capsys.readouterr().out)["distance"] == pytest.approx(1.2, abs=0.01)
+
+
+def test_measure_says_how_it_read_surfaces_that_are_not_parallel(tmp_path: Path, capsys) -> None:
+    """A wall and the floor: the warning said "centroid-based" in every mode, but by default
+    the reading is the faces' offset along one normal fitted to both; each mode says its own."""
+    g = np.arange(0.0, 1.0, 0.02)
+    u, v = (c.ravel() for c in np.meshgrid(g, g))
+    wall = np.column_stack([u * 0, u, v + 0.1])  # x = 0
+    floor = np.column_stack([v + 0.1, u, u * 0])  # z = 0
+    ply = tmp_path / "corner.ply"
+    write_ply(ply, np.vstack([wall, floor]))
+    argv = [str(ply), "--box-a", "-.05", "0", ".1", ".05", "1", "1.1"]
+    argv += ["--box-b", ".1", "0", "-.05", "1.1", "1", ".05"]
+    expected = {
+        (): "along one normal fitted to both faces together, which they do not share",
+        ("--normal-radius", "0"): "each plane's centroid to the other plane, averaged",
+        ("--normal", "1", "0", "0"): "their centroids' offset along the given direction",
+    }
+    for extra, says in expected.items():
+        assert cli_measure.main([*argv, *extra]) == 0
+        out = capsys.readouterr().out
+        assert "WARNING: surfaces 90 deg from parallel, the distance is " in out
+        assert says in out and "centroid-based" not in out

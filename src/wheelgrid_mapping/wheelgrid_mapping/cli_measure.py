@@ -65,6 +65,11 @@ BOOTSTRAP_MAX_POINTS = 5000
 #: Resamples farther than this many standard errors from the median are counted as unstable
 #: (0.006 % of them where the resamples are normal).
 UNSTABLE_SIGMAS = 4.0
+#: A box's points fix a plane only if they spread at least this far (m, RMS) across the line
+#: that fits them best. One point repeated (a map's duplicates) or one row of points leaves the
+#: plane free to turn about that line, and its normal would be whatever rounding made it. Far
+#: below any surface's noise, above float32 rounding of map coordinates (2 um RMS at 100 m).
+MIN_PLANE_SPREAD = 1e-5
 #: A ``--normal-box`` surface needs this many points: it is there to fix a direction better
 #: than the faces do (0.04 m2 of a 2 cm map; a wall's box holds thousands).
 MIN_REFERENCE_POINTS = 100
@@ -121,6 +126,25 @@ def _robust_band(r: np.ndarray, inlier: float) -> float:
     return float(np.clip(2.5 * 1.4826 * np.median(r), 0.003, inlier))
 
 
+def plane_defect(points: np.ndarray) -> str | None:
+    """Why ``points`` fix no plane (fewer than 3 distinct ones, or all on one line), or None.
+
+    Checked on a box's points before any fit, not left to the fits: SVD and np.unique take
+    duplicates and lines without complaint and hand on a plane that turns freely, or too few
+    rows for the faces' common normal (an IndexError deep in :func:`measure`).
+    """
+    n = points.shape[0]
+    if n < 3:
+        return f"a plane needs >= 3 points, the box holds {n}"
+    s = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    if s[1] / math.sqrt(n) > MIN_PLANE_SPREAD:  # RMS distance from the best line
+        return None
+    distinct = np.unique(points, axis=0).shape[0]
+    if distinct < 3:
+        return f"a plane needs >= 3 distinct points, the box holds {n} but {distinct} distinct"
+    return f"a plane needs points not all on one line, the box's {n} points lie on one"
+
+
 def fit_plane(points: np.ndarray, inlier: float = INLIER, trials: int = 300) -> Plane:
     """The plane most points of the box agree with (RANSAC), refitted by SVD on its inliers.
 
@@ -133,8 +157,9 @@ def fit_plane(points: np.ndarray, inlier: float = INLIER, trials: int = 300) -> 
     always measures the same.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if pts.shape[0] < 3:
-        raise ValueError(f"a plane needs >= 3 points, the box holds {pts.shape[0]}")
+    defect = plane_defect(pts)
+    if defect is not None:
+        raise ValueError(defect)
     rng = np.random.default_rng(0)
     best = np.ones(pts.shape[0], dtype=bool)
     if pts.shape[0] > 10:
@@ -150,14 +175,15 @@ def fit_plane(points: np.ndarray, inlier: float = INLIER, trials: int = 300) -> 
             count = int(inl.sum())
             if count > best_count:
                 best, best_count = inl, count
-    sel = pts[best]
+    # a sliver of a triangle can win on a box that is mostly one line: then all of its points
+    sel = pts[best] if plane_defect(pts[best]) is None else pts
     for _ in range(5):
         # Refit, then re-select within 2.5 robust sigmas (MAD) of the surface's own noise: the
         # rim of a neighbouring surface inside the RANSAC band drops out step by step.
         c = sel.mean(axis=0)
         n = np.linalg.svd(sel - c, full_matrices=False)[2][2]
         inl = np.abs((pts - c) @ n) <= _robust_band(np.abs((sel - c) @ n), inlier)
-        if inl.sum() < 3:
+        if plane_defect(pts[inl]) is not None:  # narrowed to a line or a point: keep the last
             break
         sel = pts[inl]
     c = sel.mean(axis=0)
@@ -282,7 +308,10 @@ def reference_plane(points: np.ndarray, box: list[float] | np.ndarray) -> Plane:
             f"--normal-box holds {pts.shape[0]} points; a reference surface needs "
             f">= {MIN_REFERENCE_POINTS} (draw it around a wall the faces are parallel to)"
         )
-    return fit_plane(pts)
+    try:
+        return fit_plane(pts)
+    except ValueError as exc:
+        raise ValueError(f"--normal-box: {exc}") from exc
 
 
 def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
@@ -335,8 +364,13 @@ def measure(
             along(a, b), 0.0, a.shape[0], b.shape[0], spread_a, spread_b,
             stderr=se, unstable_pct=unstable,
         )  # fmt: skip
-    pa = fit_face(points, box_a, normal_radius)
-    pb = fit_face(points, box_b, normal_radius)
+    faces = []
+    for flag, box in (("--box-a", box_a), ("--box-b", box_b)):
+        try:
+            faces.append(fit_face(points, box, normal_radius))
+        except ValueError as exc:  # say which box: "the box holds 0 points" alone does not
+            raise ValueError(f"{flag}: {exc}") from exc
+    pa, pb = faces
     angle = angle_deg(pa.normal, pb.normal)
     ta, tb = tag_face(pa), tag_face(pb)
     fitted = faces_normal(ta, tb)
@@ -460,6 +494,41 @@ def bootstrap_stderr(
     return se, unstable
 
 
+def not_parallel_reading(along_given: bool, normal_radius: float) -> str:
+    """What the distance between two surfaces that are not parallel is, in each reading mode
+    (``--axis`` fits no planes and never gets here): none of them is a gap between the two."""
+    if along_given:
+        # parallel_distance on the given normal: only the offsets are fitted
+        return "the distance is their centroids' offset along the given direction"
+    if normal_radius <= 0:
+        return "the distance is each plane's centroid to the other plane, averaged"
+    # faces_distance: one normal for both faces' inliers, which perpendicular faces lack
+    return (
+        "the distance is their centroids' offset along one normal fitted to both faces "
+        "together, which they do not share"
+    )
+
+
+def non_finite(out: dict) -> list[str]:
+    """The keys of ``out`` (one level into lists and dicts) holding a NaN or an infinity.
+
+    Map coordinates near float64's range overflow the fits (a face's rms, how far apart
+    sideways two faces sit); such a reading means nothing, and ``json.dumps`` would print NaN
+    and Infinity, which no JSON parser takes.
+    """
+
+    def numbers(value: object) -> list[object]:
+        if isinstance(value, dict):
+            return list(value.values())
+        return value if isinstance(value, list) else [value]
+
+    return [
+        key
+        for key, value in out.items()
+        if any(isinstance(v, float) and not math.isfinite(v) for v in numbers(value))
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="wheelgrid measure",
@@ -500,6 +569,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--true", type=float, help="the real distance (m): prints the deviation %%")
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     args = p.parse_args(argv)
+    if args.true is not None and not (math.isfinite(args.true) and args.true > 0):
+        # 0 would read as "not given"; a negative or NaN one makes a deviation of nonsense
+        print(
+            f"wheelgrid measure: --true must be a distance > 0 (m), not {args.true}",
+            file=sys.stderr,
+        )
+        return 2
     try:
         pts = read_ply(args.map)
     except (OSError, ValueError) as exc:
@@ -508,19 +584,29 @@ def main(argv: list[str] | None = None) -> int:
     try:
         axis = None if args.axis is None else "xyz".index(args.axis)
         along, ref = args.normal, None
-        if args.normal_box is not None:
-            ref = reference_plane(pts, args.normal_box)
-            along = ref.normal
-        m = measure(pts, args.box_a, args.box_b, axis, args.normal_radius, along)
+        # overflow is caught on the result (non_finite), not warned about line by line
+        with np.errstate(all="ignore"):
+            if args.normal_box is not None:
+                ref = reference_plane(pts, args.normal_box)
+                along = ref.normal
+            m = measure(pts, args.box_a, args.box_b, axis, args.normal_radius, along)
     except ValueError as exc:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2
     out = asdict(m)
     if ref is not None:
         out["normal_box"] = {"points": ref.points, "rms": ref.rms}
-    if args.true:
+    if args.true is not None:
         out["true"] = args.true
         out["deviation_pct"] = 100.0 * abs(m.distance - args.true) / args.true
+    bad = non_finite(out)
+    if bad:
+        print(
+            f"wheelgrid measure: the reading overflowed ({', '.join(bad)} not finite): are the "
+            "map's coordinates (and --true) in metres?",
+            file=sys.stderr,
+        )
+        return 2
     if args.json:
         print(json.dumps(out))
         return 0
@@ -530,7 +616,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{m.points_a} + {m.points_b} points, fit rms {m.rms_a * 1000:.1f} / "
         f"{m.rms_b * 1000:.1f} mm)"
     )
-    if args.true:
+    if args.true is not None:
         line += f"; true {args.true * 100:.2f} cm, deviation {out['deviation_pct']:.2f} %"
     if m.along is not None:
         given = "given normal" if ref is None else (
@@ -556,7 +642,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{UNSTABLE_SIGMAS:.0f}x that away (too few points to fix the faces' normal)"
         )
     if m.angle_deg > 10.0:
-        line += "; WARNING: surfaces not parallel, distance is centroid-based"
+        reading = not_parallel_reading(m.along is not None, args.normal_radius)
+        line += f"; WARNING: surfaces {m.angle_deg:.0f} deg from parallel, {reading}"
     print(line)
     return 0
 
