@@ -5,7 +5,8 @@ thread through a bounded queue (``max_queue``, default 1): when it is full the o
 frame is dropped and counted (``frames_skipped_busy``), so the subscription never blocks and
 nothing queues forever. A live sensor wants 1 (map the newest); a bag replay wants every frame.
 
-Malformed clouds (missing x/y/z, bad point_step, truncated, empty) are logged once per cause and
+Malformed clouds (missing x/y/z, a field defined twice, bad point_step, truncated or excess
+data, empty, no frame_id while the sensor convention is ``auto``) are logged once per cause and
 skipped. Big-endian clouds are valid PointCloud2: ``read_fields`` converts them, and the node
 logs that once and uses them (the data is not wrong, only unusual).
 
