@@ -111,6 +111,41 @@ def test_stream_stray_exit_codes(
     port = free_port()  # nobody listening
     assert stream_main([str(cap), "--to", f"127.0.0.1:{port}", "--frames", "1"]) == 1
     assert "failed" in capsys.readouterr().err
+    # each of these was a traceback: int("²"), an overflowed sleep until a frame's slot
+    assert stream_main([str(cap), "--to", "127.0.0.1:\u00b2"]) == 2
+    assert stream_main([str(cap), "--rate", "1e-300"]) == 2
+    assert "--rate must be 0 (unpaced) or 0.01..1000" in capsys.readouterr().err
+    assert import_main([str(cap), "--out", str(tmp_path / "b"), "--min-confidence", "5"]) == 2
+    assert "--min-confidence must be 0, 1 or 2" in capsys.readouterr().err
+
+
+def test_stream_stray_to_something_that_is_not_a_bridge_is_one_line(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """A wrong --to that reaches a web server: its answer is not the bridge's protocol, which
+    used to end stream-stray with a ProtocolError traceback."""
+    import socket
+    import threading
+
+    srv = socket.create_server(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+
+    def answer() -> None:
+        conn, _ = srv.accept()
+        with conn:
+            conn.recv(4096)
+            conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+
+    t = threading.Thread(target=answer, daemon=True)
+    t.start()
+    try:
+        rc = stream_main([str(stray_capture), "--to", f"127.0.0.1:{port}", "--frames", "1"])
+    finally:
+        t.join(5.0)
+        srv.close()
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "does not answer as a wheelgrid bridge" in err and "Traceback" not in err, err
 
 
 def test_stream_stray_sends_decodable_frames_with_token(

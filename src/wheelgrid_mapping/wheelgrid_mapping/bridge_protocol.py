@@ -655,7 +655,13 @@ def connect(
             data = sock.recv(4096)
             if not data:
                 raise ConnectionError(f"{host}:{port} closed the connection without a status")
-            for m in dec.feed(data):
+            try:
+                got = dec.feed(data)
+            except ProtocolError as exc:  # an HTTP server, an SSH port: a user's wrong --to
+                raise ConnectionError(
+                    f"{host}:{port} does not answer as a wheelgrid bridge ({exc})"
+                ) from None
+            for m in got:
                 assert isinstance(m, Status)
                 if m.code != STATUS_OK:
                     raise ConnectionError(f"{host}:{port} refused: {m.text} (status {m.code})")

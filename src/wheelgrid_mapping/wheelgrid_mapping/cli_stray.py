@@ -41,9 +41,13 @@ def _fail(code: int, text: str) -> int:
     return code
 
 
+MIN_RATE, MAX_RATE = 0.01, 1000.0  # stream-stray's --rate speed factors
+
+
 def parse_host_port(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+    # isdigit() alone takes "²" (and int() then fails): ASCII digits only
+    if not sep or not host or not (port.isascii() and port.isdigit()) or not 0 < int(port) < 65536:
         raise _UsageError(f"--to must be HOST:PORT (e.g. 127.0.0.1:8765), not {text!r}")
     return host.strip("[]"), int(port)
 
@@ -177,8 +181,11 @@ def stream_main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     try:
         host, port = parse_host_port(args.to)
-        if not args.rate >= 0 or not np.isfinite(args.rate):
-            raise _UsageError(f"--rate must be >= 0, not {args.rate}")
+        if not (args.rate == 0 or MIN_RATE <= args.rate <= MAX_RATE):  # NaN too
+            # 1e-300 overflowed the sleep until a frame's slot
+            raise _UsageError(
+                f"--rate must be 0 (unpaced) or {MIN_RATE:g}..{MAX_RATE:g}, not {args.rate}"
+            )
         exp = _open_export(args.dir)
         idx = _frame_range(exp, args.start, args.frames)
     except _UsageError as exc:
@@ -223,6 +230,8 @@ def import_main(argv: list[str]) -> int:
     from wheelgrid_mapping.iphone_bridge_node import frame_messages
 
     try:
+        if not 0 <= args.min_confidence <= 2:  # 5 made every point NaN, silently
+            raise _UsageError(f"--min-confidence must be 0, 1 or 2, not {args.min_confidence}")
         exp = _open_export(args.dir)
         idx = _frame_range(exp, args.start, args.frames)
         if Path(args.out).exists():
