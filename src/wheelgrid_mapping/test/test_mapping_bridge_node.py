@@ -146,6 +146,120 @@ def test_bridge_refuses_network_bind_without_token() -> None:
     assert b"without a token" in out
 
 
+def _frame(stamp: float, w: int = 16, h: int = 12, q: tuple[float, ...] | None = None) -> bytes:
+    from wheelgrid_mapping import bridge_protocol as bp
+
+    K = np.array([[20.0, 0, w / 2], [0, 20.0, h / 2], [0, 0, 1]])
+    raw = bp.encode_frame(stamp, K, np.full((h, w), 1.5, np.float32), pose=np.eye(4))
+    if q is None:
+        return raw
+    fields = list(bp.FRAME_HEADER.unpack_from(raw, bp.PREFIX.size))
+    fields[11:15] = q
+    head = bp.PREFIX.size + bp.FRAME_HEADER.size
+    return raw[: bp.PREFIX.size] + bp.FRAME_HEADER.pack(*fields) + raw[head:]
+
+
+def test_bridge_keeps_serving_after_warnings_and_frees_a_silent_slot() -> None:
+    """The node's first warning (a wrong token, a zero quaternion) used to raise in rclpy's
+    logger and kill the TCP thread: later clients timed out. And a phone that went silent
+    mid-frame held the only slot until idle_timeout_s dropped it."""
+    from wheelgrid_mapping import bridge_protocol as bp
+
+    port = free_port()
+    cmd = python_module(
+        BRIDGE, "--ros-args", "-p", f"port:={port}", "-p", "token:=s3cret",
+        "-p", "idle_timeout_s:=0.5",
+    )  # fmt: skip
+    with managed_process(cmd) as proc:
+        wait_listening(port, proc)
+        with pytest.raises(ConnectionError, match="wrong token"):
+            bp.connect("127.0.0.1", port, token="guess", timeout=3)
+        with bp.connect("127.0.0.1", port, token="s3cret", timeout=3) as sock:
+            sock.sendall(_frame(1.0, q=(0.0, 0.0, 0.0, 0.0)) + _frame(1e300) + _frame(2.0))
+            half = _frame(3.0)
+            sock.sendall(half[: len(half) // 2])  # then silence: Wi-Fi lost
+            t0 = time.monotonic()
+            while True:  # busy while the silent one holds the slot, then accepted
+                try:
+                    bp.connect("127.0.0.1", port, token="s3cret", timeout=3).close()
+                    break
+                except ConnectionError:
+                    assert time.monotonic() - t0 < 3.0, "the silent client kept the slot"
+                    time.sleep(0.1)
+        assert proc.poll() is None
+
+
+@pytest.mark.parametrize(
+    ("module", "param"),
+    [
+        (BRIDGE, "port:=70000"),
+        (BRIDGE, "port:=abc"),
+        (BRIDGE, "hello_timeout_s:=.nan"),
+        (BRIDGE, "max_frame_bytes:=0"),
+        (BRIDGE, "max_errors_in_row:=0"),
+        (BRIDGE, "min_confidence:=3"),
+        ("wheelgrid_mapping.depth_to_cloud_node", "min_confidence:=abc"),
+        ("wheelgrid_mapping.depth_to_cloud_node", "min_confidence:=-1"),
+        ("wheelgrid_mapping.depth_to_cloud_node", "queue_size:=0"),
+    ],
+)
+def test_bad_parameters_are_one_fatal_line_and_exit_2(module: str, param: str) -> None:
+    cmd = python_module(module, "--ros-args", "-p", param)
+    if module == BRIDGE and not param.startswith("port"):
+        cmd += ["-p", "port:=0"]  # should it start after all, never on a port in use
+    with managed_process(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT) as proc:
+        out, _ = proc.communicate(timeout=10)
+    text = out.decode(errors="replace")
+    assert proc.returncode == 2, text
+    assert "Traceback" not in text
+    fatal = [line for line in text.splitlines() if "FATAL" in line]
+    assert len(fatal) == 1 and param.split(":=")[0] in fatal[0], text
+
+
+def test_offset_stamps_are_per_client() -> None:
+    """Two phones at once, stamp_mode offset: each keeps its own clock offset, so each
+    stream's published spacing is its phone's (0.1 s), not the arrival spacing (0.2 s)."""
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import CameraInfo
+
+    from wheelgrid_common.qos import SENSOR_QOS
+    from wheelgrid_mapping import bridge_protocol as bp
+
+    port = free_port()
+    cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}", "-p", "max_clients:=2")
+    with managed_process(cmd) as proc, rclpy_context() as ctx:
+        import rclpy
+
+        node = rclpy.create_node("bridge_offset_sub", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        got: dict[int, list[float]] = {16: [], 8: []}  # by width: phone A, phone B
+        node.create_subscription(
+            CameraInfo,
+            "/iphone/depth/camera_info",
+            lambda m: got[m.width].append(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec),
+            SENSOR_QOS,
+        )
+        wait_listening(port, proc)
+        assert spin_until(ex, lambda: node.count_publishers("/iphone/depth/camera_info") == 1, 20)
+        spin_until(ex, lambda: False, 0.5)  # let the reader/writer pair finish matching
+        with (
+            bp.connect("127.0.0.1", port, name="A", timeout=3) as a,
+            bp.connect("127.0.0.1", port, name="B", timeout=3) as b,
+        ):
+            for i in range(4):
+                a.sendall(_frame(1000.0 + 0.1 * i))
+                spin_until(ex, lambda: False, 0.1)
+                b.sendall(_frame(5.0 + 0.1 * i, w=8, h=6))
+                spin_until(ex, lambda: False, 0.1)
+            spin_until(ex, lambda: len(got[16]) == 4 and len(got[8]) == 4, 5)
+        node.destroy_node()
+        ex.shutdown()
+    for stamps in got.values():
+        assert len(stamps) == 4, got
+        np.testing.assert_allclose(np.diff(stamps), 0.1, atol=1e-4)
+
+
 def test_depth_to_cloud_matches_streams_by_stamp() -> None:
     """16UC1 depth + CameraInfo + confidence arriving in any order -> one cloud per full set;
     a depth image whose camera info never comes produces nothing."""

@@ -78,6 +78,8 @@ def _patch_header(raw: bytes, fmt_index: int, value: object) -> bytes:
     [
         (0, float("nan"), "bad_stamp"),
         (0, -1.0, "bad_stamp"),
+        (0, 1e300, "bad_stamp"),  # finite, but no builtin_interfaces/Time holds it
+        (0, 2.0**31 - 1, "bad_stamp"),
         (2, 0, "bad_size"),
         (2, 9, "size_mismatch"),
         (4, 0.0, "bad_intrinsics"),
@@ -100,6 +102,29 @@ def test_bad_frames_are_rejected_and_stream_stays_in_sync(
     assert [m.seq for m in out] == [5]  # type: ignore[union-attr]
     (err,) = dec.pop_errors()
     assert err.reason == reason and not err.fatal and str(err)
+
+
+def test_largest_stamp_still_publishable() -> None:
+    from wheelgrid_mapping.iphone_bridge_node import stamp_to_msg
+
+    stamp = np.nextafter(bp.MAX_STAMP_S, 0.0)
+    (f,) = bp.FrameDecoder().feed(bp.encode_frame(stamp, K, np.ones((2, 2), np.float32)))
+    assert stamp_to_msg(f.stamp).sec == 2**31 - 2  # fits int32, nanoseconds did not carry
+
+
+def test_feed_ordered_reports_errors_where_they_were() -> None:
+    """The server counts bad messages *in a row*: it needs them in stream order."""
+    bad = _patch_header(_frame_bytes(pose=np.eye(4)), 14, 0.0)  # |q| = 0: bad_pose
+    dec = bp.FrameDecoder()
+    items = dec.feed_ordered(bad + _frame_bytes(seq=1) + bad + bad + _frame_bytes(seq=2))
+    kinds = [
+        it.reason if isinstance(it, bp.ProtocolError) else getattr(it, "seq", None) for it in items
+    ]
+    assert kinds == ["bad_pose", 1, "bad_pose", "bad_pose", 2]
+    assert dec.errors == []  # returned, not queued as well
+    # feed() keeps its contract: messages returned, errors queued
+    assert [m.seq for m in dec.feed(bad + _frame_bytes(seq=3))] == [3]  # type: ignore[union-attr]
+    assert [e.reason for e in dec.pop_errors()] == ["bad_pose"]
 
 
 def test_oversized_is_skipped_without_buffering() -> None:

@@ -176,6 +176,174 @@ def test_on_frame_exception_is_logged_not_fatal() -> None:
         srv.stop()
 
 
+def bad_pose_frame(seq: int = 99) -> bytes:
+    """A well-framed FRAME whose quaternion is zero: rejected as bad_pose, stream kept."""
+    raw = frame(seq)
+    fields = list(bp.FRAME_HEADER.unpack_from(raw, bp.PREFIX.size))
+    fields[11:15] = [0.0, 0.0, 0.0, 0.0]
+    head = bp.PREFIX.size + bp.FRAME_HEADER.size
+    return raw[: bp.PREFIX.size] + bp.FRAME_HEADER.pack(*fields) + raw[head:]
+
+
+def read_status(sock: socket.socket, timeout: float = 3.0) -> bp.Status | None:
+    """The first STATUS the bridge sends, or None if it closes without one."""
+    sock.settimeout(timeout)
+    dec = bp.FrameDecoder(accept=(bp.MSG_STATUS,))
+    while data := sock.recv(4096):
+        for m in dec.feed(data):
+            assert isinstance(m, bp.Status)
+            return m
+    return None
+
+
+def test_a_logger_that_raises_does_not_kill_the_server() -> None:
+    """rclpy raised from the node's log callback on the first warning; the server thread died
+    and every later client timed out. The server must survive its own logging."""
+    rec = Recorder()
+
+    def rclpy_like(level: str, text: str) -> None:
+        if level != "info":
+            raise ValueError("Logger severity cannot be changed between calls.")
+        rec.log(level, text)
+
+    srv = bp.BridgeServer(rec.on_frame, rclpy_like, port=0, token="t")
+    srv.start()
+    try:
+        with pytest.raises(ConnectionError, match="wrong token"):  # a warning
+            bp.connect("127.0.0.1", srv.port, token="x", timeout=2)
+        with bp.connect("127.0.0.1", srv.port, token="t", timeout=2) as sock:
+            sock.sendall(bad_pose_frame() + frame(1))  # another warning, then a good frame
+            assert wait_for(lambda: len(rec.frames) == 1, 2)
+        assert wait_for(lambda: srv.clients == 0, 2)
+        with bp.connect("127.0.0.1", srv.port, token="t", timeout=2) as sock:  # still serving
+            sock.sendall(frame(2))
+            assert wait_for(lambda: len(rec.frames) == 2, 2)
+        assert srv.messages_rejected == 1
+    finally:
+        srv.stop()
+
+
+def test_client_silent_after_hello_is_dropped_and_the_phone_gets_back_in() -> None:
+    """A phone that loses Wi-Fi mid-frame sends no FIN: its slot must free up, not be held
+    forever while its reconnect is refused as busy; a steady stream is never idle."""
+    with server(idle_timeout_s=0.4) as (srv, rec):
+        with bp.connect("127.0.0.1", srv.port, name="streaming", timeout=2) as sock:
+            for i in range(8):  # 10 Hz for 0.8 s: twice the idle timeout, never idle
+                sock.sendall(frame(i))
+                time.sleep(0.1)
+            assert wait_for(lambda: len(rec.frames) == 8, 2) and srv.clients == 1
+        assert wait_for(lambda: srv.clients == 0, 2)
+        lost = bp.connect("127.0.0.1", srv.port, name="lost wifi", timeout=2)
+        with lost:
+            half = frame(9)
+            lost.sendall(half[: len(half) // 2])
+            t0 = time.monotonic()
+            status = read_status(lost)
+            assert status is not None and "idle" in status.text
+            assert time.monotonic() - t0 < 2.0
+            with bp.connect("127.0.0.1", srv.port, name="back", timeout=2) as sock:
+                sock.sendall(frame(10))
+                assert wait_for(lambda: len(rec.frames) == 9, 2)
+        assert rec.logged("sent nothing for") and srv.clients_timed_out == 1
+
+
+def test_connections_without_hello_do_not_keep_the_phone_out() -> None:
+    """Silent pre-HELLO sockets (a port scan, a stuck app) count against the pending bound,
+    not against max_clients: the phone's HELLO is accepted at once."""
+    with server(hello_timeout_s=5.0) as (srv, rec):
+        silent = [
+            socket.create_connection(("127.0.0.1", srv.port), timeout=2)
+            for _ in range(bp.MAX_PENDING + 2)
+        ]
+        try:
+            assert wait_for(lambda: len(srv._clients) == bp.MAX_PENDING, 2)
+            with bp.connect("127.0.0.1", srv.port, name="phone", timeout=2) as sock:
+                sock.sendall(frame(1))
+                assert wait_for(lambda: len(rec.frames) == 1, 2)
+            # the oldest silent ones were told why they were dropped
+            first = read_status(silent[0])
+            assert first is not None and first.code == bp.STATUS_BUSY
+        finally:
+            for s in silent:
+                s.close()
+
+
+def test_errors_in_a_row_means_consecutive_messages() -> None:
+    """Bad and good alternating is never two bad in a row, however the bytes are chunked."""
+    with server(max_errors_in_row=3) as (srv, rec):
+        with bp.connect("127.0.0.1", srv.port, timeout=2) as sock:
+            sock.sendall(b"".join(bad_pose_frame() + frame(i) for i in range(30)))
+            assert wait_for(lambda: len(rec.frames) == 30, 3)
+            assert srv.clients == 1 and srv.messages_rejected == 30
+            sock.sendall(bad_pose_frame() * 4)  # now four in a row: closed
+            status = read_status(sock)
+            assert status is not None and status.text == "too many bad messages"
+        assert not rec.logged("30 bad messages")
+
+
+def test_rejected_messages_logged_once_per_reason_and_client_but_all_counted() -> None:
+    with server() as (srv, rec):
+        for client in range(2):
+            with bp.connect("127.0.0.1", srv.port, name=f"c{client}", timeout=2) as sock:
+                short = bp.PREFIX.pack(bp.MAGIC, bp.VERSION, bp.MSG_FRAME, 0, 4) + b"abcd"
+                for i in range(50):
+                    sock.sendall(bad_pose_frame() * 10 + short + frame(i))
+                assert wait_for(lambda c=client: len(rec.frames) == 50 * (c + 1), 5)
+            assert wait_for(lambda: srv.clients == 0, 2)
+        with rec.lock:
+            lines = [t for _, t in rec.logs]
+        assert sum("message rejected: bad_pose" in t for t in lines) == 2  # once per client
+        assert sum("message rejected: short_frame" in t for t in lines) == 2
+        assert srv.messages_rejected == 2 * 550
+        assert srv.rejected_by_reason == {"bad_pose": 1000, "short_frame": 100}
+        assert sum("bad_pose x500, short_frame x50" in t for t in lines) == 2  # on leaving
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"port": -1},
+        {"port": 70_000},
+        {"port": "8765"},
+        {"max_clients": 0},
+        {"hello_timeout_s": float("nan")},
+        {"hello_timeout_s": -1.0},
+        {"hello_timeout_s": float("inf")},
+        {"idle_timeout_s": 0.0},
+        {"idle_timeout_s": float("nan")},
+        {"max_frame_bytes": 0},
+        {"max_frame_bytes": -5},
+        {"max_frame_bytes": bp.MAX_HELLO_BYTES - 1},  # the longest HELLO would be oversized
+        {"max_frame_bytes": bp.MAX_FRAME_LIMIT + 1},
+        {"max_errors_in_row": 0},
+        {"max_errors_in_row": -1},
+        {"token": "x" * (bp.MAX_TOKEN_BYTES + 1)},  # no HELLO could carry it
+    ],
+)
+def test_bad_settings_are_refused_before_listening(kw: dict[str, object]) -> None:
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        bp.BridgeServer(lambda f, c: None, lambda lv, t: None, **kw)  # type: ignore[arg-type]
+
+
+def test_client_ids_are_unique_and_disconnect_is_reported() -> None:
+    """The node keys per-connection state (the clock offset) by the id given to on_frame; it
+    must never be reused, and on_disconnect lets the node forget it."""
+    rec = Recorder()
+    seen: list[int] = []
+    gone: list[int] = []
+    srv = bp.BridgeServer(lambda f, c: seen.append(c), rec.log, port=0, on_disconnect=gone.append)
+    srv.start()
+    try:
+        for i in range(5):
+            with bp.connect("127.0.0.1", srv.port, timeout=2) as sock:
+                sock.sendall(frame(i))
+                assert wait_for(lambda n=i: len(seen) == n + 1, 2)
+            assert wait_for(lambda n=i: len(gone) == n + 1, 2)
+        assert len(set(seen)) == 5 and gone == seen
+    finally:
+        srv.stop()
+
+
 # ---- fuzzing the running server over TCP: it must keep serving whatever a client sends ------
 
 from hypothesis import HealthCheck, given, settings  # noqa: E402

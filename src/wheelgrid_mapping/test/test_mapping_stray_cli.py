@@ -114,7 +114,7 @@ def test_stream_stray_exit_codes(
     # each of these was a traceback: int("²"), an overflowed sleep until a frame's slot
     assert stream_main([str(cap), "--to", "127.0.0.1:\u00b2"]) == 2
     assert stream_main([str(cap), "--rate", "1e-300"]) == 2
-    assert "--rate must be 0 (unpaced) or 0.01..1000" in capsys.readouterr().err
+    assert "--rate must be 0 (unpaced) or 0.1..1000" in capsys.readouterr().err
     assert import_main([str(cap), "--out", str(tmp_path / "b"), "--min-confidence", "5"]) == 2
     assert "--min-confidence must be 0, 1 or 2" in capsys.readouterr().err
 

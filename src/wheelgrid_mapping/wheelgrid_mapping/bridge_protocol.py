@@ -18,16 +18,19 @@ All integers and floats are little-endian.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hmac
 import ipaddress
+import itertools
 import math
 import selectors
 import socket
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -63,12 +66,21 @@ MAX_DIMENSION = 4096  # largest width or height (pixels)
 MAX_TOKEN_BYTES = 256
 MAX_NAME_BYTES = 256
 MAX_STATUS_TEXT_BYTES = 1024
+# Stamps become builtin_interfaces/Time (int32 seconds, and a fraction that may round up to
+# the next second): anything at or past this would overflow when published.
+MAX_STAMP_S = float(2**31 - 1)
 
 PREFIX = struct.Struct("<4sBBHI")  # magic, version, type, flags (0), body length
 # stamp, seq, width, height, fx, fy, cx, cy, tx, ty, tz, qx, qy, qz, qw,
 # depth encoding, confidence encoding, pose axes, reserved
 FRAME_HEADER = struct.Struct("<dIHH4d7dBBBB")
 _U16 = struct.Struct("<H")
+# Bounds for a receiver's ``max_frame_bytes``: below the largest HELLO a phone may be unable to
+# say hello at all; above the largest valid frame (4096 x 4096 float32 depth + confidence) a
+# limit only lets a peer make the receiver buffer more.
+MAX_HELLO_BYTES = 2 + MAX_TOKEN_BYTES + 2 + MAX_NAME_BYTES
+MIN_FRAME_LIMIT = max(MAX_HELLO_BYTES, FRAME_HEADER.size + 5)
+MAX_FRAME_LIMIT = FRAME_HEADER.size + MAX_DIMENSION * MAX_DIMENSION * (4 + 1)
 
 
 class ProtocolError(ValueError):
@@ -270,8 +282,13 @@ def decode_frame(body: bytes) -> Frame:
     (stamp, seq, w, h, fx, fy, cx, cy, *tq, enc, conf_enc, axes, _res) = FRAME_HEADER.unpack_from(
         body
     )
-    if not math.isfinite(stamp) or stamp < 0:
-        raise ProtocolError("bad_stamp", f"stamp {stamp!r} is not a finite time >= 0")
+    if not (math.isfinite(stamp) and 0 <= stamp < MAX_STAMP_S):
+        # checked here, not at publish time: a stamp ROS cannot hold raised out of publish
+        raise ProtocolError(
+            "bad_stamp",
+            f"stamp {stamp!r} is not a time in [0, {MAX_STAMP_S:.0f}) s "
+            "(builtin_interfaces/Time holds int32 seconds)",
+        )
     if not (0 < w <= MAX_DIMENSION and 0 < h <= MAX_DIMENSION):
         raise ProtocolError("bad_size", f"{w}x{h} outside 1..{MAX_DIMENSION}")
     if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
@@ -326,6 +343,8 @@ class FrameDecoder:
 
     Recoverable problems (bad content, oversized body, unknown type) drop that one message and
     are queued in :attr:`errors` (take them with :meth:`pop_errors`); the stream stays usable.
+    :meth:`feed_ordered` returns them instead, in stream order among the messages, for a
+    receiver that must tell "bad, good, bad" from "bad, bad, bad".
     A fatal problem (bad magic or version) raises ProtocolError(fatal=True) -- deferred to the
     next ``feed`` if messages were already decoded in this call -- and :attr:`failed` stays true.
     Memory is bounded by ``max_frame_bytes`` plus one prefix, whatever the peer sends.
@@ -350,6 +369,11 @@ class FrameDecoder:
         return self._fatal is not None
 
     @property
+    def fatal(self) -> ProtocolError | None:
+        """The error that lost the framing, once :attr:`failed`."""
+        return self._fatal
+
+    @property
     def buffered(self) -> int:
         """Bytes held right now (for memory-bound checks)."""
         return len(self._buf)
@@ -359,10 +383,24 @@ class FrameDecoder:
         return out
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        out: list[Message] = []
+        for item in self.feed_ordered(data):
+            if isinstance(item, ProtocolError):
+                self.errors.append(item)
+            else:
+                out.append(item)
+        if not out and self._fatal is not None:
+            raise self._fatal  # nothing decoded to hand over first: fail now
+        return out
+
+    def feed_ordered(self, data: bytes | bytearray | memoryview) -> list[Message | ProtocolError]:
+        """Like :meth:`feed`, but each recoverable error is an item of the list, where its
+        message was in the stream (nothing goes to :attr:`errors`). A fatal error is raised,
+        deferred to the next call if this one already has items to return."""
         if self._fatal is not None:
             raise self._fatal
         self.bytes_in += len(data)
-        out: list[Message] = []
+        out: list[Message | ProtocolError] = []
         view = memoryview(data)
         while True:
             if self._skip:
@@ -383,7 +421,7 @@ class FrameDecoder:
             if version != VERSION:
                 return self._fail(out, "bad_version", f"protocol version {version}, want {VERSION}")
             if length > self.max_frame_bytes:
-                self.errors.append(
+                out.append(
                     ProtocolError(
                         "oversized",
                         f"message of {length} B exceeds the {self.max_frame_bytes} B limit",
@@ -400,9 +438,7 @@ class FrameDecoder:
             body = bytes(self._buf[PREFIX.size : PREFIX.size + length])
             self._buf.clear()
             if mtype not in self.accept:
-                self.errors.append(
-                    ProtocolError("unexpected_type", f"message type {mtype} skipped")
-                )
+                out.append(ProtocolError("unexpected_type", f"message type {mtype} skipped"))
                 continue
             try:
                 if mtype == MSG_FRAME:
@@ -413,10 +449,12 @@ class FrameDecoder:
                     out.append(decode_status(body))
                 self.messages_out += 1
             except ProtocolError as exc:
-                self.errors.append(exc)
+                out.append(exc)
         return out
 
-    def _fail(self, out: list[Message], reason: str, detail: str) -> list[Message]:
+    def _fail(
+        self, out: list[Message | ProtocolError], reason: str, detail: str
+    ) -> list[Message | ProtocolError]:
         self._fatal = ProtocolError(reason, detail, fatal=True)
         self._buf.clear()
         if out:
@@ -437,15 +475,62 @@ def is_loopback(address: str) -> bool:
         return False
 
 
+# Connections that have not sent HELLO yet. They do not count against ``max_clients`` (a port
+# scan or a stuck socket must not keep the phone out); this bounds them instead, and when it is
+# reached the oldest one makes room for the newest, so a phone that connects and says HELLO at
+# once always gets in.
+MAX_PENDING = 8
+# A cause that repeats (the same bad message at 60 Hz, a client retrying a wrong token) is
+# logged at once, then at most this often, with how many were held back.
+LOG_REPEAT_S = 60.0
+
+
+class _LogOnce:
+    """First occurrence of each key now, then at most one per ``period`` s."""
+
+    def __init__(self, period: float = LOG_REPEAT_S) -> None:
+        self.period = period
+        self._seen: dict[str, tuple[float, int]] = {}  # key -> (last logged, held back since)
+
+    def __call__(self, key: str, now: float) -> int | None:
+        """None: hold this one back; else how many were held back since the key's last line."""
+        last, held = self._seen.get(key, (-math.inf, 0))
+        if now - last < self.period:
+            self._seen[key] = (last, held + 1)
+            return None
+        self._seen[key] = (now, 0)
+        return held
+
+
 @dataclass
 class _Client:
     sock: socket.socket
     addr: str
     decoder: FrameDecoder
     connected_at: float
+    ident: int  # never reused, unlike id(): per-connection state keyed by it cannot leak
+    last_rx: float  # monotonic time of the last byte received (idle timeout)
     authed: bool = False
     name: str = ""
-    errors_in_row: int = 0
+    errors_in_row: int = 0  # consecutive bad messages, in stream order
+    rejected: dict[str, int] = field(default_factory=dict)  # reason -> count
+    log_once: _LogOnce = field(default_factory=_LogOnce)
+
+
+def _as_int(name: str, value: object) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be an integer, not {value!r}")
+    return int(value)
+
+
+def _as_seconds(name: str, value: object) -> float:
+    """A timeout: finite and > 0 (NaN never expired, so a stuck client was never dropped)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+        raise ValueError(f"{name} must be a number of seconds, not {value!r}")
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a finite time > 0 s, not {v}")
+    return v
 
 
 class BridgeServer:
@@ -453,9 +538,13 @@ class BridgeServer:
 
     One thread with a selector serves the listening socket and every client, so a slow or
     hostile client can at worst fill its own bounded decoder. Nothing a client sends can raise
-    out of the thread: every problem becomes a log line (``log(level, text)``) and, when the
-    stream is unusable (bad magic/version, bad token, no HELLO in time, too many bad messages
-    in a row), the connection is closed. Binding beyond loopback requires a token.
+    out of the thread, and neither can a failing ``log``: every problem becomes a log line
+    (``log(level, text)``, once per cause and client, then at most every
+    :data:`LOG_REPEAT_S`; the counters count them all) and, when the stream is unusable (bad
+    magic/version, bad token, no HELLO in time, nothing received for ``idle_timeout_s``, too
+    many bad messages in a row), the connection is closed. ``on_disconnect(client)`` is called
+    when a client that had said HELLO goes. Binding beyond loopback requires a token. Bad
+    settings raise ValueError here, before anything listens.
     """
 
     def __init__(
@@ -469,30 +558,52 @@ class BridgeServer:
         max_clients: int = 1,
         max_frame_bytes: int = MAX_FRAME_BYTES,
         hello_timeout_s: float = 5.0,
+        idle_timeout_s: float = 5.0,
         max_errors_in_row: int = 20,
+        on_disconnect: Callable[[int], None] | None = None,
     ) -> None:
         if not is_loopback(bind_address) and not token:
             raise ValueError(
                 f"refusing to listen on {bind_address} without a token: anyone on the network "
                 "could inject depth frames; set a shared token or bind to 127.0.0.1"
             )
-        if max_clients < 1:
+        port = _as_int("port", port)
+        if not 0 <= port <= 65535:
+            raise ValueError(f"port must be 0..65535 (0 = any free port), not {port}")
+        if len(token.encode("utf-8")) > MAX_TOKEN_BYTES:
+            raise ValueError(f"token is longer than {MAX_TOKEN_BYTES} B: no HELLO could carry it")
+        if _as_int("max_clients", max_clients) < 1:
             raise ValueError("max_clients must be >= 1")
+        max_frame_bytes = _as_int("max_frame_bytes", max_frame_bytes)
+        if not MIN_FRAME_LIMIT <= max_frame_bytes <= MAX_FRAME_LIMIT:
+            raise ValueError(
+                f"max_frame_bytes must be {MIN_FRAME_LIMIT}..{MAX_FRAME_LIMIT} (a HELLO needs "
+                f"up to {MAX_HELLO_BYTES} B, the largest valid frame is {MAX_FRAME_LIMIT} B), "
+                f"not {max_frame_bytes}"
+            )
+        if _as_int("max_errors_in_row", max_errors_in_row) < 1:
+            raise ValueError(f"max_errors_in_row must be >= 1, not {max_errors_in_row}")
+        self.hello_timeout_s = _as_seconds("hello_timeout_s", hello_timeout_s)
+        self.idle_timeout_s = _as_seconds("idle_timeout_s", idle_timeout_s)
         self.on_frame = on_frame
+        self.on_disconnect = on_disconnect
         self.log = log
         self.bind_address = bind_address
-        self.requested_port = int(port)
+        self.requested_port = port
         self.token = token
         self.max_clients = int(max_clients)
-        self.max_frame_bytes = int(max_frame_bytes)
-        self.hello_timeout_s = float(hello_timeout_s)
+        self.max_frame_bytes = max_frame_bytes
         self.max_errors_in_row = int(max_errors_in_row)
         self.port = 0
         self.frames_received = 0
         self.messages_rejected = 0
+        self.rejected_by_reason: dict[str, int] = {}
         self.clients_accepted = 0
         self.clients_refused = 0
+        self.clients_timed_out = 0  # no HELLO in time, or idle after it
         self._clients: dict[int, _Client] = {}
+        self._ids = itertools.count(1)
+        self._log_once = _LogOnce()  # causes that are not one client's (refusals, probes)
         self._listener: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._sel = selectors.DefaultSelector()
@@ -505,9 +616,13 @@ class BridgeServer:
     def start(self) -> None:
         family = socket.AF_INET6 if ":" in self.bind_address else socket.AF_INET
         lst = socket.socket(family, socket.SOCK_STREAM)
-        lst.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        lst.bind((self.bind_address, self.requested_port))
-        lst.listen(4)
+        try:
+            lst.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            lst.bind((self.bind_address, self.requested_port))
+            lst.listen(4)
+        except BaseException:
+            lst.close()
+            raise
         lst.setblocking(False)
         self.port = int(lst.getsockname()[1])
         self._listener = lst
@@ -527,47 +642,92 @@ class BridgeServer:
             self._listener.close()
             self._listener = None
 
+    def _log(self, level: str, text: str) -> None:
+        """``log``, which must not take the thread down: a logger that raised (rclpy refuses a
+        call site that changes severity) once killed the server on its first warning, and its
+        error handler, logging again, could not catch that."""
+        try:
+            self.log(level, text)
+        except Exception as exc:
+            with contextlib.suppress(Exception):
+                print(f"bridge [{level}] {text} (logger failed: {exc!r})", file=sys.stderr)
+
+    def _log_limited(self, c: _Client | None, key: str, level: str, text: str) -> None:
+        held = (self._log_once if c is None else c.log_once)(key, time.monotonic())
+        if held is not None:
+            self._log(level, text + (f" ({held} more like it not logged)" if held else ""))
+
     def _run(self) -> None:
         while not self._stop:
             try:
                 events = self._sel.select(timeout=0.1)
-            except OSError:
-                break
+            except (OSError, ValueError):
+                break  # the selector was closed: stop() is under way
             for key, _ in events:
-                try:
-                    if key.data is None:
-                        self._accept()
-                    else:
-                        self._read(key.data)
-                except Exception as exc:  # never let a client kill the server thread
-                    self.log("error", f"bridge: unexpected {type(exc).__name__}: {exc}")
-                    if key.data is not None:
-                        self._close(key.data, None)
-            now = time.monotonic()
-            for c in list(self._clients.values()):
-                if not c.authed and now - c.connected_at > self.hello_timeout_s:
-                    self.log("warn", f"bridge: {c.addr} sent no HELLO in {self.hello_timeout_s} s")
-                    self._close(c, (STATUS_PROTOCOL_ERROR, "no HELLO in time"))
+                client: _Client | None = key.data
+                if client is None:
+                    self._guarded(self._accept, None)
+                else:
+                    self._guarded(functools.partial(self._read, client), client)
+            self._guarded(self._expire, None)
+
+    def _guarded(self, step: Callable[[], None], c: _Client | None) -> None:
+        try:
+            step()
+        except Exception as exc:  # never let a client kill the server thread
+            self._log("error", f"bridge: unexpected {type(exc).__name__}: {exc}")
+            if c is not None:
+                with contextlib.suppress(Exception):
+                    self._close(c, None)
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for c in list(self._clients.values()):
+            if not c.authed and now - c.connected_at > self.hello_timeout_s:
+                self.clients_timed_out += 1
+                self._log_limited(
+                    None,
+                    "no_hello",
+                    "warn",
+                    f"bridge: {c.addr} sent no HELLO in {self.hello_timeout_s} s; closing",
+                )
+                self._close(c, (STATUS_PROTOCOL_ERROR, "no HELLO in time"))
+            elif c.authed and now - c.last_rx > self.idle_timeout_s:
+                # a phone that lost Wi-Fi sends no FIN: without this it held the slot forever
+                # and its reconnect was refused as busy
+                self.clients_timed_out += 1
+                self._log(
+                    "warn",
+                    f"bridge: {c.addr} ({c.name!r}) sent nothing for {self.idle_timeout_s} s; "
+                    "closing (it may reconnect)",
+                )
+                self._close(c, (STATUS_PROTOCOL_ERROR, "idle timeout"))
 
     def _accept(self) -> None:
         assert self._listener is not None
-        sock, addr = self._listener.accept()
-        peer = f"{addr[0]}:{addr[1]}"
-        if len(self._clients) >= self.max_clients:
-            self.clients_refused += 1
-            self.log("warn", f"bridge: refused {peer}: {self.max_clients} client(s) already")
-            try:
-                sock.settimeout(1.0)
-                sock.sendall(encode_status(STATUS_BUSY, "another client is connected"))
-            except OSError:
-                pass
-            sock.close()
+        try:
+            sock, addr = self._listener.accept()
+        except BlockingIOError:  # the peer gave up between select and accept
             return
+        peer = f"{addr[0]}:{addr[1]}"
+        pending = [c for c in self._clients.values() if not c.authed]
+        if len(pending) >= MAX_PENDING:
+            oldest = min(pending, key=lambda c: c.connected_at)
+            self.clients_refused += 1
+            self._log_limited(
+                None,
+                "pending",
+                "warn",
+                f"bridge: {MAX_PENDING} connections waiting for HELLO; "
+                f"dropped the oldest, {oldest.addr}",
+            )
+            self._close(oldest, (STATUS_BUSY, "too many connections waiting for HELLO"))
         sock.setblocking(False)
-        c = _Client(sock, peer, FrameDecoder(self.max_frame_bytes), time.monotonic())
+        now = time.monotonic()
+        c = _Client(sock, peer, FrameDecoder(self.max_frame_bytes), now, next(self._ids), now)
         self._clients[sock.fileno()] = c
         self._sel.register(sock, selectors.EVENT_READ, c)
-        self.log("info", f"bridge: connection from {peer}")
+        self._log("info", f"bridge: connection from {peer}")
 
     def _send(self, c: _Client, data: bytes) -> None:
         sock = c.sock
@@ -581,6 +741,8 @@ class BridgeServer:
                 sock.setblocking(False)
 
     def _close(self, c: _Client, status: tuple[int, str] | None) -> None:
+        if not any(v is c for v in self._clients.values()):
+            return  # already closed
         if status is not None:
             self._send(c, encode_status(*status))
         with contextlib.suppress(KeyError, ValueError, OSError):
@@ -588,6 +750,14 @@ class BridgeServer:
         self._clients = {k: v for k, v in self._clients.items() if v is not c}
         with contextlib.suppress(OSError):
             c.sock.close()
+        if c.rejected:
+            counts = ", ".join(f"{r} x{n}" for r, n in sorted(c.rejected.items()))
+            self._log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) had rejected: {counts}")
+        if c.authed and self.on_disconnect is not None:
+            try:
+                self.on_disconnect(c.ident)
+            except Exception as exc:
+                self._log("error", f"bridge: disconnect hook failed: {exc}")
 
     def _read(self, c: _Client) -> None:
         try:
@@ -595,51 +765,106 @@ class BridgeServer:
         except BlockingIOError:
             return
         except OSError as exc:
-            self.log("warn", f"bridge: {c.addr} read failed ({exc}); closing")
+            self._log("warn", f"bridge: {c.addr} read failed ({exc}); closing")
             self._close(c, None)
             return
         if not data:
-            self.log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected")
+            self._log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected")
             self._close(c, None)
             return
+        c.last_rx = time.monotonic()
         try:
-            messages = c.decoder.feed(data)
+            items = c.decoder.feed_ordered(data)
         except ProtocolError as exc:
-            self.messages_rejected += 1
-            self.log("error", f"bridge: {c.addr} sent an unusable stream ({exc}); closing")
-            self._close(c, (STATUS_PROTOCOL_ERROR, str(exc)))
+            self._unusable(c, exc)
             return
-        for m in messages:
-            if isinstance(m, Hello):
-                if c.authed:
-                    continue
-                if self.token and not hmac.compare_digest(m.token.encode(), self.token.encode()):
-                    self.clients_refused += 1
-                    self.log("warn", f"bridge: {c.addr} ({m.name!r}) gave a wrong token; closing")
-                    self._close(c, (STATUS_BAD_TOKEN, "wrong token"))
-                    return
-                c.authed, c.name = True, m.name
-                self.clients_accepted += 1
-                self.log("info", f"bridge: {c.addr} accepted as {m.name!r}")
-                self._send(c, encode_status(STATUS_OK, "ok"))
-            elif isinstance(m, Frame):
-                if not c.authed:
-                    self.log("warn", f"bridge: {c.addr} sent a frame before HELLO; closing")
-                    self._close(c, (STATUS_PROTOCOL_ERROR, "HELLO first"))
-                    return
-                c.errors_in_row = 0
-                self.frames_received += 1
-                try:
-                    self.on_frame(m, id(c))
-                except Exception as exc:
-                    self.log("error", f"bridge: frame {m.seq} not published: {exc}")
-        for err in c.decoder.pop_errors():
-            self.messages_rejected += 1
-            c.errors_in_row += 1
-            self.log("warn", f"bridge: {c.addr} message rejected: {err}")
+        for item in items:
+            if isinstance(item, ProtocolError):
+                ok = self._rejected(c, item)
+            elif isinstance(item, Hello):
+                ok = self._hello(c, item)
+            elif isinstance(item, Frame):
+                ok = self._frame(c, item)
+            else:
+                ok = True
+            if not ok:
+                return  # closed
+        if c.decoder.fatal is not None:  # after the good messages before it
+            self._unusable(c, c.decoder.fatal)
+
+    def _unusable(self, c: _Client, exc: ProtocolError) -> None:
+        self.messages_rejected += 1
+        self.rejected_by_reason[exc.reason] = self.rejected_by_reason.get(exc.reason, 0) + 1
+        self._log_limited(
+            None,
+            f"fatal:{exc.reason}",
+            "error",
+            f"bridge: {c.addr} sent an unusable stream ({exc}); closing",
+        )
+        self._close(c, (STATUS_PROTOCOL_ERROR, str(exc)))
+
+    def _rejected(self, c: _Client, err: ProtocolError) -> bool:
+        self.messages_rejected += 1
+        self.rejected_by_reason[err.reason] = self.rejected_by_reason.get(err.reason, 0) + 1
+        c.rejected[err.reason] = c.rejected.get(err.reason, 0) + 1
+        c.errors_in_row += 1
+        self._log_limited(c, err.reason, "warn", f"bridge: {c.addr} message rejected: {err}")
         if c.errors_in_row > self.max_errors_in_row:
-            self.log("error", f"bridge: {c.addr}: {c.errors_in_row} bad messages in a row; closing")
+            self._log(
+                "error", f"bridge: {c.addr}: {c.errors_in_row} bad messages in a row; closing"
+            )
             self._close(c, (STATUS_PROTOCOL_ERROR, "too many bad messages"))
+            return False
+        return True
+
+    def _hello(self, c: _Client, m: Hello) -> bool:
+        if c.authed:
+            return True
+        if self.token and not hmac.compare_digest(m.token.encode(), self.token.encode()):
+            self.clients_refused += 1
+            self._log_limited(
+                None,
+                "bad_token",
+                "warn",
+                f"bridge: {c.addr} ({m.name!r}) gave a wrong token; closing",
+            )
+            self._close(c, (STATUS_BAD_TOKEN, "wrong token"))
+            return False
+        if self.clients >= self.max_clients:
+            self.clients_refused += 1
+            self._log_limited(
+                None,
+                "busy",
+                "warn",
+                f"bridge: refused {c.addr} ({m.name!r}): {self.max_clients} client(s) already",
+            )
+            self._close(c, (STATUS_BUSY, "another client is connected"))
+            return False
+        c.authed, c.name = True, m.name
+        self.clients_accepted += 1
+        self._log("info", f"bridge: {c.addr} accepted as {m.name!r}")
+        self._send(c, encode_status(STATUS_OK, "ok"))
+        return True
+
+    def _frame(self, c: _Client, m: Frame) -> bool:
+        if not c.authed:
+            self._log_limited(
+                None, "frame_first", "warn", f"bridge: {c.addr} sent a frame before HELLO; closing"
+            )
+            self._close(c, (STATUS_PROTOCOL_ERROR, "HELLO first"))
+            return False
+        c.errors_in_row = 0
+        self.frames_received += 1
+        try:
+            self.on_frame(m, c.ident)
+        except Exception as exc:
+            self._log_limited(
+                c,
+                f"publish:{type(exc).__name__}",
+                "error",
+                f"bridge: frame {m.seq} not published: {exc}",
+            )
+        return True
 
 
 def connect(

@@ -41,7 +41,7 @@ def _fail(code: int, text: str) -> int:
     return code
 
 
-MIN_RATE, MAX_RATE = 0.01, 1000.0  # stream-stray's --rate speed factors
+MIN_RATE, MAX_RATE = 0.1, 1000.0  # --rate: slower than 0.1, a 5 Hz capture trips idle_timeout_s
 
 
 def parse_host_port(text: str) -> tuple[str, int]:

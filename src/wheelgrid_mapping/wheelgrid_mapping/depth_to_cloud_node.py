@@ -10,6 +10,7 @@ publish only images (Record3D-ROS2, ARKit-to-ROS2 bridges).
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +44,41 @@ class DepthToCloudConfig:
     queue_size: int = field(10, "messages kept per stream while waiting for a match")
 
 
+def check_config(cfg: DepthToCloudConfig) -> None:
+    """``ValueError`` for settings the node cannot run with: a queue of 0 or a NaN tolerance
+    matched nothing, and a min_confidence outside ARKit's 0..2 dropped every pixel or none,
+    all without a word."""
+    if not 0 <= cfg.min_confidence <= 2:
+        raise ValueError(
+            f"min_confidence must be 0, 1 or 2 (ARKit's levels), not {cfg.min_confidence}"
+        )
+    if not (math.isfinite(cfg.mm_scale) and cfg.mm_scale > 0):
+        raise ValueError(f"mm_scale must be a finite length > 0 m, not {cfg.mm_scale}")
+    if not (math.isfinite(cfg.sync_tolerance_s) and cfg.sync_tolerance_s >= 0):
+        raise ValueError(
+            f"sync_tolerance_s must be a finite time >= 0 s, not {cfg.sync_tolerance_s}"
+        )
+    if cfg.queue_size < 1:
+        raise ValueError(f"queue_size must be >= 1, not {cfg.queue_size}")
+
+
+def _check_topics(node: Any, cfg: DepthToCloudConfig) -> None:
+    """A bad topic name as one ``ValueError``, not rclpy's traceback from create_*."""
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.expand_topic_name import expand_topic_name
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    for what in ("depth_topic", "info_topic", "confidence_topic", "points_topic"):
+        name = getattr(cfg, what)
+        if what == "confidence_topic" and not name:
+            continue  # no confidence stream
+        try:
+            validate_full_topic_name(expand_topic_name(name, node.get_name(), node.get_namespace()))
+        except (InvalidTopicNameException, ValueError) as exc:
+            why = str(exc).splitlines()[0].split(", at /")[0]  # rcl's source location
+            raise ValueError(f"{what} {name!r}: {why}") from None
+
+
 def _stamp_s(msg: Any) -> float:
     return float(msg.header.stamp.sec) + 1e-9 * float(msg.header.stamp.nanosec)
 
@@ -58,7 +94,13 @@ def _make_node() -> Any:
     class DepthToCloudNode(Node):
         def __init__(self) -> None:
             super().__init__("depth_to_cloud")
-            self.cfg = declare_dataclass(self, DepthToCloudConfig())
+            try:
+                self.cfg = declare_dataclass(self, DepthToCloudConfig())
+                check_config(self.cfg)
+                _check_topics(self, self.cfg)
+            except ValueError as exc:  # as the other nodes: one FATAL line, exit 2
+                self.get_logger().fatal(f"invalid parameters: {exc}")
+                raise SystemExit(2) from exc
             use_conf = bool(self.cfg.confidence_topic)
             streams = ["depth", "info"] + (["conf"] if use_conf else [])
             self.sync = StampSync(streams, self.cfg.sync_tolerance_s, self.cfg.queue_size)

@@ -28,6 +28,7 @@ from wheelgrid_common.params import field
 from wheelgrid_mapping.bridge_protocol import (
     DEPTH_U16_MM,
     MAX_FRAME_BYTES,
+    MAX_STAMP_S,
     BridgeServer,
     Frame,
 )
@@ -55,6 +56,12 @@ class BridgeConfig:
     max_clients: int = field(1, "phones streaming at once; later ones are refused as busy")
     max_frame_bytes: int = field(MAX_FRAME_BYTES, "largest message accepted", "bytes")
     hello_timeout_s: float = field(5.0, "a client that sends no HELLO in this time is dropped", "s")
+    idle_timeout_s: float = field(
+        5.0,
+        "a client that has said HELLO and then sends nothing for this long is dropped, freeing "
+        "its slot (a phone that lost Wi-Fi sends no FIN); a stream of 10+ Hz is never that idle",
+        "s",
+    )
     max_errors_in_row: int = field(20, "bad messages in a row before a client is disconnected")
     min_confidence: int = field(
         1,
@@ -70,6 +77,17 @@ class BridgeConfig:
     )
     camera_frame: str = field(CAMERA_FRAME, "frame_id of images, camera info and points")
     odom_frame: str = field(ODOM_FRAME, "header.frame_id of /iphone/odometry (ARKit world z-up)")
+
+
+def check_config(cfg: BridgeConfig) -> None:
+    """``ValueError`` for the node's own settings; the network ones are
+    :class:`~wheelgrid_mapping.bridge_protocol.BridgeServer`'s to check."""
+    if cfg.stamp_mode not in ("offset", "phone", "receive"):
+        raise ValueError(f"stamp_mode must be offset, phone or receive, not {cfg.stamp_mode!r}")
+    if not 0 <= cfg.min_confidence <= 2:  # 3 would drop every pixel, -1 none: both silently
+        raise ValueError(
+            f"min_confidence must be 0, 1 or 2 (ARKit's levels), not {cfg.min_confidence}"
+        )
 
 
 def stamp_to_msg(seconds: float) -> Any:
@@ -200,13 +218,27 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
     class IPhoneBridgeNode(Node):
         def __init__(self) -> None:
             super().__init__("iphone_bridge")
-            self.cfg = declare_dataclass(self, cfg_override or BridgeConfig())
-            if self.cfg.stamp_mode not in ("offset", "phone", "receive"):
-                self.get_logger().fatal(
-                    f"stamp_mode must be offset, phone or receive, not {self.cfg.stamp_mode!r}"
+            log = self.get_logger()
+            try:
+                self.cfg = declare_dataclass(self, cfg_override or BridgeConfig())
+                check_config(self.cfg)
+                token = self.cfg.token or os.environ.get(TOKEN_ENV, "")
+                server = BridgeServer(
+                    self._on_frame,
+                    self._log,
+                    bind_address=self.cfg.bind_address,
+                    port=self.cfg.port,
+                    token=token,
+                    max_clients=self.cfg.max_clients,
+                    max_frame_bytes=self.cfg.max_frame_bytes,
+                    hello_timeout_s=self.cfg.hello_timeout_s,
+                    idle_timeout_s=self.cfg.idle_timeout_s,
+                    max_errors_in_row=self.cfg.max_errors_in_row,
+                    on_disconnect=self._on_disconnect,
                 )
-                raise SystemExit(2)
-            token = self.cfg.token or os.environ.get(TOKEN_ENV, "")
+            except (ValueError, OverflowError) as exc:  # as the other nodes: one FATAL, exit 2
+                log.fatal(f"invalid parameters: {exc}")
+                raise SystemExit(2) from exc
             self._pubs = {
                 TOPIC_DEPTH: self.create_publisher(Image, TOPIC_DEPTH, SENSOR_QOS),
                 TOPIC_INFO: self.create_publisher(CameraInfo, TOPIC_INFO, SENSOR_QOS),
@@ -216,25 +248,15 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
             }
             self._status_pub = self.create_publisher(DiagnosticArray, TOPIC_STATUS, RELIABLE_QOS)
             self._lock = threading.Lock()
-            self._offsets: dict[int, float] = {}
+            self._offsets: dict[int, float] = {}  # client -> ROS time - phone time
             self.frames_published = 0
             self.frames_without_pose = 0
-            log = self.get_logger()
-            server_args = dict(
-                bind_address=self.cfg.bind_address,
-                port=self.cfg.port,
-                token=token,
-                max_clients=self.cfg.max_clients,
-                max_frame_bytes=self.cfg.max_frame_bytes,
-                hello_timeout_s=self.cfg.hello_timeout_s,
-                max_errors_in_row=self.cfg.max_errors_in_row,
-            )
             try:
-                self.server = BridgeServer(self._on_frame, self._log, **server_args)
-                self.server.start()
-            except (ValueError, OSError) as exc:  # unsafe config or port taken: say so, exit 2
+                server.start()
+            except (OSError, OverflowError) as exc:  # port taken, address not ours: exit 2
                 log.fatal(f"cannot start: {exc}")
                 raise SystemExit(2) from exc
+            self.server = server
             log.info(
                 f"listening on {self.cfg.bind_address}:{self.server.port} "
                 f"(token {'required' if token else 'not required: loopback only'})"
@@ -243,8 +265,15 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
             self.create_timer(1.0, self._publish_status)
 
         def _log(self, level: str, text: str) -> None:
+            # One call per severity: rclpy raises when one call site logs at two severities,
+            # and a single shared call killed the server thread on its first warning.
             log = self.get_logger()
-            {"info": log.info, "error": log.error}.get(level, log.warning)(text)
+            if level == "info":
+                log.info(text)
+            elif level == "error":
+                log.error(text)
+            else:
+                log.warning(text)
 
         def _stamp(self, frame: Frame, client: int) -> float:
             now = self.get_clock().now().nanoseconds * 1e-9
@@ -252,9 +281,18 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
                 return now
             if self.cfg.stamp_mode == "phone":
                 return frame.stamp
-            if client not in self._offsets:
-                self._offsets = {client: now - frame.stamp}  # new connection: new phone clock
-            return frame.stamp + self._offsets[client]
+            if client not in self._offsets:  # new connection: new phone clock
+                self._offsets[client] = now - frame.stamp
+            stamp = frame.stamp + self._offsets[client]
+            if not 0 <= stamp < MAX_STAMP_S:  # the phone clock jumped by decades
+                raise ValueError(
+                    f"stamp {frame.stamp} s shifted to {stamp:.3f} s is outside what a ROS "
+                    "Time holds"
+                )
+            return stamp
+
+        def _on_disconnect(self, client: int) -> None:
+            self._offsets.pop(client, None)
 
         def _on_frame(self, frame: Frame, client: int) -> None:
             msgs = frame_messages(
@@ -282,7 +320,13 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
                 "frames_published": self.frames_published,
                 "frames_without_pose": self.frames_without_pose,
                 "messages_rejected": s.messages_rejected,
+                "rejected_by_reason": ", ".join(
+                    # a copy: the server thread may add a reason meanwhile
+                    f"{r} {n}"
+                    for r, n in sorted(dict(s.rejected_by_reason).items())
+                ),
                 "clients_refused": s.clients_refused,
+                "clients_timed_out": s.clients_timed_out,
             }
             st = DiagnosticStatus(
                 level=DiagnosticStatus.OK if s.clients else DiagnosticStatus.WARN,
