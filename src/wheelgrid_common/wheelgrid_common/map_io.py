@@ -249,6 +249,15 @@ def from_occupancy_grid(msg: Any) -> Grid:
     if flat.size != rows * cols:
         raise ValueError(f"OccupancyGrid has {flat.size} cells, info says {rows}x{cols}")
     q = msg.info.origin.orientation
+    res = float(msg.info.resolution)
+    position = (float(msg.info.origin.position.x), float(msg.info.origin.position.y))
+    quat = (float(q.x), float(q.y), float(q.z), float(q.w))
+    # A NaN or zero resolution or origin puts every cell nowhere: taken as valid, the drive
+    # node checked a plan's cells against it and let the plan run to its end.
+    if not (math.isfinite(res) and res > 0):
+        raise ValueError(f"OccupancyGrid resolution {res} is not a finite size > 0")
+    if not all(math.isfinite(v) for v in (*position, *quat)) or math.hypot(*quat) < 1e-6:
+        raise ValueError(f"OccupancyGrid origin {position}, orientation {quat} is not a pose")
     yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
     return Grid(
         data=np.flipud(flat.reshape(rows, cols)).copy(),

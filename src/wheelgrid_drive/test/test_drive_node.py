@@ -330,3 +330,96 @@ def test_link_settings_it_cannot_run_with_stop_the_node_with_exit_2():
     done = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stderr
     assert "invalid parameters: retries must be in 0..20" in done.stderr + done.stdout
+
+
+@pytest.mark.parametrize(
+    "param",
+    ["cmd_vel_timeout:=.nan", "linear_deadband:=-1.0", "state_rate:=0.0", "initial_heading:=north"],
+)
+def test_settings_that_would_drive_unsafely_stop_the_node_with_exit_2(param):
+    """A NaN cmd_vel_timeout let one Twist drive on for ever; a negative deadband turned a
+    zero Twist into a move."""
+    import subprocess
+    import sys
+
+    from wheelgrid_common.ros_env import child_env
+
+    args = [sys.executable, "-m", "wheelgrid_drive.drive_node", "--ros-args", "-p", param]
+    done = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "invalid parameters" in done.stderr + done.stdout
+
+
+def test_a_grid_that_moves_under_a_running_plan_stops_it(make_sim):
+    """The same cells on a grid shifted by one cell are other places: the runner checked the
+    next cell by index on the new grid, and the chair drove into the occupied one."""
+    sim = make_sim(time_scale=1.0)
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+        x0, y0, yaw = grid.origin
+        shifted = Grid(grid.data.copy(), grid.resolution, (x0 + grid.resolution, y0, yaw))
+        h.pub_grid.publish(to_occupancy_grid(shifted))
+        assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
+        assert h.spin(lambda: any("origin or frame changed" in s.message for s in h.states), 3.0)
+        h.spin(lambda: False, 0.5)
+        assert sim_moves(sim) == ["FORWARD"]  # never the next step, on either grid
+
+
+def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
+    """A parked plan does not survive an e-stop; a pose in another frame, a path of 100k
+    poses, a grid of resolution NaN and a Twist of inf are refused; the chair never moves."""
+    sim = make_sim()
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.publish_plan(grid, [(3, 0), (3, 1)])  # parked: no grid yet
+        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+        h.pub_estop.publish(h.Bool(data=True))
+        assert h.spin(lambda: h.drive._estop, 3.0)
+        h.pub_estop.publish(h.Bool(data=False))
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+        h.pub_grid.publish(to_occupancy_grid(grid))  # the parked plan used to drive now
+        assert h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.spin(lambda: False, 0.5)
+        assert sim_moves(sim) == [] and h.drive._pending_plan is None
+
+        path = h.Path()
+        path.header.frame_id = "map"
+        for r, c in [(3, 0), (3, 1)]:
+            ps = h.PoseStamped()
+            ps.header.frame_id = "odom"  # the header says map, each pose says odom
+            x, y = grid.cell_center(r, c)
+            ps.pose.position.x, ps.pose.position.y = float(x), float(y)
+            ps.pose.orientation.w = 1.0
+            path.poses.append(ps)
+        h.pub_plan.publish(path)
+        assert h.spin(lambda: any("pose 0 is in frame 'odom'" in s.message for s in h.states))
+        huge = h.Path()
+        huge.header.frame_id = "map"
+        huge.poses = [path.poses[0]] * 100_001
+        h.pub_plan.publish(huge)
+        assert h.spin(lambda: any("100001 poses, more than" in s.message for s in h.states))
+
+        bad = to_occupancy_grid(grid)
+        bad.info.resolution = float("nan")
+        h.pub_grid.publish(bad)
+        assert h.spin(lambda: any("bad safe grid" in s.message for s in h.states))
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        assert h.spin(lambda: h.drive._grid is not None, 5.0)
+        fast = h.Twist()
+        fast.linear.x = float("inf")
+        for _ in range(5):
+            h.pub_twist.publish(fast)
+            h.spin(lambda: False, 0.1)
+        assert sim_moves(sim) == []  # inf drove five cells at full speed

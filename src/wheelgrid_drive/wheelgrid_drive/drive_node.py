@@ -41,11 +41,16 @@ from wheelgrid_drive.runner import (
     cells_from_points,
     dumps_record,
     grid_cell_check,
+    planned_grid_check,
     run_steps,
+    same_geometry,
 )
 
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+MAX_PATH_POSES = 10_000  # a plan's poses: a route across a building is a few hundred cells
 
 
 @dataclass
@@ -78,6 +83,28 @@ class DriveConfig:
     state_rate: float = field(5.0, "drive_state publishing rate", "Hz")
 
 
+def check_config(c: DriveConfig) -> None:
+    """``ValueError`` for settings the node cannot drive safely with (the link's own are
+    :func:`~wheelgrid_drive.link.check_link_settings`'): a NaN ``cmd_vel_timeout`` let one
+    Twist drive on for ever, and a negative deadband turned a zero Twist into a move."""
+    for name in ("cell_size", "cmd_vel_timeout", "linear_deadband", "angular_deadband",
+                 "state_rate", "speed"):  # fmt: skip
+        if not math.isfinite(getattr(c, name)):
+            raise ValueError(f"{name} must be finite, not {getattr(c, name)}")
+    if not 0.0 < c.cmd_vel_timeout <= 5.0:
+        raise ValueError(f"cmd_vel_timeout must be in (0, 5] s, not {c.cmd_vel_timeout}")
+    if c.linear_deadband < 0 or c.angular_deadband < 0:
+        raise ValueError("linear_deadband and angular_deadband must be >= 0")
+    if not 0.0 < c.state_rate <= 100.0:
+        raise ValueError(f"state_rate must be in (0, 100] Hz, not {c.state_rate}")
+    if not 0.001 <= c.cell_size <= proto.MAX_DISTANCE_MM / 1000:
+        raise ValueError(f"cell_size must be in [0.001, 2] m, not {c.cell_size}")
+    if c.initial_heading.strip().lower() not in ("auto", *actions.DELTA):
+        raise ValueError(
+            f"initial_heading must be auto, up, down, left or right, not {c.initial_heading!r}"
+        )
+
+
 class DriveNode(Node):
     def __init__(self, cfg: DriveConfig | None = None, **kwargs: Any) -> None:
         super().__init__("drive", **kwargs)
@@ -101,6 +128,8 @@ class DriveNode(Node):
         self._cmd_vel_active = False
         self._link_note = ""
         self._entering: tuple[int, int] | None = None  # destination of the running command
+        self._job_grid: Grid | None = None  # the grid the running job's cells were read on
+        self._twist_running: str | None = None  # the action of the running /cmd_vel step
 
         pub = self.create_publisher
         self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
@@ -112,6 +141,7 @@ class DriveNode(Node):
         self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
 
         try:
+            check_config(c)
             self.link = MotorLink(
                 c.port,
                 c.baud,
@@ -244,6 +274,10 @@ class DriveNode(Node):
             self._abort_if_moving("no valid safe grid")
             return
         self._grid = grid
+        job_grid = self._job_grid
+        if self._busy() and job_grid is not None and not same_geometry(grid, job_grid):
+            # the running move's cells are other places on this grid: stop, never re-read them
+            self._abort_if_moving("the safe grid's size, resolution, origin or frame changed")
         pending, self._pending_plan = self._pending_plan, None
         if pending is not None and not self._busy():
             self._on_plan(pending)
@@ -263,6 +297,7 @@ class DriveNode(Node):
     def _on_estop(self, msg: Bool) -> None:
         if msg.data:
             self._estop = True
+            self._pending_plan = None  # a plan parked for the grid must not drive after it
             self._abort.set()
             self.link.stop()  # now, from this callback: never queued behind the worker
             self._set_state(ERROR, "e-stop: chair stopped")
@@ -271,6 +306,18 @@ class DriveNode(Node):
             self._set_state(OK, "e-stop cleared (nothing resumes by itself)")
 
     def _on_plan(self, msg: Path) -> None:
+        if self._estop and msg.poses:  # not even parked: nothing resumes after a clear
+            self._pending_plan = None
+            self._set_state(ERROR, "plan refused: e-stop latched")
+            return
+        if len(msg.poses) > MAX_PATH_POSES:
+            # a route across a building is a few hundred cells; more is a broken publisher, and
+            # reading it would hold this executor (and an e-stop behind it) for seconds
+            self._stop_job()
+            self._set_state(
+                ERROR, f"plan refused: {len(msg.poses)} poses, more than {MAX_PATH_POSES}"
+            )
+            return
         if self._grid is None and msg.poses:
             # Latched plan and grid arrive in any order at start-up: keep the plan until the grid
             # is here (it is checked against it then), never run it unchecked.
@@ -279,7 +326,7 @@ class DriveNode(Node):
             return
         self._pending_plan = None
         try:
-            steps, cells = self._steps_from_path(msg)
+            steps, cells, grid = self._steps_from_path(msg)
         except ValueError as exc:
             self._stop_job()
             self._set_state(ERROR, f"plan refused: {exc}")
@@ -291,9 +338,11 @@ class DriveNode(Node):
             self._stop_job()
             self._set_state(OK, "plan has no moves: nothing to do")
             return
-        self._start_job("plan", lambda abort: self._run_plan(steps, cells, abort))
+        self._start_job("plan", lambda abort: self._run_plan(steps, cells, grid, abort))
 
-    def _steps_from_path(self, msg: Path) -> tuple[list[actions.Step], list[tuple[int, int]]]:
+    def _steps_from_path(self, msg: Path) -> tuple[list[actions.Step], list[tuple[int, int]], Grid]:
+        """The plan's steps and cells, and the grid they were read on (the run is checked
+        against that grid's geometry)."""
         grid = self._grid
         if grid is None:
             raise ValueError("no safe grid received yet")
@@ -302,6 +351,12 @@ class DriveNode(Node):
         frame = msg.header.frame_id or (msg.poses[0].header.frame_id if msg.poses else "")
         if frame and frame != grid.frame_id:
             raise ValueError(f"path frame {frame!r} is not the grid frame {grid.frame_id!r}")
+        for i, p in enumerate(msg.poses):  # each pose may name its own frame (no tf here)
+            if p.header.frame_id and p.header.frame_id != grid.frame_id:
+                raise ValueError(
+                    f"path pose {i} is in frame {p.header.frame_id!r}, not the grid's "
+                    f"{grid.frame_id!r}"
+                )
         pts = [(p.pose.position.x, p.pose.position.y) for p in msg.poses]
         cells = cells_from_points(grid, pts)
         heading = self.cfg.initial_heading.strip().lower()
@@ -310,9 +365,17 @@ class DriveNode(Node):
             yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
             heading = actions.heading_from_yaw(yaw, grid.origin[2])
         moves = actions.moves_from_cells(cells)
-        return actions.plan_steps(cells[0], moves, heading), cells
+        return actions.plan_steps(cells[0], moves, heading), cells, grid
 
     def _on_twist(self, msg: Twist) -> None:
+        if not all(math.isfinite(v) for v in (msg.linear.x, msg.angular.z)):
+            # inf drove full speed, NaN turned: a commander this broken gets a stop
+            self.get_logger().warning(
+                f"/cmd_vel with a non-finite value ({msg.linear.x}, {msg.angular.z}) taken as "
+                "a stop",
+                throttle_duration_sec=2.0,
+            )
+            msg = Twist()
         self._last_twist = msg
         self._last_twist_t = time.monotonic()
 
@@ -351,10 +414,13 @@ class DriveNode(Node):
         self._worker.start()
 
     def _run_plan(
-        self, steps: list[actions.Step], cells: list[tuple[int, int]], abort: threading.Event
+        self,
+        steps: list[actions.Step],
+        cells: list[tuple[int, int]],
+        grid: Grid,
+        abort: threading.Event,
     ) -> None:
-        grid = self._grid
-        assert grid is not None
+        self._job_grid = grid
         total = len(steps)
         with self._lock:
             self._progress = (0, total)
@@ -386,7 +452,7 @@ class DriveNode(Node):
             steps,
             distance_m=grid.resolution,
             speed_kmh=self.speed,
-            cell_check=grid_cell_check(lambda: self._grid),
+            cell_check=planned_grid_check(lambda: self._grid, grid),
             abort=abort,
             on_step=on_step,
             on_start=self._on_step_start,
@@ -437,13 +503,16 @@ class DriveNode(Node):
                 self.get_logger().warning(
                     "/cmd_vel ignored while a plan runs", throttle_duration_sec=2.0
                 )
-            elif action is None:
-                self._abort.set()  # the commander asks for zero velocity: stop now
+            elif action != self._twist_running:
+                # zero velocity, or another direction (the joystick reversed): stop now, not
+                # at the end of the cell; the next tick starts the new direction
+                self._abort.set()
                 self.link.stop()
             return
         if action is None:
             return
         self._cmd_vel_active = True
+        self._twist_running = action
         self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort))
 
     def _twist_action(self, t: Twist) -> str | None:
@@ -457,6 +526,7 @@ class DriveNode(Node):
 
     def _run_twist_step(self, action: str, twist: Twist, abort: threading.Event) -> None:
         grid = self._grid
+        self._job_grid = grid
         try:
             st = self.link.status()
             if grid is None:
@@ -482,7 +552,7 @@ class DriveNode(Node):
             [step],
             distance_m=grid.resolution,
             speed_kmh=speed,
-            cell_check=grid_cell_check(lambda: self._grid),
+            cell_check=planned_grid_check(lambda: self._grid, grid),
             abort=abort,
             on_step=lambda s, rec: self._publish_record(rec),
             on_start=self._on_step_start,

@@ -58,6 +58,32 @@ def grid_cell_check(grid_getter: Callable[[], Any]) -> CellCheck:
     return check
 
 
+def same_geometry(a: Any, b: Any) -> bool:
+    """Whether two grids put their cells at the same places (shape, resolution, origin, frame):
+    a cell index means a place only on the grid it was planned on."""
+    return (
+        np.shape(a.data) == np.shape(b.data)
+        and a.resolution == b.resolution
+        and tuple(a.origin) == tuple(b.origin)
+        and a.frame_id == b.frame_id
+    )
+
+
+def planned_grid_check(grid_getter: Callable[[], Any], planned_on: Any) -> CellCheck:
+    """:func:`grid_cell_check` against the latest grid, refusing every cell once that grid no
+    longer has the geometry of ``planned_on``: checked by index on a grid shifted by a cell,
+    a plan's next cell is another place, and a chair was sent into an occupied one."""
+    latest = grid_cell_check(grid_getter)
+
+    def check(cell: tuple[int, int]) -> str | None:
+        grid = grid_getter()
+        if grid is not None and not same_geometry(grid, planned_on):
+            return "the safe grid's size, resolution, origin or frame changed since planning"
+        return latest(cell)
+
+    return check
+
+
 def command_record(step: Step, ack: str, t: float | None = None, **extra: Any) -> dict[str, Any]:
     """The JSON object published per executed command (drive_commands / CLI output)."""
     rec: dict[str, Any] = step.to_json()
