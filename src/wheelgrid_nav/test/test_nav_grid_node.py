@@ -149,3 +149,20 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
         finally:
             ex.shutdown()
             node.destroy_node()
+
+
+@pytest.mark.parametrize(
+    "param", ["max_rate_hz:=1e-12", "max_rate_hz:=.nan", "pixel_size:=1", "floor_clearance:=1.0"]
+)
+def test_bad_parameters_stop_the_grid_node_with_exit_2(param):
+    """1e-12 Hz raised inside create_timer (a traceback), NaN meant "no limit" silently, a
+    wrongly typed value was a traceback, and a 1 m floor clearance made tables floor."""
+    import subprocess
+
+    from wheelgrid_common.ros_env import child_env
+    from wheelgrid_common.testing import python_module
+
+    args = python_module("wheelgrid_nav.grid_node", "--ros-args", "-p", param)
+    proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "FATAL" in proc.stderr + proc.stdout and "Traceback" not in proc.stderr

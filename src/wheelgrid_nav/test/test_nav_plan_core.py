@@ -202,6 +202,13 @@ def test_bad_configs_and_methods_are_rejected():
     for every in (0, -3, 1_000_001, 1_000_000_000):
         with pytest.raises(PlanInputError, match="check_every"):
             plan(g, (2, 0), (6, 5), PlannerConfig(check_every=every))
+    # an infinite or NaN reward never converges: each goal held the node for max_seconds
+    for kw in ({"reward_step": math.nan}, {"reward_goal": math.inf}, {"reward_turn": -math.inf}):
+        with pytest.raises(PlanInputError, match="must be finite"):
+            plan(g, (2, 0), (6, 5), PlannerConfig(**kw))  # type: ignore[arg-type]
+    for kw in ({"max_episodes": -1}, {"replay": -1}, {"agents": -2}):
+        with pytest.raises(PlanInputError, match="max_episodes must be >= 1"):
+            plan(g, (2, 0), (6, 5), PlannerConfig(**kw))  # type: ignore[arg-type]
     # a NaN time limit compares false and would never stop the training
     for seconds in (math.nan, math.inf, 0.0, -1.0):
         with pytest.raises(PlanInputError, match="max_seconds"):

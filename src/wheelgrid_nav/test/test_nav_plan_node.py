@@ -229,7 +229,63 @@ def test_odometry_start_and_console_entry(tmp_path):
             h.close()
 
 
-@pytest.mark.parametrize("param", ["method:=dijkstra", "reward_step:=1.0"])
+def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
+    """A new grid smaller than the route raised IndexError in the grid callback and ended the
+    node; a grid in another frame was planned on with map coordinates; a goal refused for
+    its frame left the old goal, planned to at the next start."""
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        planner = make_node(
+            context=ctx, parameter_overrides=[Parameter("method", value="qlearning")]
+        )
+        h = Harness(ctx)
+        h.ex.add_node(planner)
+        try:
+            assert h.wait_matched()
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            assert spin_until(h.ex, lambda: planner.grid is not None and planner.start, 10.0)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
+            n = len(h.paths)
+            small = Grid(np.zeros((3, 3), np.int8), RES, ORIGIN)
+            h.grid_pub.publish(to_occupancy_grid(small))
+            assert h.next_path(n).poses == []  # (6, 5) is off the 3 x 3 grid: no route
+            assert planner.grid.data.shape == (3, 3)
+
+            n = len(h.paths)
+            other = to_occupancy_grid(grid)
+            other.header.frame_id = "odom"  # start and goal were given in map
+            h.grid_pub.publish(other)
+            assert h.next_path(n).poses == []
+
+            n = len(h.paths)
+            h.grid_pub.publish(to_occupancy_grid(grid))  # back in map: the route again
+            assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
+            n = len(h.paths)
+            refused = goal_msg(grid, (6, 4))
+            refused.header.frame_id = "odom"
+            h.goal_pub.publish(refused)
+            assert h.next_path(n).poses == [] and planner.goal is None
+            plans = planner.plans
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            spin_until(h.ex, lambda: False, 0.5)
+            assert planner.plans == plans  # no goal any more: nothing planned
+        finally:
+            h.ex.remove_node(planner)
+            planner.destroy_node()
+            h.close()
+
+
+@pytest.mark.parametrize(
+    "param",
+    ["method:=dijkstra", "reward_step:=1.0", "learning_rate:=1", "reward_goal:=.inf"],
+)
 def test_bad_parameters_stop_the_node_with_exit_2(param):
     from wheelgrid_common.ros_env import child_env
 

@@ -62,6 +62,7 @@ _MAX_EXTENT = 200.0
 _MAX_COORDINATE = 50_000.0  # m from the origin: beyond it the float32 pass loses millimetres
 _MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pixels
 MIN_PIXEL_SIZE = 0.01  # m
+MAX_FLOOR_CLEARANCE = 0.15  # m: above it, a step is an obstacle to a wheelchair
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
 # height_classes: number of thresholds (-drop_depth, floor_clearance, safe_height) below z ->
 # class (drop 2, floor 0, band 1, above 3).
@@ -222,6 +223,12 @@ class GridConfig:
             raise ValueError("boundary_margin must be <= cell_size and fine_margin in [0, 5] m")
         if not self.safe_height > self.floor_clearance:
             raise ValueError("safe_height must be above floor_clearance")
+        if not 0.0 <= self.floor_clearance <= MAX_FLOOR_CLEARANCE:
+            # 1 m made the 75 cm tables floor, and their cells free
+            raise ValueError(
+                f"floor_clearance must be in [0, {MAX_FLOOR_CLEARANCE}] m (a kerb a chair "
+                f"cannot climb is an obstacle), not {self.floor_clearance}"
+            )
         if not 0.0 <= self.density_threshold < 1.0:
             raise ValueError("density_threshold must be in [0, 1)")
         if self.alignment not in ALIGNMENTS:

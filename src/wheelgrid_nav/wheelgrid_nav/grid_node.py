@@ -14,6 +14,7 @@ values are refused, valid ones recompute the grid from the last good map.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import fields
@@ -37,15 +38,24 @@ SAFE_GRID_TOPIC = "/wheelgrid/safe_grid"
 FINE_MAP_TOPIC = "/map"
 
 
+def check_rate(hz: float) -> None:
+    """``ValueError`` unless ``max_rate_hz`` is a rate a timer can run: NaN and negatives
+    meant "no limit" silently, and 1e-12 raised inside create_timer, after the old timer was
+    gone, ending the node."""
+    if not (math.isfinite(hz) and 0.001 <= hz <= 100.0):
+        raise ValueError(f"max_rate_hz must be in [0.001, 100] Hz, not {hz}")
+
+
 class GridNode(Node):
     """Subscribes the map cloud, publishes the safe grid and the fine map, saves on request."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("grid", **kwargs)
-        self.cfg = params.declare_dataclass(self, GridNodeConfig())
-        self.grid_cfg = grid_config(self.cfg)
-        try:
+        try:  # a wrongly typed value comes out of declare_dataclass as ValueError too
+            self.cfg = params.declare_dataclass(self, GridNodeConfig())
+            self.grid_cfg = grid_config(self.cfg)
             self.grid_cfg.validate()
+            check_rate(self.cfg.max_rate_hz)
         except ValueError as exc:
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
@@ -109,6 +119,7 @@ class GridNode(Node):
             cfg = params.from_mapping(GridNodeConfig, values)
             grid_cfg = grid_config(cfg)
             grid_cfg.validate()
+            check_rate(cfg.max_rate_hz)  # 1e-12 killed the node: its timer went first
         except (TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.cfg, self.grid_cfg = cfg, grid_cfg

@@ -591,6 +591,13 @@ def plan(
 
 def check_config(cfg: PlannerConfig) -> None:
     """Reject settings under which the learned optimum would not be the cheapest route."""
+    for name in ("reward_step", "reward_blocked", "reward_goal", "reward_turn", "reward_backward"):
+        # an infinite or NaN reward never converges: every goal then held the node for
+        # max_seconds and ended "not converged"
+        if not math.isfinite(getattr(cfg, name)):
+            raise PlanInputError(f"{name} must be finite, not {getattr(cfg, name)}")
+    if cfg.max_episodes < 1 or min(cfg.replay, cfg.agents, cfg.max_episode_steps) < 0:
+        raise PlanInputError("max_episodes must be >= 1; replay, agents, max_episode_steps >= 0")
     if not 0.0 < cfg.learning_rate <= 1.0:
         raise PlanInputError("learning_rate must be in (0, 1]")
     if not 0.0 < cfg.discount <= 1.0:

@@ -125,21 +125,25 @@ def _make_node_class() -> type:
 
         def __init__(self, **kwargs: Any) -> None:
             super().__init__("planner", **kwargs)
-            self.node_cfg = declare_dataclass(self, PlannerNodeConfig())
-            self.cfg = declare_dataclass(self, PlannerConfig())
+            try:  # a wrongly typed value comes out of declare_dataclass as ValueError too
+                self.node_cfg = declare_dataclass(self, PlannerNodeConfig())
+                self.cfg = declare_dataclass(self, PlannerConfig())
+                check_config(self.cfg)
+            except ValueError as exc:  # PlanInputError included
+                self.get_logger().fatal(f"bad planner parameters: {exc}")
+                raise SystemExit(2) from None
             if self.node_cfg.method not in METHODS:
                 self.get_logger().fatal(
                     f"unknown method {self.node_cfg.method!r} (use {' or '.join(METHODS)})"
                 )
                 raise SystemExit(2)
-            try:
-                check_config(self.cfg)
-            except PlanInputError as exc:
-                self.get_logger().fatal(f"bad planner parameters: {exc}")
-                raise SystemExit(2) from None
             self.grid: Grid | None = None
             self.start: tuple[float, float, float] | None = None  # x, y, yaw in map
             self.goal: tuple[float, float] | None = None
+            # the frames start and goal were given in ("" = the grid's): a grid that comes in
+            # another frame must not turn their coordinates into cells
+            self.start_frame = ""
+            self.goal_frame = ""
             self.route: list[tuple[int, int]] = []
             self.plans = 0  # planning attempts (for tests and diagnostics)
             self.path_pub = self.create_publisher(Path, "/wheelgrid/plan", MAP_QOS)
@@ -157,7 +161,8 @@ def _make_node_class() -> type:
             expected = self.grid.frame_id if self.grid is not None else "map"
             if frame and frame != expected:
                 self.get_logger().warning(
-                    f"{what} is in frame {frame!r}, the grid in {expected!r}: ignored (no tf)"
+                    f"{what} is in frame {frame!r}, the grid in {expected!r}: ignored (no tf)",
+                    throttle_duration_sec=2.0,  # odometry at 100 Hz in another frame
                 )
                 return False
             return True
@@ -177,14 +182,22 @@ def _make_node_class() -> type:
                 and old.data.shape == grid.data.shape
                 and old.resolution == grid.resolution
                 and old.origin == grid.origin
+                and old.frame_id == grid.frame_id
             )
-            blocked = not self.route or any(grid.data[r, c] != 0 for r, c in self.route)
-            if not same_geometry or blocked:
+            # the route's cells are only indices of the old grid: read on a smaller new one
+            # they raised IndexError and ended the node
+            blocked = (
+                not same_geometry
+                or not self.route
+                or any(grid.data[r, c] != 0 for r, c in self.route)
+            )
+            if blocked:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
 
         def _on_goal(self, msg: Any) -> None:
             if not self._frame_ok(msg.header.frame_id, "goal"):
+                self.goal = None  # refused: a later start or grid must not plan to the old one
                 self._publish_route(None, [])
                 return
             problem = pose_problem(msg.pose)
@@ -194,6 +207,7 @@ def _make_node_class() -> type:
                 self._publish_route(self.grid, [])
                 return
             self.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
+            self.goal_frame = msg.header.frame_id
             self._plan()
 
         def _set_start(self, pose: Any, frame: str, child: str) -> bool:
@@ -210,6 +224,7 @@ def _make_node_class() -> type:
                 float(pose.position.y),
                 forward_yaw(pose.orientation, child),
             )
+            self.start_frame = frame
             return True
 
         def _on_odom(self, msg: Any) -> None:
@@ -229,6 +244,14 @@ def _make_node_class() -> type:
             if self.grid is None or self.start is None or self.goal is None:
                 return
             grid = self.grid
+            for what, frame in (("start", self.start_frame), ("goal", self.goal_frame)):
+                if frame and frame != grid.frame_id:
+                    self.get_logger().warning(
+                        f"the grid is in frame {grid.frame_id!r}, the {what} in {frame!r}: "
+                        "no route (no tf); publishing an empty path"
+                    )
+                    self._publish_route(grid, [])
+                    return
             self.plans += 1
             start = grid.cell_of(self.start[0], self.start[1])
             goal = grid.cell_of(self.goal[0], self.goal[1])
