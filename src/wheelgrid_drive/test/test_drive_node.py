@@ -1,5 +1,6 @@
 """The drive node over real DDS on loopback, driving the simulated controller on a pty."""
 
+import contextlib
 import json
 import math
 import time
@@ -104,6 +105,24 @@ def sim_moves(sim):
     return [e.detail for e in sim.events if e.what == "move"]
 
 
+@contextlib.contextmanager
+def driving_along_row_3(make_sim):
+    """A node and a real-time controller, a grid, then a 4-cell plan along row 3: yields
+    ``(harness, sim, grid)`` once the chair is driving the plan's first cell."""
+    sim = make_sim(time_scale=1.0)
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+        yield h, sim, grid
+
+
 def test_node_drives_the_table_ii_route(make_sim):
     sim = make_sim()
     grid = free_grid()
@@ -131,17 +150,7 @@ def test_node_drives_the_table_ii_route(make_sim):
 
 
 def test_estop_stops_the_chair_at_once_and_latches(make_sim):
-    sim = make_sim(time_scale=1.0)
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
-        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
-        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+    with driving_along_row_3(make_sim) as (h, sim, grid):
         t_pub = time.monotonic()
         h.pub_estop.publish(h.Bool(data=True))
         assert h.spin(
@@ -276,17 +285,7 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim):
 
 
 def test_grid_change_under_a_running_move_stops_the_chair(make_sim):
-    sim = make_sim(time_scale=1.0)
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
-        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2)])
-        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+    with driving_along_row_3(make_sim) as (h, sim, grid):
         blocked = Grid(grid.data.copy(), grid.resolution, grid.origin)
         blocked.data[3, 1] = 100  # someone steps into the cell the chair is entering
         h.pub_grid.publish(to_occupancy_grid(blocked))
@@ -353,17 +352,7 @@ def test_settings_that_would_drive_unsafely_stop_the_node_with_exit_2(param):
 def test_a_grid_that_moves_under_a_running_plan_stops_it(make_sim):
     """The same cells on a grid shifted by one cell are other places: the runner checked the
     next cell by index on the new grid, and the chair drove into the occupied one."""
-    sim = make_sim(time_scale=1.0)
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
-        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
-        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+    with driving_along_row_3(make_sim) as (h, sim, grid):
         x0, y0, yaw = grid.origin
         shifted = Grid(grid.data.copy(), grid.resolution, (x0 + grid.resolution, y0, yaw))
         h.pub_grid.publish(to_occupancy_grid(shifted))
