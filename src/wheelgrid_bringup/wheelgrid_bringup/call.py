@@ -12,7 +12,7 @@ import argparse
 import sys
 import time
 
-from wheelgrid_common.ros_env import configure_ros_env
+from wheelgrid_common.ros_env import configure_ros_env, name_problem
 from wheelgrid_common.testing import call_service, spin_until
 
 
@@ -30,16 +30,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.timeout > 0:
         print(f"wheelgrid call: --timeout must be > 0, not {args.timeout}", file=sys.stderr)
         return 2
-    from rclpy.exceptions import InvalidServiceNameException
-    from rclpy.expand_topic_name import expand_topic_name
-    from rclpy.validate_full_topic_name import validate_full_topic_name
-
-    try:  # before DDS starts: rclpy's own traceback otherwise
-        validate_full_topic_name(
-            expand_topic_name(args.service, "wheelgrid_call", "/"), is_service=True
-        )
-    except (InvalidServiceNameException, ValueError) as exc:
-        why = str(exc).splitlines()[0].split(", at /")[0]  # rcl's source location: noise
+    why = name_problem(args.service, "wheelgrid_call", service=True)  # before DDS starts
+    if why:
         print(f"wheelgrid call: {args.service!r}: {why}", file=sys.stderr)
         return 2
     configure_ros_env()

@@ -76,3 +76,21 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         if rclpy.ok():
             rclpy.shutdown()
     return code
+
+
+def name_problem(
+    name: str, node: str, namespace: str = "/", *, service: bool = False
+) -> str | None:
+    """Why rclpy would refuse ``name`` as a topic (or service) of node ``node``, or None.
+
+    Checked before ``create_*``, which raises rclpy's own traceback for a bad name; the
+    answer is rcl's first line without its source location, for a one-line error."""
+    from rclpy.exceptions import InvalidServiceNameException, InvalidTopicNameException
+    from rclpy.expand_topic_name import expand_topic_name
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    try:
+        validate_full_topic_name(expand_topic_name(name, node, namespace), is_service=service)
+    except (InvalidTopicNameException, InvalidServiceNameException, ValueError) as exc:
+        return str(exc).splitlines()[0].split(", at /")[0]
+    return None

@@ -64,19 +64,15 @@ def check_config(cfg: DepthToCloudConfig) -> None:
 
 def _check_topics(node: Any, cfg: DepthToCloudConfig) -> None:
     """A bad topic name as one ``ValueError``, not rclpy's traceback from create_*."""
-    from rclpy.exceptions import InvalidTopicNameException
-    from rclpy.expand_topic_name import expand_topic_name
-    from rclpy.validate_full_topic_name import validate_full_topic_name
+    from wheelgrid_common.ros_env import name_problem
 
     for what in ("depth_topic", "info_topic", "confidence_topic", "points_topic"):
         name = getattr(cfg, what)
         if what == "confidence_topic" and not name:
             continue  # no confidence stream
-        try:
-            validate_full_topic_name(expand_topic_name(name, node.get_name(), node.get_namespace()))
-        except (InvalidTopicNameException, ValueError) as exc:
-            why = str(exc).splitlines()[0].split(", at /")[0]  # rcl's source location
-            raise ValueError(f"{what} {name!r}: {why}") from None
+        why = name_problem(name, node.get_name(), node.get_namespace())
+        if why:
+            raise ValueError(f"{what} {name!r}: {why}")
 
 
 def _stamp_s(msg: Any) -> float:
