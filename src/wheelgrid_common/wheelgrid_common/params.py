@@ -8,6 +8,7 @@ nodes declare every field as a ROS parameter with that description, so ``--ros-a
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
@@ -69,6 +70,16 @@ def read_yaml(path: str | Path) -> Any:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise ValueError(f"{path}: not valid YAML{where}: {problem}") from None
+
+
+def check_finite(cfg: Any, prefix: str = "") -> None:
+    """``ValueError`` naming the first float field of ``cfg`` that is NaN or infinite: a NaN
+    passes every range test written as a comparison that fails (``x < lo``), so a config's
+    range checks start with this one."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"{prefix}{f.name} must be finite, not {value}")
 
 
 def from_mapping(cls: type[T], values: dict[str, Any], *, strict: bool = True) -> T:

@@ -30,7 +30,7 @@ from rclpy.node import Node
 from std_msgs.msg import Bool, String
 
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
-from wheelgrid_common.params import declare_dataclass, field
+from wheelgrid_common.params import check_finite, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
 from wheelgrid_common.ros_env import spin_node
 from wheelgrid_drive import actions
@@ -87,10 +87,7 @@ def check_config(c: DriveConfig) -> None:
     """``ValueError`` for settings the node cannot drive safely with (the link's own are
     :func:`~wheelgrid_drive.link.check_link_settings`'): a NaN ``cmd_vel_timeout`` let one
     Twist drive on for ever, and a negative deadband turned a zero Twist into a move."""
-    for name in ("cell_size", "cmd_vel_timeout", "linear_deadband", "angular_deadband",
-                 "state_rate", "speed"):  # fmt: skip
-        if not math.isfinite(getattr(c, name)):
-            raise ValueError(f"{name} must be finite, not {getattr(c, name)}")
+    check_finite(c)
     if not 0.0 < c.cmd_vel_timeout <= 5.0:
         raise ValueError(f"cmd_vel_timeout must be in (0, 5] s, not {c.cmd_vel_timeout}")
     if c.linear_deadband < 0 or c.angular_deadband < 0:

@@ -25,8 +25,6 @@ the baseline the benchmarks compare against.
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
@@ -34,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.params import field
+from wheelgrid_common.params import check_finite, field
 
 from .evidence import INVALID_KEY, NEIGHBOUR_KEYS, contains_sorted, voxel_keys_or_invalid
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
@@ -157,10 +155,7 @@ class RegistrationConfig:
     def validate(self) -> None:
         """ValueError for settings that cannot work (checked again when a Registrar starts,
         because a caller may change a field after construction)."""
-        for f in dataclasses.fields(self):  # a NaN passes every range test below
-            value = getattr(self, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise ValueError(f"registration {f.name} must be finite, not {value}")
+        check_finite(self, "registration ")  # a NaN passes every range test below
         # Lengths and times that must be positive: a voxel of -1 m failed every frame with
         # the same error, a fitness cell of 0 called every frame "low overlap".
         for name in (

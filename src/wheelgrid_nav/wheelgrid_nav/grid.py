@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN, Grid
-from wheelgrid_common.params import field
+from wheelgrid_common.params import check_finite, field
 
 ALIGNMENTS = ("walls", "map")
 
@@ -198,10 +198,7 @@ class GridConfig:
         (``min_observed_fraction`` 0 made every unseen cell free), and neither ``floor_fill``
         (at most 20 cm of invented floor) nor ``boundary_margin`` (at most a cell) may stretch
         what was seen. ``pixel_size`` is at least 1 cm: a 1 mm raster of a room took 7 GB."""
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise ValueError(f"{f.name} must be finite, not {value}")
+        check_finite(self)
         self.cell_pixels()
         if self.pixel_size < MIN_PIXEL_SIZE:
             raise ValueError(f"pixel_size must be >= {MIN_PIXEL_SIZE} m, not {self.pixel_size}")
