@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.speed >= MIN_SPEED_KMH:  # NaN too
         return _err(f"--speed must be >= {MIN_SPEED_KMH:g} km/h, not {args.speed:g}")
     try:
-        check_link_settings(args.baud, args.reply_timeout, args.retries, 0.1, 0.5)
+        check_link_settings(args.baud, args.reply_timeout, args.retries)
     except ValueError as exc:
         return _err(f"--{str(exc).replace('_', '-')}")
     if args.speed > proto.MAX_SPEED_KMH:

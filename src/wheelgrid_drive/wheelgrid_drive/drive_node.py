@@ -35,7 +35,7 @@ from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
 from wheelgrid_common.ros_env import spin_node
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
-from wheelgrid_drive.link import LinkError, MotorLink
+from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkError, MotorLink
 from wheelgrid_drive.runner import (
     RunResult,
     cells_from_points,
@@ -63,8 +63,10 @@ class DriveConfig:
     cell_size: float = field(1.2, "step length for /cmd_vel steps when no grid is known", "m")
     reply_timeout: float = field(0.1, "wait for each controller reply before a retry", "s")
     retries: int = field(3, "resends of an unanswered frame before giving up (and STOP)")
-    heartbeat_period: float = field(0.1, "heartbeat (and pose report) period", "s")
-    reconnect_period: float = field(0.5, "retry period to reopen a vanished port", "s")
+    heartbeat_period: float = field(HEARTBEAT_PERIOD_S, "heartbeat (and pose report) period", "s")
+    reconnect_period: float = field(
+        RECONNECT_PERIOD_S, "retry period to reopen a vanished port", "s"
+    )
     cmd_vel_timeout: float = field(0.5, "no /cmd_vel Twist for this long -> STOP", "s")
     initial_heading: str = field(
         "auto",

@@ -71,6 +71,10 @@ def _default_serial_factory(port: str, baud: int) -> Any:
     return serial.Serial(port, baud, timeout=0.02, write_timeout=0.5, exclusive=True)
 
 
+HEARTBEAT_PERIOD_S = 0.1  # 5x faster than the controller's 0.5 s watchdog (protocol duty 3)
+RECONNECT_PERIOD_S = 0.5  # a vanished port is tried again this often (protocol duty 5)
+
+
 class MotorLink:
     """A connection to the motor controller on ``port``. Thread-safe.
 
@@ -87,8 +91,8 @@ class MotorLink:
         *,
         reply_timeout: float = 0.1,
         retries: int = 3,
-        heartbeat_period: float = 0.1,
-        reconnect_period: float = 0.5,
+        heartbeat_period: float = HEARTBEAT_PERIOD_S,
+        reconnect_period: float = RECONNECT_PERIOD_S,
         on_status: Callable[[proto.Status], None] | None = None,
         on_event: EventCallback | None = None,
         serial_factory: Callable[[str, int], Any] = _default_serial_factory,
@@ -467,7 +471,11 @@ def _nak_reason(frame: proto.Frame) -> str:
 
 
 def check_link_settings(
-    baud: int, reply_timeout: float, retries: int, heartbeat_period: float, reconnect_period: float
+    baud: int,
+    reply_timeout: float,
+    retries: int,
+    heartbeat_period: float = HEARTBEAT_PERIOD_S,
+    reconnect_period: float = RECONNECT_PERIOD_S,
 ) -> None:
     """``ValueError`` naming the first setting the link cannot run with. Unchecked, a NaN or
     huge timeout killed the heartbeat thread (OverflowError), ``retries`` -1 never sent a
