@@ -596,8 +596,7 @@ class BridgeServer:
         self.max_errors_in_row = int(max_errors_in_row)
         self.port = 0
         self.frames_received = 0
-        self.messages_rejected = 0
-        self.rejected_by_reason: dict[str, int] = {}
+        self.rejected_by_reason: dict[str, int] = {}  # every rejected message, by reason
         self.clients_accepted = 0
         self.clients_refused = 0
         self.clients_timed_out = 0  # no HELLO in time, or idle after it
@@ -792,9 +791,16 @@ class BridgeServer:
         if c.decoder.fatal is not None:  # after the good messages before it
             self._unusable(c, c.decoder.fatal)
 
+    @property
+    def messages_rejected(self) -> int:
+        # a copy first: the node reads this from its own thread while the server counts
+        return sum(self.rejected_by_reason.copy().values())
+
+    def _count_rejected(self, reason: str) -> None:
+        self.rejected_by_reason[reason] = self.rejected_by_reason.get(reason, 0) + 1
+
     def _unusable(self, c: _Client, exc: ProtocolError) -> None:
-        self.messages_rejected += 1
-        self.rejected_by_reason[exc.reason] = self.rejected_by_reason.get(exc.reason, 0) + 1
+        self._count_rejected(exc.reason)
         self._log_limited(
             None,
             f"fatal:{exc.reason}",
@@ -804,8 +810,7 @@ class BridgeServer:
         self._close(c, (STATUS_PROTOCOL_ERROR, str(exc)))
 
     def _rejected(self, c: _Client, err: ProtocolError) -> bool:
-        self.messages_rejected += 1
-        self.rejected_by_reason[err.reason] = self.rejected_by_reason.get(err.reason, 0) + 1
+        self._count_rejected(err.reason)
         c.rejected[err.reason] = c.rejected.get(err.reason, 0) + 1
         c.errors_in_row += 1
         self._log_limited(c, err.reason, "warn", f"bridge: {c.addr} message rejected: {err}")
