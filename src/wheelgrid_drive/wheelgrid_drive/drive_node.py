@@ -124,11 +124,11 @@ class DriveNode(Node):
         self._message = "waiting for a plan or /cmd_vel"
         self._last_twist: Twist | None = None
         self._last_twist_t = 0.0
-        self._cmd_vel_active = False
         self._link_note = ""
         self._entering: tuple[int, int] | None = None  # destination of the running command
         self._job_grid: Grid | None = None  # the grid the running job's cells were read on
-        self._twist_running: str | None = None  # the action of the running /cmd_vel step
+        # the action of the /cmd_vel step last started; None once /cmd_vel went stale
+        self._twist_running: str | None = None
 
         pub = self.create_publisher
         self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
@@ -488,8 +488,8 @@ class DriveNode(Node):
         stale = time.monotonic() - self._last_twist_t > self.cfg.cmd_vel_timeout
         if stale:
             self._last_twist = None
-            if self._cmd_vel_active:
-                self._cmd_vel_active = False
+            if self._twist_running is not None:
+                self._twist_running = None
                 self._abort.set()
                 self.link.stop()
                 self._set_state(WARN, "no /cmd_vel for too long: chair stopped")
@@ -510,7 +510,6 @@ class DriveNode(Node):
             return
         if action is None:
             return
-        self._cmd_vel_active = True
         self._twist_running = action
         self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort))
 
