@@ -746,7 +746,6 @@ class BridgeServer:
             self._send(c, encode_status(*status))
         with contextlib.suppress(KeyError, ValueError, OSError):
             self._sel.unregister(c.sock)
-        self._clients = {k: v for k, v in self._clients.items() if v is not c}
         with contextlib.suppress(OSError):
             c.sock.close()
         if c.rejected:
@@ -757,6 +756,9 @@ class BridgeServer:
                 self.on_disconnect(c.ident)
             except Exception as exc:
                 self._log("error", f"bridge: disconnect hook failed: {exc}")
+        # Last: `clients` drops only once the summary is logged and the hook has run, so a
+        # caller that waits for it to drop sees everything about the client that left.
+        self._clients = {k: v for k, v in self._clients.items() if v is not c}
 
     def _read(self, c: _Client) -> None:
         try:
