@@ -174,6 +174,41 @@ def test_estop_stops_the_chair_at_once_and_latches(make_sim):
         assert len(sim_moves(sim)) == n_moves  # clearing does not resume anything by itself
 
 
+def test_estop_is_served_while_a_long_plan_is_read_and_that_plan_never_drives(make_sim):
+    """Reading a 9,999-pose plan takes the executor 0.3-0.5 s. The e-stop, on a thread of its
+    own, stops the chair meanwhile; the plan, read while the e-stop came, is dropped even if
+    the e-stop is cleared before it is read to the end."""
+    with driving_along_row_3(make_sim) as (h, sim, grid):
+        path = h.Path()
+        path.header.frame_id = "map"
+        for i in range(9_999):  # back and forth between two free cells: a valid plan
+            ps = h.PoseStamped()
+            ps.header.frame_id = "map"
+            x, y = grid.cell_center(3, 3 + i % 2)
+            ps.pose.position.x, ps.pose.position.y = float(x), float(y)
+            ps.pose.orientation.w = 1.0
+            path.poses.append(ps)
+        n_states, n_moves = len(h.states), len(sim_moves(sim))
+        read = []  # when the node had read the plan (its callback runs only then)
+        arrived = h.drive._plan_arrived
+        h.drive._plan_arrived = lambda *a: (read.append(time.monotonic()), arrived(*a))[1]
+        h.pub_plan.publish(path)
+        time.sleep(0.03)  # the drive node is reading the plan now
+        t_pub = time.monotonic()
+        h.pub_estop.publish(h.Bool(data=True))
+        time.sleep(0.05)
+        h.pub_estop.publish(h.Bool(data=False))  # cleared at once: the plan must still not run
+        assert h.spin(lambda: any("while it was read" in s.message for s in h.states), 10.0)
+        stop = next(e for e in sim.events if e.what == "stop" and e.t > t_pub)
+        print(f"e-stop -> STOP with a long plan being read: {(stop.t - t_pub) * 1000:.1f} ms")
+        h.spin(lambda: False, 0.5)
+        assert read and stop.t < read[0]  # the e-stop was served before the plan was read
+        texts = [s.message for s in h.states[n_states:]]
+        assert not any("9998 step" in t for t in texts), texts
+        assert len(sim_moves(sim)) == n_moves  # nothing driven after the e-stop
+        assert sim.state == proto.State.IDLE
+
+
 def test_step_into_occupied_cell_is_refused(make_sim):
     sim = make_sim()
     grid = free_grid()

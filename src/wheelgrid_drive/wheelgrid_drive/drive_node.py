@@ -4,7 +4,11 @@ Thin on purpose: the Table II rule (actions.py), the wire protocol (protocol.py)
 (link.py) and the per-step execution with its free-cell check (runner.py) are ROS-free and
 tested on their own. This module translates messages and parameters and owns the threads:
 
-* the executor thread runs callbacks (plan, grid, e-stop, cmd_vel, timers);
+* the executor thread runs callbacks (plan, grid, cmd_vel, timers);
+* the e-stop has a node (``drive_estop``) and an executor thread of its own, so that it never
+  waits behind another callback: reading a 10,000-pose plan held the executor 0.4 s, during
+  which the chair drove on (rclpy's MultiThreadedExecutor would do it with one node, but spins
+  a core while two callbacks of one group are ready);
 * one worker thread at a time drives a plan or a /cmd_vel step (a new job aborts the old one);
 * the link's heartbeat thread feeds the controller watchdog and publishes /wheelgrid/chair_pose.
 
@@ -26,6 +30,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Path
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Bool, String
 
@@ -51,6 +56,29 @@ OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.E
 
 
 MAX_PATH_POSES = 10_000  # a plan's poses: a route across a building is a few hundred cells
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """When a plan reached this process, to tell whether an e-stop came after it.
+
+    Both are needed: rclpy reads (deserialises) a message before its callback runs, 0.3-0.5 s
+    for 10,000 poses, so an e-stop in that time is seen only by the receive times; one during
+    the callback only by the count (the system clock may step).
+    """
+
+    received_ns: int  # the middleware's receive time (system clock), or the callback's
+    estops: int  # the node's e-stop count when the callback began
+
+
+def received_ns(info: dict[str, Any] | None) -> int:
+    """The middleware's receive time from rclpy's message info, or 0 where it gives none."""
+    if not info:
+        return 0
+    try:
+        return int(info.get("received_timestamp") or 0)
+    except (TypeError, ValueError):
+        return 0
 
 
 @dataclass
@@ -114,8 +142,14 @@ class DriveNode(Node):
             self.get_logger().warning(f"speed {c.speed} km/h replaced by {self.speed} km/h")
         self._lock = threading.Lock()
         self._grid: Grid | None = None
-        self._pending_plan: Path | None = None  # a plan that came before any grid
+        self._pending_plan: tuple[Path, Arrival] | None = None  # a plan that came before any grid
         self._estop = False
+        # The e-stop runs beside the other callbacks: latching it, parking a plan and starting
+        # a job each happen under this lock. A plan that an e-stop came after (even one cleared
+        # since) is dropped: see Arrival.
+        self._gate = threading.Lock()
+        self._estops = 0
+        self._estop_received_ns = 0  # when the last e-stop reached this process (system clock)
         self._abort = threading.Event()
         self._worker: threading.Thread | None = None
         self._job = "idle"
@@ -136,7 +170,6 @@ class DriveNode(Node):
         self.pub_pose = pub(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
         self.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
         self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, MAP_QOS)
-        self.create_subscription(Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS)
         self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
 
         try:
@@ -164,6 +197,37 @@ class DriveNode(Node):
             self.link.start_heartbeat()  # also reconnects a port that is not there yet
         self.create_timer(0.05, self._cmd_vel_tick)
         self.create_timer(1.0 / max(c.state_rate, 0.1), self._publish_state)
+
+        self._estop_node = Node(
+            "drive_estop",
+            namespace=self.get_namespace(),
+            context=self.context,
+            start_parameter_services=False,
+        )
+        self._estop_node.create_subscription(
+            Bool, "/wheelgrid/estop", self._on_estop_message, RELIABLE_QOS
+        )
+        self._estop_executor = SingleThreadedExecutor(context=self.context)
+        self._estop_executor.add_node(self._estop_node)
+        self._estop_thread = threading.Thread(
+            target=self._spin_estop, name="drive-estop", daemon=True
+        )
+        self._estop_thread.start()
+
+    def _spin_estop(self) -> None:
+        """The e-stop thread. Should its executor ever fail, nothing could stop the chair from
+        ROS any more: it stops it and latches the e-stop for good."""
+        try:
+            self._estop_executor.spin()
+        except ExternalShutdownException:
+            pass  # Ctrl-C or rclpy.shutdown(): close() stops the chair
+        except Exception as exc:
+            with self._gate:
+                self._estop = True
+                self._estops += 1
+                self._abort.set()
+            self.link.stop()
+            self._set_state(ERROR, f"e-stop thread failed ({exc!r}): chair stopped for good")
 
     # ---- state reporting ----------------------------------------------------------------------
 
@@ -277,9 +341,10 @@ class DriveNode(Node):
         if self._busy() and job_grid is not None and not same_geometry(grid, job_grid):
             # the running move's cells are other places on this grid: stop, never re-read them
             self._abort_if_moving("the safe grid's size, resolution, origin or frame changed")
-        pending, self._pending_plan = self._pending_plan, None
+        with self._gate:
+            pending, self._pending_plan = self._pending_plan, None
         if pending is not None and not self._busy():
-            self._on_plan(pending)
+            self._plan_arrived(*pending)
         dst = self._entering
         if dst is not None and self._busy():
             reason = grid_cell_check(lambda: grid)(dst)
@@ -293,20 +358,47 @@ class DriveNode(Node):
             self.link.stop()
             self._set_state(ERROR, f"chair stopped: {why}")
 
-    def _on_estop(self, msg: Bool) -> None:
+    def _on_estop_message(self, msg: Bool, info: dict[str, Any] | None) -> None:
+        """The e-stop thread's one callback: whatever goes wrong, it must not end that thread.
+        (``info`` has no default: rclpy passes it only to callbacks that need two arguments.)"""
+        try:
+            self._on_estop(msg, received_ns(info))
+        except Exception as exc:
+            if msg.data:  # latch it and stop the chair, whatever else failed
+                with self._gate:
+                    self._estop = True
+                    self._estops += 1
+                    self._abort.set()
+                self.link.stop()
+            self.get_logger().error(f"e-stop handling failed: {exc!r}; chair stopped")
+
+    def _on_estop(self, msg: Bool, received: int | None = None) -> None:
         if msg.data:
-            self._estop = True
-            self._pending_plan = None  # a plan parked for the grid must not drive after it
-            self._abort.set()
+            with self._gate:
+                self._estop = True
+                self._estops += 1
+                stamp = received or time.time_ns()
+                self._estop_received_ns = max(self._estop_received_ns, stamp)
+                self._pending_plan = None  # a plan parked for the grid must not drive after it
+                self._abort.set()
             self.link.stop()  # now, from this callback: never queued behind the worker
             self._set_state(ERROR, "e-stop: chair stopped")
         elif self._estop:
-            self._estop = False
+            with self._gate:
+                self._estop = False
             self._set_state(OK, "e-stop cleared (nothing resumes by itself)")
 
-    def _on_plan(self, msg: Path) -> None:
+    def _on_plan(self, msg: Path, info: dict[str, Any] | None) -> None:
+        self._plan_arrived(msg, Arrival(received_ns(info) or time.time_ns(), self._estops))
+
+    def _estop_since(self, arrival: Arrival) -> bool:
+        """Whether an e-stop came after ``arrival`` (call with the gate held)."""
+        return self._estops != arrival.estops or self._estop_received_ns >= arrival.received_ns
+
+    def _plan_arrived(self, msg: Path, arrival: Arrival) -> None:
         if self._estop and msg.poses:  # not even parked: nothing resumes after a clear
-            self._pending_plan = None
+            with self._gate:
+                self._pending_plan = None
             self._set_state(ERROR, "plan refused: e-stop latched")
             return
         if len(msg.poses) > MAX_PATH_POSES:
@@ -320,10 +412,17 @@ class DriveNode(Node):
         if self._grid is None and msg.poses:
             # Latched plan and grid arrive in any order at start-up: keep the plan until the grid
             # is here (it is checked against it then), never run it unchecked.
-            self._pending_plan = msg
-            self._set_state(OK, "plan waiting for the safe grid")
+            with self._gate:
+                parked = not self._estop_since(arrival)
+                if parked:
+                    self._pending_plan = (msg, arrival)
+            if parked:
+                self._set_state(OK, "plan waiting for the safe grid")
+            else:
+                self._set_state(ERROR, "plan refused: an e-stop came while it was read")
             return
-        self._pending_plan = None
+        with self._gate:
+            self._pending_plan = None
         try:
             steps, cells, grid = self._steps_from_path(msg)
         except ValueError as exc:
@@ -337,7 +436,10 @@ class DriveNode(Node):
             self._stop_job()
             self._set_state(OK, "plan has no moves: nothing to do")
             return
-        self._start_job("plan", lambda abort: self._run_plan(steps, cells, grid, abort))
+        if not self._start_job(
+            "plan", lambda abort: self._run_plan(steps, cells, grid, abort), arrival
+        ):
+            self._set_state(ERROR, "plan refused: an e-stop came while it was read")
 
     def _steps_from_path(self, msg: Path) -> tuple[list[actions.Step], list[tuple[int, int]], Grid]:
         """The plan's steps and cells, and the grid they were read on (the run is checked
@@ -390,14 +492,19 @@ class DriveNode(Node):
             assert self._worker is not None
             self._worker.join(timeout=5.0)
 
-    def _start_job(self, name: str, fn: Callable[[threading.Event], None]) -> None:
+    def _start_job(
+        self, name: str, fn: Callable[[threading.Event], None], arrival: Arrival | None = None
+    ) -> bool:
+        """Start ``fn`` in the worker thread unless an e-stop is latched, or came after the
+        input's ``arrival``; return whether it started."""
         self._stop_job()
-        abort = threading.Event()
-        self._abort = abort
-        if self._estop:  # an e-stop may have arrived while we waited for the old job
-            return
-        with self._lock:
-            self._job = name
+        with self._gate:  # an e-stop may have come while we waited for the old job
+            if self._estop or (arrival is not None and self._estop_since(arrival)):
+                return False
+            abort = threading.Event()
+            self._abort = abort
+            with self._lock:
+                self._job = name
 
         def body() -> None:
             try:
@@ -411,6 +518,7 @@ class DriveNode(Node):
 
         self._worker = threading.Thread(target=body, name=f"drive-{name}", daemon=True)
         self._worker.start()
+        return True
 
     def _run_plan(
         self,
@@ -437,6 +545,8 @@ class DriveNode(Node):
                 self._check_start(grid, st, cells[0], steps[0].heading)
         except (LinkError, ValueError) as exc:
             self._set_state(ERROR, f"plan refused: {exc}")
+            return
+        if abort.is_set():  # an e-stop or a newer job came while the controller was asked
             return
         self._set_state(OK, f"driving a plan of {total} step(s) from {cells[0]}")
 
@@ -511,7 +621,8 @@ class DriveNode(Node):
         if action is None:
             return
         self._twist_running = action
-        self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort))
+        if not self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort)):
+            self._twist_running = None
 
     def _twist_action(self, t: Twist) -> str | None:
         if abs(t.angular.z) > self.cfg.angular_deadband:
@@ -568,6 +679,12 @@ class DriveNode(Node):
         if self._worker is not None:
             self._worker.join(timeout=3.0)
         self.link.close(stop=True)
+        estop_node = getattr(self, "_estop_node", None)
+        if estop_node is not None:
+            self._estop_executor.shutdown(timeout_sec=1.0)
+            self._estop_thread.join(timeout=1.0)
+            estop_node.destroy_node()
+            self._estop_node = None
 
 
 def main(argv: list[str] | None = None) -> int:
