@@ -285,9 +285,24 @@ def test_far_stray_points_change_nothing(paper_cloud):
 def test_a_floor_too_large_for_one_map_is_refused():
     rng = np.random.default_rng(1)
     floor = np.column_stack([rng.uniform(0, 300, (20000, 2)), np.zeros(20000)])
+    posts = np.column_stack([rng.uniform(0, 300, (1000, 2)), np.ones(1000)])
     with pytest.raises(GridError) as info:
-        build_grid(floor)
+        build_grid(np.vstack([floor, posts]))
     assert info.value.cause == "too_large"
+
+
+def test_a_map_of_floor_alone_is_refused_and_a_room_on_its_side_is_doubted():
+    """Both once gave a grid of free cells: a map flattened to z = 0 (every point floor), and
+    a room turned y-up (a wall at z = 0 read as the floor, the rest of the room above it)."""
+    room = room_cloud(paper_like_boxes(), spacing=SPACING)
+    flat = np.column_stack([room[:, :2], np.zeros(len(room))])
+    with pytest.raises(GridError, match="only floor") as info:
+        build_grid(flat)
+    assert info.value.cause == "only_floor"
+    on_its_side = build_grid(room[:, [0, 2, 1]])
+    (doubt,) = on_its_side.stats["warnings"]
+    assert "rises 9.6 m above its floor" in doubt and "z up" in doubt
+    assert build_grid(room).stats["warnings"] == []  # the room as scanned: no doubt
 
 
 def test_invalid_config_is_rejected():
@@ -324,6 +339,7 @@ def test_a_map_far_from_its_origin_is_refused_not_gridded_as_unknown():
 def test_a_raster_too_fine_for_the_floor_is_refused_before_it_is_allocated():
     rng = np.random.default_rng(1)
     floor = np.column_stack([rng.uniform(0, 90, (20000, 2)), np.zeros(20000)])
-    with pytest.raises(GridError, match="raise pixel_size") as info:
-        build_grid(floor, GridConfig(pixel_size=0.01, cell_size=1.2))  # 9000 x 9000 pixels
+    posts = np.column_stack([rng.uniform(0, 90, (1000, 2)), np.ones(1000)])
+    with pytest.raises(GridError, match="raise pixel_size") as info:  # 9000 x 9000 pixels
+        build_grid(np.vstack([floor, posts]), GridConfig(pixel_size=0.01, cell_size=1.2))
     assert info.value.cause == "too_large"

@@ -92,6 +92,14 @@ def test_cli_flags_and_config(map_ply, tmp_path):
     assert not (out2 / "grid.png").exists()
 
 
+def test_cli_warns_of_a_map_that_rises_higher_than_a_room(tmp_path, capsys):
+    room = room_cloud(paper_like_boxes(), spacing=0.05)
+    path = _ply_points(tmp_path, "side.ply", room[:, [0, 2, 1]])  # y up: on its side
+    assert main([path, "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "wheelgrid grid: warning: the map rises 9.6 m above its floor" in err
+
+
 def _ply_points(tmp_path, name, points):
     path = tmp_path / name
     write_ply(path, np.asarray(points, dtype=np.float64).reshape(-1, 3))
@@ -107,6 +115,7 @@ def _ply_points(tmp_path, name, points):
         ("empty", "no (finite) points"),
         ("above", "above the safe height"),
         ("nofloor", "no floor found"),
+        ("onlyfloor", "only floor"),
         ("badconfig", "bad config"),
     ],
 )
@@ -127,6 +136,10 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
         path = _ply_points(tmp_path, "a.ply", [[0, 0, 2.0], [1, 0, 2.5]])
     elif case == "nofloor":
         path = _ply_points(tmp_path, "n.ply", [[x, 0, 0.8] for x in range(100)])
+    elif case == "onlyfloor":
+        path = _ply_points(
+            tmp_path, "f.ply", [[x / 10, y / 10, 0] for x in range(60) for y in range(60)]
+        )
     else:
         path = _ply_points(tmp_path, "ok.ply", [[0, 0, 0]])
         bad = tmp_path / "bad.yaml"

@@ -87,17 +87,20 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
             assert fine.resolution == pytest.approx(0.05) and fine.origin[2] == 0.0
             assert set(np.unique(fine.data).tolist()) <= {-1, 0, 100}
 
-            # Bad maps: an empty cloud, everything above the safe height, no floor.
+            # Bad maps: an empty cloud, everything above the safe height, no floor, and the
+            # same room flattened to z = 0 (an all-free grid, before it was refused).
             bad_clouds = [
                 np.empty((0, 3)),
                 np.column_stack([np.arange(50.0), np.zeros(50), np.full(50, 2.2)]),
                 np.column_stack([np.arange(500.0) / 50, np.zeros(500), np.full(500, 0.9)]),
+                np.column_stack([cloud[:, :2], np.zeros(len(cloud))]),
             ]
             for i, bad in enumerate(bad_clouds, start=1):
                 pub.publish(to_pointcloud2(bad, "map"))
                 assert _wait_for_log(log, "kept the previous grid", i, 20.0), log.read_text()
             text = log.read_text()
             assert "empty" in text and "all_above_band" in text and "no_floor" in text
+            assert "only_floor" in text
             spin_until(ex, lambda: len(grids) > 1, timeout=1.0)
             assert len(grids) == 1 and len(fines) == 1  # nothing new was published
             late: list = []

@@ -95,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
         files = write_outputs(result, args.out, png=not args.no_png)
     except OSError as exc:
         return _fail(f"cannot write {args.out}: {exc}", 1)
+    for doubt in result.stats["warnings"]:
+        print(f"wheelgrid grid: warning: {doubt}", file=sys.stderr)
     print(summary(result))
     if not args.quiet:
         print(grid_text(result.grid))

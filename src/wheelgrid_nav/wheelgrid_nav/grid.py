@@ -61,6 +61,11 @@ _EXTENT_MAX_POINTS = 200_000
 _MAX_EXTENT = 200.0
 _MAX_COORDINATE = 50_000.0  # m from the origin: beyond it the float32 pass loses millimetres
 _MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pixels
+# A room scan shows walls or furniture: with fewer of its points above the floor band than
+# this, the map was flattened (z = 0) or is not levelled, and every cell would read free.
+_MIN_ABOVE_FLOOR_FRACTION = 0.005
+# Indoor scans rise 2-4 m above their floor; higher, the map is probably not z-up.
+_TALL_MAP_M = 5.0
 MIN_PIXEL_SIZE = 0.01  # m
 MAX_FLOOR_CLEARANCE = 0.15  # m: above it, a step is an obstacle to a wheelchair
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
@@ -572,7 +577,28 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
             f"m of z = 0 (need {cfg.min_floor_points}); is the map levelled with the floor at "
             "z = 0?",
         )
+    n_rest = pts.shape[0] - n_floor
+    if n_rest < _MIN_ABOVE_FLOOR_FRACTION * pts.shape[0]:
+        raise GridError(
+            "only_floor",
+            f"only floor: {n_rest} of {pts.shape[0]} points lie outside [-{cfg.drop_depth}, "
+            f"{cfg.floor_clearance}] m, where a room scan shows walls and furniture; every "
+            "cell would read free. Is the map flattened to z = 0, or not levelled?",
+        )
     return pts, cls, class_counts
+
+
+def map_warnings(z: np.ndarray) -> list[str]:
+    """Doubts about a map that still gives a grid, for the log and the summary."""
+    out = []
+    high = float(np.quantile(z[:: max(1, z.size // _EXTENT_MAX_POINTS)], 0.99))
+    if high > _TALL_MAP_M:
+        out.append(
+            f"the map rises {high:.1f} m above its floor (99th percentile), where a room scan "
+            f"rarely passes 4 m: is it levelled with z up? (a wall read as the floor gives a "
+            "grid of free cells)"
+        )
+    return out
 
 
 def build_grid(
@@ -580,14 +606,15 @@ def build_grid(
 ) -> GridResult:
     """The safe 2D grid of a levelled map (``(N, 3)`` metres, z up, floor at z = 0).
 
-    Raises :class:`GridError` (cause ``empty``, ``no_floor``, ``all_above_band``, ``bad_shape``,
-    ``too_large``)
+    Raises :class:`GridError` (cause ``empty``, ``no_floor``, ``only_floor``, ``all_above_band``,
+    ``bad_shape``, ``too_large``)
     for maps that cannot give a safe grid, and ValueError for an invalid config. Never returns a
     grid whose cells are free without observed floor.
     """
     cfg = cfg or GridConfig()
     cfg.validate()
     pts, cls, class_counts = _check_input(points, cfg)
+    warnings = map_warnings(pts[:, 2])
     k = cfg.cell_pixels()
     ps = cfg.pixel_size
 
@@ -678,6 +705,7 @@ def build_grid(
         "guard_only_cells": int(np.count_nonzero(guard_only)),
         "yaw_deg": math.degrees(yaw),
         "walls_found": cfg.alignment == "walls" and yaw != 0.0,
+        "warnings": warnings,
     }
     return GridResult(
         grid=grid,

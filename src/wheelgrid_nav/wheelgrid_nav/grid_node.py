@@ -105,6 +105,8 @@ class GridNode(Node):
         self.grid_pub.publish(to_occupancy_grid(result.grid, stamp))
         self.fine_pub.publish(to_occupancy_grid(result.fine, stamp))
         st = result.stats
+        for doubt in st["warnings"]:
+            self.get_logger().warning(doubt, throttle_duration_sec=60.0)
         self.get_logger().info(
             f"grid {result.grid.rows} x {result.grid.cols} from {st['points']} points "
             f"(yaw {st['yaw_deg']:.2f} deg): {st['occupied']} occupied, {st['free']} free, "
