@@ -96,6 +96,9 @@ def test_config_from_yaml_checks_types_and_names(tmp_path):
     (tmp_path / "c.yaml").write_text("grid: 2.0\n")
     with pytest.raises(ValueError, match="section 'grid' must be a mapping"):
         load_yaml(Cfg, tmp_path / "c.yaml", section="grid")
+    # an empty section is its defaults, as in the mapping YAML (it raised "got None")
+    (tmp_path / "c.yaml").write_text("grid:\nplanner:\n  episodes: 5\n")
+    assert load_yaml(Cfg, tmp_path / "c.yaml", section="grid") == Cfg()
     (tmp_path / "c.yaml").write_text("grid:\n  safe_height: [2\n")
     with pytest.raises(ValueError, match=r"c.yaml: not valid YAML at line 3, column 1"):
         load_yaml(Cfg, tmp_path / "c.yaml", section="grid")

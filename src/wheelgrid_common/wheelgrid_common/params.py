@@ -107,7 +107,9 @@ def load_yaml(cls: type[T], path: str | Path | None, section: str | None = None)
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
     if section and section in data:
-        data = data[section]
+        # an empty section (``grid:`` and nothing under it) means its defaults, as in the
+        # mapping YAML's sections (load_configs)
+        data = data[section] if data[section] is not None else {}
         if not isinstance(data, dict):
             raise ValueError(
                 f"{path}: section {section!r} must be a mapping of parameter: value, got {data!r}"

@@ -206,7 +206,7 @@ def test_an_unreadable_frame_of_a_stray_export_is_skipped_and_counted(
     assert cli_map.main([str(cap), "--out", str(out), "--prior", "arkit"]) == 0
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    assert "WARNING frame 0: skipped" in err and "WARNING frame 4: skipped" in err
+    assert "warning: frame 0 skipped" in err and "warning: frame 4 skipped" in err
     assert "10 frames read, 2 unreadable skipped" not in err  # the summary is on stdout
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["read"] == 8 and rep["malformed_frames"] == {"unreadable image": 2}

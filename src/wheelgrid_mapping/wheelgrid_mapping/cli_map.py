@@ -69,10 +69,8 @@ def stray_frames(
 
     def gen() -> Iterator[Frame]:
         for i in range(len(export)):
-            try:
-                fr = export.frame(i)
-            except ValueError as exc:
-                print(f"\nWARNING frame {i}: skipped: {exc}", file=sys.stderr)
+            fr = export.frame_or_warn(i)
+            if fr is None:
                 if bad is not None:
                     bad.append("unreadable image")
                 yield np.empty((0, 3)), export.stamp(i), DEFAULT_FRAME_ID, None, None

@@ -99,17 +99,6 @@ class StreamStats:
     skipped: int = 0  # frames whose images do not read: not sent, as a phone drops a frame
 
 
-def _read_or_warn(exp: StrayExport, i: int) -> StrayFrame | None:
-    """Frame ``i``, or None with a warning when its images do not read: one broken file in a
-    long capture skips that frame (the mapper copes with a gap, as with a dropped one) and
-    does not end a stream or an import at that point."""
-    try:
-        return exp.frame(i)
-    except ValueError as exc:
-        print(f"\nwheelgrid: warning: frame {i} skipped: {exc}", file=sys.stderr)
-        return None
-
-
 def stream_export(
     exp: StrayExport,
     host: str,
@@ -131,7 +120,7 @@ def stream_export(
         t_first = exp.stamp(idx[0])
         t0 = time.monotonic()
         for seq, i in enumerate(idx):
-            sf = _read_or_warn(exp, i)
+            sf = exp.frame_or_warn(i)
             if sf is None:
                 stats.skipped += 1
                 continue
@@ -243,7 +232,7 @@ def import_main(argv: list[str]) -> int:
     try:
         with BagWriter(args.out, args.storage) as bag, Progress(len(idx), "import-stray") as bar:
             for seq, i in enumerate(idx):
-                sf = _read_or_warn(exp, i)
+                sf = exp.frame_or_warn(i)
                 if sf is None:
                     skipped += 1
                     bar.update()

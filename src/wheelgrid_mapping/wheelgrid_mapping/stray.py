@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import math
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -211,3 +212,13 @@ class StrayExport:
             K=self.K.copy(),
             pose=odo[1] if odo else None,
         )
+
+    def frame_or_warn(self, i: int) -> StrayFrame | None:
+        """Frame ``i``, or None with a warning on stderr when its images do not read: one
+        broken file in a long capture skips that frame (the mapper copes with a gap, as with a
+        dropped one) and does not end a map, a stream or an import at that point."""
+        try:
+            return self.frame(i)
+        except ValueError as exc:
+            print(f"\nwheelgrid: warning: frame {i} skipped: {exc}", file=sys.stderr)
+            return None
