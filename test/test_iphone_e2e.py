@@ -97,6 +97,9 @@ def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray
             sup.stop_all()
             monitor.close()
 
+    for name in ("iphone_bridge", "mapper"):  # stopped as by Ctrl-C: no rcl complaint
+        text = (tmp_path / "logs" / f"{name}.log").read_text(errors="replace")
+        assert "Failed to publish log message to rosout" not in text, text[-2000:]
     stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
     print(f"iPhone live: {n} frames streamed, {len(stamps)} registered")
     if full:

@@ -78,6 +78,18 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     return code
 
 
+def exit_logger(node: Any) -> Any:
+    """The node's logger, or after Ctrl-C shut its context down, a logger named after it that
+    does not publish to /rosout: the node's own printed "Failed to publish log message to
+    rosout" after every line logged on the way out (the map saved on exit, the bridge's
+    counts)."""
+    if node.context.ok():
+        return node.get_logger()
+    import rclpy.logging
+
+    return rclpy.logging.get_logger(f"{node.get_name()}.exit")
+
+
 def name_problem(
     name: str, node: str, namespace: str = "/", *, service: bool = False
 ) -> str | None:

@@ -433,6 +433,8 @@ def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
     text = log.read_text(errors="replace")
     found = re.search(r"map saved on exit: (\S+)/map\.ply", text)
     assert "cannot save the map to" in text and found, text[-2000:]
+    # lines logged after Ctrl-C shut the context down do not try /rosout (rcl complained)
+    assert "Failed to publish log message to rosout" not in text, text[-2000:]
     fallback = Path(found.group(1))
     try:
         assert fallback.name.startswith("wheelgrid_on_exit_")

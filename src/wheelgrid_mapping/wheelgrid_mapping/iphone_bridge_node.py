@@ -214,6 +214,7 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
 
     from wheelgrid_common.params import declare_dataclass
     from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_common.ros_env import exit_logger
 
     class IPhoneBridgeNode(Node):
         def __init__(self) -> None:
@@ -343,7 +344,7 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
             if not hasattr(self, "server"):
                 return
             self.server.stop()
-            self.get_logger().info(
+            exit_logger(self).info(
                 f"stopped: {self.server.frames_received} frames received, "
                 f"{self.frames_published} published, {self.server.messages_rejected} rejected"
             )

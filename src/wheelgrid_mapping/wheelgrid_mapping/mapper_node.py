@@ -44,7 +44,7 @@ from wheelgrid_common.pointcloud2 import (
     read_fields,
     to_pointcloud2,
 )
-from wheelgrid_common.ros_env import spin_node, tf2_available
+from wheelgrid_common.ros_env import exit_logger, spin_node, tf2_available
 
 from .loop_closure import LoopClosureConfig, closed_note
 from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, MapperConfig
@@ -597,7 +597,7 @@ class MapperNode(Node):  # type: ignore[misc]
             self._save_on_exit()
 
     def _save_on_exit(self) -> None:
-        log = self.get_logger()
+        log = exit_logger(self)
         if not self._lock.acquire(timeout=5.0):
             log.error("map NOT saved on exit: the mapper did not let go of it within 5 s")
             return
