@@ -264,6 +264,29 @@ def test_cmd_vel_steps_and_watchdog_stop(make_sim):
         assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)
 
 
+def test_a_stale_cmd_vel_stops_the_chair_while_the_executor_is_held_up(make_sim):
+    """The /cmd_vel watchdog's stop runs on the e-stop thread: with the node's executor held
+    up (here: not spun at all, as when it reads a long plan), the step does not go on blind."""
+    grid = free_grid()
+    x, y = grid.cell_center(3, 3)
+    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))  # facing right (+x)
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        assert h.matched()
+        h.pub_grid.publish(to_occupancy_grid(grid))
+        h.spin(lambda: h.drive._grid is not None, 5.0)
+        tw = h.Twist()
+        tw.linear.x = 0.8
+        h.pub_twist.publish(tw)
+        assert h.spin(lambda: sim.state != proto.State.IDLE, 3.0)  # a 1.2 m step: ~1.5 s
+        t_held = time.monotonic()
+        time.sleep(1.2)  # the executor runs nothing now: no tick, no twist read
+        t_back = time.monotonic()
+        stop = next((e for e in sim.events if e.what == "stop" and e.t > t_held), None)
+        assert stop is not None and stop.t < t_back  # stopped while the executor was held
+        assert sim.result == proto.Result.STOPPED and sim.x < x + 1.2 - 0.1
+        assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)
+
+
 def test_vanished_port_is_reported_and_recovered(make_sim, tmp_path):
     port = str(tmp_path / "ttyWG")
     sim1 = make_sim(link=port)

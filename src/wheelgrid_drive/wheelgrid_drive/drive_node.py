@@ -8,7 +8,8 @@ tested on their own. This module translates messages and parameters and owns the
 * the e-stop has a node (``drive_estop``) and an executor thread of its own, so that it never
   waits behind another callback: reading a 10,000-pose plan held the executor 0.4 s, during
   which the chair drove on (rclpy's MultiThreadedExecutor would do it with one node, but spins
-  a core while two callbacks of one group are ready);
+  a core while two callbacks of one group are ready). The /cmd_vel watchdog's stop runs
+  there too;
 * one worker thread at a time drives a plan or a /cmd_vel step (a new job aborts the old one);
 * the link's heartbeat thread feeds the controller watchdog and publishes /wheelgrid/chair_pose.
 
@@ -207,6 +208,7 @@ class DriveNode(Node):
         self._estop_node.create_subscription(
             Bool, "/wheelgrid/estop", self._on_estop_message, RELIABLE_QOS
         )
+        self._estop_node.create_timer(0.05, self._cmd_vel_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
         self._estop_executor.add_node(self._estop_node)
         self._estop_thread = threading.Thread(
@@ -623,6 +625,20 @@ class DriveNode(Node):
         self._twist_running = action
         if not self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort)):
             self._twist_running = None
+
+    def _cmd_vel_guard(self) -> None:
+        """On the e-stop thread: a /cmd_vel step whose stream went stale is stopped even while
+        the executor is held up (reading a long plan), where _cmd_vel_tick cannot run and the
+        step would go on blind. The tick does the rest (state, bookkeeping) when it runs."""
+        if time.monotonic() - self._last_twist_t <= self.cfg.cmd_vel_timeout:
+            return
+        with self._gate:  # the job and its abort event, as _start_job sets them together
+            if self._twist_running is None or self._job != "cmd_vel":
+                return
+            abort = self._abort
+        if not abort.is_set():
+            abort.set()
+            self.link.stop()
 
     def _twist_action(self, t: Twist) -> str | None:
         if abs(t.angular.z) > self.cfg.angular_deadband:
