@@ -243,14 +243,22 @@ def test_plan_refused_when_the_chair_is_not_at_its_start(make_sim):
         assert sim_moves(sim) == []
 
 
-def test_cmd_vel_steps_and_watchdog_stop(make_sim):
+@contextlib.contextmanager
+def chair_in_cell_3_3(make_sim):
+    """A node with a free grid and a real-time controller whose chair stands in cell (3, 3)
+    facing right (+x): yields ``(harness, sim, x)``, x the cell centre's."""
     grid = free_grid()
     x, y = grid.cell_center(3, 3)
-    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))  # facing right (+x)
+    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))
     with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
         assert h.matched()
         h.pub_grid.publish(to_occupancy_grid(grid))
         h.spin(lambda: h.drive._grid is not None, 5.0)
+        yield h, sim, x
+
+
+def test_cmd_vel_steps_and_watchdog_stop(make_sim):
+    with chair_in_cell_3_3(make_sim) as (h, sim, x):
         tw = h.Twist()
         tw.linear.x = 0.8
         for _ in range(5):  # Nav2 asks to go forward for a while, then goes silent
@@ -267,13 +275,7 @@ def test_cmd_vel_steps_and_watchdog_stop(make_sim):
 def test_a_stale_cmd_vel_stops_the_chair_while_the_executor_is_held_up(make_sim):
     """The /cmd_vel watchdog's stop runs on the e-stop thread: with the node's executor held
     up (here: not spun at all, as when it reads a long plan), the step does not go on blind."""
-    grid = free_grid()
-    x, y = grid.cell_center(3, 3)
-    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))  # facing right (+x)
-    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
-        assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
+    with chair_in_cell_3_3(make_sim) as (h, sim, x):
         tw = h.Twist()
         tw.linear.x = 0.8
         h.pub_twist.publish(tw)
