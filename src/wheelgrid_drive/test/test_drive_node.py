@@ -209,6 +209,25 @@ def test_estop_is_served_while_a_long_plan_is_read_and_that_plan_never_drives(ma
         assert sim.state == proto.State.IDLE
 
 
+def test_a_failed_estop_thread_stops_the_chair_for_good(make_sim):
+    """Nothing could stop the chair from ROS once the e-stop thread is gone: it stops the
+    chair, latches the e-stop, and says that only a restart clears it."""
+    with driving_along_row_3(make_sim) as (h, sim, grid):
+
+        def broken(*_a, **_k):
+            raise RuntimeError("executor broke")
+
+        t0 = time.monotonic()
+        h.drive._estop_executor.spin_once = broken  # its spin loop calls this next
+        assert h.spin(lambda: any(e.what == "stop" and e.t > t0 for e in sim.events), 3.0)
+        assert h.spin(lambda: not h.drive._estop_thread.is_alive(), 3.0)
+        assert h.spin(lambda: any("restart the node" in s.message for s in h.states), 3.0)
+        n_moves = len(sim_moves(sim))
+        h.publish_plan(grid, [(3, 1), (3, 2)])
+        h.spin(lambda: False, 0.5)
+        assert len(sim_moves(sim)) == n_moves and h.drive._estop
+
+
 def test_step_into_occupied_cell_is_refused(make_sim):
     sim = make_sim()
     grid = free_grid()

@@ -151,6 +151,7 @@ class DriveNode(Node):
         self._gate = threading.Lock()
         self._estops = 0
         self._estop_received_ns = 0  # when the last e-stop reached this process (system clock)
+        self._estop_failed = False  # the e-stop thread died: nothing can clear the latch
         self._abort = threading.Event()
         self._worker: threading.Thread | None = None
         self._job = "idle"
@@ -226,6 +227,7 @@ class DriveNode(Node):
         except Exception as exc:
             with self._gate:
                 self._estop = True
+                self._estop_failed = True
                 self._estops += 1
                 self._abort.set()
             self.link.stop()
@@ -284,6 +286,11 @@ class DriveNode(Node):
         message = f"{job}: {message}"
         if not self.link.connected and self.cfg.port:
             level, message = ERROR, f"motor controller port {self.cfg.port} not connected"
+        elif self._estop_failed:
+            level, message = (
+                ERROR,
+                "e-stop thread failed: chair stopped for good (restart the node)",
+            )
         elif self._estop:
             level, message = ERROR, "e-stop latched (publish false on /wheelgrid/estop to clear)"
         status = DiagnosticStatus(
