@@ -64,6 +64,11 @@ class Harness:
     def spin(self, predicate, timeout=10.0):
         return spin_until(self.ex, predicate, timeout, step=0.01)
 
+    def give_grid(self, grid, timeout=5.0):
+        """Publish ``grid`` and spin until the drive node holds a grid."""
+        self.pub_grid.publish(to_occupancy_grid(grid))
+        return self.spin(lambda: self.drive._grid is not None, timeout)
+
     def matched(self):
         return self.spin(
             lambda: (
@@ -116,8 +121,7 @@ def driving_along_row_3(make_sim):
         Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
     ):
         assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.give_grid(grid)
         h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
         assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
         yield h, sim, grid
@@ -131,8 +135,7 @@ def test_node_drives_the_table_ii_route(make_sim):
         Harness(ctx, sim.slave_path, set_pose_on_plan=True) as h,
     ):
         assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.give_grid(grid)
         # initial_heading "auto": the first pose's orientation gives the start heading (down).
         h.publish_plan(grid, CELLS, heading_yaw=-math.pi / 2)
         assert h.spin(lambda: len(h.cmds) >= 9, 20.0), h.cmds
@@ -237,8 +240,7 @@ def test_step_into_occupied_cell_is_refused(make_sim):
         Harness(ctx, sim.slave_path, initial_heading="down", set_pose_on_plan=True) as h,
     ):
         assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.give_grid(grid)
         h.publish_plan(grid, CELLS)
         assert h.spin(lambda: any(c["ack"] == "REFUSED" for c in h.cmds), 10.0)
         refused = next(c for c in h.cmds if c["ack"] == "REFUSED")
@@ -255,8 +257,7 @@ def test_plan_refused_when_the_chair_is_not_at_its_start(make_sim):
     grid = free_grid()
     with rclpy_context() as ctx, Harness(ctx, sim.slave_path, initial_heading="down") as h:
         assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.give_grid(grid)
         h.publish_plan(grid, CELLS)
         assert h.spin(lambda: any("plan refused" in s.message for s in h.states), 5.0)
         assert sim_moves(sim) == []
@@ -271,8 +272,7 @@ def chair_in_cell_3_3(make_sim):
     sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))
     with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
         assert h.matched()
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        h.spin(lambda: h.drive._grid is not None, 5.0)
+        h.give_grid(grid)
         yield h, sim, x
 
 
@@ -457,8 +457,7 @@ def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
         assert h.spin(lambda: h.drive._estop, 3.0)
         h.pub_estop.publish(h.Bool(data=False))
         assert h.spin(lambda: not h.drive._estop, 3.0)
-        h.pub_grid.publish(to_occupancy_grid(grid))  # the parked plan used to drive now
-        assert h.spin(lambda: h.drive._grid is not None, 5.0)
+        assert h.give_grid(grid)  # the parked plan used to drive now
         h.spin(lambda: False, 0.5)
         assert sim_moves(sim) == [] and h.drive._pending_plan is None
 
@@ -483,8 +482,7 @@ def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
         bad.info.resolution = float("nan")
         h.pub_grid.publish(bad)
         assert h.spin(lambda: any("bad safe grid" in s.message for s in h.states))
-        h.pub_grid.publish(to_occupancy_grid(grid))
-        assert h.spin(lambda: h.drive._grid is not None, 5.0)
+        assert h.give_grid(grid)
         fast = h.Twist()
         fast.linear.x = float("inf")
         for _ in range(5):

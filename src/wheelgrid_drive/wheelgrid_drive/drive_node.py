@@ -225,12 +225,8 @@ class DriveNode(Node):
         except ExternalShutdownException:
             pass  # Ctrl-C or rclpy.shutdown(): close() stops the chair
         except Exception as exc:
-            with self._gate:
-                self._estop = True
-                self._estop_failed = True
-                self._estops += 1
-                self._abort.set()
-            self.link.stop()
+            self._estop_failed = True
+            self._latch_estop()
             self._set_state(ERROR, f"e-stop thread failed ({exc!r}): chair stopped for good")
 
     # ---- state reporting ----------------------------------------------------------------------
@@ -374,23 +370,24 @@ class DriveNode(Node):
             self._on_estop(msg, received_ns(info))
         except Exception as exc:
             if msg.data:  # latch it and stop the chair, whatever else failed
-                with self._gate:
-                    self._estop = True
-                    self._estops += 1
-                    self._abort.set()
-                self.link.stop()
+                self._latch_estop(received_ns(info))
             self.get_logger().error(f"e-stop handling failed: {exc!r}; chair stopped")
 
-    def _on_estop(self, msg: Bool, received: int | None = None) -> None:
+    def _latch_estop(self, received: int = 0) -> None:
+        """Latch the e-stop, drop what it must not let run, and send STOP now (never queued
+        behind the worker). ``received``: when the e-stop reached this process, if known."""
+        with self._gate:
+            self._estop = True
+            self._estops += 1
+            stamp = received or time.time_ns()
+            self._estop_received_ns = max(self._estop_received_ns, stamp)
+            self._pending_plan = None  # a plan parked for the grid must not drive after it
+            self._abort.set()
+        self.link.stop()
+
+    def _on_estop(self, msg: Bool, received: int = 0) -> None:
         if msg.data:
-            with self._gate:
-                self._estop = True
-                self._estops += 1
-                stamp = received or time.time_ns()
-                self._estop_received_ns = max(self._estop_received_ns, stamp)
-                self._pending_plan = None  # a plan parked for the grid must not drive after it
-                self._abort.set()
-            self.link.stop()  # now, from this callback: never queued behind the worker
+            self._latch_estop(received)
             self._set_state(ERROR, "e-stop: chair stopped")
         elif self._estop:
             with self._gate:
@@ -604,8 +601,7 @@ class DriveNode(Node):
         twist = self._last_twist
         if twist is None:
             return
-        stale = time.monotonic() - self._last_twist_t > self.cfg.cmd_vel_timeout
-        if stale:
+        if self._twist_stale():
             self._last_twist = None
             if self._twist_running is not None:
                 self._twist_running = None
@@ -633,11 +629,14 @@ class DriveNode(Node):
         if not self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort)):
             self._twist_running = None
 
+    def _twist_stale(self) -> bool:
+        return time.monotonic() - self._last_twist_t > self.cfg.cmd_vel_timeout
+
     def _cmd_vel_guard(self) -> None:
         """On the e-stop thread: a /cmd_vel step whose stream went stale is stopped even while
         the executor is held up (reading a long plan), where _cmd_vel_tick cannot run and the
         step would go on blind. The tick does the rest (state, bookkeeping) when it runs."""
-        if time.monotonic() - self._last_twist_t <= self.cfg.cmd_vel_timeout:
+        if not self._twist_stale():
             return
         with self._gate:  # the job and its abort event, as _start_job sets them together
             if self._twist_running is None or self._job != "cmd_vel":
