@@ -137,9 +137,14 @@ def read_pgm(path: str | Path) -> np.ndarray:
     return img * (255.0 / maxval)
 
 
+def _is_finite_number(value: Any) -> bool:
+    """A YAML int or float that is finite (YAML's true/false are not numbers here)."""
+    return not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+
+
 def _number(doc: dict[str, Any], key: str, default: float, path: Path) -> float:
     value = doc.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if not _is_finite_number(value):
         raise ValueError(f"{path}: {key} must be a finite number, not {value!r}")
     return float(value)
 
@@ -178,10 +183,7 @@ def read_map(yaml_path: str | Path) -> Grid:
     if (
         not isinstance(origin, list)
         or len(origin) not in (2, 3)
-        or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-            for v in origin
-        )
+        or not all(_is_finite_number(v) for v in origin)
     ):
         raise ValueError(
             f"{yaml_path}: origin must be [x, y, yaw] of finite numbers, not {origin!r}"

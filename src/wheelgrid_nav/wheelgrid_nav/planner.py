@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from wheelgrid_common.params import check_finite
 from wheelgrid_common.params import field as pfield
 from wheelgrid_nav.actions import DELTAS, LEFT_OF, MOVES, OPPOSITE, RIGHT_OF, cells_to_moves
 
@@ -591,11 +592,13 @@ def plan(
 
 def check_config(cfg: PlannerConfig) -> None:
     """Reject settings under which the learned optimum would not be the cheapest route."""
-    for name in ("reward_step", "reward_blocked", "reward_goal", "reward_turn", "reward_backward"):
-        # an infinite or NaN reward never converges: every goal then held the node for
-        # max_seconds and ended "not converged"
-        if not math.isfinite(getattr(cfg, name)):
-            raise PlanInputError(f"{name} must be finite, not {getattr(cfg, name)}")
+    try:
+        # an infinite or NaN reward never converges (every goal then held the node for
+        # max_seconds and ended "not converged"), and a NaN max_seconds compares false in
+        # the time check and would remove the limit
+        check_finite(cfg)
+    except ValueError as exc:
+        raise PlanInputError(str(exc)) from None
     if cfg.max_episodes < 1 or min(cfg.replay, cfg.agents, cfg.max_episode_steps) < 0:
         raise PlanInputError("max_episodes must be >= 1; replay, agents, max_episode_steps >= 0")
     if not 0.0 < cfg.learning_rate <= 1.0:
@@ -614,8 +617,7 @@ def check_config(cfg: PlannerConfig) -> None:
         raise PlanInputError("stable_checks must be at least 1")
     if not 1 <= cfg.check_every <= MAX_CHECK_EVERY:
         raise PlanInputError(f"check_every must be from 1 to {MAX_CHECK_EVERY}")
-    # NaN would compare false and silently remove the time limit, so refuse it explicitly
-    if not (math.isfinite(cfg.max_seconds) and cfg.max_seconds > 0):
+    if not cfg.max_seconds > 0:
         raise PlanInputError("max_seconds must be a positive finite number")
     if cfg.seed < 0:  # numpy's generators take only non-negative seeds
         raise PlanInputError(f"seed must be a non-negative integer, got {cfg.seed}")
