@@ -90,6 +90,18 @@ def exit_logger(node: Any) -> Any:
     return rclpy.logging.get_logger(f"{node.get_name()}.exit")
 
 
+def check_topic_params(node: Any, topics: dict[str, str], optional: tuple[str, ...] = ()) -> None:
+    """``ValueError`` naming the first topic parameter (``{parameter: topic}``) whose name
+    rclpy would refuse; an empty name is allowed for the parameters in ``optional`` (that
+    input is off)."""
+    for what, name in topics.items():
+        if what in optional and not name:
+            continue
+        why = name_problem(name, node.get_name(), node.get_namespace())
+        if why:
+            raise ValueError(f"{what} {name!r}: {why}")
+
+
 def name_problem(
     name: str, node: str, namespace: str = "/", *, service: bool = False
 ) -> str | None:

@@ -201,6 +201,7 @@ def test_bridge_keeps_serving_after_warnings_and_frees_a_silent_slot() -> None:
         ("wheelgrid_mapping.depth_to_cloud_node", "min_confidence:=abc"),
         ("wheelgrid_mapping.depth_to_cloud_node", "min_confidence:=-1"),
         ("wheelgrid_mapping.depth_to_cloud_node", "queue_size:=0"),
+        ("wheelgrid_mapping.depth_to_cloud_node", "points_topic:=1abc"),
     ],
 )
 def test_bad_parameters_are_one_fatal_line_and_exit_2(module: str, param: str) -> None:

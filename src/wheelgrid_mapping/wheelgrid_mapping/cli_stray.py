@@ -27,6 +27,7 @@ from wheelgrid_mapping.bridge_protocol import (
     connect,
     encode_frame,
 )
+from wheelgrid_mapping.depth import check_min_confidence
 from wheelgrid_mapping.stray import StrayExport, StrayFrame
 
 TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
@@ -219,8 +220,10 @@ def import_main(argv: list[str]) -> int:
     from wheelgrid_mapping.iphone_bridge_node import frame_messages
 
     try:
-        if not 0 <= args.min_confidence <= 2:  # 5 made every point NaN, silently
-            raise _UsageError(f"--min-confidence must be 0, 1 or 2, not {args.min_confidence}")
+        try:  # 5 made every point NaN, silently
+            check_min_confidence(args.min_confidence, "--min-confidence")
+        except ValueError as exc:
+            raise _UsageError(str(exc)) from None
         exp = _open_export(args.dir)
         idx = _frame_range(exp, args.start, args.frames)
         if Path(args.out).exists():

@@ -61,6 +61,16 @@ def check_intrinsics(K: np.ndarray) -> np.ndarray:
     return k
 
 
+ARKIT_CONFIDENCE_LEVELS = (0, 1, 2)  # low, medium, high
+
+
+def check_min_confidence(value: int, name: str = "min_confidence") -> None:
+    """``ValueError`` unless ``value`` is one of ARKit's confidence levels: above 2 drops every
+    pixel and below 0 none, both without a word."""
+    if value not in ARKIT_CONFIDENCE_LEVELS:
+        raise ValueError(f"{name} must be 0, 1 or 2 (ARKit's levels), not {value}")
+
+
 def depth_to_points(
     depth: np.ndarray,
     K: np.ndarray,

@@ -21,6 +21,7 @@ from wheelgrid_common.params import field
 from wheelgrid_mapping.depth import (
     StampSync,
     check_intrinsics,
+    check_min_confidence,
     depth_image_to_metres,
     depth_to_points,
     image_array,
@@ -48,10 +49,7 @@ def check_config(cfg: DepthToCloudConfig) -> None:
     """``ValueError`` for settings the node cannot run with: a queue of 0 or a NaN tolerance
     matched nothing, and a min_confidence outside ARKit's 0..2 dropped every pixel or none,
     all without a word."""
-    if not 0 <= cfg.min_confidence <= 2:
-        raise ValueError(
-            f"min_confidence must be 0, 1 or 2 (ARKit's levels), not {cfg.min_confidence}"
-        )
+    check_min_confidence(cfg.min_confidence)
     if not (math.isfinite(cfg.mm_scale) and cfg.mm_scale > 0):
         raise ValueError(f"mm_scale must be a finite length > 0 m, not {cfg.mm_scale}")
     if not (math.isfinite(cfg.sync_tolerance_s) and cfg.sync_tolerance_s >= 0):
@@ -64,15 +62,11 @@ def check_config(cfg: DepthToCloudConfig) -> None:
 
 def _check_topics(node: Any, cfg: DepthToCloudConfig) -> None:
     """A bad topic name as one ``ValueError``, not rclpy's traceback from create_*."""
-    from wheelgrid_common.ros_env import name_problem
+    from wheelgrid_common.ros_env import check_topic_params
 
-    for what in ("depth_topic", "info_topic", "confidence_topic", "points_topic"):
-        name = getattr(cfg, what)
-        if what == "confidence_topic" and not name:
-            continue  # no confidence stream
-        why = name_problem(name, node.get_name(), node.get_namespace())
-        if why:
-            raise ValueError(f"{what} {name!r}: {why}")
+    names = ("depth_topic", "info_topic", "confidence_topic", "points_topic")
+    topics = {what: getattr(cfg, what) for what in names}
+    check_topic_params(node, topics, optional=("confidence_topic",))  # "": no confidence
 
 
 def _stamp_s(msg: Any) -> float:

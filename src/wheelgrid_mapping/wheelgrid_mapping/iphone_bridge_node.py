@@ -32,7 +32,7 @@ from wheelgrid_mapping.bridge_protocol import (
     BridgeServer,
     Frame,
 )
-from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
+from wheelgrid_mapping.depth import arkit_pose_to_ros, check_min_confidence, depth_to_points
 
 TOPIC_DEPTH = "/iphone/depth/image"
 TOPIC_INFO = "/iphone/depth/camera_info"
@@ -84,10 +84,7 @@ def check_config(cfg: BridgeConfig) -> None:
     :class:`~wheelgrid_mapping.bridge_protocol.BridgeServer`'s to check."""
     if cfg.stamp_mode not in ("offset", "phone", "receive"):
         raise ValueError(f"stamp_mode must be offset, phone or receive, not {cfg.stamp_mode!r}")
-    if not 0 <= cfg.min_confidence <= 2:  # 3 would drop every pixel, -1 none: both silently
-        raise ValueError(
-            f"min_confidence must be 0, 1 or 2 (ARKit's levels), not {cfg.min_confidence}"
-        )
+    check_min_confidence(cfg.min_confidence)
 
 
 def stamp_to_msg(seconds: float) -> Any:

@@ -203,14 +203,10 @@ class MapperNode(Node):  # type: ignore[misc]
         """``ValueError`` for node parameters it cannot run with: rclpy raised its own
         tracebacks for a bad topic name or a negative timer period, a period of 0 spun a core,
         and a negative queue was clamped without a word."""
-        from wheelgrid_common.ros_env import name_problem
+        from wheelgrid_common.ros_env import check_topic_params
 
-        for what, name in (("topic", c.topic), ("pose_prior_topic", c.pose_prior_topic)):
-            if what == "pose_prior_topic" and not name:
-                continue  # no prior
-            why = name_problem(name, self.get_name(), self.get_namespace())
-            if why:
-                raise ValueError(f"{what} {name!r}: {why}")
+        topics = {"topic": c.topic, "pose_prior_topic": c.pose_prior_topic}
+        check_topic_params(self, topics, optional=("pose_prior_topic",))  # "": no prior
         if not 0.05 <= c.publish_period <= 3600.0:
             raise ValueError(f"publish_period must be in [0.05, 3600] s, not {c.publish_period}")
         if c.max_queue < 1 or c.max_kept_frames < 0:
