@@ -336,8 +336,14 @@ def test_vanished_port_is_reported_and_recovered(make_sim, tmp_path):
         assert next(e for e in sim2.events if e.what == "rx").detail == "STOP"
 
 
-def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim):
+def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim, tmp_path):
+    """Started as `wheelgrid launch` starts it (a global ``__node`` rename) with its e-stop
+    topic remapped: the e-stop node keeps a name of its own and still hears the remapped
+    e-stop; SIGINT stops the chair."""
+    import subprocess
     import sys
+
+    from std_msgs.msg import Bool
 
     from wheelgrid_common.ros_env import child_env
     from wheelgrid_common.testing import managed_process, stop_process
@@ -348,19 +354,50 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim):
         "-m",
         "wheelgrid_drive.drive_node",
         "--ros-args",
+        "-r",
+        "__node:=drive",
+        "-r",
+        "/wheelgrid/estop:=/wg_test/estop",
         "-p",
         f"port:={sim.slave_path}",
     ]
-    with managed_process(args, env=child_env()) as proc:
+    log = tmp_path / "drive.log"
+    with (
+        open(log, "wb") as out,
+        managed_process(args, env=child_env(), stdout=out, stderr=subprocess.STDOUT) as proc,
+        rclpy_context() as ctx,
+    ):
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        node = Node("wg_drive_entry_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        pub = node.create_publisher(Bool, "/wg_test/estop", RELIABLE_QOS)
         deadline = time.monotonic() + 15.0
         while time.monotonic() < deadline and not any(
             e.what == "rx" and e.detail == "HEARTBEAT" for e in sim.events
         ):
             time.sleep(0.05)
         assert any(e.detail == "HEARTBEAT" for e in sim.events), "node never reached the controller"
+        assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 10.0)
+
+        def drive_names() -> list[str]:
+            return sorted(n for n in node.get_node_names() if n.startswith("drive"))
+
+        spin_until(ex, lambda: len(drive_names()) >= 2, 5.0)
+        assert drive_names() == ["drive", "drive_estop"], drive_names()
+        pub.publish(Bool(data=True))
+        assert spin_until(
+            ex, lambda: any(e.what == "rx" and e.detail == "STOP" for e in sim.events), 5.0
+        ), "the remapped e-stop did not stop the chair"
+        node.destroy_node()
         assert stop_process(proc) == 0
     # Shutting the node down sends STOP before the port closes.
     assert [e.detail for e in sim.events if e.what == "rx"][-1] == "STOP"
+    text = log.read_text(errors="replace")
+    assert "Publisher already registered" not in text, text
+    assert "Failed to publish log message to rosout" not in text, text
 
 
 def test_grid_change_under_a_running_move_stops_the_chair(make_sim):

@@ -200,10 +200,16 @@ class DriveNode(Node):
         self.create_timer(0.05, self._cmd_vel_tick)
         self.create_timer(1.0 / max(c.state_rate, 0.1), self._publish_state)
 
+        # A launcher names its node with a global ``-r __node:=drive``, which renames every
+        # node of the process: the e-stop node was a second "drive", whose rosout publisher
+        # rcl shares and drops with it. A node-local rename wins over a global one, and the
+        # global topic remaps (a remapped e-stop topic) still apply to this node.
+        estop_name = f"{self.get_name()}_estop"
         self._estop_node = Node(
-            "drive_estop",
+            estop_name,
             namespace=self.get_namespace(),
             context=self.context,
+            cli_args=["--ros-args", "-r", f"__node:={estop_name}"],
             start_parameter_services=False,
         )
         self._estop_node.create_subscription(
