@@ -211,7 +211,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.jsonl:
             print(json.dumps(rec), flush=True)
             return
-        extra = f" seq {rec['seq']} pose {rec['pose']}" if "seq" in rec else ""
+        extra = ""
+        if "seq" in rec:
+            x, y = rec["pose"]
+            extra = f" seq {rec['seq']}, chair at x {x:.3f} m, y {y:.3f} m"
         reason = f": {rec['reason']}" if "reason" in rec else ""
         line = f"  {counter['i']}/{total}: {_describe(step)} -> {rec['ack']}{extra}{reason}"
         print(line, flush=True)
@@ -246,7 +249,12 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
-    print(f"wheelgrid drive: {result.done}/{result.total} steps done; stats {link.stats}")
+    s = link.stats
+    print(
+        f"wheelgrid drive: {result.done}/{result.total} steps done; link: {s.sent} frames sent, "
+        f"{s.replies} replies, {s.retries} retries, {s.timeouts} timeouts, {s.garbled} garbled, "
+        f"{s.naks} NAKs"
+    )
     return 0
 
 

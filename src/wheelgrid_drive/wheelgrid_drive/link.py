@@ -75,6 +75,18 @@ HEARTBEAT_PERIOD_S = 0.1  # 5x faster than the controller's 0.5 s watchdog (prot
 RECONNECT_PERIOD_S = 0.5  # a vanished port is tried again this often (protocol duty 5)
 
 
+def _open_reason(exc: BaseException) -> str:
+    """The OS's own reason a port did not open, once: pyserial wraps the OSError in a message
+    that repeats its errno and the path ("[Errno 2] could not open port X: [Errno 2] No such
+    file or directory: 'X'")."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror and type(seen).__module__ == "builtins":
+            return seen.strerror
+        seen = seen.__cause__ or seen.__context__
+    return str(exc)
+
+
 class MotorLink:
     """A connection to the motor controller on ``port``. Thread-safe.
 
@@ -137,7 +149,7 @@ class MotorLink:
         try:
             ser = self._factory(self.port, self.baud)
         except Exception as exc:  # pyserial raises SerialException/OSError/ValueError
-            raise LinkError(f"cannot open {self.port}: {exc}") from exc
+            raise LinkError(f"cannot open {self.port}: {_open_reason(exc)}") from exc
         with contextlib.suppress(Exception):
             ser.reset_input_buffer()  # stale bytes from before us are not replies to us
         self._decoder = proto.FrameDecoder()
