@@ -91,7 +91,9 @@ class BagReader:
             reader.open()
             self._reader = reader  # only an opened reader is ever closed in __exit__
         except Exception as exc:  # rosbags raises several unrelated types for corrupt bags
-            text = f"{self.path}: cannot open bag ({type(exc).__name__}: {exc})"
+            # One line: a YAML parser's message spans several, with carets under the error.
+            detail = " ".join(str(exc).split())
+            text = f"{self.path}: cannot open bag ({type(exc).__name__}: {detail})"
             if cut_off_mcap(self.path):
                 text += f"; {recover_hint(self.path)}"
             raise BagError(text) from exc
