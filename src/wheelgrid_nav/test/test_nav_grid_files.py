@@ -110,6 +110,7 @@ def _ply_points(tmp_path, name, points):
     ("case", "message"),
     [
         ("missing", "no such map file"),
+        ("folder", "a folder, not a PLY map file; `wheelgrid map --out` wrote"),
         ("garbage", "not a readable PLY"),
         ("truncated", "not a readable PLY"),
         ("empty", "no (finite) points"),
@@ -123,6 +124,10 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
     args = ["--out", str(tmp_path / "out")]
     if case == "missing":
         path = str(tmp_path / "nope.ply")
+    elif case == "folder":  # the map command's --out folder instead of its map.ply
+        (tmp_path / "m").mkdir()
+        _ply_points(tmp_path / "m", "map.ply", [[0, 0, 0.5]])
+        path = str(tmp_path / "m")
     elif case == "garbage":
         path = str(tmp_path / "garbage.ply")
         (tmp_path / "garbage.ply").write_bytes(b"\x00\x01 definitely not a ply")

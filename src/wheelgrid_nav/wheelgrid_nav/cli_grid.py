@@ -79,6 +79,10 @@ def main(argv: list[str] | None = None) -> int:
         gcfg.validate()
     except (OSError, ValueError) as exc:
         return _fail(f"bad config: {exc}")
+    if args.map.is_dir():
+        inside = args.map / "map.ply"
+        hint = f"; `wheelgrid map --out` wrote {inside}" if inside.is_file() else ""
+        return _fail(f"{args.map}: a folder, not a PLY map file{hint}")
     if not args.map.is_file():
         return _fail(f"{args.map}: no such map file")
     try:
