@@ -15,6 +15,7 @@ import time
 import numpy as np
 import pytest
 
+from wheelgrid_common.fileio import read_ply
 from wheelgrid_common.map_io import read_map
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -40,6 +41,10 @@ def test_demo_drives_the_chair_to_the_goal_through_free_cells_only(live_demo, ba
         "trajectory.tum",
     ):
         assert (out / name).exists(), name
+    # The summary names the saved map's own point count, not the coarser published cloud's.
+    n_saved = len(read_ply(out / "map.ply"))
+    assert s["map_points_saved"] == n_saved >= s["map_points_published"], s
+    assert f"{n_saved:,} points in out/map.ply" in live_demo["stdout"]
     grid = read_map(out / "grid.yaml")
     assert grid.data.shape == (8, 8)
     # The scan's loops closed, the live grid is the true one (the paper's Fig. 12), cell for cell
@@ -124,6 +129,7 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
 
     params = yaml.safe_load((repo_root / "src/wheelgrid_bringup/config/wheelgrid.yaml").read_text())
     params["drive"]["ros__parameters"].update({"initial_heading": "down", "set_pose_on_plan": True})
+    params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "mapper_out")
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     lines: list[str] = []
     with MotorSim() as sim, rclpy_context() as ctx:
@@ -190,6 +196,11 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
             monitor.close()
         assert proc.returncode == 1, "".join(lines[-20:])
         assert "node 'grid' died" in err
+        # the mapper, stopped with the chain, saved its unsaved map, and the console says where
+        on_exit = tmp_path / "mapper_out" / "on_exit"
+        assert (on_exit / "map.ply").exists()
+        said = [ln for ln in lines if ln.startswith("launch: mapper: map saved on exit:")]
+        assert said and f"{on_exit}/map.ply" in said[0], "".join(lines[-10:])
         _wait(lambda: sim.status().state.name == "IDLE", 3.0, "chair stopped", None, lines)
         assert any(e.what == "stop" and e.t >= t_kill for e in sim.events)
 

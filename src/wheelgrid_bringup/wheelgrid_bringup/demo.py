@@ -25,6 +25,7 @@ from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.route_png import draw_route
 from wheelgrid_bringup.supervisor import Supervisor, default_params_file
 from wheelgrid_common.bagio import BagError, BagReader
+from wheelgrid_common.fileio import read_ply
 from wheelgrid_common.map_io import Grid
 from wheelgrid_common.ros_env import child_env, configure_ros_env
 
@@ -84,8 +85,15 @@ def parse_cell(text: str) -> tuple[int, int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="wheelgrid demo", description=__doc__.splitlines()[0])
-    p.add_argument("--bag", type=Path, help="simulator output folder (default bags/paper_room)")
+    p = argparse.ArgumentParser(
+        prog="wheelgrid demo", description=__doc__.splitlines()[0].replace("``", "")
+    )
+    p.add_argument(
+        "--bag",
+        type=Path,
+        help="a `wheelgrid simulate --out` folder (scan/ + truth.json) or a rosbag2 folder "
+        "(default bags/paper_room)",
+    )
     p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
     p.add_argument("--params", type=Path, help="parameter YAML (default bringup wheelgrid.yaml)")
     p.add_argument("--rate", type=float, default=1.0, help="bag replay speed factor (default 1)")
@@ -131,7 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         with BagReader(bag) as reader:
             topics = reader.topics()
     except BagError as exc:
-        print(f"wheelgrid demo: {exc}", file=sys.stderr)
+        print(
+            f"wheelgrid demo: {exc} (--bag takes a `wheelgrid simulate --out` folder, which "
+            "holds scan/ and truth.json, or a rosbag2 folder)",
+            file=sys.stderr,
+        )
         return 2
     configure_ros_env()
     params = args.params or default_params_file()
@@ -334,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
                 "frames": n_frames,
                 "mapper": dict(monitor.state.mapper),
                 "map_points_published": monitor.state.map_points,
+                "map_points_saved": saved_points(out / "map.ply") if ok_map else None,
                 "grid": grid_stats(grid),
                 "route_cells": [list(c) for c in planned],
                 "commands": commands,
@@ -429,6 +442,24 @@ def write_commands_csv(path: Path, commands: list[dict[str, Any]]) -> None:
             )
 
 
+def saved_points(path: Path) -> int | None:
+    """The saved map's own point count: the node publishes a coarser cloud
+    (``max_published_points``), and a summary that named that count beside ``map.ply`` read
+    as the file's."""
+    try:
+        return len(read_ply(path))
+    except (OSError, ValueError):
+        return None
+
+
+def map_points_line(s: dict[str, Any]) -> str:
+    published = f"{s.get('map_points_published', 0):,} published"
+    saved = s.get("map_points_saved")
+    if saved is None:
+        return f"not saved; {published}"
+    return f"{saved:,} points in out/map.ply ({published}, coarser)"
+
+
 def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
     g = s.get("grid", {})
     m = s.get("mapper", {})
@@ -440,7 +471,7 @@ def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
         + (f" ({s['error']})" if s.get("error") else ""),
         f"  frames    {s.get('frames', '?')} replayed; mapper used {m.get('frames_used', '?')}, "
         f"failed {m.get('frames_failed', '?')}",
-        f"  map       {s.get('map_points_published', 0):,} points published (out/map.ply); "
+        f"  map       {map_points_line(s)}; "
         + (
             f"loops closed: {m.get('loop_closure_note')}"
             if m.get("loop_closure") == "closed"

@@ -22,7 +22,9 @@ from wheelgrid_common.ros_env import child_env, configure_ros_env
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="wheelgrid launch", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="wheelgrid launch", description=__doc__.splitlines()[0].replace("``", "")
+    )
     p.add_argument("--params", type=Path, help="parameter YAML (default: bringup wheelgrid.yaml)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--bag", type=Path, help="rosbag2 folder or .bag to replay into the mapper")
@@ -173,7 +175,29 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 "launch: stopped " + ", ".join(f"{n} ({c})" for n, c in codes.items()), flush=True
             )
+        if "mapper" in sup.procs:
+            for line in save_on_exit_lines(sup.procs["mapper"].log_path):
+                print(f"launch: mapper: {line}", flush=True)
     return code
+
+
+SAVE_ON_EXIT = ("map saved on exit", "map NOT saved on exit", "cannot save the map")
+
+
+def save_on_exit_lines(log_path: Path) -> list[str]:
+    """What the mapper did with an unsaved map as it stopped, from its log: the node writes it
+    to ``<output_dir>/on_exit`` (relative to where the chain was started) or a temporary
+    folder, and a user watching the console would otherwise never learn where."""
+    try:
+        text = log_path.read_text(errors="replace")
+    except OSError:
+        return []
+    lines = [line.strip() for line in text.splitlines()]
+    return [
+        line[line.find("]: ") + 3 :] if "]: " in line else line
+        for line in lines
+        if any(key in line for key in SAVE_ON_EXIT)
+    ]
 
 
 if __name__ == "__main__":
