@@ -22,7 +22,7 @@ def test_call_without_such_a_service_says_so_and_exits_2() -> None:
     assert "no service /nobody/close_loops" in proc.stdout and "Traceback" not in proc.stderr
 
 
-@pytest.mark.parametrize("name", ["", "1abc", "bad//name"])
+@pytest.mark.parametrize("name", ["", "1abc", "bad//name", "bad name!"])
 def test_a_service_name_rclpy_refuses_is_one_line_and_exit_2(name: str, capsys) -> None:
     """rclpy raised its own traceback for these, after DDS had started."""
     from wheelgrid_bringup.call import main
@@ -30,3 +30,4 @@ def test_a_service_name_rclpy_refuses_is_one_line_and_exit_2(name: str, capsys) 
     assert main([name, "--timeout", "1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"wheelgrid call: {name!r}: ") and ", at /" not in err, err
+    assert "topic" not in err, err  # it is a service name, whatever rcl's rules call it

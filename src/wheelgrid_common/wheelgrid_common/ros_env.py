@@ -116,5 +116,7 @@ def name_problem(
     try:
         validate_full_topic_name(expand_topic_name(name, node, namespace), is_service=service)
     except (InvalidTopicNameException, InvalidServiceNameException, ValueError) as exc:
-        return str(exc).splitlines()[0].split(", at /")[0]
+        why = str(exc).splitlines()[0].split(", at /")[0]
+        # rcl expands both kinds by the topic rules and says "topic" either way
+        return why.replace("topic name", "service name") if service else why
     return None
