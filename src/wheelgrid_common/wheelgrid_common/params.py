@@ -7,6 +7,7 @@ nodes declare every field as a ROS parameter with that description, so ``--ros-a
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import typing
@@ -35,6 +36,36 @@ def describe(cls: type) -> dict[str, str]:
         unit = f.metadata.get("unit", "")
         out[f.name] = f"{doc} [{unit}]" if unit else doc
     return out
+
+
+def cli_help(cls: type) -> dict[str, str]:
+    """``describe`` with each field's default, for --help: a CLI leaves its options unset so
+    that a --config file can set them, and argparse then has no default to show."""
+    out = describe(cls)
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            value = f"{f.default:g}" if isinstance(f.default, float) else str(f.default)
+            out[f.name] += f" (default {value})"
+    return out
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """argparse's defaults formatter without its noise: no "(default: None)" or
+    "(default: False)" after an option that has no default or is a flag, and nothing added to a
+    help text that already says what its default is."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            "default" in text
+            or default is None
+            or isinstance(default, bool)
+            or default is argparse.SUPPRESS
+            or not action.option_strings
+        ):
+            return text
+        return f"{text} (default %(default)s)" if text else "default %(default)s"
 
 
 def _coerce(value: Any, typ: Any, name: str) -> Any:

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from wheelgrid_common.params import DefaultsHelpFormatter
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
@@ -96,12 +97,22 @@ def _parser() -> argparse.ArgumentParser:
         description="Convert a plan's moves into chair actions (the paper's Table II) and send "
         "them to the motor controller over serial (docs/serial-protocol.md). The chair is "
         "stopped on any failure.",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("plan", help="plan JSON from 'wheelgrid plan --json'")
     p.add_argument("--port", help="serial device of the motor controller (or a simulator pty)")
-    p.add_argument("--baud", type=int, default=115200)
-    p.add_argument("--heading", choices=list(actions.DELTA), help="the chair's start heading")
-    p.add_argument("--cell-size", type=float, default=None, help="metres per cell (default 1.2)")
+    p.add_argument("--baud", type=int, default=115200, help="serial speed (bit/s)")
+    p.add_argument(
+        "--heading",
+        choices=list(actions.DELTA),
+        help="the chair's start heading (default: the plan's)",
+    )
+    p.add_argument(
+        "--cell-size",
+        type=float,
+        default=None,
+        help="metres per cell (default: the --grid's resolution, else 1.2)",
+    )
     p.add_argument(
         "--speed", type=float, default=3.0, help=f"km/h, capped at {proto.MAX_SPEED_KMH:g}"
     )

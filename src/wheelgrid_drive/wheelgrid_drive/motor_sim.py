@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
+from wheelgrid_common.params import DefaultsHelpFormatter
 from wheelgrid_drive import protocol as proto
 
 _DEFAULT_POSE = (0.0, 0.0, 0.0)
@@ -403,6 +404,7 @@ def _parser() -> argparse.ArgumentParser:
         prog="wheelgrid motor-sim",
         description="Simulated wheelchair motor controller on a pty (docs/serial-protocol.md). "
         "Prints the pty device path; Ctrl-C ends it.",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--link", help="create this symlink to the pty slave (a stable port name)")
     p.add_argument("--pose-log", help="write the pose track (t,x,y,yaw,...) to this CSV")
@@ -419,7 +421,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--time-scale", type=float, default=1.0, help="kinematics speed-up factor")
     p.add_argument("--noise", type=float, default=0.0, help="distance noise std dev (m)")
     p.add_argument("--noise-deg", type=float, default=0.0, help="turn noise std dev (deg)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise, loss and damage")
     p.add_argument("--drop", type=float, default=0.0, help="frame loss probability")
     p.add_argument("--corrupt", type=float, default=0.0, help="frame damage probability")
     p.add_argument("--delay", type=float, default=0.0, help="reply delay (s)")

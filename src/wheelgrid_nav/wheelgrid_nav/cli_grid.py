@@ -26,7 +26,7 @@ from wheelgrid_nav.grid import (
 
 
 def _parser() -> argparse.ArgumentParser:
-    docs = params.describe(GridNodeConfig)
+    docs = params.cli_help(GridNodeConfig)
     p = argparse.ArgumentParser(
         prog="wheelgrid grid",
         description="Turn a levelled 3D map (PLY, z up, floor at z = 0) into the safe 2D grid "

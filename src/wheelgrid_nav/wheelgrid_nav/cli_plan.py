@@ -114,7 +114,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--goal", metavar="R,C", help="goal cell (row, col)")
     p.add_argument("--start-xy", metavar="X,Y", help="start in metres in the map frame")
     p.add_argument("--goal-xy", metavar="X,Y", help="goal in metres in the map frame")
-    p.add_argument("--heading", choices=MOVES, help="the chair's heading at the start (grid)")
+    p.add_argument(
+        "--heading",
+        choices=MOVES,
+        help="the chair's heading on the grid at the start; with it, "
+        "the route also gets the Table II actions (default: none, moves only)",
+    )
     p.add_argument("--method", choices=METHODS, default="qlearning", help="default qlearning")
     p.add_argument("--seed", type=int, help="random seed (overrides the config's)")
     p.add_argument("--config", help="YAML with PlannerConfig fields")
