@@ -43,7 +43,9 @@ def test_unusable_bags_raise_bag_error(tmp_path):
 
 def test_a_metadata_yaml_that_does_not_parse_is_one_line(tmp_path):
     """The YAML parser's own message spans five lines with a caret; the CLIs promise one."""
-    (tmp_path / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: [5\n  : x: {\n")
+    (tmp_path / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: [5\n  : x: {\n"
+    )
     with pytest.raises(BagError, match="cannot open") as info:
         BagReader(tmp_path).__enter__()
     text = str(info.value)
