@@ -203,6 +203,9 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
         assert said and f"{on_exit}/map.ply" in said[0], "".join(lines[-10:])
         _wait(lambda: sim.status().state.name == "IDLE", 3.0, "chair stopped", None, lines)
         assert any(e.what == "stop" and e.t >= t_kill for e in sim.events)
+        # the drive node, stopped mid-plan, logs its last words without trying /rosout
+        drive_log = (tmp_path / "logs" / "drive.log").read_text(errors="replace")
+        assert "plan aborted" in drive_log and "rosout" not in drive_log, drive_log[-2000:]
 
 
 def _wait(pred, timeout: float, what: str, proc, lines: list[str]) -> None:

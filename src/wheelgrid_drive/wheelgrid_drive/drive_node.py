@@ -38,7 +38,7 @@ from std_msgs.msg import Bool, String
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
-from wheelgrid_common.ros_env import spin_node
+from wheelgrid_common.ros_env import exit_logger, spin_node
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkError, MotorLink
@@ -240,8 +240,9 @@ class DriveNode(Node):
     def _set_state(self, level: bytes, message: str) -> None:
         with self._lock:
             self._level, self._message = level, message
-        # One call site per severity: rclpy refuses a call site that changes severity.
-        logger = self.get_logger()
+        # One call site per severity: rclpy refuses a call site that changes severity. The
+        # state changes as the node stops too (a plan aborted by shutdown): not to /rosout then.
+        logger = exit_logger(self)
         if level == OK:
             logger.info(message)
         elif level == WARN:
@@ -320,10 +321,11 @@ class DriveNode(Node):
         if kind == "timeout":
             return
         self._link_note = f"{kind}: {message}"
+        logger = exit_logger(self)  # close() stops the chair after the context is shut down
         if kind in ("vanished", "stop", "nak", "garbled", "unexpected"):
-            self.get_logger().warning(self._link_note)
+            logger.warning(self._link_note)
         elif kind == "reconnected":
-            self.get_logger().info(self._link_note)
+            logger.info(self._link_note)
 
     def _publish_record(self, rec: dict[str, Any]) -> None:
         self._publish(self.pub_cmds, String(data=dumps_record(rec)))
@@ -335,7 +337,7 @@ class DriveNode(Node):
         try:
             pub.publish(msg)
         except Exception as exc:  # context shut down between the check and the call
-            self.get_logger().debug(f"publish after shutdown dropped: {exc}")
+            exit_logger(self).debug(f"publish after shutdown dropped: {exc}")
 
     # ---- inputs -------------------------------------------------------------------------------
 
