@@ -154,11 +154,15 @@ def load_yaml(cls: type[T], path: str | Path | None, section: str | None = None)
     return from_mapping(cls, data)
 
 
-def declare_dataclass(node: Any, cfg: T, prefix: str = "") -> T:
+def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = True) -> T:
     """Declare every field of ``cfg`` as a described ROS parameter and return the values read.
 
     Defaults come from ``cfg`` (so a YAML-loaded config can seed them); overrides come from the
-    usual ``--ros-args -p`` / ``--params-file`` mechanisms.
+    usual ``--ros-args -p`` / ``--params-file`` mechanisms. A node that reads its values once,
+    at start-up, declares them ``read_only``: otherwise ``ros2 param set drive speed 10`` was
+    answered "successful" and changed nothing (the chair stays capped at 3 km/h, but a user
+    reading the parameter back saw 10). Only a node that applies and checks changes at run
+    time (the grid node) passes ``read_only=False``.
     """
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import ParameterException
@@ -174,7 +178,9 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "") -> T:
         # it (a mount transform could not be set at all): such a parameter takes any type,
         # and from_mapping checks what arrives.
         descriptor = ParameterDescriptor(
-            description=docs[f.name], dynamic_typing=isinstance(default, list) and not default
+            description=docs[f.name],
+            dynamic_typing=isinstance(default, list) and not default,
+            read_only=read_only,
         )
         try:
             node.declare_parameter(name, default, descriptor)

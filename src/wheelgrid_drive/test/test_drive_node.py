@@ -231,6 +231,30 @@ def test_a_failed_estop_thread_stops_the_chair_for_good(make_sim):
         assert len(sim_moves(sim)) == n_moves and h.drive._estop
 
 
+def test_parameters_read_at_start_refuse_a_change_at_run_time(make_sim):
+    """`ros2 param set drive speed 10` was answered "successful" and changed nothing (the node
+    reads its parameters once); a reader of the parameter then saw 10 km/h."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    from wheelgrid_common.testing import call_service
+
+    sim = make_sim()
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        setp = h.node.create_client(SetParameters, "/drive/set_parameters")
+        assert spin_until(h.ex, setp.service_is_ready, 10.0)
+
+        def request() -> SetParameters.Request:
+            value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=10.0)
+            return SetParameters.Request(parameters=[Parameter(name="speed", value=value)])
+
+        answer = call_service(h.ex, setp, request)
+        assert answer is not None
+        result = answer.results[0]
+        assert not result.successful and "read-only" in result.reason, result
+        assert h.drive.get_parameter("speed").value == 3.0
+
+
 def test_step_into_occupied_cell_is_refused(make_sim):
     sim = make_sim()
     grid = free_grid()

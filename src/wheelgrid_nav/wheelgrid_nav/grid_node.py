@@ -52,7 +52,7 @@ class GridNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("grid", **kwargs)
         try:  # a wrongly typed value comes out of declare_dataclass as ValueError too
-            self.cfg = params.declare_dataclass(self, GridNodeConfig())
+            self.cfg = params.declare_dataclass(self, GridNodeConfig(), read_only=False)
             self.grid_cfg = grid_config(self.cfg)
             self.grid_cfg.validate()
             check_rate(self.cfg.max_rate_hz)
