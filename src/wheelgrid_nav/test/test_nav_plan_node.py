@@ -229,6 +229,56 @@ def test_odometry_start_and_console_entry(tmp_path):
             h.close()
 
 
+def chair_msg(grid, cell, yaw):
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.frame_id = "map"
+    msg.pose = start_msg(grid, cell, yaw).pose.pose
+    return msg
+
+
+def test_the_next_goal_starts_where_the_chair_drove_to(tmp_path):
+    """RViz sends goal after goal with no new /initialpose: the second route used to start at
+    the first route's start (the drive refused it, the chair stood). The chair's pose moves the
+    start when the chair has moved, and only then: at rest it does not undo an /initialpose."""
+    from geometry_msgs.msg import PoseStamped
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        planner = make_node(context=ctx)
+        h = Harness(ctx)
+        chair_pub = h.node.create_publisher(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
+        h.ex.add_node(planner)
+        try:
+            assert h.wait_matched()
+            assert spin_until(h.ex, lambda: chair_pub.get_subscription_count() > 0, 15.0)
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            down = -math.pi / 2
+            h.init_pub.publish(start_msg(grid, (2, 0), down))  # the user places the chair
+            spin_until(h.ex, lambda: False, 0.3)
+            # the controller's power-on pose, heard only now, then again at rest: neither may
+            # undo the user's start
+            for _ in range(2):
+                chair_pub.publish(chair_msg(grid, (0, 0), 0.0))
+                spin_until(h.ex, lambda: False, 0.3)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (2, 5)))
+            assert cells_of(h.next_path(n), grid)[0] == (2, 0)
+            # the chair drives the route: its pose moves, and the next goal starts there
+            for c in range(1, 6):
+                chair_pub.publish(chair_msg(grid, (2, c), 0.0))
+                spin_until(h.ex, lambda: False, 0.1)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            assert cells_of(h.next_path(n), grid) == [(r, 5) for r in range(2, 7)]
+        finally:
+            h.close()
+            planner.destroy_node()
+
+
 def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
     """A new grid smaller than the route raised IndexError in the grid callback and ended the
     node; a grid in another frame was planned on with map coordinates; a goal refused for

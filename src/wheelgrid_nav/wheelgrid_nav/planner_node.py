@@ -1,8 +1,12 @@
 """The planner node: safe grid + start pose + goal pose -> a verified route as nav_msgs/Path.
 
 Subscribes ``/wheelgrid/safe_grid`` (OccupancyGrid, MAP_QOS), ``/goal_pose`` (PoseStamped,
-as RViz's 2D Goal Pose sends), and the start from ``/wheelgrid/odometry`` (Odometry) or
-``/initialpose`` (PoseWithCovarianceStamped) -- whichever arrived last. Publishes
+as RViz's 2D Goal Pose sends), and the start from ``/wheelgrid/odometry`` (Odometry),
+``/initialpose`` (PoseWithCovarianceStamped) or ``/wheelgrid/chair_pose`` (PoseStamped, the
+drive's controller pose) -- whichever arrived last, the chair's pose counting only once it
+has moved (it is published at every heartbeat, and would otherwise undo an /initialpose at
+once). Without it a second goal, sent after the chair drove, was planned from the first
+goal's start, and the drive refused that route. Publishes
 ``/wheelgrid/plan`` (Path through cell centres, orientation = direction of travel into each
 cell; the start cell carries the heading planned from; MAP_QOS) and
 ``/wheelgrid/plan_markers`` (MarkerArray of arrows, MAP_QOS).
@@ -38,6 +42,10 @@ from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, check_
 
 # grid direction -> angle in the grid's own frame (x = col + 1 = "right", y = row - 1 = "up")
 _DIR_ANGLE = {"right": 0.0, "up": math.pi / 2, "left": math.pi, "down": -math.pi / 2}
+# The chair's pose moves the start only when the chair has moved by this much: the controller's
+# dead reckoning at rest stays put, and an /initialpose given since must stand.
+CHAIR_MOVED_M = 0.01
+CHAIR_TURNED_RAD = math.radians(1.0)
 
 
 @dataclass
@@ -154,6 +162,10 @@ def _make_node_class() -> type:
             self.create_subscription(
                 PoseWithCovarianceStamped, "/initialpose", self._on_initialpose, RELIABLE_QOS
             )
+            self.create_subscription(
+                PoseStamped, "/wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS
+            )
+            self._last_chair: tuple[float, float, float] | None = None
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
 
         # ---- inputs ---------------------------------------------------------------------
@@ -233,6 +245,29 @@ def _make_node_class() -> type:
                 not had_start and self.goal is not None
             ):
                 self._plan()
+
+        def _on_chair_pose(self, msg: Any) -> None:
+            pose = msg.pose
+            if pose_problem(pose):
+                return  # _set_start would say so at every heartbeat; the drive reports it
+            now = (
+                float(pose.position.x),
+                float(pose.position.y),
+                forward_yaw(pose.orientation, ""),
+            )
+            last, self._last_chair = self._last_chair, now
+            # The first pose only sets the reference: the controller's power-on pose is no
+            # place the user chose, and it may arrive after their /initialpose.
+            moved = last is not None and (
+                math.hypot(now[0] - last[0], now[1] - last[1]) >= CHAIR_MOVED_M
+                or abs(math.remainder(now[2] - last[2], math.tau)) >= CHAIR_TURNED_RAD
+            )
+            if moved:
+                had_start = self.start is not None
+                if self._set_start(pose, msg.header.frame_id, "") and (
+                    not had_start and self.goal is not None
+                ):
+                    self._plan()
 
         def _on_initialpose(self, msg: Any) -> None:
             # an explicit start from the user (RViz 2D Pose Estimate): plan from it at once
