@@ -10,16 +10,18 @@ import os
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
-from launch.conditions import IfCondition, LaunchConfigurationNotEquals
+from launch.conditions import IfCondition, LaunchConfigurationEquals, LaunchConfigurationNotEquals
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 # (package, executable, node name) -- keep in step with wheelgrid_bringup.supervisor.NODES.
 CHAIN = [
-    ("wheelgrid_mapping", "mapper", "mapper"),
     ("wheelgrid_nav", "grid", "grid"),
     ("wheelgrid_nav", "planner", "planner"),
 ]
+# A replay maps every frame, as `wheelgrid launch --bag` and `wheelgrid map` do; live, the
+# mapper keeps only the newest frame (max_queue 1 in the parameter file).
+REPLAY_MAPPER = {"max_queue": 1000}
 
 
 def generate_launch_description():
@@ -35,6 +37,20 @@ def generate_launch_description():
         DeclareLaunchArgument("drive", default_value="true"),
         DeclareLaunchArgument("motor_port", default_value="/dev/ttyUSB0"),
     ]
+    for extra, condition in (
+        ([], LaunchConfigurationEquals("bag", "")),
+        ([REPLAY_MAPPER], LaunchConfigurationNotEquals("bag", "")),
+    ):
+        actions.append(
+            Node(
+                package="wheelgrid_mapping",
+                executable="mapper",
+                name="mapper",
+                parameters=[params, *extra],
+                output="screen",
+                condition=condition,
+            )
+        )
     for package, executable, name in CHAIN:
         actions.append(
             Node(

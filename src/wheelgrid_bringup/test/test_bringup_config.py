@@ -8,7 +8,12 @@ from pathlib import Path
 import yaml
 
 from wheelgrid_bringup.cli import COMMANDS, main
-from wheelgrid_bringup.supervisor import NODES, default_params_file, node_argv
+from wheelgrid_bringup.supervisor import (
+    NODES,
+    REPLAY_MAX_QUEUE,
+    default_params_file,
+    node_argv,
+)
 
 PKG = Path(__file__).resolve().parents[1]
 
@@ -72,6 +77,14 @@ def test_launch_file_starts_the_same_nodes_as_the_launcher():
                     names.add(kw.value.value)
     assert names == {"mapper", "grid", "planner", "drive", "iphone_bridge"}
     assert names <= set(NODES)
+    # a bag replayed by ros2 launch maps every frame, as `wheelgrid launch --bag` does (the
+    # mapper kept the parameter file's max_queue 1 there, and mapped another map)
+    replay = next(
+        ast.literal_eval(n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Assign) and getattr(n.targets[0], "id", "") == "REPLAY_MAPPER"
+    )
+    assert replay == {"max_queue": REPLAY_MAX_QUEUE}
 
 
 def test_node_argv_passes_params_file_and_overrides():

@@ -23,7 +23,7 @@ from typing import Any
 
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.route_png import draw_route
-from wheelgrid_bringup.supervisor import Supervisor, default_params_file
+from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
 from wheelgrid_common.bagio import BagError, BagReader
 from wheelgrid_common.fileio import read_ply
 from wheelgrid_common.map_io import Grid
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("mapper", "grid", "planner"):
             over: dict[str, object] = {"output_dir": str(out)}
             if name == "mapper":
-                over["max_queue"] = 1000  # a replay: map every frame, as `wheelgrid map` does
+                over["max_queue"] = REPLAY_MAX_QUEUE
             elif name == "planner":
                 over = {}
             sup.start_node(name, params, over)

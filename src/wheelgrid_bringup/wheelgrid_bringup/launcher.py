@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
-from wheelgrid_bringup.supervisor import Supervisor, default_params_file
+from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
 from wheelgrid_common.bagio import BagError
 from wheelgrid_common.params import read_yaml
 from wheelgrid_common.ros_env import child_env, configure_ros_env
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
             if name == "drive" and args.motor_port:
                 overrides["port"] = args.motor_port
             if name == "mapper" and args.bag:
-                overrides["max_queue"] = 1000  # a replay: map every frame, never the newest only
+                overrides["max_queue"] = REPLAY_MAX_QUEUE
             sup.start_node(name, params, overrides)
             print(
                 f"launch: started {name} (pid {sup.procs[name].proc.pid}, log "
