@@ -177,6 +177,17 @@ def test_estop_stops_the_chair_at_once_and_latches(make_sim):
         assert len(sim_moves(sim)) == n_moves  # clearing does not resume anything by itself
 
 
+def test_an_empty_plan_stops_the_chair_as_a_warning_not_an_error(make_sim):
+    """The planner's "no route" (a goal on an occupied cell) is an empty path: the chair stops,
+    and the state says why it stands, as a warning; it read "plan refused", an ERROR."""
+    with driving_along_row_3(make_sim) as (h, sim, grid):
+        t_pub = time.monotonic()
+        h.publish_plan(grid, [])
+        assert h.spin(lambda: any(e.what == "stop" and e.t > t_pub for e in sim.events), 3.0)
+        assert h.spin(lambda: h.states and "no route" in h.states[-1].message, 3.0)
+        assert h.states[-1].level == h.states[-1].WARN, h.states[-1]
+
+
 def test_estop_is_served_while_a_long_plan_is_read_and_that_plan_never_drives(make_sim):
     """Reading a 9,999-pose plan takes the executor 0.3-0.5 s. The e-stop, on a thread of its
     own, stops the chair meanwhile; the plan, read while the e-stop came, is dropped even if

@@ -437,6 +437,13 @@ class DriveNode(Node):
             return
         with self._gate:
             self._pending_plan = None
+        if not msg.poses:
+            # The planner's "no route" (a goal refused or unreachable, a pose in no known
+            # frame): the chair stops, as ordered; no fault of the drive's, so not an ERROR.
+            self._stop_job()
+            if not self._estop:  # a latched e-stop stays what the state says
+                self._set_state(WARN, "no route: chair stopped (the planner's log says why)")
+            return
         try:
             steps, cells, grid = self._steps_from_path(msg)
         except ValueError as exc:
