@@ -246,6 +246,11 @@ def test_fine_map_is_in_map_axes_with_walls_floor_and_unknown(paper_cloud):
     res = build_grid(cloud)
     fine = res.fine
     assert fine.origin[2] == 0.0 and fine.resolution == pytest.approx(0.05)
+    # whole pixels, written as such: fine.yaml read -6.8500000000000005 (a pixel count times
+    # 0.05; this room, as it is and shifted by 0.3 m, gave such origins too)
+    for shift in (0.0, 0.3):
+        origin = build_grid(paper_cloud + np.array([shift, -shift, 0.0])).fine.origin
+        assert all(v == round(v, 9) for v in origin), origin
     vals = set(np.unique(fine.data).tolist())
     assert vals == {FREE, OCCUPIED, UNKNOWN}  # outside the rotated room is unknown
     # a table-top pixel is occupied, the middle of the room free

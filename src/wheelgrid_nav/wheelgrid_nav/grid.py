@@ -733,8 +733,9 @@ def _fine_map(pts: np.ndarray, cls: np.ndarray, grid: Grid, cfg: GridConfig, fra
         np.array([-0.5, -0.5, grid.rows - 0.5, grid.rows - 0.5]),
         np.array([-0.5, grid.cols - 0.5, -0.5, grid.cols - 0.5]),
     )
-    lo = np.floor((corners.min(axis=0) - cfg.fine_margin) / ps) * ps
-    hi = np.ceil((corners.max(axis=0) + cfg.fine_margin) / ps) * ps
+    # whole pixels, to the nanometre: -137 * 0.05 is -6.8500000000000005, which fine.yaml wrote
+    lo = np.round(np.floor((corners.min(axis=0) - cfg.fine_margin) / ps) * ps, 9)
+    hi = np.round(np.ceil((corners.max(axis=0) + cfg.fine_margin) / ps) * ps, 9)
     w = round((hi[0] - lo[0]) / ps)
     h = round((hi[1] - lo[1]) / ps)
     if h * w > 2 * _MAX_PIXELS:  # a turned grid's footprint: up to twice its own area
