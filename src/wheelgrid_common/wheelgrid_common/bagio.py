@@ -119,8 +119,11 @@ class BagReader:
             out[c.topic] = TopicInfo(c.topic, c.msgtype, (prev.count if prev else 0) + c.msgcount)
         return sorted(out.values(), key=lambda t: t.name)
 
-    def pick_topic(self, topic: str | None, msgtype: str = POINTCLOUD2) -> str:
-        """The requested topic, or the only topic of ``msgtype``; BagError listing them if not."""
+    def pick_topic(
+        self, topic: str | None, msgtype: str = POINTCLOUD2, flag: str = "--topic"
+    ) -> str:
+        """The requested topic, or the only topic of ``msgtype``; BagError listing them if not,
+        naming the option (``flag``) that chooses one."""
         infos = self.topics()
         if topic is not None:
             match = [t for t in infos if t.name == topic]
@@ -137,7 +140,8 @@ class BagReader:
             return cands[0].name
         listing = ", ".join(f"{t.name} ({t.count} msgs)" for t in cands) or "none"
         raise BagError(
-            f"{self.path}: {len(cands)} {msgtype} topics ({listing}); choose one with --topic"
+            f"{self.path}: {len(cands)} {msgtype} topics ({listing})"
+            + ("; choose one with " + flag if cands else "")
         )
 
     def count(self, topics: Iterable[str]) -> int:

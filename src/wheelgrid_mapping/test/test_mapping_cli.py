@@ -243,6 +243,32 @@ def test_two_cloud_topics_need_topic(tmp_path: Path, capsys) -> None:
     assert "/a/points" in err and "/b/points" in err and "--topic" in err
 
 
+def test_two_odometry_topics_need_prior_topic(tmp_path: Path, capsys) -> None:
+    """Two Odometry topics were listed with "choose one with --topic", which picks the
+    cloud topic: no option could choose the prior's."""
+    from nav_msgs.msg import Odometry
+
+    from wheelgrid_common.bagio import BagWriter
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+
+    bag = tmp_path / "two_odom"
+    cloud = to_pointcloud2(np.ones((4, 3)), "f")
+    with BagWriter(bag) as w:
+        w.write("/points", "sensor_msgs/msg/PointCloud2", 10**9, cloud)
+        for t in ("/a/odometry", "/b/odometry"):
+            w.write(t, "nav_msgs/msg/Odometry", 10**9, Odometry())
+    out = str(tmp_path / "o")
+    assert cli_map.main([str(bag), "--out", out, "--prior", "arkit"]) == 2
+    err = capsys.readouterr().err
+    assert "/a/odometry" in err and "choose one with --prior-topic" in err, err
+    assert cli_map.main([str(bag), "--out", out, "--prior-topic", "/a/odometry"]) == 2
+    assert "give --prior arkit too" in capsys.readouterr().err
+    # with the topic named, the prior is read and the run gets as far as the frames
+    argv = [str(bag), "--out", out, "--prior", "arkit", "--prior-topic", "/b/odometry"]
+    cli_map.main(argv)
+    assert "--prior-topic" not in capsys.readouterr().err
+
+
 def test_map_from_the_real_stray_export(tmp_path: Path, stray_capture: Path) -> None:
     out = tmp_path / "stray"
     code = cli_map.main(
@@ -612,6 +638,16 @@ def test_measure_reports_resamples_that_tilt_apart_from_its_standard_error() -> 
     a[0, 1] = 0.5  # the same face without it
     se, unstable = cli_measure.bootstrap_stderr(a, b, fragile)
     assert unstable == 0.0 and 0.6 * textbook < se < 1.6 * textbook
+
+
+def test_a_run_where_many_frames_failed_says_so_as_a_whole() -> None:
+    """The real capture without a prior fails on 351 of 942 frames: 351 warning lines, then
+    a summary that read like any other run's."""
+    assert cli_map.failure_verdict({"read": 942, "failed": 30}, False) == ""
+    line = cli_map.failure_verdict({"read": 942, "failed": 351}, False)
+    assert line.startswith("351 of 942 frames (37 %) failed registration") and "--prior" in line
+    assert "--prior" not in cli_map.failure_verdict({"read": 942, "failed": 351}, True)
+    assert cli_map.failure_verdict({"read": 0, "failed": 0}, False) == ""
 
 
 def test_the_right_angle_line_says_what_held_the_submaps() -> None:

@@ -28,6 +28,20 @@ def test_no_floor_no_map() -> None:
     assert m.report()["levelling"]["method"] == "none"
 
 
+def test_the_report_says_how_many_failures_it_does_not_list() -> None:
+    """report.json lists the first failures one by one; a lost scan's hundreds were cut at 200
+    without a word, where the README promised every failure."""
+    from wheelgrid_mapping.pipeline import MAX_LISTED_FAILURES
+
+    m = Mapper()
+    for i in range(MAX_LISTED_FAILURES + 5):
+        m.add_frame(np.full((10, 3), np.nan), i * 0.1, "base_link")
+    rep = m.report()
+    assert len(rep["failures"]) == MAX_LISTED_FAILURES
+    assert rep["failures_not_listed"] == 5
+    assert rep["frames"]["empty"] == MAX_LISTED_FAILURES + 5
+
+
 def test_body_convention_levelled_saved_and_reset(tmp_path: Path) -> None:
     rng = np.random.default_rng(22)
     m = Mapper(cfg=MapperConfig(level_min_frames=2))

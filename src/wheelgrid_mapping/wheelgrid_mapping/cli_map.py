@@ -107,12 +107,13 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
 
 
 def bag_frames(
-    path: Path, topic: str | None, prior: bool = False
+    path: Path, topic: str | None, prior: bool = False, prior_topic: str | None = None
 ) -> tuple[int, Iterator[Frame], list[str]]:
     """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause.
 
-    With ``prior`` the bag's only nav_msgs/Odometry topic (the bridge's /iphone/odometry, i.e.
-    ARKit) gives each frame a pose prior: the odometry message nearest in time (<= 0.1 s).
+    With ``prior`` the nav_msgs/Odometry topic ``prior_topic``, or the bag's only one (the
+    bridge's /iphone/odometry, i.e. ARKit), gives each frame a pose prior: the odometry message
+    nearest in time (<= 0.1 s).
     """
     from wheelgrid_common.bagio import BagError, BagReader
     from wheelgrid_common.pointcloud2 import CloudError, has_field, organised, read_fields
@@ -125,7 +126,7 @@ def bag_frames(
         total = reader.count([name])
         prior_stamps, prior_poses = np.empty(0), np.empty((0, 4, 4))
         if prior:
-            odom = reader.pick_topic(None, ODOMETRY)
+            odom = reader.pick_topic(prior_topic, ODOMETRY, "--prior-topic")
             prior_stamps, prior_poses = _odometry_poses(reader, odom)
         elif any(t.msgtype == ODOMETRY for t in reader.topics()):
             print(
@@ -202,7 +203,11 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["none", "arkit"],
         default="none",
         help="pose prior as initial guess: arkit = a Stray export's odometry.csv, or a bag's "
-        "only nav_msgs/Odometry topic (the bridge's /iphone/odometry)",
+        "nav_msgs/Odometry topic (the bridge's /iphone/odometry); default none",
+    )
+    p.add_argument(
+        "--prior-topic",
+        help="the bag's Odometry topic for --prior arkit (default: the only one in the bag)",
     )
     p.add_argument("--method", choices=["kiss", "open3d"], help="override registration.method")
     p.add_argument(
@@ -263,6 +268,25 @@ def floor_refound_line(level: dict[str, Any]) -> str | None:
     )
 
 
+# A run where this share of the frames failed registration says so as a whole: each failure
+# is a warning line of its own, and hundreds of them (a scan KISS-ICP lost) drowned the fact
+# that the map as a whole is not to be trusted.
+FAILED_SHARE_WARNING = 0.1
+
+
+def failure_verdict(frames: dict[str, int], with_prior: bool) -> str:
+    """One line on a run where many frames failed registration, or ''."""
+    read, failed = frames.get("read", 0), frames.get("failed", 0)
+    if read == 0 or failed < FAILED_SHARE_WARNING * read:
+        return ""
+    hint = "" if with_prior else "; a phone's capture maps with its own poses: --prior arkit"
+    return (
+        f"{failed} of {read} frames ({100 * failed / read:.0f} %) failed registration: the "
+        f"stretches they cover may be misplaced or missing, check the map before a grid is made "
+        f"from it{hint}"
+    )
+
+
 def ensure_out_dir(out: Path) -> None:
     """The output folder made (or found writable) before the first frame is mapped: a typo in
     ``--out`` must cost a second, not a mapping run of minutes that then cannot be saved."""
@@ -292,14 +316,16 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"config: {exc}") from exc
     if args.method:
         reg.method = args.method
+    if args.prior_topic and args.prior != "arkit":
+        raise InputError("--prior-topic names the prior's topic: give --prior arkit too")
     path: Path = args.input
     bad: list[str] = []
     if is_stray(path):
-        if args.topic:
-            raise InputError("--topic applies to bags, not to a Stray export")
+        if args.topic or args.prior_topic:
+            raise InputError("--topic and --prior-topic apply to bags, not to a Stray export")
         total, frames = stray_frames(path, args.prior == "arkit", bad)
     else:
-        total, frames, bad = bag_frames(path, args.topic, args.prior == "arkit")
+        total, frames, bad = bag_frames(path, args.topic, args.prior == "arkit", args.prior_topic)
     if args.max_frames > 0:
         total = min(total, args.max_frames)
     ensure_out_dir(args.out)
@@ -405,6 +431,9 @@ def _run(args: argparse.Namespace) -> int:
             "(NaN, a zero quaternion); those frames registered without one",
             file=sys.stderr,
         )
+    verdict = failure_verdict(fr, args.prior == "arkit")
+    if verdict:
+        print(f"wheelgrid map: warning: {verdict}", file=sys.stderr)
     print(
         f"map: {fr['read']} frames read{skipped}, {fr['used']} used, {fr['failed']} failed "
         f"({fr['relocalised']} relocalised), {rep['points']['map']} points -> "

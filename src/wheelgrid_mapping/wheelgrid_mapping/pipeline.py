@@ -155,6 +155,9 @@ FLOOR_CHECK_GROWTH = 2.0
 # The floor found on the whole map holding this many times the map points within 3 cm that
 # z = 0 holds: z = 0 misses part of the floor, and the map frame is taken from the floor found.
 FLOOR_CHECK_GAIN = 1.1
+# report.json lists this many registration failures one by one (all are counted): a
+# lost scan fails on hundreds of frames, and the list would bury the rest of the report
+MAX_LISTED_FAILURES = 200
 
 
 def floor_correction(
@@ -857,7 +860,9 @@ class Mapper:
                 "priors_refused": self.priors_refused,
             },
             "failure_reasons": dict(c.failure_reasons),
-            "failures": self.failures[:200],
+            "failures": self.failures[:MAX_LISTED_FAILURES],
+            # the list stops at MAX_LISTED_FAILURES; the count says it was cut, and by how much
+            "failures_not_listed": max(0, len(self.failures) - MAX_LISTED_FAILURES),
             "points": dict(self.points, map=int(self.map_odom().shape[0])),
             "timings": {k: round(v, 3) for k, v in self.timings.items()},
             "levelling": self.levelling_report(),
