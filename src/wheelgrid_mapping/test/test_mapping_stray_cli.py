@@ -75,6 +75,10 @@ def test_import_stray_bad_input_exit_2(
     assert "already exists" in capsys.readouterr().err
     assert import_main([str(cap), "--out", str(tmp_path / "c"), "--start", "5000"]) == 2
     assert "--start" in capsys.readouterr().err
+    # a bag folder below a regular file: one line and exit 2 before any frame (was exit 1)
+    (tmp_path / "file").write_text("")
+    assert import_main([str(cap), "--out", str(tmp_path / "file" / "bag")]) == 2
+    assert "cannot make its folder" in capsys.readouterr().err
 
 
 def test_import_stray_skips_an_unreadable_frame(
@@ -95,6 +99,7 @@ def test_import_stray_skips_an_unreadable_frame(
     assert import_main([str(cap), "--out", str(out)]) == 0
     captured = capsys.readouterr()
     assert "frame 2 skipped" in captured.err and "1 unreadable frames skipped" in captured.out
+    assert "no odometry.csv" in captured.err  # this copy has none: no prior in the bag, said
     assert "wrote 3 frames" in captured.out
     with BagReader(out) as bag:
         assert {t.name: t.count for t in bag.topics()}["/iphone/points"] == 3
@@ -110,7 +115,8 @@ def test_stream_stray_exit_codes(
     assert stream_main([str(cap), "--rate", "-1"]) == 2
     port = free_port()  # nobody listening
     assert stream_main([str(cap), "--to", f"127.0.0.1:{port}", "--frames", "1"]) == 1
-    assert "failed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"nothing listens on 127.0.0.1:{port}" in err and "launch --iphone" in err, err
     # each of these was a traceback: int("²"), an overflowed sleep until a frame's slot
     assert stream_main([str(cap), "--to", "127.0.0.1:\u00b2"]) == 2
     assert stream_main([str(cap), "--rate", "1e-300"]) == 2

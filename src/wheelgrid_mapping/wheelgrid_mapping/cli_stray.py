@@ -82,6 +82,18 @@ def _frame_range(exp: StrayExport, start: int, frames: int | None) -> range:
     return range(start, end)
 
 
+def _check_out_parent(out: Path) -> None:
+    """The bag's parent folder made (or found writable) before any frame is read: rosbag2
+    makes the bag folder itself, and a typo under a file failed as 'import failed', exit 1."""
+    parent = out.absolute().parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _UsageError(f"--out {out}: cannot make its folder ({exc.strerror})") from exc
+    if not os.access(parent, os.W_OK):
+        raise _UsageError(f"--out {out}: {parent} is not writable")
+
+
 def _open_export(path: str) -> StrayExport:
     try:
         return StrayExport(path)
@@ -188,6 +200,12 @@ def stream_main(argv: list[str]) -> int:
         )
     except KeyboardInterrupt:
         return _fail(1, "interrupted")
+    except ConnectionRefusedError:
+        return _fail(
+            1,
+            f"nothing listens on {host}:{port} (is the bridge running: `wheelgrid launch "
+            "--iphone`?)",
+        )
     except (OSError, ConnectionError) as exc:
         return _fail(1, f"streaming to {host}:{port} failed: {exc}")
     print(
@@ -228,8 +246,22 @@ def import_main(argv: list[str]) -> int:
         idx = _frame_range(exp, args.start, args.frames)
         if Path(args.out).exists():
             raise _UsageError(f"{args.out}: already exists; rosbag2 will not overwrite a bag")
+        _check_out_parent(Path(args.out))
     except _UsageError as exc:
         return _fail(2, str(exc))
+    if not exp.has_poses:
+        print(
+            "wheelgrid import-stray: warning: no odometry.csv: the frames are stamped at 60 Hz "
+            "from 0, and the bag has no /iphone/odometry (no --prior arkit for it)",
+            file=sys.stderr,
+        )
+    elif exp.frames_without_pose:
+        print(
+            f"wheelgrid import-stray: warning: odometry.csv has no pose for "
+            f"{exp.frames_without_pose} of {len(exp)} depth frames; the bag has no "
+            "/iphone/odometry for those",
+            file=sys.stderr,
+        )
     counts: dict[str, int] = {}
     skipped = 0
     try:
