@@ -187,3 +187,21 @@ def test_pgm_samples_above_maxval_or_a_zero_maxval_are_refused(tmp_path):
         (tmp_path / "g.pgm").write_bytes(pgm)
         with pytest.raises(ValueError, match=message):
             read_map(tmp_path / "g.yaml")
+
+
+def test_progress_finish_gives_the_count_known_after_the_last_update():
+    """The mapper registers its last frame after the bar reached it: the last line read
+    "942/942 frames ... used 941" where the summary said 942 used."""
+    import io
+
+    from wheelgrid_common.progress import Progress
+
+    out = io.StringIO()
+    with Progress(2, "mapping", "frames", stream=out) as bar:
+        bar.update(1, postfix="used 0")
+        bar.update(1, postfix="used 1")
+        bar.finish("used 2")
+        bar.finish("used 2")  # nothing new: no line more
+    lines = out.getvalue().splitlines()
+    assert lines[-1].startswith("mapping [") and lines[-1].endswith("used 2"), lines
+    assert sum(line.endswith("used 2") for line in lines) == 1

@@ -56,6 +56,14 @@ class Progress:
         self.stream.write(text + end)
         self.stream.flush()
 
+    def finish(self, postfix: str) -> None:
+        """The last word on the bar, once work that ends after the last update is done (the
+        mapper registers its last frame after the bar reached it: "942/942 ... used 941")."""
+        changed = postfix != self.postfix
+        self.postfix = postfix
+        if not self.tty and changed:
+            self._draw(time.monotonic(), end="\n")
+
     def close(self) -> None:
         if self.tty:
             self._draw(time.monotonic(), end="\n")

@@ -363,6 +363,7 @@ def _run(args: argparse.Namespace) -> int:
             report(pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior))
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
         report(pipe.flush())
+        bar.finish(f"used {mapper.registrar.counters.accepted}")
     if bad and len(bad) == n:
         raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
     if mapper.frames_empty == n - len(bad):

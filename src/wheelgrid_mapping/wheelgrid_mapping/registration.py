@@ -542,7 +542,8 @@ class Registrar:
         dt = max(float(stamp - self.last_stamp), cfg.min_dt)
         step = np.linalg.inv(self.last_pose) @ pose
         if degenerate and not with_prior:
-            reason = f"degenerate geometry ({degenerate} unconstrained motion directions, no prior)"
+            dirs = "direction" if degenerate == 1 else "directions"
+            reason = f"degenerate geometry ({degenerate} unconstrained motion {dirs}, no prior)"
         elif fitness < cfg.min_fitness:
             reason = f"low overlap (fitness {fitness:.2f} < {cfg.min_fitness:.2f})"
         elif np.linalg.norm(step[:3, 3]) > cfg.max_speed * dt + cfg.voxel_size:
