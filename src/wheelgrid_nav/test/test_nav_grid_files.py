@@ -100,6 +100,19 @@ def test_cli_warns_of_a_map_that_rises_higher_than_a_room(tmp_path, capsys):
     assert "wheelgrid grid: warning: the map rises 9.6 m above its floor" in err
 
 
+def test_cli_warns_of_a_grid_with_no_free_cell(tmp_path, capsys):
+    """The real iPhone capture (a 4.5 x 4 m room, a table and chairs) gives 3 x 3 cells, all
+    occupied: exit 0, and every plan on it then failed with no word why."""
+    rng = np.random.default_rng(5)
+    floor = np.column_stack([rng.uniform(0, 3.6, (40000, 2)), np.zeros(40000)])
+    clutter = np.column_stack([rng.uniform(0, 3.6, (40000, 2)), rng.uniform(0.2, 1.0, 40000)])
+    path = _ply_points(tmp_path, "crowded.ply", np.vstack([floor, clutter]))
+    assert main([path, "--out", str(tmp_path / "out"), "--quiet", "--alignment", "map"]) == 0
+    captured = capsys.readouterr()
+    assert "0 free" in captured.out and " map points (" in captured.out, captured.out
+    assert "wheelgrid grid: warning: no free cell: no route can be planned" in captured.err
+
+
 def _ply_points(tmp_path, name, points):
     path = tmp_path / name
     write_ply(path, np.asarray(points, dtype=np.float64).reshape(-1, 3))

@@ -57,7 +57,8 @@ def _fail(msg: str, code: int = 2) -> int:
 def summary(result: GridResult) -> str:
     g, st = result.grid, result.stats
     return (
-        f"{st['points']} points -> {g.rows} x {g.cols} cells of {g.resolution:g} m "
+        f"{st['map_points']} map points ({st['points']} up to the safe height) -> "
+        f"{g.rows} x {g.cols} cells of {g.resolution:g} m "
         f"(yaw {st['yaw_deg']:.2f} deg, origin {g.origin[0]:.3f} {g.origin[1]:.3f}): "
         f"{st['occupied']} occupied, {st['free']} free, {st['unknown']} unknown"
     )

@@ -693,14 +693,22 @@ def build_grid(
     }
     grid = Grid(data=data, resolution=cfg.cell_size, origin=origin, frame_id=frame_id, meta=meta)
     fine = _fine_map(pts, cls, grid, cfg, frame_id)
+    n_free = int(np.count_nonzero(data == FREE))
+    if n_free == 0:
+        warnings.append(
+            f"no free cell: no route can be planned on this grid (no {cfg.cell_size:g} m square "
+            "with obstacle pixels under the density threshold and floor seen; a room too small or "
+            "crowded for such cells, or a floor the map leaves rough: see grid.png)"
+        )
     stats = {
+        "map_points": int(class_counts.sum()),
         "points": int(pts.shape[0]),
         "floor_points": int(class_counts[0]),
         "band_points": int(class_counts[1]),
         "drop_points": int(class_counts[2]),
         "above_points": int(class_counts[3]),
         "occupied": int(np.count_nonzero(data == OCCUPIED)),
-        "free": int(np.count_nonzero(data == FREE)),
+        "free": n_free,
         "unknown": int(np.count_nonzero(data == UNKNOWN)),
         "guard_only_cells": int(np.count_nonzero(guard_only)),
         "yaw_deg": math.degrees(yaw),

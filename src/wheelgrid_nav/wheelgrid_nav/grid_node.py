@@ -108,7 +108,7 @@ class GridNode(Node):
         for doubt in st["warnings"]:
             self.get_logger().warning(doubt, throttle_duration_sec=60.0)
         self.get_logger().info(
-            f"grid {result.grid.rows} x {result.grid.cols} from {st['points']} points "
+            f"grid {result.grid.rows} x {result.grid.cols} from {st['map_points']} map points "
             f"(yaw {st['yaw_deg']:.2f} deg): {st['occupied']} occupied, {st['free']} free, "
             f"{st['unknown']} unknown, {1000 * (time.monotonic() - self._last_compute):.0f} ms"
         )
