@@ -488,7 +488,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self.status_pub.publish(arr)
 
     def _on_save(self, request: Any, response: Any) -> Any:
-        out = Path(self.output_dir)
+        # absolute in what it says: output_dir is relative to where the node was started,
+        # which the user calling the service may not know
+        out = Path(self.output_dir).absolute()
         if self._loop_state in _CLOSING:
             # the worker holds the map; waiting here would stall every other callback
             response.success = False
@@ -511,6 +513,7 @@ class MapperNode(Node):  # type: ignore[misc]
             response.message = (
                 f"wrote {out}/map.ply ({rep['points']['map']} points), trajectory.tum, report.json"
             )
+            self.get_logger().info(response.message)
         except (RuntimeError, OSError) as exc:
             response.success = False
             response.message = f"cannot save: {exc}"
@@ -602,7 +605,7 @@ class MapperNode(Node):  # type: ignore[misc]
             if frames == 0 or self._map_state() == self._saved:
                 return  # nothing mapped, or ~/save_map already has exactly this map
             extra = {"node_counts": dict(self.counts), "saved_on_exit": True}
-            out = Path(self.output_dir) / "on_exit"
+            out = Path(self.output_dir).absolute() / "on_exit"
             try:
                 rep = self.mapper.save(out, extra)
             except OSError as exc:

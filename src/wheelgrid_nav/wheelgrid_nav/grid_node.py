@@ -18,6 +18,7 @@ import math
 import sys
 import time
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 from nav_msgs.msg import OccupancyGrid
@@ -141,7 +142,7 @@ class GridNode(Node):
         try:
             from wheelgrid_nav.grid_png import write_outputs
 
-            files = write_outputs(self.result, self.cfg.output_dir)
+            files = write_outputs(self.result, Path(self.cfg.output_dir).absolute())
         except OSError as exc:
             resp.success = False
             resp.message = f"cannot write {self.cfg.output_dir}: {exc}"
