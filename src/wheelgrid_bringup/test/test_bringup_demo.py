@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from wheelgrid_bringup.demo import heading_yaw, room_cells_in_grid
 from wheelgrid_common.map_io import Grid, write_map
@@ -38,3 +39,24 @@ def test_a_grid_turned_by_90_degrees_gets_other_labels_for_the_same_places(tmp_p
         np.testing.assert_allclose(grid.cell_center(*cell), want, atol=1e-9)
     # "down" in the room is -y in the map; find it among the turned grid's directions
     assert abs(math.remainder(heading_yaw(grid, heading) + math.pi / 2, math.tau)) < 1e-9
+
+
+@pytest.mark.ros
+def test_the_status_line_shows_the_phone_bridge_and_leaves_out_a_drive_not_started():
+    """`wheelgrid launch --iphone --no-drive` showed 'map 153/779 frames' with no word of the
+    942 frames the bridge published, and 'drive - (0 cmds)' for a drive it never started."""
+    from wheelgrid_bringup.chain import Monitor
+    from wheelgrid_common.testing import rclpy_context
+
+    with rclpy_context() as ctx:
+        monitor = Monitor(ctx, "status_line_test")
+        try:
+            with monitor.state.lock:
+                monitor.state.bridge = {"clients": "1", "frames_published": "942"}
+                monitor.state.mapper = {"frames_used": "153", "frames_received": "779"}
+            line = monitor.status_line(drive=False)
+            assert line.startswith("phone 1 client(s), 942 frames published | map 153/779"), line
+            assert "drive" not in line
+            assert "drive - (0 cmds)" in monitor.status_line()
+        finally:
+            monitor.close()

@@ -43,6 +43,7 @@ class ChainState:
     last_cloud_t: float = 0.0
     plan: list[tuple[float, float]] = field(default_factory=list)
     plan_updates: int = 0
+    bridge: dict[str, str] = field(default_factory=dict)
     drive: dict[str, str] = field(default_factory=dict)
     drive_level: int = 0
     drive_message: str = ""
@@ -87,6 +88,7 @@ class Monitor:
         n.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
         n.create_subscription(PathMsg, "/wheelgrid/plan", self._on_plan, MAP_QOS)
         n.create_subscription(DiagnosticArray, "/wheelgrid/drive_state", self._on_drive, 10)
+        n.create_subscription(DiagnosticArray, "/iphone/bridge_status", self._on_bridge, 10)
         n.create_subscription(String, "/wheelgrid/drive_commands", self._on_command, 50)
         n.create_subscription(PoseStamped, "/wheelgrid/chair_pose", self._on_chair, 50)
         self.goal_pub = n.create_publisher(PoseStamped, "/goal_pose", RELIABLE_QOS)
@@ -120,6 +122,11 @@ class Monitor:
         values, _, message = _diag_values(msg)
         with self.state.lock:
             self.state.mapper = {**values, "message": message}
+
+    def _on_bridge(self, msg: Any) -> None:
+        values, _, _ = _diag_values(msg)
+        with self.state.lock:
+            self.state.bridge = values
 
     def _on_cloud(self, msg: Any) -> None:
         with self.state.lock:
@@ -205,10 +212,22 @@ class Monitor:
         finally:
             self.node.destroy_client(client)
 
-    def status_line(self, extra: str = "") -> str:
+    def status_line(self, extra: str = "", drive: bool = True) -> str:
+        """One line on the chain: the bridge's frames where a phone bridge runs (the mapper's
+        "map 153/779" read as if frames were lost; live, it maps the newest of them and DDS
+        may drop some on the way), the map, grid, plan, and the drive where one runs."""
         s = self.state
         with s.lock:
             m = s.mapper
+            b = s.bridge
+            bridge = (
+                [
+                    f"phone {b.get('clients', '?')} client(s), {b.get('frames_published', '?')} "
+                    "frames published"
+                ]
+                if b
+                else []
+            )
             used = m.get("frames_used", m.get("frames_integrated", "?"))
             recv = m.get("frames_received", "?")
             failed = m.get("frames_failed", m.get("registration_failures", "0"))
@@ -227,8 +246,9 @@ class Monitor:
             else:
                 parts.append("grid -")
             parts.append(f"plan {len(s.plan)} cells" if s.plan else "plan -")
-            parts.append(f"drive {s.drive_message or '-'} ({len(s.commands)} cmds)")
-        return " | ".join(parts) + (f" | {extra}" if extra else "")
+            if drive:
+                parts.append(f"drive {s.drive_message or '-'} ({len(s.commands)} cmds)")
+        return " | ".join(bridge + parts) + (f" | {extra}" if extra else "")
 
 
 class Chain:

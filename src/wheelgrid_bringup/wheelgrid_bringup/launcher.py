@@ -152,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                     extra = f"replay {player.published}/{player.total}"
                     if player.error:
                         extra += f" ERROR {player.error}"
-                print(f"[{now - t0:6.1f} s] {monitor.status_line(extra)}", flush=True)
+                line = monitor.status_line(extra, drive="drive" in names)
+                print(f"[{now - t0:6.1f} s] {line}", flush=True)
                 last = now
             if args.duration and now - t0 >= args.duration:
                 break
