@@ -26,7 +26,15 @@ _GUARD = (255, 140, 0)
 _PANEL = 420  # target panel side, pixels
 _PAD = 16
 _TITLE = 22
-_FOOT = 40
+_FOOT = 60
+# the legend under the panels: (fill, outline, label); what each colour means, on the picture
+_LEGEND = (
+    (_BLACK, _BLACK, "obstacle pixel / occupied cell"),
+    (_WHITE, _BLACK, "floor seen / free cell"),
+    (_GREY, _GREY, "never seen / unknown"),
+    (_WALL, _WALL, "walls"),
+    (_WHITE, _GUARD, "occupied by the thin-obstacle guard"),
+)
 
 
 def _map_rgb(result: GridResult) -> np.ndarray:
@@ -98,6 +106,11 @@ def render(result: GridResult) -> Image.Image:
         draw.text((x + bar + 6, yb - 3), "1 m", fill=_BLACK)
     yaw = result.stats.get("yaw_deg", 0.0)
     draw.text((xs[1], yb - 3 + 14), f"grid yaw {yaw:.2f} deg in the map frame", fill=_BLACK)
+    x, yl = xs[0], yb + 32
+    for fill, outline, label in _LEGEND:
+        draw.rectangle([x, yl, x + 10, yl + 10], fill=fill, outline=outline, width=2)
+        draw.text((x + 14, yl - 1), label, fill=_BLACK)
+        x += 14 + int(draw.textlength(label)) + 16
     return canvas
 
 
