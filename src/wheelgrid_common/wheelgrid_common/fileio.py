@@ -6,6 +6,7 @@ whatever Open3D version is installed; the reader accepts any binary/ascii PLY wi
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -232,3 +233,16 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         stamps.append(v[0])
         poses.append(pose)
     return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
+
+
+def folder_problem(folder: Path) -> str | None:
+    """Why ``folder`` cannot be made or written, or None once it exists and is writable. The
+    CLIs ask before their first frame: a typo in --out must cost a second, not a run of
+    minutes whose result then cannot be saved."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot make the folder {folder} ({exc.strerror})"
+    if not os.access(folder, os.W_OK):
+        return f"the folder {folder} is not writable"
+    return None

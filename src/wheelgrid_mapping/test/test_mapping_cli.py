@@ -178,7 +178,7 @@ def test_a_broken_config_or_output_path_stops_before_the_first_frame(
     a_file.write_text("keep me\n")
     assert cli_map.main([scan, "--out", str(a_file), "--prior", "arkit"]) == 2
     captured = capsys.readouterr()
-    assert "--out" in captured.err and "cannot make the output folder" in captured.err
+    assert "--out" in captured.err and "cannot make the folder" in captured.err
     assert "mapping" not in captured.err and a_file.read_text() == "keep me\n"
     assert cli_map.main([scan, "--out", str(tmp_path / "o3"), "--max-frames", "-1"]) == 2
     assert "--max-frames must be >= 0" in capsys.readouterr().err

@@ -78,7 +78,7 @@ def test_import_stray_bad_input_exit_2(
     # a bag folder below a regular file: one line and exit 2 before any frame (was exit 1)
     (tmp_path / "file").write_text("")
     assert import_main([str(cap), "--out", str(tmp_path / "file" / "bag")]) == 2
-    assert "cannot make its folder" in capsys.readouterr().err
+    assert "cannot make the folder" in capsys.readouterr().err
 
 
 def test_import_stray_skips_an_unreadable_frame(

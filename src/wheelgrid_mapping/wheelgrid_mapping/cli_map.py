@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 import time
 from collections.abc import Iterator
@@ -19,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from wheelgrid_common.fileio import folder_problem
 from wheelgrid_common.progress import Progress
 
 from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, load_configs
@@ -290,12 +290,9 @@ def failure_verdict(frames: dict[str, int], with_prior: bool) -> str:
 def ensure_out_dir(out: Path) -> None:
     """The output folder made (or found writable) before the first frame is mapped: a typo in
     ``--out`` must cost a second, not a mapping run of minutes that then cannot be saved."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"--out {out}: cannot make the output folder ({exc.strerror})") from exc
-    if not os.access(out, os.W_OK):
-        raise InputError(f"--out {out}: the output folder is not writable")
+    problem = folder_problem(out)
+    if problem:
+        raise InputError(f"--out {out}: {problem}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wheelgrid_common.fileio import folder_problem
 from wheelgrid_mapping.bridge_protocol import (
     DEPTH_F32_M,
     DEPTH_U16_MM,
@@ -85,13 +86,9 @@ def _frame_range(exp: StrayExport, start: int, frames: int | None) -> range:
 def _check_out_parent(out: Path) -> None:
     """The bag's parent folder made (or found writable) before any frame is read: rosbag2
     makes the bag folder itself, and a typo under a file failed as 'import failed', exit 1."""
-    parent = out.absolute().parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise _UsageError(f"--out {out}: cannot make its folder ({exc.strerror})") from exc
-    if not os.access(parent, os.W_OK):
-        raise _UsageError(f"--out {out}: {parent} is not writable")
+    problem = folder_problem(out.absolute().parent)
+    if problem:
+        raise _UsageError(f"--out {out}: {problem}")
 
 
 def _open_export(path: str) -> StrayExport:
