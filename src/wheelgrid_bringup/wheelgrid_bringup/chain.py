@@ -218,25 +218,21 @@ class Monitor:
         may drop some on the way), the map, grid, plan, and the drive where one runs."""
         s = self.state
         with s.lock:
-            m = s.mapper
-            b = s.bridge
-            bridge = (
-                [
-                    f"phone {b.get('clients', '?')} client(s), {b.get('frames_published', '?')} "
-                    "frames published"
-                ]
-                if b
-                else []
-            )
+            m, b = s.mapper, s.bridge
+            parts = []
+            if b:
+                clients, frames = b.get("clients", "?"), b.get("frames_published", "?")
+                parts.append(f"phone {clients} client(s), {frames} frames published")
             used = m.get("frames_used", m.get("frames_integrated", "?"))
             recv = m.get("frames_received", "?")
             failed = m.get("frames_failed", m.get("registration_failures", "0"))
-            parts = [f"map {used}/{recv} frames ({failed} failed), {s.map_points / 1000:.0f}k pts"]
+            mapped = f"map {used}/{recv} frames ({failed} failed), {s.map_points / 1000:.0f}k pts"
             loops = m.get("loop_closure", "")
             if loops in ("requested", "running"):
-                parts[0] += f", closing loops {m.get('loop_closure_note', '')}".rstrip()
+                mapped += f", closing loops {m.get('loop_closure_note', '')}".rstrip()
             elif loops in ("closed", "failed"):
-                parts[0] += f", loops {loops}"
+                mapped += f", loops {loops}"
+            parts.append(mapped)
             if s.grid is not None:
                 d = s.grid.data
                 parts.append(
@@ -248,7 +244,7 @@ class Monitor:
             parts.append(f"plan {len(s.plan)} cells" if s.plan else "plan -")
             if drive:
                 parts.append(f"drive {s.drive_message or '-'} ({len(s.commands)} cmds)")
-        return " | ".join(bridge + parts) + (f" | {extra}" if extra else "")
+        return " | ".join(parts) + (f" | {extra}" if extra else "")
 
 
 class Chain:

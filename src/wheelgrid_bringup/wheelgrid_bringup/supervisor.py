@@ -19,11 +19,11 @@ from pathlib import Path
 from wheelgrid_common.ros_env import child_env
 from wheelgrid_common.testing import stop_process
 
-# node name -> "module:function" of its main(); the same table the launch file mirrors.
 # A replay maps every frame, as `wheelgrid map` does; live, the mapper keeps only the newest
 # (max_queue 1 in wheelgrid.yaml). The launch file's REPLAY_MAPPER must say the same.
 REPLAY_MAX_QUEUE = 1000
 
+# node name -> "module:function" of its main(); the same table the launch file mirrors.
 NODES: dict[str, str] = {
     "mapper": "wheelgrid_mapping.mapper_node:main",
     "grid": "wheelgrid_nav.grid_node:main",
