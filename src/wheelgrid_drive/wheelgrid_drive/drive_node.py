@@ -464,13 +464,12 @@ class DriveNode(Node):
 
     def _steps_from_path(self, msg: Path) -> tuple[list[actions.Step], list[tuple[int, int]], Grid]:
         """The plan's steps and cells, and the grid they were read on (the run is checked
-        against that grid's geometry)."""
+        against that grid's geometry). ``msg`` has poses: _plan_arrived takes an empty path
+        as the planner's "no route" before it gets here."""
         grid = self._grid
         if grid is None:
             raise ValueError("no safe grid received yet")
-        if not msg.poses:
-            raise ValueError("empty path")
-        frame = msg.header.frame_id or (msg.poses[0].header.frame_id if msg.poses else "")
+        frame = msg.header.frame_id or msg.poses[0].header.frame_id
         if frame and frame != grid.frame_id:
             raise ValueError(f"path frame {frame!r} is not the grid frame {grid.frame_id!r}")
         for i, p in enumerate(msg.poses):  # each pose may name its own frame (no tf here)
