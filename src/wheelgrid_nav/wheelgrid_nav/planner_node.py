@@ -239,12 +239,16 @@ def _make_node_class() -> type:
             self.start_frame = frame
             return True
 
-        def _on_odom(self, msg: Any) -> None:
+        def _follow_start(self, pose: Any, frame: str, child: str) -> None:
+            """A start from a stream (odometry, the chair's pose): planned from at once only
+            when it is the first start and a goal waits; later ones move the start that the
+            next goal or grid change plans from."""
             had_start = self.start is not None
-            if self._set_start(msg.pose.pose, msg.header.frame_id, msg.child_frame_id) and (
-                not had_start and self.goal is not None
-            ):
+            if self._set_start(pose, frame, child) and not had_start and self.goal is not None:
                 self._plan()
+
+        def _on_odom(self, msg: Any) -> None:
+            self._follow_start(msg.pose.pose, msg.header.frame_id, msg.child_frame_id)
 
         def _on_chair_pose(self, msg: Any) -> None:
             pose = msg.pose
@@ -263,11 +267,7 @@ def _make_node_class() -> type:
                 or abs(math.remainder(now[2] - last[2], math.tau)) >= CHAIR_TURNED_RAD
             )
             if moved:
-                had_start = self.start is not None
-                if self._set_start(pose, msg.header.frame_id, "") and (
-                    not had_start and self.goal is not None
-                ):
-                    self._plan()
+                self._follow_start(pose, msg.header.frame_id, "")
 
         def _on_initialpose(self, msg: Any) -> None:
             # an explicit start from the user (RViz 2D Pose Estimate): plan from it at once
