@@ -279,6 +279,39 @@ def test_the_next_goal_starts_where_the_chair_drove_to(tmp_path):
             planner.destroy_node()
 
 
+def test_a_chair_creeping_by_millimetres_a_heartbeat_counts_as_moved(tmp_path):
+    """At 0.1 km/h the controller reports 3 mm a heartbeat: compared heartbeat to heartbeat it
+    never moved 1 cm, and the start stayed where the user had put it. Measured from the pose
+    it last counted, the creep adds up."""
+    from geometry_msgs.msg import PoseStamped
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        planner = make_node(context=ctx)
+        h = Harness(ctx)
+        chair_pub = h.node.create_publisher(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
+        h.ex.add_node(planner)
+        try:
+            assert h.wait_matched()
+            assert spin_until(h.ex, lambda: chair_pub.get_subscription_count() > 0, 15.0)
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            spin_until(h.ex, lambda: False, 0.3)
+            for k in range(5):  # 0, 3, 6, 9, 12 mm along the row of cell (0, 0)
+                msg = chair_msg(grid, (0, 0), 0.0)
+                msg.pose.position.x += 0.003 * k
+                chair_pub.publish(msg)
+                spin_until(h.ex, lambda: False, 0.1)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (0, 3)))
+            assert cells_of(h.next_path(n), grid) == [(0, c) for c in range(4)]
+        finally:
+            h.close()
+            planner.destroy_node()
+
+
 def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
     """A new grid smaller than the route raised IndexError in the grid callback and ended the
     node; a grid in another frame was planned on with map coordinates; a goal refused for

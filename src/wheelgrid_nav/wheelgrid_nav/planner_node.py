@@ -259,14 +259,20 @@ def _make_node_class() -> type:
                 float(pose.position.y),
                 forward_yaw(pose.orientation, ""),
             )
-            last, self._last_chair = self._last_chair, now
-            # The first pose only sets the reference: the controller's power-on pose is no
-            # place the user chose, and it may arrive after their /initialpose.
-            moved = last is not None and (
-                math.hypot(now[0] - last[0], now[1] - last[1]) >= CHAIR_MOVED_M
-                or abs(math.remainder(now[2] - last[2], math.tau)) >= CHAIR_TURNED_RAD
+            ref = self._last_chair
+            if ref is None:
+                # The first pose only sets the reference: the controller's power-on pose is no
+                # place the user chose, and it may arrive after their /initialpose.
+                self._last_chair = now
+                return
+            # Measured from the pose last counted, not the last heartbeat's: a chair creeping a
+            # few millimetres a heartbeat would otherwise never have moved.
+            moved = (
+                math.hypot(now[0] - ref[0], now[1] - ref[1]) >= CHAIR_MOVED_M
+                or abs(math.remainder(now[2] - ref[2], math.tau)) >= CHAIR_TURNED_RAD
             )
             if moved:
+                self._last_chair = now
                 self._follow_start(pose, msg.header.frame_id, "")
 
         def _on_initialpose(self, msg: Any) -> None:
