@@ -105,6 +105,34 @@ def test_import_stray_skips_an_unreadable_frame(
         assert {t.name: t.count for t in bag.topics()}["/iphone/points"] == 3
 
 
+def test_poses_missing_from_odometry_csv_are_said_by_import_and_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """A capture cut short writes depth first: import-stray was silent about the frames with no
+    pose, where wheelgrid map warned; both now say so, and lose no frame."""
+    import shutil
+
+    from wheelgrid_mapping import cli_map
+
+    cap = tmp_path / "cap"
+    for sub in ("depth", "confidence"):
+        (cap / sub).mkdir(parents=True)
+        for i in range(4):
+            shutil.copy(stray_capture / sub / f"{i:06d}.png", cap / sub)
+    shutil.copy(stray_capture / "camera_matrix.csv", cap)
+    rows = (stray_capture / "odometry.csv").read_text().splitlines()[:3]  # header + 2 poses
+    (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
+    want = "odometry.csv has no pose for 2 of 4 depth frames"
+    assert import_main([str(cap), "--out", str(tmp_path / "bag")]) == 0
+    captured = capsys.readouterr()
+    assert f"import-stray: warning: {want}; the bag has no /iphone/odometry" in captured.err
+    assert "wrote 4 frames" in captured.out
+    cli_map.main([str(cap), "--out", str(tmp_path / "map"), "--prior", "arkit"])
+    assert f"wheelgrid map: warning: {want}; those register without the prior" in (
+        capsys.readouterr().err
+    )
+
+
 def test_stream_stray_exit_codes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
 ) -> None:

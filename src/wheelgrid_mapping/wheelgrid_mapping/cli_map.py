@@ -59,10 +59,10 @@ def stray_frames(
         raise InputError(str(exc)) from exc
     if use_prior and not export.has_poses:
         raise InputError(f"{path}: --prior arkit needs odometry.csv, which this export lacks")
-    if use_prior and export.frames_without_pose:
+    note = export.missing_poses_note() if use_prior else ""
+    if note:
         print(
-            f"wheelgrid map: warning: odometry.csv has no pose for {export.frames_without_pose} "
-            f"of {len(export)} depth frames; those register without the prior, and the loop "
+            f"wheelgrid map: warning: {note}; those register without the prior, and the loop "
             "closure does without it",
             file=sys.stderr,
         )

@@ -252,11 +252,9 @@ def import_main(argv: list[str]) -> int:
             "from 0, and the bag has no /iphone/odometry (no --prior arkit for it)",
             file=sys.stderr,
         )
-    elif exp.frames_without_pose:
+    elif note := exp.missing_poses_note():
         print(
-            f"wheelgrid import-stray: warning: odometry.csv has no pose for "
-            f"{exp.frames_without_pose} of {len(exp)} depth frames; the bag has no "
-            "/iphone/odometry for those",
+            f"wheelgrid import-stray: warning: {note}; the bag has no /iphone/odometry for those",
             file=sys.stderr,
         )
     counts: dict[str, int] = {}

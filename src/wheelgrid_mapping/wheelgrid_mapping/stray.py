@@ -160,6 +160,14 @@ class StrayExport:
         first): with ``--prior arkit`` those frames register without a prior."""
         return sum(int(p.stem) not in self._odometry for p in self._depth_files)
 
+    def missing_poses_note(self) -> str:
+        """What odometry.csv lacks, for a warning each command ends with its own consequence;
+        '' when every depth frame has its pose."""
+        missing = self.frames_without_pose
+        if not missing:
+            return ""
+        return f"odometry.csv has no pose for {missing} of {len(self)} depth frames"
+
     def __len__(self) -> int:
         return len(self._depth_files)
 
