@@ -150,3 +150,14 @@ def test_a_replay_stopped_before_it_started_stops_cleanly():
             assert player.published == 0
         finally:
             node.destroy_node()
+
+
+def test_demo_with_a_folder_that_holds_no_bag_says_what_bag_takes(tmp_path, capsys):
+    """A wrong --bag said only 'not a rosbag2 bag', which points away from the simulator's
+    folder that the demo wants; nothing starts before the check."""
+    from wheelgrid_bringup.demo import main as demo_main
+
+    assert demo_main(["--bag", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "not a rosbag2 bag" in err and "--bag takes a `wheelgrid simulate --out` folder" in err
+    assert not (tmp_path / "out").exists()
