@@ -81,19 +81,25 @@ def test_import_stray_bad_input_exit_2(
     assert "cannot make the folder" in capsys.readouterr().err
 
 
+def _first_frames(capture: Path, cap: Path, n: int) -> Path:
+    """A copy of the capture's first ``n`` depth and confidence images and its intrinsics,
+    without odometry.csv: an export small enough to break on purpose."""
+    import shutil
+
+    for sub in ("depth", "confidence"):
+        (cap / sub).mkdir(parents=True)
+        for i in range(n):
+            shutil.copy(capture / sub / f"{i:06d}.png", cap / sub)
+    shutil.copy(capture / "camera_matrix.csv", cap)
+    return cap
+
+
 def test_import_stray_skips_an_unreadable_frame(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
 ) -> None:
     """A broken depth PNG costs its frame, said on stderr and in the summary; the bag holds
     the others (it used to end the import there with exit 1)."""
-    import shutil
-
-    cap = tmp_path / "cap"
-    for sub in ("depth", "confidence"):
-        (cap / sub).mkdir(parents=True)
-        for i in range(4):
-            shutil.copy(stray_capture / sub / f"{i:06d}.png", cap / sub)
-    shutil.copy(stray_capture / "camera_matrix.csv", cap)
+    cap = _first_frames(stray_capture, tmp_path / "cap", 4)
     (cap / "depth" / "000002.png").write_bytes(b"\x89PNG cut off")
     out = tmp_path / "bag"
     assert import_main([str(cap), "--out", str(out)]) == 0
@@ -110,16 +116,9 @@ def test_poses_missing_from_odometry_csv_are_said_by_import_and_map(
 ) -> None:
     """A capture cut short writes depth first: import-stray was silent about the frames with no
     pose, where wheelgrid map warned; both now say so, and lose no frame."""
-    import shutil
-
     from wheelgrid_mapping import cli_map
 
-    cap = tmp_path / "cap"
-    for sub in ("depth", "confidence"):
-        (cap / sub).mkdir(parents=True)
-        for i in range(4):
-            shutil.copy(stray_capture / sub / f"{i:06d}.png", cap / sub)
-    shutil.copy(stray_capture / "camera_matrix.csv", cap)
+    cap = _first_frames(stray_capture, tmp_path / "cap", 4)
     rows = (stray_capture / "odometry.csv").read_text().splitlines()[:3]  # header + 2 poses
     (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
     want = "odometry.csv has no pose for 2 of 4 depth frames"

@@ -1,6 +1,7 @@
 """The planner node over real DDS (loopback): grid + start + goal -> Path; a grid change under
 the route -> a new route; an unreachable goal -> an EMPTY path (so the drive stops)."""
 
+import contextlib
 import math
 import subprocess
 
@@ -238,15 +239,14 @@ def chair_msg(grid, cell, yaw):
     return msg
 
 
-def test_the_next_goal_starts_where_the_chair_drove_to(tmp_path):
-    """RViz sends goal after goal with no new /initialpose: the second route used to start at
-    the first route's start (the drive refused it, the chair stood). The chair's pose moves the
-    start when the chair has moved, and only then: at rest it does not undo an /initialpose."""
+@contextlib.contextmanager
+def planner_with_chair(grid):
+    """A planner node, the test harness with a /wheelgrid/chair_pose publisher, and ``grid``
+    published: yields ``(harness, chair_pub)``."""
     from geometry_msgs.msg import PoseStamped
 
     from wheelgrid_nav.planner_node import make_node
 
-    grid = Grid(paper_grid(), RES, ORIGIN)
     with rclpy_context() as ctx:
         planner = make_node(context=ctx)
         h = Harness(ctx)
@@ -256,60 +256,54 @@ def test_the_next_goal_starts_where_the_chair_drove_to(tmp_path):
             assert h.wait_matched()
             assert spin_until(h.ex, lambda: chair_pub.get_subscription_count() > 0, 15.0)
             h.grid_pub.publish(to_occupancy_grid(grid))
-            down = -math.pi / 2
-            h.init_pub.publish(start_msg(grid, (2, 0), down))  # the user places the chair
-            spin_until(h.ex, lambda: False, 0.3)
-            # the controller's power-on pose, heard only now, then again at rest: neither may
-            # undo the user's start
-            for _ in range(2):
-                chair_pub.publish(chair_msg(grid, (0, 0), 0.0))
-                spin_until(h.ex, lambda: False, 0.3)
-            n = len(h.paths)
-            h.goal_pub.publish(goal_msg(grid, (2, 5)))
-            assert cells_of(h.next_path(n), grid)[0] == (2, 0)
-            # the chair drives the route: its pose moves, and the next goal starts there
-            for c in range(1, 6):
-                chair_pub.publish(chair_msg(grid, (2, c), 0.0))
-                spin_until(h.ex, lambda: False, 0.1)
-            n = len(h.paths)
-            h.goal_pub.publish(goal_msg(grid, (6, 5)))
-            assert cells_of(h.next_path(n), grid) == [(r, 5) for r in range(2, 7)]
+            yield h, chair_pub
         finally:
             h.close()
             planner.destroy_node()
+
+
+def test_the_next_goal_starts_where_the_chair_drove_to(tmp_path):
+    """RViz sends goal after goal with no new /initialpose: the second route used to start at
+    the first route's start (the drive refused it, the chair stood). The chair's pose moves the
+    start when the chair has moved, and only then: at rest it does not undo an /initialpose."""
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with planner_with_chair(grid) as (h, chair_pub):
+        down = -math.pi / 2
+        h.init_pub.publish(start_msg(grid, (2, 0), down))  # the user places the chair
+        spin_until(h.ex, lambda: False, 0.3)
+        # the controller's power-on pose, heard only now, then again at rest: neither may
+        # undo the user's start
+        for _ in range(2):
+            chair_pub.publish(chair_msg(grid, (0, 0), 0.0))
+            spin_until(h.ex, lambda: False, 0.3)
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (2, 5)))
+        assert cells_of(h.next_path(n), grid)[0] == (2, 0)
+        # the chair drives the route: its pose moves, and the next goal starts there
+        for c in range(1, 6):
+            chair_pub.publish(chair_msg(grid, (2, c), 0.0))
+            spin_until(h.ex, lambda: False, 0.1)
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (6, 5)))
+        assert cells_of(h.next_path(n), grid) == [(r, 5) for r in range(2, 7)]
 
 
 def test_a_chair_creeping_by_millimetres_a_heartbeat_counts_as_moved(tmp_path):
     """At 0.1 km/h the controller reports 3 mm a heartbeat: compared heartbeat to heartbeat it
     never moved 1 cm, and the start stayed where the user had put it. Measured from the pose
     it last counted, the creep adds up."""
-    from geometry_msgs.msg import PoseStamped
-
-    from wheelgrid_nav.planner_node import make_node
-
     grid = Grid(paper_grid(), RES, ORIGIN)
-    with rclpy_context() as ctx:
-        planner = make_node(context=ctx)
-        h = Harness(ctx)
-        chair_pub = h.node.create_publisher(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
-        h.ex.add_node(planner)
-        try:
-            assert h.wait_matched()
-            assert spin_until(h.ex, lambda: chair_pub.get_subscription_count() > 0, 15.0)
-            h.grid_pub.publish(to_occupancy_grid(grid))
-            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
-            spin_until(h.ex, lambda: False, 0.3)
-            for k in range(5):  # 0, 3, 6, 9, 12 mm along the row of cell (0, 0)
-                msg = chair_msg(grid, (0, 0), 0.0)
-                msg.pose.position.x += 0.003 * k
-                chair_pub.publish(msg)
-                spin_until(h.ex, lambda: False, 0.1)
-            n = len(h.paths)
-            h.goal_pub.publish(goal_msg(grid, (0, 3)))
-            assert cells_of(h.next_path(n), grid) == [(0, c) for c in range(4)]
-        finally:
-            h.close()
-            planner.destroy_node()
+    with planner_with_chair(grid) as (h, chair_pub):
+        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+        spin_until(h.ex, lambda: False, 0.3)
+        for k in range(5):  # 0, 3, 6, 9, 12 mm along the row of cell (0, 0)
+            msg = chair_msg(grid, (0, 0), 0.0)
+            msg.pose.position.x += 0.003 * k
+            chair_pub.publish(msg)
+            spin_until(h.ex, lambda: False, 0.1)
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (0, 3)))
+        assert cells_of(h.next_path(n), grid) == [(0, c) for c in range(4)]
 
 
 def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
