@@ -126,7 +126,12 @@ def bag_frames(
         total = reader.count([name])
         prior_stamps, prior_poses = np.empty(0), np.empty((0, 4, 4))
         if prior:
-            odom = reader.pick_topic(prior_topic, ODOMETRY, "--prior-topic")
+            try:
+                odom = reader.pick_topic(prior_topic, ODOMETRY, "--prior-topic")
+            except BagError as exc:
+                # the hint belongs to this error only: appended to every BagError, it told a
+                # user whose bag did not open that the bag lacked an Odometry topic
+                raise BagError(f"{exc} (--prior arkit needs one nav_msgs/Odometry topic)") from exc
             prior_stamps, prior_poses = _odometry_poses(reader, odom)
         elif any(t.msgtype == ODOMETRY for t in reader.topics()):
             print(
@@ -138,9 +143,7 @@ def bag_frames(
         # BagReader.__exit__ raises when open() itself failed (common bug): ignore that.
         with contextlib.suppress(Exception):
             holder.__exit__()
-        raise InputError(
-            f"{exc}" + (" (--prior arkit needs one nav_msgs/Odometry topic)" if prior else "")
-        ) from exc
+        raise InputError(str(exc)) from exc
 
     def prior_for(stamp: float) -> np.ndarray | None:
         if prior_stamps.size == 0:
@@ -154,18 +157,28 @@ def bag_frames(
 
     def gen() -> Iterator[Frame]:
         try:
-            for _, t_ns, msg in reader.messages([name]):
+            # raw + deserialise here, not reader.messages(): one message that does not
+            # deserialise ended the whole run with exit 2 and threw away every frame mapped
+            # before it; it is skipped and counted like any other malformed frame
+            for _, msgtype, t_ns, data in reader.raw([name]):
+                try:
+                    msg = reader.reader.deserialize(data, msgtype)
+                except Exception:  # rosbags raises several types for a damaged message
+                    bad.append("undeserialisable")
+                    yield np.empty((0, 3)), t_ns * 1e-9, "", None, None
+                    continue
                 try:
                     pts = read_fields(msg)
+                    # a broken confidence field is the frame's fault too (it raised a traceback)
+                    conf = (
+                        read_fields(msg, ("confidence",))[:, 0]
+                        if has_field(msg, "confidence")
+                        else None
+                    )
                 except CloudError as exc:
                     bad.append(exc.cause)
                     yield np.empty((0, 3)), t_ns * 1e-9, "", None, None
                     continue
-                conf = (
-                    read_fields(msg, ("confidence",))[:, 0]
-                    if has_field(msg, "confidence")
-                    else None
-                )
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
                 # the pixel grid, for the mixed-pixel test

@@ -40,9 +40,18 @@ def _serve(conn: Any) -> None:
         except (EOFError, OSError, KeyboardInterrupt):
             return
         try:
-            conn.send(("ok", prepare_frame(points, confidence, pre, reg)))
+            reply: tuple[str, Any] = ("ok", prepare_frame(points, confidence, pre, reg))
         except Exception as exc:  # the caller prepares it again itself, and sees the error
-            conn.send(("error", repr(exc)))
+            reply = ("error", repr(exc))
+        try:
+            conn.send(reply)
+        except OSError:  # the mapper closed the pipe mid-frame (it ended): nothing to answer
+            return
+        except Exception as exc:  # a result that does not pickle: the caller prepares it
+            try:
+                conn.send(("error", repr(exc)))
+            except OSError:
+                return
 
 
 class _Worker:

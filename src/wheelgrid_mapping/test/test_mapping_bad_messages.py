@@ -1,0 +1,109 @@
+"""`wheelgrid map` on a bag with one bad message: that frame is skipped and counted, the run
+goes on (it used to end with exit 2 after mapping, losing every frame before it, or with a
+traceback), and the second process never prints a traceback when the mapper stops early."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wheelgrid_mapping import cli_map
+
+BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
+POINTS = "/iphone/points"
+
+
+def _copy_first(tmp_path: Path, name: str, frames: int, damage: dict[int, object]) -> Path:
+    """The bundled bag's first ``frames`` clouds (and their odometry), the k-th cloud replaced
+    by ``damage[k]``: raw CDR bytes, or a function of the deserialised message."""
+    if not (BUNDLED / "metadata.yaml").exists():
+        pytest.skip("bags/paper_room: not present")
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    bag = tmp_path / name
+    with Reader(BUNDLED) as reader:
+        writer = Writer(bag, version=8)
+        writer.open()
+        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                 for c in reader.connections}  # fmt: skip
+        clouds = 0
+        for conn, t, raw in reader.messages():
+            if conn.topic == POINTS:
+                if clouds == frames:
+                    break
+                change = damage.get(clouds)
+                clouds += 1
+                if isinstance(change, bytes):
+                    raw = change
+                elif change is not None:
+                    msg = store.deserialize_cdr(raw, conn.msgtype)
+                    change(msg)  # type: ignore[operator]
+                    raw = store.serialize_cdr(msg, conn.msgtype)
+            writer.write(conns[conn.id], t, raw)
+        writer.close()
+    return bag
+
+
+def test_a_message_that_does_not_deserialise_costs_its_frame_only(tmp_path: Path, capsys) -> None:
+    bag = _copy_first(tmp_path, "garbage", 10, {5: b"\x00\x01\x00\x00garbage"})
+    out = tmp_path / "map"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
+    assert cli_map.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["malformed_frames"] == {"undeserialisable": 1}
+    assert rep["frames"]["read"] == 9  # the 4 clouds after the bad one were mapped too
+    assert (out / "map.ply").stat().st_size > 0
+
+
+def test_a_broken_confidence_field_is_a_malformed_frame_not_a_traceback(
+    tmp_path: Path, capsys
+) -> None:
+    def bad_confidence(msg: object) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        field = get_typestore(Stores.ROS2_JAZZY).types["sensor_msgs/msg/PointField"]
+        msg.fields = [*msg.fields, field("confidence", 0, 42, 1)]  # type: ignore[attr-defined]
+
+    bag = _copy_first(tmp_path, "conf", 3, dict.fromkeys(range(3), bad_confidence))
+    assert cli_map.main([str(bag), "--out", str(tmp_path / "o"), "--no-loop-closure"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "no readable PointCloud2 frame (bad_datatype)" in err, err
+    assert not (tmp_path / "o" / "map.ply").exists()
+
+
+def test_the_prior_hint_is_given_only_for_the_prior_topic(tmp_path: Path, capsys) -> None:
+    """`--prior arkit` appended '(--prior arkit needs one nav_msgs/Odometry topic)' to every
+    bag error, a bag that does not open included."""
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "metadata.yaml").write_text("{{{: [\n")
+    assert cli_map.main([str(broken), "--out", str(tmp_path / "o"), "--prior", "arkit"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot open bag" in err and "Odometry" not in err, err
+
+    bag = _copy_first(tmp_path, "short", 1, {})
+    argv = [str(bag), "--out", str(tmp_path / "o"), "--prior", "arkit", "--prior-topic", POINTS]
+    assert cli_map.main(argv) == 2
+    assert "needs one nav_msgs/Odometry topic" in capsys.readouterr().err
+
+
+def test_the_second_process_ends_quietly_when_the_mapper_has_gone() -> None:
+    """The mapper closing the pipe while a frame is in preparation (an input error, Ctrl-C)
+    made the second process print two BrokenPipeError tracebacks."""
+    from wheelgrid_mapping.prefetch import _serve
+    from wheelgrid_mapping.preprocess import PreprocessConfig
+    from wheelgrid_mapping.registration import RegistrationConfig
+
+    parent, child = mp.Pipe()
+    pts = np.random.default_rng(0).uniform(-2, 2, (500, 3)) + np.array([0.0, 0.0, 3.0])
+    parent.send((pts, None, PreprocessConfig(), RegistrationConfig()))
+    parent.close()
+    _serve(child)  # returns: no BrokenPipeError
