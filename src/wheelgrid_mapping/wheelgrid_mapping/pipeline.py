@@ -10,8 +10,10 @@ as a map: a map in the wrong frame would put obstacles in the wrong place.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -885,15 +887,32 @@ class Mapper:
         return rep
 
     def save(self, out_dir: str | Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Write map.ply, trajectory.tum, report.json into ``out_dir``; returns the report."""
+        """Write map.ply, trajectory.tum, report.json into ``out_dir``; returns the report.
+
+        Each file is written under a temporary name first, and the three replace what the
+        folder held only once all three are complete: a save that fails (a full disk, a
+        levelling error) leaves the folder's previous map, trajectory and report as they were.
+        It used to write map.ply in place, so a second run into the same ``--out`` that failed
+        mid-write left a cut-off map.ply beside the first run's report, the first map gone."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         pts = self.map_points()
         stamps, poses = self.trajectory()
-        write_ply(out / "map.ply", pts, comment="wheelgrid map frame: z up, z=0 floor, metres")
-        write_tum(out / "trajectory.tum", stamps, poses)
         rep = self.report()
         if extra:
             rep.update(extra)
-        (out / "report.json").write_text(json.dumps(rep, indent=2, default=float))
+        names = ("map.ply", "trajectory.tum", "report.json")
+        staged = {n: out / f".{n}.{os.getpid()}.partial" for n in names}
+        try:
+            write_ply(
+                staged["map.ply"], pts, comment="wheelgrid map frame: z up, z=0 floor, metres"
+            )
+            write_tum(staged["trajectory.tum"], stamps, poses)
+            staged["report.json"].write_text(json.dumps(rep, indent=2, default=float))
+            for n in names:
+                os.replace(staged[n], out / n)
+        finally:
+            for path in staged.values():
+                with contextlib.suppress(OSError):
+                    path.unlink(missing_ok=True)
         return rep
