@@ -100,7 +100,12 @@ def test_speed_is_capped_and_heading_flag_works(make_sim, tmp_path, capsys):
     assert sim.speed * 1000 == pytest.approx(proto.MAX_SPEED_MM_S)
 
 
-def test_a_step_into_an_occupied_or_unknown_cell_is_refused(make_sim, tmp_path, capsys):
+def test_a_route_through_an_occupied_or_unknown_cell_is_refused_before_any_move(
+    make_sim, tmp_path, capsys
+):
+    """The --grid is a file: a route that enters a cell it does not call free is refused
+    before the first frame (exit 2). It used to drive the chair up to that cell and stop it
+    there, mid-route (exit 1)."""
     for value in (100, -1):
         sim = make_sim()
         data = np.zeros((8, 8), np.int8)
@@ -108,11 +113,34 @@ def test_a_step_into_an_occupied_or_unknown_cell_is_refused(make_sim, tmp_path, 
         grid = write_map(tmp_path / f"grid{value}.yaml", Grid(data, 1.2))
         rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--grid", str(grid)])
         err = capsys.readouterr().err
-        assert rc == 1
-        assert "(2, 3)" in err and ("occupied" if value == 100 else "unknown") in err
-        assert "chair stopped" in err and "NOT CONFIRMED" not in err  # the STOP was ACKed
-        assert sim_moves(sim) == ["LEFT_FORWARD", "FORWARD"]  # never the move into (2, 3)
+        assert rc == 2
+        assert "step 3/9" in err and "(2, 3)" in err
+        assert ("occupied" if value == 100 else "unknown") in err and "nothing was sent" in err
+        assert sim_moves(sim) == []
         assert sim.state == proto.State.IDLE
+        # --dry-run reads the same route on the same grid: refused as well
+        rc = main([write(tmp_path, table_ii_plan()), "--dry-run", "--grid", str(grid)])
+        assert rc == 2 and "(2, 3)" in capsys.readouterr().err
+
+
+def test_the_runner_still_stops_at_a_step_whose_cell_is_not_free(make_sim, make_link):
+    """The step-by-step check stays (the drive node's grid changes under a move): the chair is
+    stopped before the move into the refused cell, never after it."""
+    from wheelgrid_drive.cli import load_plan
+    from wheelgrid_drive.runner import grid_cell_check, run_steps
+
+    sim = make_sim()
+    link = make_link(sim.slave_path)
+    steps, _ = load_plan(table_ii_plan())
+    data = np.zeros((8, 8), np.int8)
+    data[2, 3] = 100
+    grid = Grid(data, 1.2)
+    result = run_steps(
+        link, steps, distance_m=1.2, speed_kmh=3.0, cell_check=grid_cell_check(lambda: grid)
+    )
+    assert not result.ok and result.done == 2 and "(2, 3)" in result.error
+    assert sim_moves(sim) == ["LEFT_FORWARD", "FORWARD"]  # never the move into (2, 3)
+    assert sim.state == proto.State.IDLE
 
 
 @pytest.mark.parametrize(

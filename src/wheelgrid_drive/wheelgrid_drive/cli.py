@@ -176,6 +176,16 @@ def main(argv: list[str] | None = None) -> int:
         bad = check(cells[0])
         if bad:
             return _err(f"start {bad}")
+        # The grid is a file: every cell of the route is known now. Checked only step by step,
+        # a route through a cell the grid does not call free drove the chair up to it and
+        # stopped it there, mid-route, with exit 1. The runner still checks each step.
+        for k, cell in enumerate(cells[1:], 1):
+            bad = check(cell)
+            if bad:
+                return _err(
+                    f"step {k}/{len(cells) - 1} of the plan goes into {bad} in {args.grid}: "
+                    "the route is not free on this grid; plan again on it (nothing was sent)"
+                )
 
     print(
         f"wheelgrid drive: {len(steps)} step(s) from {cells[0]} "
