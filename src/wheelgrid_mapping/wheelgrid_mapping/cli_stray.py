@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -277,8 +278,17 @@ def import_main(argv: list[str]) -> int:
                 bar.update()
     except BagError as exc:
         return _fail(2, str(exc))
-    except (OSError, ValueError) as exc:
-        return _fail(1, f"import failed: {exc}")
+    except (Exception, KeyboardInterrupt) as exc:
+        # A bag cut short (a full disk: sqlite3.OperationalError, which is no OSError, came out
+        # as a traceback; Ctrl-C) was left behind with a metadata.yaml, opening as if complete.
+        # --out did not exist before this run (checked above): the part written goes.
+        shutil.rmtree(args.out, ignore_errors=True)
+        what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "import failed"
+        detail = "" if isinstance(exc, KeyboardInterrupt) else f" ({type(exc).__name__}: {exc})"
+        return _fail(
+            130 if isinstance(exc, KeyboardInterrupt) else 1,
+            f"{what}{detail}; the part of {args.out} written is removed, no bag was made",
+        )
     listing = ", ".join(f"{t} {n}" for t, n in sorted(counts.items()))
     print(
         f"wrote {len(idx) - skipped} frames to {args.out} ({args.storage}): {listing}"
