@@ -17,9 +17,12 @@ BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
 POINTS = "/iphone/points"
 
 
-def _copy_first(tmp_path: Path, name: str, frames: int, damage: dict[int, object]) -> Path:
-    """The bundled bag's first ``frames`` clouds (and their odometry), the k-th cloud replaced
-    by ``damage[k]``: raw CDR bytes, or a function of the deserialised message."""
+def _copy_first(
+    tmp_path: Path, name: str, frames: int, damage: dict[int, object], topic: str = POINTS
+) -> Path:
+    """The bundled bag's first ``frames`` clouds (and their odometry), the k-th message on
+    ``topic`` replaced by ``damage[k]``: raw CDR bytes, or a function of the deserialised
+    message."""
     if not (BUNDLED / "metadata.yaml").exists():
         pytest.skip("bags/paper_room: not present")
     from rosbags.rosbag2 import Reader, Writer
@@ -32,13 +35,15 @@ def _copy_first(tmp_path: Path, name: str, frames: int, damage: dict[int, object
         writer.open()
         conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
                  for c in reader.connections}  # fmt: skip
-        clouds = 0
+        clouds = seen = 0
         for conn, t, raw in reader.messages():
             if conn.topic == POINTS:
                 if clouds == frames:
                     break
-                change = damage.get(clouds)
                 clouds += 1
+            if conn.topic == topic:
+                change = damage.get(seen)
+                seen += 1
                 if isinstance(change, bytes):
                     raw = change
                 elif change is not None:
@@ -77,6 +82,36 @@ def test_a_broken_confidence_field_is_a_malformed_frame_not_a_traceback(
     err = capsys.readouterr().err
     assert "Traceback" not in err and "no readable PointCloud2 frame (bad_datatype)" in err, err
     assert not (tmp_path / "o" / "map.ply").exists()
+
+
+def test_a_damaged_odometry_message_costs_the_prior_near_it_only(tmp_path: Path, capsys) -> None:
+    """It ended the run with exit 2 before the first frame; a NaN pose was already only
+    dropped for its frame."""
+    bag = _copy_first(tmp_path, "odom", 10, {3: b"\x00\x01\x00\x00bad"}, "/iphone/odometry")
+    out = tmp_path / "map"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
+    assert cli_map.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    assert "1 message(s) on /iphone/odometry do not deserialise" in err, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"]["read"] == 10
+
+
+def test_a_bag_whose_storage_holds_none_of_its_listed_messages(tmp_path: Path, capsys) -> None:
+    """A recording cut off keeps a metadata.yaml that lists messages its database never got:
+    the run said 'all 0 frames have no valid points (all NaN/out of range)'."""
+    import sqlite3
+
+    bag = _copy_first(tmp_path, "hollow", 4, {})
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as con:
+        con.execute("DELETE FROM messages")
+    assert cli_map.main([str(bag), "--out", str(tmp_path / "o"), "--no-loop-closure"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "all 0 frames" not in err, err
+    assert "lists 4 message(s) on the topic but none could be read" in err, err
+    assert "bag-recover" in err
 
 
 def test_the_prior_hint_is_given_only_for_the_prior_topic(tmp_path: Path, capsys) -> None:

@@ -97,12 +97,26 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
     from wheelgrid_common.fileio import pose_or_nan
 
     stamps, poses = [], []
-    for _, t_ns, msg in reader.messages([topic]):  # type: ignore[attr-defined]
+    unreadable = 0
+    for _, msgtype, t_ns, data in reader.raw([topic]):  # type: ignore[attr-defined]
+        # one damaged Odometry message costs the frames near it their prior, as a NaN pose
+        # does; it ended the whole run before the first frame
+        try:
+            msg = reader.reader.deserialize(data, msgtype)  # type: ignore[attr-defined]
+        except Exception:  # rosbags raises several types for a damaged message
+            unreadable += 1
+            continue
         p = msg.pose.pose
         T = pose_or_nan(p.position, p.orientation)  # the Mapper refuses and counts NaN poses
         st = msg.header.stamp
         stamps.append(st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9)
         poses.append(T)
+    if unreadable:
+        print(
+            f"wheelgrid map: warning: {unreadable} message(s) on {topic} do not deserialise; "
+            "frames without a prior pose within 0.1 s register without it",
+            file=sys.stderr,
+        )
     return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
 
 
@@ -374,6 +388,13 @@ def _run(args: argparse.Namespace) -> int:
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
         report(pipe.flush())
         bar.finish(f"used {mapper.registrar.counters.accepted}")
+    if n == 0:
+        # the bag's index promised messages that its storage does not hold (a recording cut
+        # off): "all 0 frames have no valid points" said the wrong thing
+        raise InputError(
+            f"{path}: its metadata lists {total} message(s) on the topic but none could be read: "
+            "a recording cut short? `wheelgrid bag-recover` reads what such a bag holds"
+        )
     if bad and len(bad) == n:
         raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
     if mapper.frames_empty == n - len(bad):
