@@ -11,6 +11,7 @@ from wheelgrid_common.fileio import (
     read_ply,
     read_tum,
     write_ply,
+    write_together,
     write_tum,
 )
 from wheelgrid_common.map_io import (
@@ -205,3 +206,25 @@ def test_progress_finish_gives_the_count_known_after_the_last_update():
     lines = out.getvalue().splitlines()
     assert lines[-1].startswith("mapping [") and lines[-1].endswith("used 2"), lines
     assert sum(line.endswith("used 2") for line in lines) == 1
+
+
+def test_files_written_together_keep_the_old_set_when_one_fails(tmp_path):
+    """A map_server YAML and its PGM (a map and its report) are replaced together or not at
+    all: a write that failed mid-way left a cut-off file beside its old partner."""
+    grid = Grid(np.zeros((2, 3), dtype=np.int8), 1.0, (0.0, 0.0, 0.0))
+    write_map(tmp_path / "g.yaml", grid)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def full_disk(path):
+        path.write_bytes(b"P5\n3 2")  # cut off, as by ENOSPC
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space"):
+        write_together(
+            {tmp_path / "g.pgm": full_disk, tmp_path / "g.yaml": lambda p: p.write_text("x")}
+        )
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no .partial left
+    write_map(tmp_path / "g.yaml", Grid(np.full((4, 5), 100, dtype=np.int8), 0.5, (1, 2, 0)))
+    back = read_map(tmp_path / "g.yaml")
+    assert back.data.shape == (4, 5) and (back.data == 100).all()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.pgm", "g.yaml"]

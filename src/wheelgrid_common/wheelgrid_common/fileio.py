@@ -6,7 +6,9 @@ whatever Open3D version is installed; the reader accepts any binary/ascii PLY wi
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -233,6 +235,37 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         stamps.append(v[0])
         poses.append(pose)
     return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
+
+
+def write_together(writers: dict[Path, Callable[[Path], object]]) -> None:
+    """Write a set of files that belong together (a map and its report; a map_server YAML and
+    its PGM) so that a failure leaves the old set as it was: each writer fills a temporary
+    file beside its target, and the targets are replaced only once every one is complete.
+    A write that fails mid-way (a full disk) left a cut-off file beside its old partners:
+    a YAML whose origin no longer matches its PGM, a map.ply beside another run's report."""
+    staged = {
+        target: target.with_name(f".{target.name}.{os.getpid()}.partial") for target in writers
+    }
+    try:
+        for target, write in writers.items():
+            write(staged[target])
+        for target, tmp in staged.items():
+            os.replace(tmp, target)
+    finally:
+        for tmp in staged.values():
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+
+
+def out_folder(text: str) -> Path:
+    """argparse ``type`` of an ``--out`` folder: an empty one is refused. ``Path("")`` is the
+    current folder, so ``--out ""`` (an unset shell variable) wrote a run's files wherever
+    the shell stood, with exit 0."""
+    if not text.strip():
+        import argparse
+
+        raise argparse.ArgumentTypeError("an empty folder name (an unset shell variable?)")
+    return Path(text)
 
 
 def folder_problem(folder: Path) -> str | None:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from .fileio import write_together
 from .params import read_yaml
 
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
@@ -78,7 +79,6 @@ def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) 
     pix = np.full(grid.data.shape, PIX_UNKNOWN, dtype=np.uint8)
     pix[grid.data == FREE] = PIX_FREE
     pix[grid.data == OCCUPIED] = PIX_OCCUPIED
-    write_pgm(yaml_path.parent / image_name, pix)
     doc = {
         "image": image_name,
         "mode": "trinary",
@@ -92,7 +92,14 @@ def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) 
     if grid.meta:
         meta = yaml.safe_dump(grid.meta, default_flow_style=True, width=float("inf")).strip()
         text += "# wheelgrid: " + meta.replace("\n", " ") + "\n"
-    yaml_path.write_text(text)
+    # the pair replaces the old pair together: a YAML whose origin or size no longer matches
+    # its PGM would put a loading map_server's obstacles in the wrong place
+    write_together(
+        {
+            yaml_path.parent / image_name: lambda p: write_pgm(p, pix),
+            yaml_path: lambda p: p.write_text(text),
+        }
+    )
     return yaml_path
 
 

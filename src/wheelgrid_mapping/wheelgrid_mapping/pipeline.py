@@ -10,10 +10,8 @@ as a map: a map in the wrong frame would put obstacles in the wrong place.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -22,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import write_ply, write_tum
+from wheelgrid_common.fileio import write_ply, write_together, write_tum
 from wheelgrid_common.params import field, from_mapping, read_yaml
 
 from .evidence import EvidenceMap
@@ -901,18 +899,15 @@ class Mapper:
         rep = self.report()
         if extra:
             rep.update(extra)
-        names = ("map.ply", "trajectory.tum", "report.json")
-        staged = {n: out / f".{n}.{os.getpid()}.partial" for n in names}
-        try:
-            write_ply(
-                staged["map.ply"], pts, comment="wheelgrid map frame: z up, z=0 floor, metres"
-            )
-            write_tum(staged["trajectory.tum"], stamps, poses)
-            staged["report.json"].write_text(json.dumps(rep, indent=2, default=float))
-            for n in names:
-                os.replace(staged[n], out / n)
-        finally:
-            for path in staged.values():
-                with contextlib.suppress(OSError):
-                    path.unlink(missing_ok=True)
+        write_together(
+            {
+                out / "map.ply": lambda p: write_ply(
+                    p, pts, comment="wheelgrid map frame: z up, z=0 floor, metres"
+                ),
+                out / "trajectory.tum": lambda p: write_tum(p, stamps, poses),
+                out / "report.json": lambda p: p.write_text(
+                    json.dumps(rep, indent=2, default=float)
+                ),
+            }
+        )
         return rep
