@@ -25,7 +25,7 @@ from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.route_png import draw_route
 from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
 from wheelgrid_common.bagio import BagError, BagReader
-from wheelgrid_common.fileio import read_ply
+from wheelgrid_common.fileio import out_folder, read_ply
 from wheelgrid_common.map_io import Grid
 from wheelgrid_common.ros_env import child_env, configure_ros_env
 
@@ -94,7 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="a `wheelgrid simulate --out` folder (scan/ + truth.json) or a rosbag2 folder "
         "(default bags/paper_room)",
     )
-    p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default out/)")
+    p.add_argument(
+        "--out", type=out_folder, default=Path("out"), help="output folder (default out/)"
+    )
     p.add_argument("--params", type=Path, help="parameter YAML (default bringup wheelgrid.yaml)")
     p.add_argument("--rate", type=float, default=1.0, help="bag replay speed factor (default 1)")
     p.add_argument("--start", type=parse_cell, help="start cell R,C (default from truth.json)")

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from .bagio import MCAP_MAGIC, BagError, typestore
+from .fileio import out_folder
 from .progress import Progress
 
 _HEADER, _FOOTER, _DATA_END = 0x01, 0x02, 0x0F
@@ -217,7 +218,9 @@ def main(argv: list[str] | None = None) -> int:
         "reader opens.",
     )
     p.add_argument("src", type=Path, help="the cut-off rosbag2 folder, or one .mcap/.db3 file")
-    p.add_argument("--out", type=Path, required=True, help="the new bag folder (must not exist)")
+    p.add_argument(
+        "--out", type=out_folder, required=True, help="the new bag folder (must not exist)"
+    )
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     args = p.parse_args(argv)
     try:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import folder_problem
+from wheelgrid_common.fileio import folder_problem, out_folder
 from wheelgrid_common.progress import Progress
 
 from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, load_configs
@@ -213,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
         "x = first viewing direction on the floor).",
     )
     p.add_argument("input", type=Path, help="rosbag2 folder, ROS 1 .bag, or Stray export folder")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=out_folder, required=True, help="output folder")
     p.add_argument("--topic", help="PointCloud2 topic (default: the only one in the bag)")
     p.add_argument(
         "--config",

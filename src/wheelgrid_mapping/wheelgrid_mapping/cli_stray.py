@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wheelgrid_common.fileio import folder_problem
+from wheelgrid_common.fileio import folder_problem, out_folder
 from wheelgrid_mapping.bridge_protocol import (
     DEPTH_F32_M,
     DEPTH_U16_MM,
@@ -222,7 +222,7 @@ def import_main(argv: list[str]) -> int:
         "topics, stamped with the capture's timestamps.",
     )
     ap.add_argument("dir", help="Stray Scanner export folder")
-    ap.add_argument("--out", required=True, help="new bag folder to write")
+    ap.add_argument("--out", type=out_folder, required=True, help="new bag folder to write")
     ap.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3")
     ap.add_argument("--frames", type=int, default=None, help="write at most N frames")
     ap.add_argument("--start", type=int, default=0, help="first frame position [0]")

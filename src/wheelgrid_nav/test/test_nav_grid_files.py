@@ -131,6 +131,7 @@ def _ply_points(tmp_path, name, points):
         ("nofloor", "no floor found"),
         ("onlyfloor", "only floor"),
         ("badconfig", "bad config"),
+        ("outfile", "cannot make the folder"),  # refused before the work, not after it
     ],
 )
 def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
@@ -158,6 +159,10 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
         path = _ply_points(
             tmp_path, "f.ply", [[x / 10, y / 10, 0] for x in range(60) for y in range(60)]
         )
+    elif case == "outfile":
+        path = _ply_points(tmp_path, "ok.ply", [[0, 0, 0]])
+        (tmp_path / "afile").write_text("x")
+        args = ["--out", str(tmp_path / "afile" / "out")]
     else:
         path = _ply_points(tmp_path, "ok.ply", [[0, 0, 0]])
         bad = tmp_path / "bad.yaml"
@@ -168,3 +173,15 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
     assert message in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out" / "grid.yaml").exists()
+
+
+def test_cli_refuses_an_empty_out(tmp_path, capsys, monkeypatch):
+    """``--out ""`` (an unset shell variable) is the current folder to Path: it wrote the
+    grid files wherever the shell stood, exit 0."""
+    monkeypatch.chdir(tmp_path)
+    path = _ply_points(tmp_path, "ok.ply", [[0, 0, 0]])
+    with pytest.raises(SystemExit) as exc:
+        main([path, "--out", ""])
+    assert exc.value.code == 2
+    assert "empty folder name" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.ply"]

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from wheelgrid_common import params
-from wheelgrid_common.fileio import read_ply
+from wheelgrid_common.fileio import folder_problem, out_folder, read_ply
 from wheelgrid_nav.grid import (
     GridError,
     GridNodeConfig,
@@ -33,7 +33,7 @@ def _parser() -> argparse.ArgumentParser:
         "of wheelchair-sized cells (the paper's section II.B).",
     )
     p.add_argument("map", type=Path, help="the map: a PLY point cloud (wheelgrid map's map.ply)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=out_folder, required=True, help="output folder")
     p.add_argument("--safe-height", type=float, help=docs["safe_height"])
     p.add_argument("--cell-size", type=float, help=docs["cell_size"])
     p.add_argument("--density-threshold", type=float, help=docs["density_threshold"])
@@ -80,6 +80,10 @@ def main(argv: list[str] | None = None) -> int:
         gcfg.validate()
     except (OSError, ValueError) as exc:
         return _fail(f"bad config: {exc}")
+    # before the work: a grid built and then not saved cost the user the wait for nothing
+    problem = folder_problem(args.out)
+    if problem:
+        return _fail(f"--out {args.out}: {problem}")
     if args.map.is_dir():
         inside = args.map / "map.ply"
         hint = f"; `wheelgrid map --out` wrote {inside}" if inside.is_file() else ""

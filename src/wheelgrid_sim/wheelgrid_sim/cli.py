@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from wheelgrid_common.bagio import BagError
+from wheelgrid_common.fileio import out_folder
 from wheelgrid_common.progress import Progress
 from wheelgrid_sim.simulate import make_scene, simulate
 from wheelgrid_sim.trajectory import SPEED, nominal_duration
@@ -23,7 +24,11 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument(
-        "--out", required=True, metavar="DIR", help="output folder (DIR/scan must not exist yet)"
+        "--out",
+        type=out_folder,
+        required=True,
+        metavar="DIR",
+        help="output folder (DIR/scan must not exist yet)",
     )
     p.add_argument(
         "--seed", type=int, default=7, help="noise, trajectory and random-scene seed (default 7)"
