@@ -159,6 +159,12 @@ def test_the_runner_still_stops_at_a_step_whose_cell_is_not_free(make_sim, make_
             "Table II",
         ),
         ([1, 2], [], "JSON object"),
+        # what `wheelgrid plan --json` writes for an unreachable goal ("no 'cells' list")
+        (
+            {"cells": [], "moves": [], "reason": "goal unreachable"},
+            [],
+            "the plan is empty: the planner found no route (goal unreachable)",
+        ),
         # int() used to truncate these to cells, or to raise from inside load_plan
         ({"cells": [[2.9, 0.7], [3.9, 0.2]]}, ["--heading", "down"], "of integers"),
         ({"cells": [[True, 0], [1, 0]]}, ["--heading", "down"], "of integers"),

@@ -36,7 +36,15 @@ def load_plan(
     if not isinstance(doc, dict):
         raise PlanError("plan must be a JSON object with 'cells'")
     cells_raw = doc.get("cells")
-    if not isinstance(cells_raw, list) or not cells_raw:
+    if cells_raw == []:
+        # what `wheelgrid plan --json` writes when it finds no route: say so, with its reason
+        reason = doc.get("reason")
+        raise PlanError(
+            "the plan is empty: the planner found no route"
+            + (f" ({reason})" if isinstance(reason, str) and reason else "")
+            + "; nothing to drive"
+        )
+    if not isinstance(cells_raw, list):
         raise PlanError("plan has no 'cells' list")
     # Integers only: int() truncated [2.9, 0.7] to (2, 0) and took true and "3" as cells, and
     # a wheelchair must not guess which cell a plan meant.
