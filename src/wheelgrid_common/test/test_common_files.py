@@ -184,6 +184,12 @@ def test_pgm_samples_above_maxval_or_a_zero_maxval_are_refused(tmp_path):
         (b"P2\n3 1\n100\n254 0 205\n", "exceeds maxval 100"),  # scaled past 255: unknown free
         (b"P5\n3 1\n0\n\xfe\x00\xcd", "bad PGM header"),  # ZeroDivisionError before
         (b"P2\n3 1\n255\n254 0\n", "truncated"),
+        # each of these was numpy's or int()'s own message, or a dump of the raw bytes
+        (b"P5\n3 2\n255\n\xfe\x00", "truncated \\(2 of 6 pixels\\)"),
+        (b"P2\n3 1\n255\n\xfe\x00\xcd\x01", "pixels are not numbers"),
+        (b"P5\nthree 1\n255\n\xfe\x00\xcd", "size and maxval are not numbers"),
+        (b"P5\n3", "not a PGM"),
+        (b"\x89PNG\r\n\x1a\n", "not a PGM"),
     ):
         (tmp_path / "g.pgm").write_bytes(pgm)
         with pytest.raises(ValueError, match=message):
@@ -228,3 +234,10 @@ def test_files_written_together_keep_the_old_set_when_one_fails(tmp_path):
     back = read_map(tmp_path / "g.yaml")
     assert back.data.shape == (4, 5) and (back.data == 100).all()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.pgm", "g.yaml"]
+
+
+def test_a_binary_file_given_as_a_yaml_is_one_clear_error(tmp_path):
+    """A map.ply given where the grid's YAML belongs: 'utf-8' codec can't decode byte 0xf9."""
+    write_ply(tmp_path / "map.ply", np.ones((10, 3)) * np.pi)
+    with pytest.raises(ValueError, match=r"map\.ply: not a YAML file"):
+        read_map(tmp_path / "map.ply")

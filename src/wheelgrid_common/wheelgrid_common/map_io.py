@@ -116,26 +116,37 @@ def read_pgm(path: str | Path) -> np.ndarray:
     raw = Path(path).read_bytes()
     tokens: list[bytes] = []
     pos = 0
-    while len(tokens) < 4:
+    while len(tokens) < 4 and pos < len(raw):
         while pos < len(raw) and raw[pos : pos + 1].isspace():
             pos += 1
         if raw[pos : pos + 1] == b"#":
-            pos = raw.index(b"\n", pos) + 1
+            pos = raw.find(b"\n", pos) + 1 or len(raw)
             continue
         start = pos
         while pos < len(raw) and not raw[pos : pos + 1].isspace():
             pos += 1
-        tokens.append(raw[start:pos])
-    magic, width, height, maxval = tokens[0], int(tokens[1]), int(tokens[2]), int(tokens[3])
+        if pos > start:
+            tokens.append(raw[start:pos])
+    if len(tokens) < 4 or tokens[0] not in (b"P5", b"P2"):
+        raise ValueError(f"{path}: not a PGM (P5 or P2) image")
+    try:
+        magic, width, height, maxval = tokens[0], *(int(t) for t in tokens[1:4])
+    except ValueError:
+        raise ValueError(f"{path}: bad PGM header (size and maxval are not numbers)") from None
     if width < 1 or height < 1 or not 1 <= maxval <= 65535:
         raise ValueError(f"{path}: bad PGM header ({width}x{height}, maxval {maxval})")
     if magic == b"P5":
-        dtype = ">u2" if maxval > 255 else "u1"
-        body = np.frombuffer(raw, dtype=dtype, count=width * height, offset=pos + 1)
-    elif magic == b"P2":
-        body = np.array(raw[pos:].split()[: width * height], dtype=np.int64)
+        dtype = np.dtype(">u2" if maxval > 255 else "u1")
+        data = raw[pos + 1 :]
+        # frombuffer's own error for a short file was "buffer is smaller than requested size"
+        body = np.frombuffer(
+            data, dtype=dtype, count=min(width * height, len(data) // dtype.itemsize)
+        )
     else:
-        raise ValueError(f"{path}: not a PGM (magic {magic!r})")
+        try:
+            body = np.array([int(t) for t in raw[pos:].split()[: width * height]], dtype=np.int64)
+        except ValueError:  # printed the raw bytes it choked on
+            raise ValueError(f"{path}: P2 (text) PGM whose pixels are not numbers") from None
     if body.size != width * height:
         raise ValueError(f"{path}: truncated ({body.size} of {width * height} pixels)")
     if int(body.max()) > maxval:  # scaled past 255, an unknown gray read as free

@@ -93,7 +93,10 @@ def read_yaml(path: str | Path) -> Any:
     """A YAML file's document, a syntax error turned into a ``ValueError`` that names the file
     and the line: every CLI reports ``ValueError`` as a one-line error with exit 2, and a
     user who mistyped a bracket needs the line, not PyYAML's traceback."""
-    text = Path(path).read_text()
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError:  # a PLY or PGM given where a YAML belongs
+        raise ValueError(f"{path}: not a YAML file (binary content)") from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
