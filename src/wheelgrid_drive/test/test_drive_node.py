@@ -452,6 +452,49 @@ def test_grid_change_under_a_running_move_stops_the_chair(make_sim):
         ), [s.message for s in h.states[-5:]]
 
 
+def test_a_grid_between_a_steps_check_and_its_command_stops_the_chair(make_sim, monkeypatch):
+    """The grid callback runs beside the worker: a grid that came just after a step's free-cell
+    check was compared with the previous step's cell (the entered cell was announced after the
+    check), and the chair drove into the cell that grid had just occupied, and on. The grid is
+    handed over in that window here, on the worker's schedule."""
+    from wheelgrid_drive import drive_node
+
+    real = drive_node.planned_grid_check
+    late = {}
+
+    def check_then_grid(getter, planned_on):
+        check = real(getter, planned_on)
+
+        def wrapped(cell):
+            reason = check(cell)
+            if reason is None and tuple(cell) == (3, 2) and not late:
+                g = late["grid"] = h.drive._grid  # as received over DDS: same geometry
+                blocked = Grid(g.data.copy(), g.resolution, g.origin, g.frame_id)
+                blocked.data[3, 2] = 100
+                h.drive._on_grid(to_occupancy_grid(blocked))  # between check and command
+            return reason
+
+        return wrapped
+
+    monkeypatch.setattr(drive_node, "planned_grid_check", check_then_grid)
+    sim = make_sim()
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.give_grid(grid)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: any("cell being entered" in s.message for s in h.states), 10.0), [
+            s.message for s in h.states[-5:]
+        ]
+        h.spin(lambda: h.drive._job == "idle", 3.0)
+        assert late, "the plan never reached its second step"
+        assert sim_moves(sim) == ["FORWARD"]  # never the move into (3, 2)
+        assert grid.cell_of(sim.x, sim.y) == (3, 1)
+
+
 def test_a_plan_that_arrives_before_the_grid_waits_for_it(make_sim):
     """Latched plan and grid reach a late-started drive node in any order."""
     sim = make_sim()

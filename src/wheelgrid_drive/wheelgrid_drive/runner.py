@@ -107,14 +107,20 @@ def run_steps(
 ) -> RunResult:
     """Drive ``steps`` one by one; stops the chair and returns at the first problem.
 
-    ``on_start(step)`` is called after the step's checks and before its command is sent, so an
-    observer (the node) knows which cell the chair is entering and can abort if it changes.
+    ``on_start(step)`` is called before the step's checks and its command, so an observer (the
+    node) knows which cell the chair is about to enter and can abort if it changes. Before, not
+    after the checks: a grid that came between the check and ``on_start`` was compared with the
+    previous step's cell by the node, and the chair was sent into a cell that grid had occupied.
+    With the cell announced first, either the check reads the new grid or the node's grid
+    callback sees the announced cell (and aborts).
     """
     total = len(steps)
     for i, step in enumerate(steps):
         if abort is not None and abort.is_set():
             link.stop()
             return RunResult(False, i, total, "aborted before the next command", aborted=True)
+        if on_start is not None:
+            on_start(step)
         if cell_check is not None:
             reason = cell_check(step.dst)
             if reason:
@@ -122,8 +128,6 @@ def run_steps(
                 if on_step is not None:
                     on_step(step, command_record(step, "REFUSED", reason=reason))
                 return RunResult(False, i, total, f"refused: {reason}", refused=True)
-        if on_start is not None:
-            on_start(step)
         try:
             seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
         except LinkAbortedError as exc:
