@@ -298,6 +298,25 @@ def test_plan_refused_when_the_chair_is_not_at_its_start(make_sim):
         assert sim_moves(sim) == []
 
 
+def test_a_plan_is_refused_when_the_chair_could_not_drive_it_within_its_cells(make_sim):
+    """The start check asked only for the right cell and a heading within 20 deg: a chair 5 cm
+    from its cell's edge and turned 19 deg drove one cell "right" into the occupied cell
+    diagonally ahead. Every step is now checked against the controller's pose."""
+    data = np.zeros((4, 4), np.int8)
+    data[1, 2] = 100
+    grid = Grid(data, 1.2, origin=(0.0, 0.0, 0.0))
+    x, y = grid.cell_center(2, 1)
+    sim = make_sim(pose=(float(x), float(y) + 0.55, math.radians(19)))
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        assert h.matched()
+        h.give_grid(grid)
+        h.publish_plan(grid, [(2, 1), (2, 2)], heading_yaw=0.0)
+        assert h.spin(lambda: any("from the centre of cell" in s.message for s in h.states), 5.0)
+        h.spin(lambda: False, 0.3)
+        assert sim_moves(sim) == []
+        assert h.cmds[-1]["ack"] == "REFUSED"
+
+
 @contextlib.contextmanager
 def chair_in_cell_3_3(make_sim):
     """A node with a free grid and a real-time controller whose chair stands in cell (3, 3)

@@ -43,3 +43,29 @@ def test_only_free_cells_pass():
     assert "outside" in check((4, 0))
     assert "outside" in check((0, -1))
     assert "no safe grid" in grid_cell_check(lambda: None)((0, 0))
+
+
+def test_a_step_is_refused_unless_the_chair_can_drive_it_from_where_it_stands():
+    """A chair 5 cm from its cell's edge and turned 19 deg passed the start check (right cell,
+    within 20 deg of the heading) and one cell's FORWARD ended in the occupied cell diagonally
+    ahead."""
+    import math
+
+    from wheelgrid_drive.actions import plan_steps
+    from wheelgrid_drive.runner import step_pose_problem
+
+    g = Grid(np.zeros((4, 4), np.int8), 1.2)
+    (step,) = plan_steps((2, 1), ["right"], "right")
+    x, y = (float(v) for v in g.cell_center(2, 1))
+    assert step_pose_problem(g, x, y, 0.0, step) is None
+    assert step_pose_problem(g, x + 0.2, y - 0.2, math.radians(5), step) is None
+    assert "from the centre of cell (2, 1)" in step_pose_problem(g, x, y + 0.55, 0.0, step)
+    assert "would end" in step_pose_problem(g, x, y, math.radians(19), step)
+    assert "would end" in step_pose_problem(g, x, y, math.pi, step)  # facing the other way
+    # the quarter turn and the reverse are driven the way the controller drives them
+    (left,) = plan_steps((2, 1), ["up"], "right")
+    (back,) = plan_steps((2, 1), ["left"], "right")
+    assert left.action == "LEFT_FORWARD" and back.action == "BACKWARD"
+    assert step_pose_problem(g, x, y, 0.0, left) is None
+    assert step_pose_problem(g, x, y, 0.0, back) is None
+    assert "would end" in step_pose_problem(g, x, y, math.pi / 2, left)

@@ -50,6 +50,7 @@ from wheelgrid_drive.runner import (
     planned_grid_check,
     run_steps,
     same_geometry,
+    step_pose_problem,
 )
 
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
@@ -106,6 +107,13 @@ class DriveConfig:
         True,
         "refuse a plan unless the controller's pose is in its first cell, facing its start heading",
     )
+    pose_tolerance: float = field(
+        0.25,
+        "with check_start_pose: before every step of a plan the chair must stand within this "
+        "much of its cell's centre, and the move as the controller drives it must end within "
+        "this much of the next cell's centre",
+        "cells",
+    )
     set_pose_on_plan: bool = field(
         False, "tell the controller it stands on the plan's start cell (simulator/demo only)"
     )
@@ -127,6 +135,8 @@ def check_config(c: DriveConfig) -> None:
         raise ValueError(f"state_rate must be in (0, 100] Hz, not {c.state_rate}")
     if not 0.001 <= c.cell_size <= proto.MAX_DISTANCE_MM / 1000:
         raise ValueError(f"cell_size must be in [0.001, 2] m, not {c.cell_size}")
+    if not 0.0 < c.pose_tolerance <= 0.5:
+        raise ValueError(f"pose_tolerance must be in (0, 0.5] cells, not {c.pose_tolerance}")
     if c.initial_heading.strip().lower() not in ("auto", *actions.DELTA):
         raise ValueError(
             f"initial_heading must be auto, up, down, left or right, not {c.initial_heading!r}"
@@ -585,6 +595,7 @@ class DriveNode(Node):
             abort=abort,
             on_step=on_step,
             on_start=self._on_step_start,
+            pose_check=self._pose_check(grid) if self.cfg.check_start_pose else None,
         )
         self._entering = None
         if result.ok:
@@ -593,6 +604,18 @@ class DriveNode(Node):
             self._set_state(WARN if not self._estop else ERROR, f"plan aborted: {result.error}")
         else:
             self._set_state(ERROR, f"plan stopped at step {result.done + 1}: {result.error}")
+
+    def _pose_check(self, grid: Grid) -> Callable[[actions.Step], str | None]:
+        """Before each step: the controller's pose now, within reach of the step's cells."""
+
+        def check(step: actions.Step) -> str | None:
+            try:
+                st = self.link.status()
+            except LinkError as exc:
+                return f"no controller pose: {exc}"
+            return step_pose_problem(grid, st.x, st.y, st.yaw, step, self.cfg.pose_tolerance)
+
+        return check
 
     def _on_step_start(self, step: actions.Step) -> None:
         self._entering = step.dst

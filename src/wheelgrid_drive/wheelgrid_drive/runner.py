@@ -8,6 +8,7 @@ free, and any failure ends the run with STOP. ROS-free.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -23,6 +24,17 @@ from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
 StepCallback = Callable[[Step, dict[str, Any]], None]
 # cell -> None if the chair may enter it, else the reason it may not.
 CellCheck = Callable[[tuple[int, int]], str | None]
+# step -> None if the chair stands where the step can be driven from, else why not.
+PoseCheck = Callable[[Step], str | None]
+
+# the turn each action makes before it drives, and the direction it drives in
+_TURN = {
+    "FORWARD": 0.0,
+    "BACKWARD": 0.0,
+    "LEFT_FORWARD": math.pi / 2,
+    "RIGHT_FORWARD": -math.pi / 2,
+}
+_SIGN = {"FORWARD": 1.0, "BACKWARD": -1.0, "LEFT_FORWARD": 1.0, "RIGHT_FORWARD": 1.0}
 
 
 @dataclass
@@ -84,6 +96,40 @@ def planned_grid_check(grid_getter: Callable[[], Any], planned_on: Any) -> CellC
     return check
 
 
+def step_pose_problem(
+    grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
+) -> str | None:
+    """Why a chair at controller pose (``x``, ``y``, ``yaw``) must not drive ``step``, or None.
+
+    The controller drives a step from where it stands and along its own yaw (after a quarter
+    turn for left/right-forward), one cell's length: a chair at the edge of its cell, or turned
+    up to 20 deg (all the start check asked), ended that move in a cell no one had checked, an
+    occupied one included. So the chair must stand within ``tolerance`` cells of the step's
+    first cell's centre, and the move, as the controller will drive it, must end within
+    ``tolerance`` cells of the next cell's centre; a straight move between two such points
+    stays inside those two cells.
+    """
+    res = float(grid.resolution)
+    sx, sy = (float(v) for v in grid.cell_center(*step.src))
+    off = math.hypot(x - sx, y - sy)
+    if off > tolerance * res:
+        return (
+            f"the chair at ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
+            f"{step.src}, more than {tolerance:g} cell"
+        )
+    heading = yaw + _TURN[step.action]
+    d = _SIGN[step.action] * res
+    ex, ey = x + d * math.cos(heading), y + d * math.sin(heading)
+    dx, dy = (float(v) for v in grid.cell_center(*step.dst))
+    miss = math.hypot(ex - dx, ey - dy)
+    if miss > tolerance * res:
+        return (
+            f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg would end "
+            f"{miss:.2f} m from the centre of cell {step.dst}, more than {tolerance:g} cell"
+        )
+    return None
+
+
 def command_record(step: Step, ack: str, t: float | None = None, **extra: Any) -> dict[str, Any]:
     """The JSON object published per executed command (drive_commands / CLI output)."""
     rec: dict[str, Any] = step.to_json()
@@ -104,6 +150,7 @@ def run_steps(
     on_step: StepCallback | None = None,
     timeout: float | None = None,
     on_start: Callable[[Step], None] | None = None,
+    pose_check: PoseCheck | None = None,
 ) -> RunResult:
     """Drive ``steps`` one by one; stops the chair and returns at the first problem.
 
@@ -112,7 +159,9 @@ def run_steps(
     after the checks: a grid that came between the check and ``on_start`` was compared with the
     previous step's cell by the node, and the chair was sent into a cell that grid had occupied.
     With the cell announced first, either the check reads the new grid or the node's grid
-    callback sees the announced cell (and aborts).
+    callback sees the announced cell (and aborts). ``pose_check(step)``, after the cell check,
+    refuses a step the chair does not stand where it can be driven from (see
+    :func:`step_pose_problem`).
     """
     total = len(steps)
     for i, step in enumerate(steps):
@@ -123,6 +172,13 @@ def run_steps(
             on_start(step)
         if cell_check is not None:
             reason = cell_check(step.dst)
+            if reason:
+                link.stop()
+                if on_step is not None:
+                    on_step(step, command_record(step, "REFUSED", reason=reason))
+                return RunResult(False, i, total, f"refused: {reason}", refused=True)
+        if pose_check is not None:
+            reason = pose_check(step)
             if reason:
                 link.stop()
                 if on_step is not None:
