@@ -384,3 +384,37 @@ def test_pose_problem_names_what_cannot_place_the_chair():
     assert pose_problem(pose(x=float("nan"))) == "a NaN or infinite coordinate"
     assert pose_problem(pose(qw=float("inf"))) == "a NaN or infinite coordinate"
     assert pose_problem(pose(qw=0.0)) == "a zero quaternion"
+
+
+def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_path):
+    """Through an e-stop the planner kept its goal: cleared, the next grid change (the map
+    grows during a scan) gave a new route to it, and the drive drove it with no new command.
+    Now the e-stop drops the goal with an empty path, goals wait for the clear, and only a new
+    goal after it plans."""
+    from std_msgs.msg import Bool
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with planner_with_chair(grid) as (h, _chair_pub):
+        estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+        assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 10.0)
+        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+        spin_until(h.ex, lambda: False, 0.3)
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (6, 5)))
+        assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
+        n = len(h.paths)
+        estop.publish(Bool(data=True))
+        assert h.next_path(n).poses == []  # the drive stops and the route is gone
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (2, 5)))  # a goal while latched: refused
+        assert h.next_path(n).poses == []
+        estop.publish(Bool(data=False))
+        spin_until(h.ex, lambda: False, 0.3)
+        n = len(h.paths)
+        grown = Grid(np.zeros((8, 9), np.int8), RES, ORIGIN)  # the map grows: a new geometry
+        grown.data[:, :8] = paper_grid()
+        h.grid_pub.publish(to_occupancy_grid(grown))
+        spin_until(h.ex, lambda: False, 1.0)
+        assert len(h.paths) == n, "a route to the old goal after the clear"
+        h.goal_pub.publish(goal_msg(grid, (2, 5)))  # a new goal after the clear plans
+        assert cells_of(h.next_path(n), grid) == [(2, c) for c in range(6)]

@@ -17,6 +17,10 @@ training not converged, pose in an unknown frame) an EMPTY Path is published, so
 follows the old route stops. A new grid that blocks any cell of the current route (or changes
 the grid's geometry) triggers a replan from the newest start.
 
+An e-stop (``/wheelgrid/estop`` true) drops the goal and publishes an empty path, and goals
+are refused until it is cleared: nothing the planner does after a clear moves the chair until
+a new goal comes.
+
 Parameter ``method`` defaults to ``qlearning-heading`` (the paper uses plain ``qlearning``):
 the node always knows the chair's heading from its pose, and costing turns and backing up the
 way the chair really drives them picks, among equally short routes, the one with the fewest
@@ -124,6 +128,7 @@ def _make_node_class() -> type:
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from nav_msgs.msg import OccupancyGrid, Odometry, Path
     from rclpy.node import Node
+    from std_msgs.msg import Bool
     from visualization_msgs.msg import Marker, MarkerArray
 
     from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
@@ -166,6 +171,10 @@ def _make_node_class() -> type:
                 PoseStamped, "/wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS
             )
             self._last_chair: tuple[float, float, float] | None = None
+            # An e-stop ends the goal: cleared, the chair drove on to it at the next grid change
+            # (the map grows during a scan) with no new command. A goal during one is refused.
+            self._estop = False
+            self.create_subscription(Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS)
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
 
         # ---- inputs ---------------------------------------------------------------------
@@ -207,7 +216,24 @@ def _make_node_class() -> type:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
 
+        def _on_estop(self, msg: Any) -> None:
+            if not msg.data:
+                if self._estop:
+                    self.get_logger().info("e-stop cleared: send a new goal to drive on")
+                self._estop = False
+                return
+            self._estop = True
+            if self.goal is not None:
+                self.get_logger().warning("e-stop: goal dropped; publishing an empty path")
+                self.goal = None
+                self._publish_route(self.grid, [])
+
         def _on_goal(self, msg: Any) -> None:
+            if self._estop:
+                self.get_logger().warning("goal refused: e-stop latched; publishing an empty path")
+                self.goal = None
+                self._publish_route(self.grid, [])
+                return
             if not self._frame_ok(msg.header.frame_id, "goal"):
                 self.goal = None  # refused: a later start or grid must not plan to the old one
                 self._publish_route(None, [])
