@@ -259,3 +259,24 @@ def test_motor_sim_refuses_settings_that_break_it_and_never_deletes_a_file(tmp_p
     assert sim_main(["--link", str(port), "--pose-log", str(tmp_path / "no" / "log.csv")]) == 1
     assert "cannot open the pose log" in capsys.readouterr().err
     assert not os.path.lexists(port)  # no link left pointing at a closed pty
+
+
+def test_an_unacknowledged_stop_silences_the_link_so_the_watchdog_stops_the_chair(
+    make_sim, make_link, wait
+):
+    """The heartbeats went on after a STOP that no reply confirmed, feeding the controller's
+    watchdog: a chair whose STOP was lost drove on to the end of its cell."""
+    sim = make_sim(time_scale=1.0)
+    link = make_link(sim.slave_path)
+    link.move("FORWARD", 1.2, 3.0)  # 1.4 s of driving
+    sim.drop_stop_next = 1 + link.retries  # the STOP and every retry of it are lost
+    assert link.stop() is False and link.stop_owed
+    assert any("falls silent" in m for k, m in link.events if k == "stop")
+    with pytest.raises(LinkError, match="STOP went unacknowledged"):
+        link.status()  # nothing that would feed the watchdog goes out
+    # the controller's own watchdog ends the move (0.5 s), well before the cell's end
+    assert wait(lambda: not sim.status().moving, timeout=1.0)
+    assert sim.status().result == proto.Result.WATCHDOG
+    # then STOP again, acknowledged: the link speaks again
+    assert wait(lambda: not link.stop_owed, timeout=3.0)
+    assert link.status().result in (proto.Result.WATCHDOG, proto.Result.STOPPED)

@@ -12,6 +12,10 @@ Safety rules this class implements (docs/serial-protocol.md, "host duties"):
   stop and the controller stops the motors on its own.
 * STOP on every doubt: a move that fails, times out, is aborted or ends in any way but DONE is
   followed by STOP.
+* A STOP the controller did not acknowledge silences the link: no heartbeat and no other
+  request goes out (only STOP retries, after the controller's watchdog has had time to fire),
+  so its watchdog stops the motors. The heartbeats fed it while the STOP went unheard, and a
+  moving chair drove on to the end of its cell.
 
 One reader thread owns the port's input and routes replies to waiters by sequence number, so a
 STOP can be sent while another thread waits for a reply (an e-stop never queues behind a poll).
@@ -72,6 +76,9 @@ def _default_serial_factory(port: str, baud: int) -> Any:
 
 
 HEARTBEAT_PERIOD_S = 0.1  # 5x faster than the controller's 0.5 s watchdog (protocol duty 3)
+# after an unacknowledged STOP the link says nothing this long, twice the controller's watchdog,
+# before it tries STOP again
+STOP_SILENCE_S = 2.0 * proto.DEFAULT_HEARTBEAT_TIMEOUT_S
 RECONNECT_PERIOD_S = 0.5  # a vanished port is tried again this often (protocol duty 5)
 
 
@@ -132,6 +139,12 @@ class MotorLink:
         self._closing = threading.Event()
         self._reader: threading.Thread | None = None
         self._heartbeat: threading.Thread | None = None
+        self._stop_owed_at: float | None = None  # when a STOP went unacknowledged (monotonic)
+
+    @property
+    def stop_owed(self) -> bool:
+        """A STOP went unacknowledged and none has been since: the link is silent."""
+        return self._stop_owed_at is not None
 
     # ---- connection ---------------------------------------------------------------------------
 
@@ -303,8 +316,15 @@ class MotorLink:
     ) -> proto.Frame:
         """Send one request and return its valid reply (ACK, NAK or STATUS), retrying on failure.
 
-        Raises LinkError when no valid reply came after all attempts or the port is lost.
+        Raises LinkError when no valid reply came after all attempts or the port is lost, and
+        for anything but STOP while a STOP is owed (:attr:`stop_owed`): any valid frame feeds
+        the controller's watchdog, which must be left to stop the motors.
         """
+        if self._stop_owed_at is not None and mtype != proto.MsgType.STOP:
+            raise LinkError(
+                f"{mtype.name} not sent: a STOP went unacknowledged, and the link stays silent "
+                "until one is, so that the controller's watchdog stops the motors"
+            )
         seq = self._next_seq(avoid_seq)
         data = proto.encode(seq, mtype, payload)
         attempts = 1 + (self.retries if retries is None else retries)
@@ -345,9 +365,22 @@ class MotorLink:
         try:
             frame = self.request(proto.MsgType.STOP)
         except LinkError as exc:
-            self._emit("stop", f"STOP not acknowledged: {exc}", logging.ERROR)
-            return False
-        return frame.type == proto.MsgType.ACK
+            frame, why = None, str(exc)
+        else:
+            why = "" if frame.type == proto.MsgType.ACK else f"answered type {frame.type:#04x}"
+        if frame is not None and not why:
+            if self._stop_owed_at is not None:
+                self._emit("stop", "STOP acknowledged: the link speaks again", logging.WARNING)
+            self._stop_owed_at = None
+            return True
+        self._stop_owed_at = time.monotonic()
+        self._emit(
+            "stop",
+            f"STOP not acknowledged: {why}; the link falls silent so that the controller's "
+            f"watchdog stops the motors, STOP again in {STOP_SILENCE_S:g} s",
+            logging.ERROR,
+        )
+        return False
 
     def status(self) -> proto.Status:
         frame = self.request(proto.MsgType.STATUS_REQ)
@@ -466,6 +499,11 @@ class MotorLink:
                 if now >= next_reconnect:
                     next_reconnect = now + self.reconnect_period
                     self.reconnect()
+                continue
+            owed = self._stop_owed_at
+            if owed is not None:  # silent, so the watchdog fires; then STOP again
+                if time.monotonic() - owed >= STOP_SILENCE_S:
+                    self.stop()
                 continue
             try:
                 self._got_status(self.request(proto.MsgType.HEARTBEAT, retries=1))

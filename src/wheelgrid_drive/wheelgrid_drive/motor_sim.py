@@ -93,6 +93,7 @@ class MotorSim:
         self.drop_rx_next = 0  # lose the next N received frames
         self.drop_tx_next = 0  # lose the next N replies
         self.corrupt_tx_next = 0  # damage the next N replies
+        self.drop_stop_next = 0  # lose the next N STOP frames (a wire that garbles just those)
         self._segments: list[_Segment] = []
         # the last accepted move (seq, type, payload, reply): the only one a retry can repeat
         self._last_move: tuple[int, int, bytes, bytes] | None = None
@@ -237,6 +238,9 @@ class MotorSim:
             return
         if self.drop_rx_next > 0:
             self.drop_rx_next -= 1
+            return
+        if self.drop_stop_next > 0 and item.type == proto.MsgType.STOP:
+            self.drop_stop_next -= 1
             return
         if self.cfg.drop and self._rng.random() < self.cfg.drop:
             return
