@@ -345,6 +345,52 @@ def test_cmd_vel_steps_and_watchdog_stop(make_sim):
         assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)
 
 
+def test_a_cmd_vel_stream_that_goes_on_through_an_estop_does_not_drive_after_the_clear(make_sim):
+    """Forward Twists kept coming through the e-stop, and the clear sent FORWARD at once: the
+    stream must be zero (or silent) once after a clear before it drives again."""
+    with chair_in_cell_3_3(make_sim) as (h, sim, _x):
+        tw = h.Twist()
+        tw.linear.x = 0.8
+
+        def stream(seconds):  # a joystick held forward
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                h.pub_twist.publish(tw)
+                h.spin(lambda: False, 0.05)
+
+        h.pub_twist.publish(tw)
+        assert h.spin(lambda: sim.state != proto.State.IDLE, 3.0)
+        h.pub_estop.publish(h.Bool(data=True))
+        stream(0.3)
+        assert sim.state == proto.State.IDLE and h.drive._estop
+        h.pub_estop.publish(h.Bool(data=False))
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+        stream(0.8)  # the same stream, on through the clear
+        assert sim_moves(sim) == ["FORWARD"] and sim.state == proto.State.IDLE
+        h.pub_twist.publish(h.Twist())  # let go of the stick: armed again
+        h.spin(lambda: False, 0.2)
+        h.pub_twist.publish(tw)
+        assert h.spin(lambda: len(sim_moves(sim)) == 2, 3.0), sim_moves(sim)
+
+
+def test_a_best_effort_estop_latches_but_cannot_clear(make_sim):
+    """An e-stop published on sensor-data QoS matched no subscription and was never heard."""
+    from wheelgrid_common.qos import SENSOR_QOS
+
+    with driving_along_row_3(make_sim) as (h, sim, _grid):
+        pub = h.node.create_publisher(h.Bool, "/wheelgrid/estop", SENSOR_QOS)
+        assert h.spin(lambda: pub.get_subscription_count() > 0, 5.0)
+        pub.publish(h.Bool(data=True))
+        assert h.spin(lambda: h.drive._estop and sim.state == proto.State.IDLE, 3.0)
+        assert sim.result == proto.Result.STOPPED
+        for _ in range(3):
+            pub.publish(h.Bool(data=False))
+            h.spin(lambda: False, 0.1)
+        assert h.drive._estop  # a clear must come reliably
+        h.pub_estop.publish(h.Bool(data=False))
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+
+
 def test_a_stale_cmd_vel_stops_the_chair_while_the_executor_is_held_up(make_sim):
     """The /cmd_vel watchdog's stop runs on the e-stop thread: with the node's executor held
     up (here: not spun at all, as when it reads a long plan), the step does not go on blind."""

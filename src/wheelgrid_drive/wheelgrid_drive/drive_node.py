@@ -37,7 +37,7 @@ from std_msgs.msg import Bool, String
 
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, declare_dataclass, field
-from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
 from wheelgrid_common.ros_env import exit_logger, spin_node
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
@@ -175,6 +175,9 @@ class DriveNode(Node):
         self._job_grid: Grid | None = None  # the grid the running job's cells were read on
         # the action of the /cmd_vel step last started; None once /cmd_vel went stale
         self._twist_running: str | None = None
+        # False from an e-stop until /cmd_vel has been zero or silent: a stream that went on
+        # through the e-stop drove the chair the moment it was cleared
+        self._twist_armed = True
 
         pub = self.create_publisher
         self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
@@ -224,6 +227,13 @@ class DriveNode(Node):
         )
         self._estop_node.create_subscription(
             Bool, "/wheelgrid/estop", self._on_estop_message, RELIABLE_QOS
+        )
+        # A best-effort e-stop publisher (a joystick, a safety bridge on sensor-data QoS)
+        # matches no reliable subscription: it was never heard. This one hears it, and may
+        # only latch: a clear must come reliably (a lost clear keeps the chair stopped, a lost
+        # e-stop would not). A reliable publisher reaches both; the second copy is a no-op.
+        self._estop_node.create_subscription(
+            Bool, "/wheelgrid/estop", self._on_estop_best_effort, SENSOR_QOS
         )
         self._estop_node.create_timer(0.05, self._cmd_vel_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
@@ -391,11 +401,16 @@ class DriveNode(Node):
                 self._latch_estop(received_ns(info))
             self.get_logger().error(f"e-stop handling failed: {exc!r}; chair stopped")
 
+    def _on_estop_best_effort(self, msg: Bool, info: dict[str, Any] | None) -> None:
+        if msg.data and not self._estop:
+            self._on_estop_message(msg, info)
+
     def _latch_estop(self, received: int = 0) -> None:
         """Latch the e-stop, drop what it must not let run, and send STOP now (never queued
         behind the worker). ``received``: when the e-stop reached this process, if known."""
         with self._gate:
             self._estop = True
+            self._twist_armed = False
             self._estops += 1
             stamp = received or time.time_ns()
             self._estop_received_ns = max(self._estop_received_ns, stamp)
@@ -637,9 +652,11 @@ class DriveNode(Node):
     def _cmd_vel_tick(self) -> None:
         twist = self._last_twist
         if twist is None:
+            self._twist_armed = not self._estop
             return
         if self._twist_stale():
             self._last_twist = None
+            self._twist_armed = not self._estop
             if self._twist_running is not None:
                 self._twist_running = None
                 self._abort.set()
@@ -649,6 +666,15 @@ class DriveNode(Node):
         if self._estop:
             return
         action = self._twist_action(twist)
+        if not self._twist_armed:
+            if action is not None:
+                self.get_logger().warning(
+                    "/cmd_vel ignored: it went on through the e-stop; send a zero Twist (or "
+                    f"none for {self.cfg.cmd_vel_timeout:g} s) to drive with it again",
+                    throttle_duration_sec=2.0,
+                )
+                return
+            self._twist_armed = True
         if self._busy():
             if self._job == "plan":
                 self.get_logger().warning(
