@@ -373,6 +373,40 @@ def test_a_cmd_vel_stream_that_goes_on_through_an_estop_does_not_drive_after_the
         assert h.spin(lambda: len(sim_moves(sim)) == 2, 3.0), sim_moves(sim)
 
 
+@pytest.mark.parametrize(
+    ("offset", "yaw_deg", "drives"),
+    [
+        ((0.3, 0.0), 0.0, True),  # the far side of its cell: 0.9 m, to the next centre
+        ((0.0, 0.4), 15.0, False),  # its cell's edge, turned 15 deg: it ended in cell (2, 4)
+    ],
+)
+def test_a_cmd_vel_step_drives_to_the_next_cells_centre_or_not_at_all(
+    make_sim, offset, yaw_deg, drives
+):
+    """A /cmd_vel step drove one cell's length from wherever the chair stood, past the one
+    cell checked free: here into (2, 4), which the grid calls occupied."""
+    grid = free_grid()
+    grid.data[2, 4] = 100
+    x, y = grid.cell_center(3, 3)
+    pose = (float(x) + offset[0], float(y) + offset[1], math.radians(yaw_deg))
+    sim = make_sim(time_scale=4.0, pose=pose)
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        assert h.matched()
+        h.give_grid(grid)
+        tw = h.Twist()
+        tw.linear.x = 0.8
+        if drives:
+            h.pub_twist.publish(tw)  # one Twist: the step (0.3 s here) ends before it is stale
+            assert h.spin(lambda: bool(sim_moves(sim)) and sim.state == proto.State.IDLE, 3.0)
+            assert sim_moves(sim) == ["FORWARD"] and sim.result == proto.Result.DONE
+            cx, cy = grid.cell_center(3, 4)
+            assert math.hypot(sim.x - cx, sim.y - cy) < 0.02, (sim.x, sim.y)
+        else:
+            h.pub_twist.publish(tw)
+            assert h.spin(lambda: any("refused" in s.message for s in h.states), 3.0)
+            assert sim_moves(sim) == [] and grid.cell_of(sim.x, sim.y) == (3, 3)
+
+
 def test_a_best_effort_estop_latches_but_cannot_clear(make_sim):
     """An e-stop published on sensor-data QoS matched no subscription and was never heard."""
     from wheelgrid_common.qos import SENSOR_QOS

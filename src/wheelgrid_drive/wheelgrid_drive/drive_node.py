@@ -51,6 +51,7 @@ from wheelgrid_drive.runner import (
     run_steps,
     same_geometry,
     step_pose_problem,
+    step_to_centre,
 )
 
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
@@ -111,7 +112,8 @@ class DriveConfig:
         0.25,
         "with check_start_pose: before every step of a plan the chair must stand within this "
         "much of its cell's centre, and the move as the controller drives it must end within "
-        "this much of the next cell's centre",
+        "this much of the next cell's centre; a /cmd_vel step drives to the next cell's "
+        "centre and must pass within this much of it",
         "cells",
     )
     set_pose_on_plan: bool = field(
@@ -734,6 +736,11 @@ class DriveNode(Node):
                 "RIGHT_FORWARD": actions.turn_right(heading),
             }[action]
             (step,) = actions.plan_steps(here, [move], heading)
+            distance, problem = step_to_centre(
+                grid, st.x, st.y, st.yaw, step, self.cfg.pose_tolerance
+            )
+            if problem:
+                raise ValueError(problem)
         except (LinkError, ValueError) as exc:
             self._set_state(ERROR, f"/cmd_vel {action} refused: {exc}")
             self._publish_record(
@@ -744,7 +751,7 @@ class DriveNode(Node):
         result = run_steps(
             self.link,
             [step],
-            distance_m=grid.resolution,
+            distance_m=distance,
             speed_kmh=speed,
             cell_check=planned_grid_check(lambda: self._grid, grid),
             abort=abort,

@@ -130,6 +130,32 @@ def step_pose_problem(
     return None
 
 
+def step_to_centre(
+    grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
+) -> tuple[float, str | None]:
+    """(distance, None) that takes a chair at controller pose (``x``, ``y``, ``yaw``) anywhere
+    in ``step``'s first cell to the next cell's centre, as the controller drives (a quarter
+    turn for left/right-forward, then straight along its own yaw); or (0, why not).
+
+    A /cmd_vel step drove one cell's length from wherever the chair stood: from the far side
+    of its cell, or after a stop mid-cell, that ended beyond the one cell checked free. Both
+    ends lie in the two cells, whose union is a rectangle, so the path between stays in them.
+    The move must pass within ``tolerance`` cells of the centre (the heading's error)."""
+    res = float(grid.resolution)
+    heading = yaw + _TURN[step.action]
+    ux, uy = _SIGN[step.action] * math.cos(heading), _SIGN[step.action] * math.sin(heading)
+    cx, cy = (float(v) for v in grid.cell_center(*step.dst))
+    along = (cx - x) * ux + (cy - y) * uy
+    miss = abs((cy - y) * ux - (cx - x) * uy)
+    if miss > tolerance * res or not 0.25 * res <= along <= 1.5 * res:
+        return 0.0, (
+            f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg passes "
+            f"{miss:.2f} m from the centre of cell {step.dst} ({along:.2f} m ahead): more than "
+            f"{tolerance:g} cell off its line"
+        )
+    return along, None
+
+
 def command_record(step: Step, ack: str, t: float | None = None, **extra: Any) -> dict[str, Any]:
     """The JSON object published per executed command (drive_commands / CLI output)."""
     rec: dict[str, Any] = step.to_json()
