@@ -407,6 +407,45 @@ def test_a_cmd_vel_step_drives_to_the_next_cells_centre_or_not_at_all(
             assert sim_moves(sim) == [] and grid.cell_of(sim.x, sim.y) == (3, 3)
 
 
+def test_a_plan_published_before_the_drive_started_is_not_driven(make_sim):
+    """The plan topic keeps its last plan for late joiners: a restarted drive node, its e-stop
+    latch gone with it, drove the plan of before if the chair still stood at its start."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+    from rclpy.node import Node
+
+    grid = free_grid()
+    x, y = grid.cell_center(3, 0)
+    sim = make_sim(time_scale=4.0, pose=(float(x), float(y), 0.0))
+    with rclpy_context() as ctx:
+        old = Node("wg_old_planner", context=ctx)
+        try:
+            pub = old.create_publisher(Path, "/wheelgrid/plan", MAP_QOS)
+            path = Path()
+            path.header.frame_id = "map"
+            for r, c in [(3, 0), (3, 1), (3, 2)]:
+                ps = PoseStamped()
+                ps.header.frame_id = "map"
+                ps.pose.position.x, ps.pose.position.y = (float(v) for v in grid.cell_center(r, c))
+                ps.pose.orientation.w = 1.0
+                path.poses.append(ps)
+            pub.publish(path)
+            time.sleep(0.1)
+            with Harness(ctx, sim.slave_path) as h:
+                h.ex.add_node(old)
+                assert h.matched()
+                h.give_grid(grid)
+                assert h.spin(lambda: any("before this drive started" in s.message
+                                          for s in h.states), 5.0)  # fmt: skip
+                h.spin(lambda: False, 0.3)
+                assert sim_moves(sim) == []
+                h.publish_plan(grid, [(3, 0), (3, 1)])  # a plan of now drives
+                assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 5.0), sim_moves(sim)
+                h.ex.remove_node(old)
+        finally:
+            old.destroy_node()
+
+
 def test_a_best_effort_estop_latches_but_cannot_clear(make_sim):
     """An e-stop published on sensor-data QoS matched no subscription and was never heard."""
     from wheelgrid_common.qos import SENSOR_QOS

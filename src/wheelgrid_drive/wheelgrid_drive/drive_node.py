@@ -74,12 +74,13 @@ class Arrival:
     estops: int  # the node's e-stop count when the callback began
 
 
-def received_ns(info: dict[str, Any] | None) -> int:
-    """The middleware's receive time from rclpy's message info, or 0 where it gives none."""
+def received_ns(info: dict[str, Any] | None, key: str = "received_timestamp") -> int:
+    """The middleware's receive (or with ``key`` "source_timestamp", publication) time from
+    rclpy's message info, or 0 where it gives none."""
     if not info:
         return 0
     try:
-        return int(info.get("received_timestamp") or 0)
+        return int(info.get(key) or 0)
     except (TypeError, ValueError):
         return 0
 
@@ -153,6 +154,7 @@ class DriveNode(Node):
         self.speed = min(c.speed, proto.MAX_SPEED_KMH) if c.speed > 0 else proto.MAX_SPEED_KMH
         if c.speed > proto.MAX_SPEED_KMH or c.speed <= 0:
             self.get_logger().warning(f"speed {c.speed} km/h replaced by {self.speed} km/h")
+        self._started_ns = time.time_ns()  # plans published before it are not driven
         self._lock = threading.Lock()
         self._grid: Grid | None = None
         self._pending_plan: tuple[Path, Arrival] | None = None  # a plan that came before any grid
@@ -430,6 +432,17 @@ class DriveNode(Node):
             self._set_state(OK, "e-stop cleared (nothing resumes by itself)")
 
     def _on_plan(self, msg: Path, info: dict[str, Any] | None) -> None:
+        published = received_ns(info, "source_timestamp")
+        if msg.poses and 0 < published < self._started_ns:
+            # The plan topic keeps its last plan for late joiners: a drive restarted by its
+            # launcher (its e-stop latch gone with it) got the plan of before, and drove it
+            # if the chair still stood at its start. Nothing made before this node is driven.
+            self._set_state(
+                WARN,
+                f"plan refused: published {(self._started_ns - published) / 1e9:.1f} s before "
+                "this drive started (the topic's kept plan); send the goal again",
+            )
+            return
         self._plan_arrived(msg, Arrival(received_ns(info) or time.time_ns(), self._estops))
 
     def _estop_since(self, arrival: Arrival) -> bool:
