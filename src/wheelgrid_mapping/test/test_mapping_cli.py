@@ -686,6 +686,22 @@ def _strict_json(text: str) -> dict:
     return json.loads(text, parse_constant=refuse)
 
 
+def test_measure_names_a_box_or_normal_that_is_not_finite(tmp_path: Path, capsys) -> None:
+    """``--box-a nan ...`` said "the box holds 0 points", as if the surface were missing."""
+    argv = _two_walls(tmp_path)
+    for flag, bad in (
+        ("--box-a", ["0.9", "0", "nan", "1.1", "1", "1"]),
+        ("--box-b", ["2.1", "0", "0", "inf", "1", "1"]),
+        ("--normal", ["1", "nan", "0"]),
+    ):
+        i = argv.index(flag) if flag in argv else len(argv)
+        args = argv[:i] + [flag, *bad] + (argv[i + 7 :] if flag in argv else [])
+        assert cli_measure.main(args) == 2, flag
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1, err
+        assert f"{flag} has a value that is not a finite number" in err, err
+
+
 def test_measure_refuses_a_true_distance_that_is_none(tmp_path: Path, capsys) -> None:
     """``--true 0`` was taken for "not given", ``-1.2`` printed a deviation of -200 % and
     ``nan`` put NaN into the JSON: a true distance must be finite and > 0 (exit 2, one line)."""

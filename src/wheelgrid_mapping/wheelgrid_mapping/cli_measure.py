@@ -576,6 +576,17 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    for flag in ("box_a", "box_b", "normal", "normal_box"):
+        values = getattr(args, flag)
+        if values is not None and not all(math.isfinite(v) for v in values):
+            # a NaN bound selects nothing: "the box holds 0 points" sent users looking for
+            # the surface instead of at the typo
+            print(
+                f"wheelgrid measure: --{flag.replace('_', '-')} has a value that is not a "
+                f"finite number: {' '.join(f'{v:g}' for v in values)}",
+                file=sys.stderr,
+            )
+            return 2
     try:
         pts = read_ply(args.map)
     except (OSError, ValueError) as exc:
