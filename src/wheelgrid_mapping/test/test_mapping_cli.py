@@ -786,3 +786,15 @@ def test_measure_says_how_it_read_surfaces_that_are_not_parallel(tmp_path: Path,
         out = capsys.readouterr().out
         assert "WARNING: surfaces 90 deg from parallel, the distance is " in out
         assert says in out and "centroid-based" not in out
+
+
+def test_too_few_frames_to_level_says_why(tmp_path: Path, capsys) -> None:
+    """Two frames: 'only 0 points, need 200 to find the floor' left a user to guess that a
+    place needs two registered frames before the map keeps it."""
+    if not (BUNDLED / "scan" / "metadata.yaml").exists():
+        pytest.skip("bags/paper_room: not present")
+    argv = [str(BUNDLED / "scan"), "--out", str(tmp_path / "m"), "--max-frames", "2"]
+    assert cli_map.main([*argv, "--no-loop-closure"]) == 1
+    err = capsys.readouterr().err
+    assert "cannot level the map" in err and "mapper.evidence_min_frames (2)" in err, err
+    assert "Traceback" not in err and not (tmp_path / "m" / "map.ply").exists()

@@ -446,7 +446,14 @@ def _run(args: argparse.Namespace) -> int:
             },
         )
     except RuntimeError as exc:
-        print(f"wheelgrid map: cannot level the map: {exc}", file=sys.stderr)
+        used = mapper.registrar.counters.accepted
+        hint = (
+            f" (only {used} frames registered: the map keeps a place only once "
+            f"mapper.evidence_min_frames ({cfg.evidence_min_frames}) frames have seen it)"
+            if used < 10
+            else ""
+        )
+        print(f"wheelgrid map: cannot level the map: {exc}{hint}", file=sys.stderr)
         return 1
     except OSError as exc:
         print(f"wheelgrid map: cannot write the map to {args.out}: {exc}", file=sys.stderr)
