@@ -418,3 +418,19 @@ def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_pa
         assert len(h.paths) == n, "a route to the old goal after the clear"
         h.goal_pub.publish(goal_msg(grid, (2, 5)))  # a new goal after the clear plans
         assert cells_of(h.next_path(n), grid) == [(2, c) for c in range(6)]
+
+
+def test_a_start_turned_between_two_grid_directions_gets_no_route(tmp_path):
+    """A start facing 45 deg went to "right" by a tie: the route was published, and the drive
+    (which accepts 20 deg at most) refused it. Now the planner says why, with an empty path;
+    18 deg off still plans, as the drive still drives it."""
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with planner_with_chair(grid) as (h, _chair_pub):
+        h.init_pub.publish(start_msg(grid, (2, 0), math.radians(45.0)))
+        spin_until(h.ex, lambda: False, 0.3)
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (6, 5)))
+        assert h.next_path(n).poses == []
+        n = len(h.paths)
+        h.init_pub.publish(start_msg(grid, (2, 0), math.radians(-72.0)))  # 18 deg off "down"
+        assert cells_of(h.next_path(n), grid) == PAPER_ROUTE

@@ -50,6 +50,9 @@ _DIR_ANGLE = {"right": 0.0, "up": math.pi / 2, "left": math.pi, "down": -math.pi
 # dead reckoning at rest stays put, and an /initialpose given since must stand.
 CHAIR_MOVED_M = 0.01
 CHAIR_TURNED_RAD = math.radians(1.0)
+# The drive refuses a chair turned more than this from its plan's start heading
+# (wheelgrid_drive.actions.heading_from_yaw): a route for a guessed heading is refused there.
+HEADING_TOLERANCE_RAD = math.radians(20.0)
 
 
 @dataclass
@@ -323,6 +326,17 @@ def _make_node_class() -> type:
             start = grid.cell_of(self.start[0], self.start[1])
             goal = grid.cell_of(self.goal[0], self.goal[1])
             heading = heading_from_yaw(self.start[2], grid.origin[2])
+            off = math.remainder(self.start[2] - grid.origin[2] - _DIR_ANGLE[heading], math.tau)
+            if abs(off) > HEADING_TOLERANCE_RAD:
+                # 45 deg went to "right" by a tie: a route was published and the drive refused it
+                self.get_logger().warning(
+                    f"no route: the chair's heading is {math.degrees(abs(off)):.0f} deg off the "
+                    f"grid's nearest direction ({heading}), more than "
+                    f"{math.degrees(HEADING_TOLERANCE_RAD):.0f}: which way each move turns is "
+                    "a guess; turn the chair along the grid; publishing an empty path"
+                )
+                self._publish_route(grid, [])
+                return
             method = self.node_cfg.method
             try:
                 res = plan(grid.data, start, goal, self.cfg, method=method, heading=heading)
