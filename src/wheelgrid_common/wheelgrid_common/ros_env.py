@@ -67,6 +67,12 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         pass
     except SystemExit as exc:  # a node may ask to stop with a code
         code = int(exc.code or 0)
+    except Exception:
+        # A callback that ran into the context Ctrl-C/SIGTERM had just shut down ("publisher's
+        # context is invalid", a take that failed) ended the node with a traceback and exit 1,
+        # which the launcher reported as a node that failed. Not so for a running node.
+        if node is None or node.context.ok():
+            raise
     finally:
         if node is not None:
             close = getattr(node, "close", None)

@@ -387,6 +387,21 @@ class MapperNode(Node):  # type: ignore[misc]
             self._map_dirty = True
         self.get_logger().info(f"loops closed: {self._loop_note}; map republished")
 
+    def _publish(self, pub: Any, msg: Any) -> bool:
+        """Publish, unless Ctrl-C or SIGTERM has shut the context down: the worker may finish a
+        frame after that, and its ``RCLError`` ("publisher's context is invalid") killed the
+        worker thread and, from ``close()``'s last flush, skipped the save on exit. False when
+        nothing was published."""
+        if not self.context.ok():
+            return False
+        try:
+            pub.publish(msg)
+        except Exception:
+            if self.context.ok():
+                raise
+            return False  # shut down between the check and the publish
+        return True
+
     def _publish_pose(self, T: np.ndarray, stamp: float) -> None:
         from nav_msgs.msg import Odometry
 
@@ -401,7 +416,8 @@ class MapperNode(Node):  # type: ignore[misc]
         )
         msg.pose.pose.orientation.x, msg.pose.pose.orientation.y = qx, qy
         msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = qz, qw
-        self.odom_pub.publish(msg)
+        if not self._publish(self.odom_pub, msg):
+            return
         if self.tf_pub is not None:
             from geometry_msgs.msg import TransformStamped
             from tf2_msgs.msg import TFMessage
@@ -413,7 +429,7 @@ class MapperNode(Node):  # type: ignore[misc]
             tf.transform.translation.y = msg.pose.pose.position.y
             tf.transform.translation.z = msg.pose.pose.position.z
             tf.transform.rotation = msg.pose.pose.orientation
-            self.tf_pub.publish(TFMessage(transforms=[tf]))
+            self._publish(self.tf_pub, TFMessage(transforms=[tf]))
 
     # -- output ------------------------------------------------------------------------------
     def _on_timer(self) -> None:
@@ -432,7 +448,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 self._warn_floor_refound()
                 msg = to_pointcloud2(pts.astype(np.float32), self.map_frame)
                 msg.header.stamp = self.get_clock().now().to_msg()
-                self.map_pub.publish(msg)
+                self._publish(self.map_pub, msg)
         self._publish_status()
 
     def _warn_floor_refound(self) -> None:
@@ -485,7 +501,7 @@ class MapperNode(Node):  # type: ignore[misc]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
-        self.status_pub.publish(arr)
+        self._publish(self.status_pub, arr)
 
     def _on_save(self, request: Any, response: Any) -> Any:
         # absolute in what it says: output_dir is relative to where the node was started,
@@ -585,15 +601,17 @@ class MapperNode(Node):  # type: ignore[misc]
             self._stop = True
             self._slot_lock.notify()
         self._worker.join(timeout=10.0)
-        if self._lock.acquire(timeout=5.0):
-            try:  # the frame taken last is mapped, so that the map saved below has it
-                if not self._worker.is_alive():
-                    self._report(self._pipe.flush())
-            finally:
-                self._lock.release()
-        self._pipe.close()
-        if self.save_on_exit:
-            self._save_on_exit()
+        try:
+            if self._lock.acquire(timeout=5.0):
+                try:  # the frame taken last is mapped, so that the map saved below has it
+                    if not self._worker.is_alive():
+                        self._report(self._pipe.flush())
+                finally:
+                    self._lock.release()
+            self._pipe.close()
+        finally:  # whatever went wrong with the last frame, the map so far is saved
+            if self.save_on_exit:
+                self._save_on_exit()
 
     def _save_on_exit(self) -> None:
         log = exit_logger(self)

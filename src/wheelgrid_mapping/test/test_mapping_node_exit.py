@@ -1,0 +1,128 @@
+"""A mapper stopped while frames are still coming in (Ctrl-C on a live phone stream) saves its
+map on exit all the same.
+
+Ctrl-C shuts the node's context down first; a frame the worker was still registering then
+published its pose into a dead context, ``RCLError`` killed the worker thread, and the same error
+from ``close()``'s last flush skipped the save on exit: the launcher stopped the mapper with exit
+1 and the scan was lost without a line saying so (`wheelgrid launch --iphone` stopped while
+`wheelgrid stream-stray` streamed).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from wheelgrid_common.ros_env import configure_ros_env, spin_node
+
+BAG = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
+
+
+def _bag_frames(n: int) -> list:
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.bagio import BagReader
+
+    clouds, odoms = [], []
+    with BagReader(BAG) as bag:
+        for topic, _, _, raw in bag.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/points":
+                clouds.append(deserialize_message(raw, PointCloud2))
+            else:
+                odoms.append(deserialize_message(raw, Odometry))
+            if len(clouds) >= n and len(odoms) >= n:
+                break
+    return list(zip(clouds[:n], odoms[:n], strict=True))
+
+
+@pytest.mark.ros
+def test_a_mapper_stopped_with_a_frame_in_flight_still_saves_its_map(tmp_path, monkeypatch):
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    import rclpy
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+    from wheelgrid_mapping.pipeline import FrameOutcome
+
+    died: list[BaseException] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: died.append(args.exc_value))
+    configure_ros_env()
+    rclpy.init(
+        args=[
+            "--ros-args",
+            "-p", f"output_dir:={tmp_path}",
+            "-p", "topic:=/exit_mapper/points",
+            "-p", "pose_prior_topic:=/exit_mapper/odometry",
+        ]
+    )  # fmt: skip
+    node = None
+    try:
+        node = MapperNode()
+        for msg, odom in _bag_frames(3):  # the node's own callbacks, no DDS needed
+            node._on_prior(odom)
+            node._on_cloud(msg)
+        deadline = time.monotonic() + 60.0
+        while len(node.mapper.poses_odom) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        mapped = len(node.mapper.poses_odom)
+        assert mapped >= 2, "the worker mapped no frames"
+
+        rclpy.shutdown()  # what Ctrl-C / SIGTERM does first, before close()
+        late = [(9.9, FrameOutcome("used", pose_map=np.eye(4)))]
+        node._report(late)  # a frame registered just now: no RCLError into a dead context
+        # ... and the frame that was in preparation comes out of close()'s last flush
+        monkeypatch.setattr(node._pipe, "flush", lambda: list(late))
+        node.close()
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    on_exit = tmp_path / "on_exit"
+    assert (on_exit / "map.ply").stat().st_size > 1000
+    poses = [ln for ln in (on_exit / "trajectory.tum").read_text().splitlines() if ln[:1] != "#"]
+    assert len(poses) == mapped
+    assert not died, died
+
+
+@pytest.mark.ros
+def test_spin_node_takes_an_error_raised_by_ctrl_c_s_shutdown_as_a_clean_stop():
+    """A callback that ran into the context Ctrl-C had just shut down (rclpy: 'publisher's
+    context is invalid', or its take_message failing) ended a node with a traceback and exit 1."""
+    import rclpy
+    from rclpy.node import Node
+
+    def factory() -> Node:
+        node = Node("spin_exit_test")
+
+        def tick() -> None:
+            rclpy.shutdown()  # Ctrl-C, as rclpy's signal handler does it
+            raise RuntimeError("publisher's context is invalid")
+
+        node.create_timer(0.01, tick)
+        return node
+
+    assert spin_node(factory, args=[]) == 0
+
+
+@pytest.mark.ros
+def test_spin_node_still_raises_a_callback_error_of_a_running_node():
+    from rclpy.node import Node
+
+    def factory() -> Node:
+        node = Node("spin_error_test")
+
+        def tick() -> None:
+            raise RuntimeError("a real bug")
+
+        node.create_timer(0.01, tick)
+        return node
+
+    with pytest.raises(RuntimeError, match="a real bug"):
+        spin_node(factory, args=[])
