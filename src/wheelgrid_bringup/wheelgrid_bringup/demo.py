@@ -23,7 +23,12 @@ from typing import Any
 
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.route_png import draw_route
-from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
+from wheelgrid_bringup.supervisor import (
+    REPLAY_MAX_QUEUE,
+    Supervisor,
+    child_code,
+    default_params_file,
+)
 from wheelgrid_common.bagio import BagError, BagReader
 from wheelgrid_common.fileio import out_folder, read_ply
 from wheelgrid_common.map_io import Grid
@@ -166,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGHUP, on_signal)  # the terminal closed: stop the chain too
     sup = Supervisor(out / "logs", child_env())
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
@@ -272,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
             [
                 sys.executable,
                 "-c",
-                "import sys; from wheelgrid_drive.motor_sim import main; sys.exit(main())",
+                child_code("wheelgrid_drive.motor_sim", "main"),
                 "--link",
                 str(pty_link),
                 "--pose-log",
@@ -378,6 +384,10 @@ def main(argv: list[str] | None = None) -> int:
         summary["error"] = "interrupted"
         code = 130
     finally:
+        # A second Ctrl-C (or SIGTERM) while the chain stops would end this clean-up half way
+        # and leave the nodes still to be stopped running: from here on they only say so.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, lambda _s, _f: print("wheelgrid demo: stopping ...", flush=True))
         fill_partial(summary, monitor)
         if player is not None:
             player.stop()

@@ -101,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    # A closed terminal or a dropped ssh session: Python's default for SIGHUP ended the
+    # launcher at once, skipping the clean-up below, and the nodes (in sessions of their own)
+    # ran on, orphaned. It stops the chain like Ctrl-C.
+    signal.signal(signal.SIGHUP, on_signal)
 
     sup = Supervisor(args.log_dir, child_env())
     ctx = Context()

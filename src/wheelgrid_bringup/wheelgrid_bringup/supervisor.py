@@ -34,10 +34,38 @@ NODES: dict[str, str] = {
 }
 
 
+def die_with_parent(parent: int) -> None:
+    """Called first thing in a supervised child: SIGTERM it when the process that started it
+    dies, however it dies. The children run in sessions of their own (a terminal's Ctrl-C
+    reaches only the supervisor, which stops them in order), so a supervisor killed outright
+    (SIGKILL, the OOM killer) left every node running, the drive node holding the chair's
+    port. SIGTERM is the clean stop every node handles. Linux only; elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # it died before the prctl: nobody would send the signal
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def child_code(module: str, func: str) -> str:
+    """``python -c`` code that runs ``module.func()`` as a supervised child of this process."""
+    return (
+        "import sys; from wheelgrid_bringup.supervisor import die_with_parent; "
+        f"die_with_parent({os.getpid()}); from {module} import {func} as m; sys.exit(m() or 0)"
+    )
+
+
 def node_argv(name: str, params_file: Path | None, overrides: dict[str, object]) -> list[str]:
     """argv that runs node ``name`` with a params file and ``-p`` overrides."""
     module, func = NODES[name].split(":")
-    code = f"import sys; from {module} import {func} as m; sys.exit(m() or 0)"
+    code = child_code(module, func)
     ros_args = ["--ros-args", "-r", f"__node:={name}"]
     if params_file is not None:
         ros_args += ["--params-file", str(params_file)]

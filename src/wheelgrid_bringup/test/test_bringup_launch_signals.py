@@ -1,0 +1,114 @@
+"""`wheelgrid launch` leaves no node behind however it ends.
+
+The nodes run in sessions of their own (so that a terminal's Ctrl-C reaches only the
+launcher, which stops them in order). A launcher ended by SIGHUP (its terminal closed, an ssh
+session dropped) died at once, without its clean-up: mapper, grid, planner and drive ran on,
+orphaned, the drive holding the chair's serial port and feeding its watchdog. A launcher that
+was SIGKILLed (the OOM killer, `kill -9`) left them all the same.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from wheelgrid_bringup.supervisor import default_params_file
+from wheelgrid_common.testing import stop_process
+
+pytestmark = [pytest.mark.ros]
+
+NODES = ("mapper", "grid", "planner")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")  # a zombie no one reaped has stopped
+
+
+def _launch(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int], list[str]]:
+    params = yaml.safe_load(default_params_file().read_text())
+    params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
+    params["grid"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    cmd = [
+        sys.executable,
+        "-c",
+        "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
+        "launch",
+        "--no-drive",
+        "--params",
+        str(tmp_path / "params.yaml"),
+        "--log-dir",
+        str(tmp_path / "logs"),
+    ]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
+    lines: list[str] = []
+    threading.Thread(
+        target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True
+    ).start()
+    pids: dict[str, int] = {}
+    deadline = time.monotonic() + 60.0
+    while len(pids) < len(NODES) and time.monotonic() < deadline and proc.poll() is None:
+        for ln in list(lines):
+            m = re.match(r"launch: started (\w+) \(pid (\d+)", ln)
+            if m:
+                pids[m.group(1)] = int(m.group(2))
+        time.sleep(0.1)
+    assert set(pids) == set(NODES), "".join(lines)
+    # the status line comes once the nodes are running
+    while not any(ln.startswith("[") for ln in lines) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(2.0)  # the nodes past their start-up, rclpy's signal handlers in place
+    return proc, pids, lines
+
+
+def _gone(pids: dict[str, int], timeout: float) -> list[str]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(_alive(p) for p in pids.values()):
+        time.sleep(0.1)
+    return [name for name, pid in pids.items() if _alive(pid)]
+
+
+def _cleanup(pids: dict[str, int]) -> None:
+    for pid in pids.values():
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+def test_a_launcher_whose_terminal_closes_stops_every_node(tmp_path):
+    proc, pids, lines = _launch(tmp_path)
+    try:
+        os.kill(proc.pid, signal.SIGHUP)
+        proc.wait(timeout=60)
+        left = _gone(pids, 10.0)
+        assert not left, f"left running after SIGHUP: {left}\n" + "".join(lines[-10:])
+        assert any(ln.startswith("launch: stopped") for ln in lines), "".join(lines[-10:])
+    finally:
+        stop_process(proc)
+        _cleanup(pids)
+
+
+def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
+    proc, pids, _ = _launch(tmp_path)
+    try:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+        left = _gone(pids, 30.0)
+        assert not left, f"left running after the launcher was killed: {left}"
+    finally:
+        stop_process(proc)
+        _cleanup(pids)
