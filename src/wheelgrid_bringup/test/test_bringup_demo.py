@@ -60,3 +60,43 @@ def test_the_status_line_shows_the_phone_bridge_and_leaves_out_a_drive_not_start
             assert "drive - (0 cmds)" in monitor.status_line()
         finally:
             monitor.close()
+
+
+def test_demo_never_deletes_a_folder_that_is_not_its_own(tmp_path, capsys):
+    """`wheelgrid demo --out DIR` emptied DIR with shutil.rmtree whatever it held: `--out .`
+    in the checkout, `--out ~` or `--out /tmp/s` beside the bag it replays were wiped without a
+    word. Only a folder a demo made (its marker or summary.json) is replaced; anything else is
+    refused with exit 2 before the chain starts, and nothing in it is touched."""
+    from wheelgrid_bringup.demo import DEMO_MARKER, main, prepare_out
+
+    mine = tmp_path / "precious"
+    mine.mkdir()
+    (mine / "thesis.txt").write_text("five years")
+    bag = tmp_path / "no_bag_needed"  # refused before the bag is even opened
+    assert main(["--out", str(mine), "--bag", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert "not a wheelgrid demo output folder" in err and str(mine) in err, err
+    assert (mine / "thesis.txt").read_text() == "five years"
+    assert prepare_out(tmp_path) is not None  # the folder above it: refused too
+    assert (mine / "thesis.txt").exists()
+
+    fresh = tmp_path / "fresh"  # a new folder, or an empty one, is made ready and marked
+    assert prepare_out(fresh) is None
+    assert (fresh / "logs").is_dir() and (fresh / DEMO_MARKER).exists()
+    (fresh / "map.ply").write_text("an earlier run's")
+    assert prepare_out(fresh) is None  # a demo's own folder is replaced, as before
+    assert not (fresh / "map.ply").exists() and (fresh / DEMO_MARKER).exists()
+
+    older = tmp_path / "older_demo"  # an out/ from before the marker: it has summary.json
+    (older / "logs").mkdir(parents=True)
+    (older / "summary.json").write_text("{}")
+    assert prepare_out(older) is None and not (older / "summary.json").exists()
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert prepare_out(empty) is None
+
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    assert "not a folder" in (prepare_out(a_file) or "")
+    assert a_file.read_text() == "x"

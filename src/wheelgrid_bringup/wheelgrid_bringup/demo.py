@@ -84,6 +84,42 @@ def room_cells_in_grid(
     return (int(s[0]), int(s[1])), (int(g[0]), int(g[1])), min(HEADING_ROW_COL, key=gap)
 
 
+# Written into every --out folder a demo makes: only such a folder (or an older demo's, with
+# its summary.json) is emptied by the next run.
+DEMO_MARKER = ".wheelgrid-demo"
+
+
+def out_refusal(out: Path) -> str | None:
+    """Why ``out`` must not be emptied for a demo run, or None. The demo replaces its --out
+    folder, and ``shutil.rmtree`` on whatever was named (``--out .`` in the checkout, ``--out
+    ~``, the simulate folder it replays) deleted it all without a word."""
+    if not out.exists():
+        return None
+    if not out.is_dir():
+        return f"--out {out} exists and is not a folder"
+    if (out / DEMO_MARKER).exists() or (out / "summary.json").is_file():
+        return None
+    if any(out.iterdir()):
+        return (
+            f"--out {out} is not a wheelgrid demo output folder and is not empty; the demo "
+            "replaces its output folder, so name a new or empty one (nothing was deleted)"
+        )
+    return None
+
+
+def prepare_out(out: Path) -> str | None:
+    """Empty a demo's own ``out`` (or make it), with ``logs/`` and the marker; else the reason
+    it is refused, and nothing touched."""
+    why = out_refusal(out)
+    if why:
+        return why
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "logs").mkdir(parents=True)
+    (out / DEMO_MARKER).write_text("wheelgrid demo output; replaced by the next demo run\n")
+    return None
+
+
 def parse_cell(text: str) -> tuple[int, int]:
     r, c = (int(v) for v in text.split(","))
     return r, c
@@ -134,6 +170,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     t_start = time.monotonic()
+    why = out_refusal(args.out.resolve())
+    if why:
+        print(f"wheelgrid demo: {why}", file=sys.stderr)
+        return 2
     root = repo_root()
     sim_dir = args.bag or root / "bags" / "paper_room"
     bag = sim_dir / "scan" if (sim_dir / "scan").is_dir() else sim_dir
@@ -155,9 +195,13 @@ def main(argv: list[str] | None = None) -> int:
     configure_ros_env()
     params = args.params or default_params_file()
     out = args.out.resolve()
-    if out.exists():
-        shutil.rmtree(out)
-    (out / "logs").mkdir(parents=True)
+    try:
+        why = prepare_out(out)
+    except OSError as exc:
+        why = f"cannot prepare --out {out}: {exc}"
+    if why:
+        print(f"wheelgrid demo: {why}", file=sys.stderr)
+        return 2
 
     import rclpy
     from rclpy.context import Context
