@@ -9,7 +9,10 @@ case $- in *u*) _wg_u=1; set +u;; *) _wg_u=0;; esac
 [ "$_wg_u" = 1 ] && set -u
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_LOG_DIR=${ROS_LOG_DIR:-$_wg_root/log/ros}
-export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
+# One domain per checkout, the same in every shell that sources this file: a second terminal
+# (`wheelgrid call`, RViz) must reach the nodes a first one launched. It was the shell's pid,
+# a different domain in every terminal. The tests pick their own (scripts/test.sh).
+export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $(printf '%s' "$_wg_root" | cksum | cut -d' ' -f1) % 100 + 1 ))}
 export RMW_IMPLEMENTATION=${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}
 mkdir -p "$ROS_LOG_DIR"
 unset _wg_root _wg_u

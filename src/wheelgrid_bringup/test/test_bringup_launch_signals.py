@@ -92,6 +92,9 @@ def _cleanup(pids: dict[str, int]) -> None:
 def test_a_launcher_whose_terminal_closes_stops_every_node(tmp_path):
     proc, pids, lines = _launch(tmp_path)
     try:
+        # a second terminal reaches the chain only on its domain: the launcher says which
+        domain = f"launch: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} "
+        assert any(ln.startswith(domain) for ln in lines), "".join(lines[:5])
         os.kill(proc.pid, signal.SIGHUP)
         proc.wait(timeout=60)
         left = _gone(pids, 10.0)

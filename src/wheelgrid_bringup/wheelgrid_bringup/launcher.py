@@ -106,7 +106,14 @@ def main(argv: list[str] | None = None) -> int:
     # ran on, orphaned. It stops the chain like Ctrl-C.
     signal.signal(signal.SIGHUP, on_signal)
 
-    sup = Supervisor(args.log_dir, child_env())
+    env = child_env()
+    # a second terminal (`wheelgrid call`, RViz) reaches these nodes only on this domain
+    print(
+        f"launch: ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')} "
+        f"ROS_AUTOMATIC_DISCOVERY_RANGE={env['ROS_AUTOMATIC_DISCOVERY_RANGE']}",
+        flush=True,
+    )
+    sup = Supervisor(args.log_dir, env)
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     monitor = Monitor(ctx, "wheelgrid_launch")

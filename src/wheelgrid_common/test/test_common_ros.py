@@ -19,6 +19,27 @@ def test_environment_keeps_dds_on_this_machine():
     assert os.environ.get("ROS_DOMAIN_ID")
 
 
+def test_every_shell_of_a_checkout_shares_one_domain_unless_it_sets_its_own():
+    """scripts/env.sh took the shell's pid: `wheelgrid call` in a second terminal was on
+    another domain than the nodes the first launched, and saw no service."""
+    import subprocess
+    from pathlib import Path
+
+    env_sh = Path(__file__).resolve().parents[3] / "scripts" / "env.sh"
+    if not (env_sh.parent.parent / "install" / "setup.sh").exists():
+        pytest.skip("no colcon install space next to scripts/env.sh")
+
+    def domain(preset: str) -> str:
+        cmd = f"{preset}; . '{env_sh}' && echo $ROS_DOMAIN_ID"
+        return subprocess.run(
+            ["bash", "-c", cmd], capture_output=True, text=True, check=True
+        ).stdout.split()[-1]
+
+    first, second = domain("unset ROS_DOMAIN_ID"), domain("unset ROS_DOMAIN_ID")
+    assert first == second and 1 <= int(first) <= 100
+    assert domain("export ROS_DOMAIN_ID=42") == "42"
+
+
 def test_map_qos_delivers_to_a_late_subscriber():
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
