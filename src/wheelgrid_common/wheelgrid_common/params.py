@@ -157,6 +157,29 @@ def load_yaml(cls: type[T], path: str | Path | None, section: str | None = None)
     return from_mapping(cls, data)
 
 
+def check_no_undeclared(node: Any) -> None:
+    """``ValueError`` naming every parameter given to ``node`` (a params file's section, ``-p``)
+    that it never declared. ROS 2 ignores those silently, so ``safe_hieght: 1.4`` ran with the
+    default safe height and exit 0. Called once a node has declared all of its parameters. A
+    ``/**`` section reaches every node: it may hold only what each of them declares."""
+    import difflib
+
+    given = getattr(node, "_parameter_overrides", None) or {}
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if not unknown:
+        return
+    declared = list(getattr(node, "_parameters", {}))
+    parts = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, declared, n=1)
+        parts.append(f"{name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    raise ValueError(
+        f"unknown parameter(s) {', '.join(parts)} for node {node.get_name()!r}: a misspelt "
+        "setting would silently keep its default (`ros2 param list` on a full ROS install, or "
+        "the node's section of src/wheelgrid_bringup/config/wheelgrid.yaml, lists them)"
+    )
+
+
 def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = True) -> T:
     """Declare every field of ``cfg`` as a described ROS parameter and return the values read.
 

@@ -36,7 +36,7 @@ from rclpy.node import Node
 from std_msgs.msg import Bool, String
 
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
-from wheelgrid_common.params import check_finite, declare_dataclass, field
+from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
 from wheelgrid_common.ros_env import exit_logger, spin_node
 from wheelgrid_drive import actions
@@ -192,6 +192,7 @@ class DriveNode(Node):
         self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
 
         try:
+            check_no_undeclared(self)
             check_config(c)
             self.link = MotorLink(
                 c.port,

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.params import field
+from wheelgrid_common.params import check_no_undeclared, field
 from wheelgrid_mapping.depth import (
     StampSync,
     check_intrinsics,
@@ -86,6 +86,7 @@ def _make_node() -> Any:
             super().__init__("depth_to_cloud")
             try:
                 self.cfg = declare_dataclass(self, DepthToCloudConfig())
+                check_no_undeclared(self)
                 check_config(self.cfg)
                 _check_topics(self, self.cfg)
             except ValueError as exc:  # as the other nodes: one FATAL line, exit 2

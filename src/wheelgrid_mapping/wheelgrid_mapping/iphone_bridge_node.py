@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.params import field
+from wheelgrid_common.params import check_no_undeclared, field
 from wheelgrid_mapping.bridge_protocol import (
     DEPTH_U16_MM,
     MAX_FRAME_BYTES,
@@ -219,6 +219,7 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
             log = self.get_logger()
             try:
                 self.cfg = declare_dataclass(self, cfg_override or BridgeConfig())
+                check_no_undeclared(self)
                 check_config(self.cfg)
                 token = self.cfg.token or os.environ.get(TOKEN_ENV, "")
                 server = BridgeServer(

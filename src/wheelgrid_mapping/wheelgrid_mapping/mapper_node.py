@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.fileio import matrix_to_quat, pose_or_nan
-from wheelgrid_common.params import declare_dataclass, field
+from wheelgrid_common.params import check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.pointcloud2 import (
     CloudError,
     has_field,
@@ -123,6 +123,7 @@ class MapperNode(Node):  # type: ignore[misc]
             reg = declare_dataclass(self, RegistrationConfig(), "registration.")
             cfg = declare_dataclass(self, MapperConfig(), "mapper.")
             self.loop_cfg = declare_dataclass(self, LoopClosureConfig(), "loop_closure.")
+            check_no_undeclared(self)
             self.mapper = Mapper(pre, reg, cfg, keep_frames=self.loop_cfg.enabled)
         except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
             self.get_logger().fatal(f"invalid parameters: {exc}")

@@ -169,3 +169,20 @@ def test_bad_parameters_stop_the_grid_node_with_exit_2(param):
     proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "FATAL" in proc.stderr + proc.stdout and "Traceback" not in proc.stderr
+
+
+def test_a_misspelt_parameter_in_a_params_file_stops_the_node_naming_it(tmp_path):
+    """ROS 2 ignores a parameter no node declared: `safe_hieght: 1.4` ran with the default
+    safe height, exit 0. Every node refuses what it does not declare, with a suggestion."""
+    from wheelgrid_common.ros_env import child_env
+
+    params = tmp_path / "p.yaml"
+    params.write_text("grid:\n  ros__parameters:\n    safe_hieght: 1.4\n")
+    args = python_module(
+        "wheelgrid_nav.grid_node", "--ros-args", "-r", "__node:=grid", "--params-file", str(params)
+    )
+    proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    out = proc.stderr + proc.stdout
+    assert proc.returncode == 2, out
+    assert "FATAL" in out and "'safe_hieght' (did you mean 'safe_height'?)" in out, out
+    assert "Traceback" not in out

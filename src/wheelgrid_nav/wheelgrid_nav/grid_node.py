@@ -54,6 +54,7 @@ class GridNode(Node):
         super().__init__("grid", **kwargs)
         try:  # a wrongly typed value comes out of declare_dataclass as ValueError too
             self.cfg = params.declare_dataclass(self, GridNodeConfig(), read_only=False)
+            params.check_no_undeclared(self)
             self.grid_cfg = grid_config(self.cfg)
             self.grid_cfg.validate()
             check_rate(self.cfg.max_rate_hz)

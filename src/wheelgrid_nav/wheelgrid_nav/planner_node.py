@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
-from wheelgrid_common.params import declare_dataclass
+from wheelgrid_common.params import check_no_undeclared, declare_dataclass
 from wheelgrid_common.params import field as pfield
 from wheelgrid_common.ros_env import spin_node
 from wheelgrid_nav.actions import cells_to_moves
@@ -144,6 +144,7 @@ def _make_node_class() -> type:
             try:  # a wrongly typed value comes out of declare_dataclass as ValueError too
                 self.node_cfg = declare_dataclass(self, PlannerNodeConfig())
                 self.cfg = declare_dataclass(self, PlannerConfig())
+                check_no_undeclared(self)
                 check_config(self.cfg)
             except ValueError as exc:  # PlanInputError included
                 self.get_logger().fatal(f"bad planner parameters: {exc}")
