@@ -2,16 +2,25 @@
 [iphone:=true] [drive:=false] [motor_port:=/dev/ttyUSB0]
 
 For machines with a full ROS 2 Jazzy install: the same nodes and the same parameter file as
-`wheelgrid launch` (which needs neither launch nor ros2). A bag is replayed with `ros2 bag play`.
+`wheelgrid launch` (which needs neither launch nor ros2). A rosbag2 bag is replayed with
+`ros2 bag play`, a few seconds after the nodes start so that their subscriptions match first
+(a frame sent before is lost, and a later one would set the map frame). ``motor_port`` given
+overrides the parameter file's drive ``port``; left out, the file's port stands.
+``iphone:=true`` and ``bag:=`` are refused together, as `wheelgrid launch` refuses them.
 """
 
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, ExecuteProcess
-from launch.conditions import IfCondition, LaunchConfigurationEquals, LaunchConfigurationNotEquals
-from launch.substitutions import LaunchConfiguration
+from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, TimerAction
+from launch.conditions import IfCondition
+from launch.substitutions import (
+    AndSubstitution,
+    EqualsSubstitution,
+    LaunchConfiguration,
+    NotEqualsSubstitution,
+)
 from launch_ros.actions import Node
 
 # (package, executable, node name) -- keep in step with wheelgrid_bringup.supervisor.NODES.
@@ -22,6 +31,22 @@ CHAIN = [
 # A replay maps every frame, as `wheelgrid launch --bag` and `wheelgrid map` do; live, the
 # mapper keeps only the newest frame (max_queue 1 in the parameter file).
 REPLAY_MAPPER = {"max_queue": 1000}
+# seconds between the nodes' start and the replay's first message
+REPLAY_DELAY_S = 5.0
+
+
+def _check_arguments(context, *_args, **_kwargs):
+    """Refuse what would start a chain other than the one asked for, before any node starts."""
+    bag = context.launch_configurations.get("bag", "")
+    iphone = context.launch_configurations.get("iphone", "false").lower() in ("true", "1")
+    if bag and iphone:
+        raise RuntimeError("iphone:=true and bag:= are exclusive: one source of frames")
+    if bag.endswith(".bag"):
+        raise RuntimeError(
+            f"bag:={bag} is a ROS 1 bag, which ros2 bag play cannot read: "
+            "`wheelgrid launch --bag` or `wheelgrid map` read it"
+        )
+    return []
 
 
 def generate_launch_description():
@@ -35,11 +60,14 @@ def generate_launch_description():
         DeclareLaunchArgument("rate", default_value="1.0"),
         DeclareLaunchArgument("iphone", default_value="false"),
         DeclareLaunchArgument("drive", default_value="true"),
-        DeclareLaunchArgument("motor_port", default_value="/dev/ttyUSB0"),
+        DeclareLaunchArgument("motor_port", default_value=""),
+        OpaqueFunction(function=_check_arguments),
     ]
+    bag = LaunchConfiguration("bag")
+    no_bag, with_bag = EqualsSubstitution(bag, ""), NotEqualsSubstitution(bag, "")
     for extra, condition in (
-        ([], LaunchConfigurationEquals("bag", "")),
-        ([REPLAY_MAPPER], LaunchConfigurationNotEquals("bag", "")),
+        ([], IfCondition(no_bag)),
+        ([REPLAY_MAPPER], IfCondition(with_bag)),
     ):
         actions.append(
             Node(
@@ -61,16 +89,21 @@ def generate_launch_description():
                 output="screen",
             )
         )
-    actions.append(
-        Node(
-            package="wheelgrid_drive",
-            executable="drive",
-            name="drive",
-            parameters=[params, {"port": LaunchConfiguration("motor_port")}],
-            output="screen",
-            condition=IfCondition(LaunchConfiguration("drive")),
+    port = LaunchConfiguration("motor_port")
+    for extra, given in (
+        ([], EqualsSubstitution(port, "")),  # the parameter file's port
+        ([{"port": port}], NotEqualsSubstitution(port, "")),
+    ):
+        actions.append(
+            Node(
+                package="wheelgrid_drive",
+                executable="drive",
+                name="drive",
+                parameters=[params, *extra],
+                output="screen",
+                condition=IfCondition(AndSubstitution(LaunchConfiguration("drive"), given)),
+            )
         )
-    )
     actions.append(
         Node(
             package="wheelgrid_mapping",
@@ -82,17 +115,15 @@ def generate_launch_description():
         )
     )
     actions.append(
-        ExecuteProcess(
-            cmd=[
-                "ros2",
-                "bag",
-                "play",
-                LaunchConfiguration("bag"),
-                "--rate",
-                LaunchConfiguration("rate"),
+        TimerAction(
+            period=REPLAY_DELAY_S,
+            actions=[
+                ExecuteProcess(
+                    cmd=["ros2", "bag", "play", bag, "--rate", LaunchConfiguration("rate")],
+                    output="screen",
+                )
             ],
-            output="screen",
-            condition=LaunchConfigurationNotEquals("bag", ""),
+            condition=IfCondition(with_bag),
         )
     )
     return LaunchDescription(actions)

@@ -87,6 +87,44 @@ def test_launch_file_starts_the_same_nodes_as_the_launcher():
     assert replay == {"max_queue": REPLAY_MAX_QUEUE}
 
 
+def test_launch_file_refuses_two_sources_and_leaves_the_files_port_alone():
+    """Read without `launch` (not installed here): iphone:=true with bag:= started both; a
+    ROS 1 bag went to `ros2 bag play`, which cannot read it; motor_port's default
+    /dev/ttyUSB0 overrode the parameter file's drive port; the replay started with the nodes,
+    before their subscriptions matched; LaunchConfigurationEquals is deprecated on Jazzy."""
+    import pytest
+
+    text = (PKG / "launch" / "wheelgrid.launch.py").read_text()
+    tree = ast.parse(text)
+    assert "LaunchConfigurationEquals" not in text and "LaunchConfigurationNotEquals" not in text
+    defaults = {
+        n.args[0].value: getattr(n.keywords[0].value, "value", None)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "DeclareLaunchArgument"
+    }
+    assert defaults["motor_port"] == ""
+    timer = next(
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "TimerAction"
+    )
+    assert "ros2" in ast.unparse(timer) and "bag" in ast.unparse(timer)
+    check = next(
+        n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "_check_arguments"
+    )
+    scope: dict = {}
+    exec(compile(ast.Module([check], []), "launch", "exec"), scope)
+
+    def run(**conf):
+        return scope["_check_arguments"](type("Ctx", (), {"launch_configurations": conf})())
+
+    assert run(bag="/b", iphone="false") == [] and run(bag="", iphone="true") == []
+    with pytest.raises(RuntimeError, match="exclusive"):
+        run(bag="/b", iphone="true")
+    with pytest.raises(RuntimeError, match="ROS 1 bag"):
+        run(bag="/x/scan.bag", iphone="false")
+
+
 def test_node_argv_passes_params_file_and_overrides():
     argv = node_argv("grid", Path("/p.yaml"), {"safe_height": 1.4, "thin_obstacle_guard": False})
     assert argv[argv.index("--params-file") + 1] == "/p.yaml"
