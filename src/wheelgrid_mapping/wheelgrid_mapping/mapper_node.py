@@ -551,6 +551,12 @@ class MapperNode(Node):  # type: ignore[misc]
             self._loop_note = ""
             self._loop_cancel = False
         self._map_dirty = False
+        # The map topic is transient-local: left alone it kept the cleared map for every
+        # subscriber that starts later (a restarted grid node made a grid of it, placed in a
+        # map frame the next frames no longer share). An empty map cloud replaces it.
+        empty = to_pointcloud2(np.zeros((0, 3), dtype=np.float32), self.map_frame)
+        empty.header.stamp = self.get_clock().now().to_msg()
+        self.map_pub.publish(empty)
         response.success = True
         response.message = "map, trajectory and counters cleared"
         return response

@@ -1,0 +1,97 @@
+"""~/reset clears the latched map cloud too: /wheelgrid/map_cloud is transient-local, and a
+subscriber that started after a reset (a restarted grid node, RViz) got the cleared map, in a
+map frame the frames after the reset no longer share."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from wheelgrid_common.testing import (
+    call_service,
+    managed_process,
+    python_module,
+    rclpy_context,
+    spin_until,
+)
+
+pytestmark = pytest.mark.ros
+
+BAG = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
+
+
+def _bag_pairs(n: int) -> list:
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.bagio import BagReader
+
+    clouds, odoms = [], []
+    with BagReader(BAG) as bag:
+        for topic, _, _, raw in bag.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/points":
+                clouds.append(deserialize_message(raw, PointCloud2))
+            else:
+                odoms.append(deserialize_message(raw, Odometry))
+            if len(clouds) >= n and len(odoms) >= n:
+                break
+    return list(zip(clouds[:n], odoms[:n], strict=True))
+
+
+def test_reset_replaces_the_latched_map_cloud(tmp_path: Path) -> None:
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_common.qos import MAP_QOS, SENSOR_QOS
+
+    args = python_module(
+        "wheelgrid_mapping.mapper_node",
+        "--ros-args",
+        "-p", "topic:=/reset_test/points",
+        "-p", "pose_prior_topic:=/reset_test/odometry",
+        "-p", f"output_dir:={tmp_path}",
+        "-p", "publish_period:=0.5",
+        "-p", "save_on_exit:=false",
+    )  # fmt: skip
+    pairs = _bag_pairs(6)
+    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
+        node = rclpy.create_node("reset_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        try:
+            pub = node.create_publisher(PointCloud2, "/reset_test/points", SENSOR_QOS)
+            odom_pub = node.create_publisher(
+                pairs[0][1].__class__, "/reset_test/odometry", SENSOR_QOS
+            )
+            maps: list = []
+            node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", maps.append, MAP_QOS)
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 20.0), "node not up"
+            assert spin_until(ex, lambda: odom_pub.get_subscription_count() > 0, 20.0)
+            spin_until(ex, lambda: False, 1.0)
+            for cloud, odom in pairs:
+                pub.publish(cloud)
+                odom_pub.publish(odom)
+                spin_until(ex, lambda: False, 0.4)
+            assert spin_until(ex, lambda: any(m.width > 0 for m in maps), 60.0), "no map"
+
+            reset = node.create_client(Trigger, "/mapper/reset")
+            assert reset.wait_for_service(timeout_sec=10.0)
+            done = call_service(ex, reset, Trigger.Request)
+            assert done is not None and done.success, done
+            assert spin_until(ex, lambda: maps[-1].width == 0, 10.0), "no empty map after reset"
+
+            late: list = []  # a subscriber that starts after the reset
+            node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", late.append, MAP_QOS)
+            assert spin_until(ex, lambda: bool(late), 10.0), "nothing latched"
+            assert late[-1].width * late[-1].height == 0, "the cleared map is still latched"
+            assert late[-1].header.frame_id == "map"
+        finally:
+            ex.shutdown()
+            node.destroy_node()
