@@ -1,6 +1,8 @@
-"""~/reset clears the latched map cloud too: /wheelgrid/map_cloud is transient-local, and a
-subscriber that started after a reset (a restarted grid node, RViz) got the cleared map, in a
-map frame the frames after the reset no longer share."""
+"""The mapper node's outputs stay consistent with its input as a stream changes: ~/reset clears
+the latched map cloud too (/wheelgrid/map_cloud is transient-local, and a subscriber that
+started after a reset, a restarted grid node or RViz, got the cleared map, in a map frame the
+frames after the reset no longer share), and each pose on /wheelgrid/odometry names the frame
+of the cloud it is the pose of, where the input's frame_id changes."""
 
 from __future__ import annotations
 
@@ -92,6 +94,69 @@ def test_reset_replaces_the_latched_map_cloud(tmp_path: Path) -> None:
             assert spin_until(ex, lambda: bool(late), 10.0), "nothing latched"
             assert late[-1].width * late[-1].height == 0, "the cleared map is still latched"
             assert late[-1].header.frame_id == "map"
+        finally:
+            ex.shutdown()
+            node.destroy_node()
+
+
+def _sec(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
+    """Frames are filtered one ahead: where frames queue, the pose of the last cloud before a
+    frame_id change was published when the next cloud was taken, under that next cloud's
+    frame_id (a map -> sensor transform of one frame labelled as another)."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.qos import SENSOR_QOS
+
+    args = python_module(
+        "wheelgrid_mapping.mapper_node",
+        "--ros-args",
+        "-p", "topic:=/frames_test/points",
+        "-p", "pose_prior_topic:=/frames_test/odometry",
+        "-p", f"output_dir:={tmp_path}",
+        "-p", "max_queue:=100",
+        "-p", "save_on_exit:=false",
+    )  # fmt: skip
+    pairs = _bag_pairs(8)
+    renamed = "iphone_depth_optical_frame_2"  # the same camera, its driver restarted
+    for cloud, odom in pairs[4:]:
+        cloud.header.frame_id = renamed
+        odom.child_frame_id = renamed
+    sent = {_sec(c.header.stamp): c.header.frame_id for c, _ in pairs}
+    with managed_process(args, env=dict(os.environ)), rclpy_context() as ctx:
+        node = rclpy.create_node("frames_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        try:
+            pub = node.create_publisher(PointCloud2, "/frames_test/points", SENSOR_QOS)
+            odom_pub = node.create_publisher(Odometry, "/frames_test/odometry", SENSOR_QOS)
+            poses: list = []
+            node.create_subscription(Odometry, "/wheelgrid/odometry", poses.append, SENSOR_QOS)
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 20.0), "node not up"
+            assert spin_until(ex, lambda: odom_pub.get_subscription_count() > 0, 20.0)
+            spin_until(ex, lambda: False, 1.0)
+            for cloud, odom in pairs:  # faster than they are mapped: frames wait in the queue
+                odom_pub.publish(odom)
+                pub.publish(cloud)
+                spin_until(ex, lambda: False, 0.05)
+
+            def both_frames() -> bool:
+                return {p.child_frame_id for p in poses} >= {pairs[0][0].header.frame_id, renamed}
+
+            assert spin_until(ex, both_frames, 30.0), [p.child_frame_id for p in poses]
+            spin_until(ex, lambda: False, 2.0)
+            for p in poses:
+                stamp = min(sent, key=lambda s: abs(s - _sec(p.header.stamp)))
+                assert abs(stamp - _sec(p.header.stamp)) < 1e-6
+                assert p.child_frame_id == sent[stamp], (stamp, p.child_frame_id, sent[stamp])
         finally:
             ex.shutdown()
             node.destroy_node()

@@ -155,6 +155,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self._loop_note = ""
         self._loop_cancel = False
         self._sensor_frame = DEFAULT_FRAME_ID
+        # each frame's own frame_id until its outcome is reported: frames are filtered one
+        # ahead, so the frame just taken may not be the one whose pose comes out next
+        self._frame_ids: dict[float, str] = {}
 
         self.map_pub = self.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
         self.odom_pub = self.create_publisher(Odometry, "/wheelgrid/odometry", SENSOR_QOS)
@@ -321,6 +324,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     self.counts["skipped_busy"] += 1
                     continue
                 # this frame goes to the second process; the one before it to the map
+                self._frame_ids[stamp] = frame_id or self._sensor_frame
                 done = self._pipe.push(pts, stamp, frame_id, conf, prior)
             self._report(done)
 
@@ -328,6 +332,7 @@ class MapperNode(Node):  # type: ignore[misc]
         """Logs, the pose and the map's state for frames just added (never raises: a bad frame
         must never kill the mapper)."""
         for stamp, out in done:
+            frame_id = self._frame_ids.pop(stamp, self._sensor_frame)
             if out.status == "error":
                 self.get_logger().error(f"frame at {stamp:.3f} s failed: {out.reason}")
             elif out.status == "failed":
@@ -342,7 +347,7 @@ class MapperNode(Node):  # type: ignore[misc]
             if out.status == "used":
                 self._map_dirty = True
                 if out.pose_map is not None:
-                    self._publish_pose(out.pose_map, stamp)
+                    self._publish_pose(out.pose_map, stamp, frame_id)
                 self._bound_kept_frames()
 
     def _bound_kept_frames(self) -> None:
@@ -403,14 +408,14 @@ class MapperNode(Node):  # type: ignore[misc]
             return False  # shut down between the check and the publish
         return True
 
-    def _publish_pose(self, T: np.ndarray, stamp: float) -> None:
+    def _publish_pose(self, T: np.ndarray, stamp: float, frame_id: str) -> None:
         from nav_msgs.msg import Odometry
 
         msg = Odometry()
         msg.header.frame_id = self.map_frame
         msg.header.stamp.sec = int(stamp)
         msg.header.stamp.nanosec = round((stamp - int(stamp)) * 1e9) % 1_000_000_000
-        msg.child_frame_id = self._sensor_frame
+        msg.child_frame_id = frame_id
         qx, qy, qz, qw = matrix_to_quat(T[:3, :3])
         msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (
             float(v) for v in T[:3, 3]
@@ -543,6 +548,7 @@ class MapperNode(Node):  # type: ignore[misc]
             self._queue.clear()
             self._generation += 1
             self._pipe.discard()  # the frame in preparation belonged to the old map
+            self._frame_ids.clear()
             self.mapper.reset()  # kept frames go too; keep them again if max_kept_frames stopped it
             self.mapper.keep_frames = self.loop_cfg.enabled
             for key in self.counts:  # "counters cleared" means the node's own too
