@@ -57,7 +57,15 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # rclpy's RCLError: a --params-file that does not parse, etc.
+        # one line and exit 2, as a bad parameter value: it was rclpy's traceback, exit 1
+        import sys
+
+        reason = " ".join(part.split(", at /")[0] for part in str(exc).splitlines()[:1])
+        print(f"[FATAL] cannot start: {reason}", file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:

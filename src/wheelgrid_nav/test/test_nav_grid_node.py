@@ -186,3 +186,16 @@ def test_a_misspelt_parameter_in_a_params_file_stops_the_node_naming_it(tmp_path
     assert proc.returncode == 2, out
     assert "FATAL" in out and "'safe_hieght' (did you mean 'safe_height'?)" in out, out
     assert "Traceback" not in out
+
+
+def test_a_params_file_that_does_not_parse_stops_the_node_with_exit_2(tmp_path):
+    """rclpy's own traceback and exit 1, which a launcher reports as a node that failed."""
+    from wheelgrid_common.ros_env import child_env
+
+    params = tmp_path / "p.yaml"
+    params.write_text("grid:\n  ros__parameters:\n    safe_height: [1.5\n")
+    args = python_module("wheelgrid_nav.grid_node", "--ros-args", "--params-file", str(params))
+    proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    out = proc.stderr + proc.stdout
+    assert proc.returncode == 2, out
+    assert "[FATAL] cannot start" in out and "Traceback" not in out, out
