@@ -442,3 +442,18 @@ def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
         assert len([ln for ln in poses if ln and not ln.startswith("#")]) == used
     finally:
         shutil.rmtree(fallback, ignore_errors=True)
+
+
+def test_a_frame_without_a_prior_says_how_far_the_nearest_pose_is():
+    """A pose topic on another clock (stamps 50 s off) logged only "no pose ... near a frame",
+    as if the poses were merely late."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    node = SimpleNamespace(prior_topic="/iphone/odometry", _priors=deque())
+    assert "none received yet" in MapperNode._no_prior_note(node, 10.0)
+    node._priors.extend([(60.0, None), (60.1, None)])
+    note = MapperNode._no_prior_note(node, 10.0)
+    assert "the nearest is +50.000 s from the frame's stamp" in note, note

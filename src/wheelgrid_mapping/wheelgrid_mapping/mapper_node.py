@@ -270,6 +270,18 @@ class MapperNode(Node):  # type: ignore[misc]
         T = pose_or_nan(p.position, p.orientation)  # a NaN pose is refused and counted later
         self._priors.append((_stamp_seconds(msg.header.stamp), T))
 
+    def _no_prior_note(self, stamp: float) -> str:
+        """Why a frame has no prior, with how far the nearest pose's stamp is: a pose topic on
+        another clock (stamps 50 s apart) read like one that was merely late."""
+        note = f"no pose on {self.prior_topic} within 0.1 s of a frame"
+        if not self._priors:
+            return note + " (none received yet); frames register without a prior"
+        gap = min((s - stamp for s, _ in list(self._priors)), key=abs)
+        return (
+            f"{note}: the nearest is {gap:+.3f} s from the frame's stamp (a pose topic on "
+            "another clock?); frames register without a prior"
+        )
+
     def _prior_for(self, stamp: float) -> np.ndarray | None:
         if not self._priors:
             return None
@@ -318,7 +330,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     time.sleep(0.01)
                     prior = self._prior_for(stamp)
                 if prior is None:
-                    self._log_once("noprior", f"no pose on {self.prior_topic} near a frame")
+                    self._log_once("noprior", self._no_prior_note(stamp))
             with self._lock:
                 if generation != self._generation:  # ~/reset came while it was in hand
                     self.counts["skipped_busy"] += 1
