@@ -457,3 +457,27 @@ def test_a_frame_without_a_prior_says_how_far_the_nearest_pose_is():
     node._priors.extend([(60.0, None), (60.1, None)])
     note = MapperNode._no_prior_note(node, 10.0)
     assert "the nearest is +50.000 s from the frame's stamp" in note, note
+
+
+def test_kept_frames_are_not_released_under_a_close_loops_already_answered():
+    """The worker set loop closure "off" past max_kept_frames without the service's lock: a
+    ~/close_loops answered "closing loops" just before was then lost."""
+    import threading
+    from types import SimpleNamespace
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    released = []
+    mapper = SimpleNamespace(
+        keep_frames=True, poses_odom=[0] * 5, release_frames=lambda: released.append(1)
+    )
+    node = SimpleNamespace(
+        mapper=mapper, max_kept_frames=3, _slot_lock=threading.Condition(),
+        _lock=threading.RLock(), _loop_state="requested", _loop_note="",
+        get_logger=lambda: SimpleNamespace(warning=lambda _m: None),
+    )  # fmt: skip
+    MapperNode._bound_kept_frames(node)
+    assert node._loop_state == "requested" and not released
+    node._loop_state = "ready"
+    MapperNode._bound_kept_frames(node)
+    assert node._loop_state == "off" and released == [1]

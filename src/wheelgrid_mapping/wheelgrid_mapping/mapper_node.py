@@ -136,7 +136,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self.publish_period = node_cfg.publish_period
         self.max_queue = node_cfg.max_queue
         self.max_kept_frames = node_cfg.max_kept_frames
-        self._lock = threading.Lock()  # guards self.mapper and self._pipe
+        # guards self.mapper and self._pipe; re-entrant: close() holds it for the last frame,
+        # whose report may release the kept frames under it
+        self._lock = threading.RLock()
         # each frame filtered in a second process while the one before registers (same map)
         self._pipe = FramePipeline(self.mapper, cfg.prepare_ahead)
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
@@ -364,10 +366,15 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _bound_kept_frames(self) -> None:
         if self.mapper.keep_frames and len(self.mapper.poses_odom) > self.max_kept_frames:
+            with self._slot_lock:
+                # a ~/close_loops answered "closing" needs the kept frames: they stay until it
+                # ran (set "off" under it, such a request was lost after its "success")
+                if self._loop_state in ("requested", "running"):
+                    return
+                self._loop_state = "off"
+                self._loop_note = f"frames released after {self.max_kept_frames} (max_kept_frames)"
             with self._lock:
                 self.mapper.release_frames()
-            self._loop_state = "off"
-            self._loop_note = f"frames released after {self.max_kept_frames} (max_kept_frames)"
             self.get_logger().warning(
                 f"loop closure OFF until ~/reset: more than max_kept_frames "
                 f"({self.max_kept_frames}) mapped, their kept points released; the map goes on "
