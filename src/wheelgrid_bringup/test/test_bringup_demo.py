@@ -100,3 +100,22 @@ def test_demo_never_deletes_a_folder_that_is_not_its_own(tmp_path, capsys):
     a_file.write_text("x")
     assert "not a folder" in (prepare_out(a_file) or "")
     assert a_file.read_text() == "x"
+
+
+def test_the_summary_names_the_out_folder_given_and_a_map_saved_on_exit(tmp_path, capsys):
+    """It printed out/map.ply, out/grid.png ... whatever --out was, and "map not saved" after
+    an early stop although the mapper had saved its map in on_exit/."""
+    from wheelgrid_bringup.demo import print_summary
+    from wheelgrid_common.fileio import write_ply
+
+    out = tmp_path / "run1"
+    (out / "on_exit").mkdir(parents=True)
+    write_ply(out / "on_exit" / "map.ply", np.zeros((7, 3)))
+    summary = {"map_points_saved": None, "map_saved_on_exit": str(out / "on_exit" / "map.ply"),
+               "map_points_saved_on_exit": 7, "error": "interrupted"}  # fmt: skip
+    print_summary(summary, out, 130)
+    text = capsys.readouterr().out
+    assert "the mapper saved 7 points on exit in " + str(out / "on_exit" / "map.ply") in text
+    assert "out/" not in text.replace(str(out), "") and f"{out / 'grid.png'}" in text, text
+    print_summary({"map_points_saved": 1234}, out, 0)
+    assert f"1,234 points in {out / 'map.ply'}" in capsys.readouterr().out

@@ -439,6 +439,11 @@ def main(argv: list[str] | None = None) -> int:
         monitor.close()
         if ctx.ok():
             rclpy.shutdown(context=ctx)
+    on_exit = out / "on_exit" / "map.ply"
+    if summary.get("map_points_saved") is None and on_exit.is_file():
+        # the run was cut short before the demo saved, but the mapper saved on its way out
+        summary["map_saved_on_exit"] = str(on_exit)
+        summary["map_points_saved_on_exit"] = saved_points(on_exit)
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     print_summary(summary, out, code)
     return code
@@ -508,12 +513,26 @@ def saved_points(path: Path) -> int | None:
         return None
 
 
-def map_points_line(s: dict[str, Any]) -> str:
+def shown(out: Path, name: str) -> str:
+    """``out/name`` as a user would type it from here (it printed "out/" whatever --out was)."""
+    path = out / name
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)
+
+
+def map_points_line(s: dict[str, Any], out: Path) -> str:
     published = f"{s.get('map_points_published', 0):,} published"
     saved = s.get("map_points_saved")
     if saved is None:
+        on_exit = s.get("map_saved_on_exit")
+        if on_exit:  # the demo did not save, the mapper did as it stopped
+            n = s.get("map_points_saved_on_exit")
+            count = f"{n:,} points" if isinstance(n, int) else "a map"
+            return f"not saved by the demo; the mapper saved {count} on exit in {on_exit}"
         return f"not saved; {published}"
-    return f"{saved:,} points in out/map.ply ({published}, coarser)"
+    return f"{saved:,} points in {shown(out, 'map.ply')} ({published}, coarser)"
 
 
 def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
@@ -527,7 +546,7 @@ def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
         + (f" ({s['error']})" if s.get("error") else ""),
         f"  frames    {s.get('frames', '?')} replayed; mapper used {m.get('frames_used', '?')}, "
         f"failed {m.get('frames_failed', '?')}",
-        f"  map       {map_points_line(s)}; "
+        f"  map       {map_points_line(s, out)}; "
         + (
             f"loops closed: {m.get('loop_closure_note')}"
             if m.get("loop_closure") == "closed"
@@ -535,12 +554,12 @@ def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
         ),
         f"  grid      {g.get('rows', '?')} x {g.get('cols', '?')} cells of "
         f"{g.get('cell_m', '?')} m: {g.get('free', '?')} free, {g.get('occupied', '?')} occupied, "
-        f"{g.get('unknown', '?')} unknown (out/grid.png)",
+        f"{g.get('unknown', '?')} unknown ({shown(out, 'grid.png')})",
         f"  route     {len(s.get('route_cells', [])) - 1 if s.get('route_cells') else '?'} moves "
-        f"{s.get('start_cell')} -> {s.get('goal_cell')} (out/route.png)",
+        f"{s.get('start_cell')} -> {s.get('goal_cell')} ({shown(out, 'route.png')})",
         "  commands  "
         + ", ".join(str(c.get("action")) for c in s.get("commands", []))
-        + " (out/commands.csv)",
+        + f" ({shown(out, 'commands.csv')})",
         f"  chair     reached goal: {s.get('reached_goal')}; entered non-free cells: "
         f"{s.get('entered_non_free', '?')}",
         f"  time      mapping {secs.get('mapping', '?')} s, loop closure "
