@@ -19,7 +19,39 @@ def test_call_without_such_a_service_says_so_and_exits_2() -> None:
         env=child_env(), capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 2, proc.stdout + proc.stderr
-    assert "no service /nobody/close_loops" in proc.stdout and "Traceback" not in proc.stderr
+    assert "no service /nobody/close_loops" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.ros
+def test_a_service_of_another_type_is_named_as_such() -> None:
+    """A node's parameter service (or any non-Trigger one) was reported as "no service"."""
+    import threading
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_srvs.srv import SetBool
+
+    from wheelgrid_common.testing import rclpy_context
+
+    with rclpy_context() as ctx:
+        node = Node("wg_call_other_type", context=ctx)
+        node.create_service(SetBool, "/wg_test/set_flag", lambda _q, r: r)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        spinner = threading.Thread(target=ex.spin, daemon=True)
+        spinner.start()
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-m", "wheelgrid_bringup.cli", "call", "/wg_test/set_flag",
+                 "--timeout", "3"],
+                env=child_env(), capture_output=True, text=True, timeout=60,
+            )  # fmt: skip
+        finally:
+            ex.shutdown()
+            spinner.join(timeout=5.0)
+            node.destroy_node()
+    assert proc.returncode == 2 and proc.stdout == "", proc.stdout + proc.stderr
+    assert "is a std_srvs/srv/SetBool service, not std_srvs/srv/Trigger" in proc.stderr
 
 
 @pytest.mark.parametrize("name", ["", "1abc", "bad//name", "bad name!"])

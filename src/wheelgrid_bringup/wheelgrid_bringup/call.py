@@ -50,15 +50,17 @@ def main(argv: list[str] | None = None) -> int:
         client = node.create_client(Trigger, args.service)
         if not spin_until(ex, client.service_is_ready, args.timeout):
             print(
-                f"wheelgrid call: no service {args.service} within {args.timeout:.0f} s (is the "
-                "node running, with the same ROS_DOMAIN_ID?)"
+                f"wheelgrid call: {_not_ready(node, args.service, args.timeout)}", file=sys.stderr
             )
             return 2
         result = call_service(
             ex, client, Trigger.Request, max(deadline - time.monotonic(), 0.1), 5.0
         )
         if result is None:
-            print(f"wheelgrid call: {args.service} did not answer within {args.timeout:.0f} s")
+            print(
+                f"wheelgrid call: {args.service} did not answer within {args.timeout:.0f} s",
+                file=sys.stderr,
+            )
             return 1
         print(("ok: " if result.success else "refused: ") + str(result.message))
         return 0 if result.success else 1
@@ -67,3 +69,24 @@ def main(argv: list[str] | None = None) -> int:
         node.destroy_node()
         if ctx.ok():
             rclpy.shutdown(context=ctx)
+
+
+def _not_ready(node: object, service: str, timeout: float) -> str:
+    """Why no Trigger service answered: one of another type by that name (it said "no service"
+    for /planner/describe_parameters), or none at all."""
+    wanted = service if service.startswith("/") else "/" + service
+    try:
+        found = dict(node.get_service_names_and_types())  # type: ignore[attr-defined]
+    except Exception:  # the graph could not be read: say what is known
+        found = {}
+    # the graph lists this command's own Trigger client under the name too
+    types = [t for t in found.get(wanted, []) if t != "std_srvs/srv/Trigger"]
+    if types:
+        return (
+            f"{service} is a {', '.join(types)} service, not std_srvs/srv/Trigger: this command "
+            "calls Trigger services only (/mapper/close_loops, /mapper/save_map, /grid/save ...)"
+        )
+    return (
+        f"no service {service} within {timeout:.0f} s (is the node running, with the same "
+        "ROS_DOMAIN_ID?)"
+    )
