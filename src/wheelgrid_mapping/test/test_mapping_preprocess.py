@@ -157,6 +157,23 @@ def test_statistical_outlier_mask_is_equations_1_to_4() -> None:
     assert not statistical_outlier_mask(d2, 2.0, missing_distance=0.1)[-1]
 
 
+def test_statistical_outlier_mask_keeps_a_cloud_whose_mu_i_are_all_equal() -> None:
+    # Equal mu_i: sigma is 0 in exact arithmetic, ~1e-17 in floating point, where mu_i >= t
+    # (eq. 4) held for every point and the whole cloud was removed.
+    for v, n, k, m in ((0.007899523325820048, 1375, 1, 0.5), (0.1, 7, 8, 2.5), (0.03, 500, 4, 0.0)):
+        assert statistical_outlier_mask(np.full((n, k), v), m).all(), (v, n, k, m)
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        n, k = int(rng.integers(3, 2000)), int(rng.integers(1, 12))
+        d = np.full((n, k), rng.uniform(0.005, 0.2))
+        assert statistical_outlier_mask(d, float(rng.choice([0.5, 1.0, 2.5]))).all()
+    # A real spread still follows eqs. 1-4 (the outlier goes, exactly at t is an outlier).
+    mu = np.array([1.0, 1.0, 1.0, 3.0])
+    m = (3.0 - mu.mean()) / mu.std(ddof=1)
+    assert mu.mean() + m * mu.std(ddof=1) == 3.0
+    assert statistical_outlier_mask(mu[:, None], m).tolist() == [True, True, True, False]
+
+
 def test_pfc_flags_a_point_off_a_flat_neighbourhood() -> None:
     rng = np.random.default_rng(3)
     pts = np.vstack([plane(400, rng, (0.3, 0.3)), [[0.15, 0.15, 0.045]]])

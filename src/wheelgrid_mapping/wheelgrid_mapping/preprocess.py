@@ -508,6 +508,11 @@ def statistical_outlier_mask(
     ``mu_i >= t`` (eq. 4). A neighbour the bounded search did not find counts as
     ``missing_distance`` (default: the largest finite distance seen), so an isolated point is
     an outlier rather than silently kept.
+
+    Where every mu_i is the same (a spread within rounding, 1e-9 of the largest), every point is
+    kept: taken literally, eq. 4 then marks every point an outlier (``mu_i >= t = mu``), and
+    with floating-point rounding sigma comes out ~1e-17 instead of 0, which removed every point
+    of such a cloud (a regular lattice with K = 1, say), not one of them.
     """
     d = np.array(dist, dtype=np.float64)
     if d.shape[0] < 2:
@@ -520,7 +525,7 @@ def statistical_outlier_mask(
     mu = float(mu_i.mean())
     sigma = float(mu_i.std(ddof=1))  # eq. 2
     t = mu + m * sigma  # eq. 3
-    if sigma == 0.0:
+    if sigma == 0.0 or float(np.ptp(mu_i)) <= 1e-9 * float(np.abs(mu_i).max()):
         return np.ones(d.shape[0], dtype=bool)
     return mu_i < t  # eq. 4: outlier when mu_i >= t
 
