@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -172,6 +174,14 @@ def test_statistical_outlier_mask_keeps_a_cloud_whose_mu_i_are_all_equal() -> No
     m = (3.0 - mu.mean()) / mu.std(ddof=1)
     assert mu.mean() + m * mu.std(ddof=1) == 3.0
     assert statistical_outlier_mask(mu[:, None], m).tolist() == [True, True, True, False]
+
+
+@pytest.mark.parametrize("key", ["sor_m", "voxel_size", "pfc_threshold", "pfc_min_offset"])
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_a_non_finite_preprocess_setting_is_refused(key: str, value: float) -> None:
+    # sor_m NaN made t NaN: every frame lost every point to eq. 4, without a word.
+    with pytest.raises(ValueError, match=f"{key} must be finite"):
+        PreprocessConfig(**{key: value})
 
 
 def test_pfc_flags_a_point_off_a_flat_neighbourhood() -> None:

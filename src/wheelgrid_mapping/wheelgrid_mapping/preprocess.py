@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wheelgrid_common.params import field
+from wheelgrid_common.params import check_finite, field
 
 
 @dataclass
@@ -95,7 +95,11 @@ class PreprocessConfig:
         self.validate()
 
     def validate(self) -> None:
-        """ValueError for settings that cannot work."""
+        """ValueError for settings that cannot work.
+
+        A NaN passes every range test written as a failing comparison: ``sor_m: .nan`` made
+        the threshold t of eq. 3 NaN, and eq. 4 then removed every point of every frame."""
+        check_finite(self, "preprocess ")
         if not 0.0 <= self.min_range < self.max_range:
             raise ValueError(
                 f"preprocess needs 0 <= min_range < max_range, not {self.min_range}, "
