@@ -188,6 +188,20 @@ def test_walls_do_not_occupy_border_cells_but_near_obstacles_do():
     assert res.boundary.any()  # the walls were seen, and taken as the boundary
 
 
+def test_the_boundary_strip_is_bounded_and_what_stands_against_a_wall_beyond_it_blocks():
+    # A 16 cm deep cabinet against the south wall reaches past the 15 cm strip: its cell blocks.
+    # A 14 cm one is inside the strip and is taken for the wall (the documented cost).
+    for depth, cell in ((0.16, OCCUPIED), (0.14, FREE)):
+        cab = Box(1.5, 2.0, 0.0, depth, 0.0, 1.0)
+        res = build_grid(room_cloud([cab], size=(3.6, 3.6), spacing=SPACING))
+        assert res.grid.data[2, 1] == cell, (depth, res.grid.data)
+    # A strip of a whole cell made every border cell's content "wall": the paper room's tables
+    # at (3, 0) and (5, 0) read free. It is refused.
+    with pytest.raises(ValueError, match=r"boundary_margin must be <= 0\.2 m"):
+        build_grid(room_cloud(paper_like_boxes(), spacing=SPACING), GridConfig(boundary_margin=1.2))
+    assert GridConfig(boundary_margin=0.2).validate() is None
+
+
 def test_walls_stay_boundary_when_the_grid_overflows_the_floor():
     # A 3.4 m wide room snaps to 3 cells (3.6 m): the grid reaches ~10 cm past each side wall,
     # so the walls lie inside the grid -- still boundary, not obstacles in the border cells.
@@ -327,6 +341,7 @@ def test_invalid_config_is_rejected():
         ({"min_observed_fraction": 0.0}, "less than half observed"),
         ({"floor_fill": 60}, "invents 3 m of floor"),
         ({"min_floor_points": 0}, "min_floor_points must be >= 1"),
+        ({"boundary_margin": 0.25}, "boundary_margin must be <= 0.2 m"),
     ):
         with pytest.raises(ValueError, match=message):
             build_grid(cloud, GridConfig(**kw))  # type: ignore[arg-type]
