@@ -170,3 +170,24 @@ def managed_process(
 def python_module(module: str, *args: str) -> list[str]:
     """argv that runs ``python -m module args`` with this interpreter (the venv's)."""
     return [sys.executable, "-m", module, *args]
+
+
+def bag_cloud_odometry(bag: Any, n: int) -> list:
+    """The first ``n`` (PointCloud2, Odometry) pairs of a bridge-like bag (``/iphone/points``,
+    ``/iphone/odometry``) as rclpy messages, for tests that publish them to a live mapper."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.bagio import BagReader
+
+    clouds, odoms = [], []
+    with BagReader(bag) as reader:
+        for topic, _, _, raw in reader.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/points":
+                clouds.append(deserialize_message(raw, PointCloud2))
+            else:
+                odoms.append(deserialize_message(raw, Odometry))
+            if len(clouds) >= n and len(odoms) >= n:
+                break
+    return list(zip(clouds[:n], odoms[:n], strict=True))

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from wheelgrid_common.testing import (
+    bag_cloud_odometry,
     call_service,
     managed_process,
     python_module,
@@ -25,22 +26,7 @@ BAG = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
 
 
 def _bag_pairs(n: int) -> list:
-    from nav_msgs.msg import Odometry
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import PointCloud2
-
-    from wheelgrid_common.bagio import BagReader
-
-    clouds, odoms = [], []
-    with BagReader(BAG) as bag:
-        for topic, _, _, raw in bag.raw(["/iphone/points", "/iphone/odometry"]):
-            if topic == "/iphone/points":
-                clouds.append(deserialize_message(raw, PointCloud2))
-            else:
-                odoms.append(deserialize_message(raw, Odometry))
-            if len(clouds) >= n and len(odoms) >= n:
-                break
-    return list(zip(clouds[:n], odoms[:n], strict=True))
+    return bag_cloud_odometry(BAG, n)
 
 
 def test_reset_replaces_the_latched_map_cloud(tmp_path: Path) -> None:
