@@ -61,18 +61,25 @@ def _launch(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int], list
         target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True
     ).start()
     pids: dict[str, int] = {}
-    deadline = time.monotonic() + 60.0
-    while len(pids) < len(NODES) and time.monotonic() < deadline and proc.poll() is None:
-        for ln in list(lines):
-            m = re.match(r"launch: started (\w+) \(pid (\d+)", ln)
-            if m:
-                pids[m.group(1)] = int(m.group(2))
-        time.sleep(0.1)
-    assert set(pids) == set(NODES), "".join(lines)
-    # the status line comes once the nodes are running
-    while not any(ln.startswith("[") for ln in lines) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    time.sleep(2.0)  # the nodes past their start-up, rclpy's signal handlers in place
+    try:
+        deadline = time.monotonic() + 60.0
+        while len(pids) < len(NODES) and time.monotonic() < deadline and proc.poll() is None:
+            for ln in list(lines):
+                m = re.match(r"launch: started (\w+) \(pid (\d+)", ln)
+                if m:
+                    pids[m.group(1)] = int(m.group(2))
+            time.sleep(0.1)
+        assert set(pids) == set(NODES), "".join(lines)
+        # the status line comes once the nodes are running
+        while not any(ln.startswith("[") for ln in lines) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(2.0)  # the nodes past their start-up, rclpy's signal handlers in place
+    except BaseException:
+        # the callers' try/finally is not entered yet: stop the launcher and any node it had
+        # started here, or they run on past the test (a node short, or Ctrl-C in the wait)
+        stop_process(proc)
+        _cleanup(pids)
+        raise
     return proc, pids, lines
 
 
