@@ -130,15 +130,30 @@ def test_the_prior_hint_is_given_only_for_the_prior_topic(tmp_path: Path, capsys
     assert "needs one nav_msgs/Odometry topic" in capsys.readouterr().err
 
 
-def test_the_second_process_ends_quietly_when_the_mapper_has_gone() -> None:
+def test_the_second_process_ends_quietly_when_the_mapper_has_gone(capfd) -> None:
     """The mapper closing the pipe while a frame is in preparation (an input error, Ctrl-C)
-    made the second process print two BrokenPipeError tracebacks."""
+    made the second process print two BrokenPipeError tracebacks. Run as the mapper runs it: a
+    spawned process (whose stderr is this test's fd 2), never in this one, where ``_serve``
+    would leave SIGINT ignored for the rest of the session."""
     from wheelgrid_mapping.prefetch import _serve
     from wheelgrid_mapping.preprocess import PreprocessConfig
     from wheelgrid_mapping.registration import RegistrationConfig
 
-    parent, child = mp.Pipe()
-    pts = np.random.default_rng(0).uniform(-2, 2, (500, 3)) + np.array([0.0, 0.0, 3.0])
-    parent.send((pts, None, PreprocessConfig(), RegistrationConfig()))
-    parent.close()
-    _serve(child)  # returns: no BrokenPipeError
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_serve, args=(child,), name="wheelgrid-prepare-test", daemon=True)
+    proc.start()
+    try:
+        child.close()
+        pts = np.random.default_rng(0).uniform(-2, 2, (500, 3)) + np.array([0.0, 0.0, 3.0])
+        parent.send((pts, None, PreprocessConfig(), RegistrationConfig()))
+        parent.close()  # the mapper has gone while the frame is in preparation
+        proc.join(timeout=60)
+        assert not proc.is_alive(), "the second process did not end when the pipe closed"
+    finally:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout=5)
+    err = capfd.readouterr().err
+    assert proc.exitcode == 0, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
