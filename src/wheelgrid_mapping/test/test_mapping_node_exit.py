@@ -48,6 +48,7 @@ def test_a_mapper_stopped_with_a_frame_in_flight_still_saves_its_map(tmp_path, m
         ]
     )  # fmt: skip
     node = None
+    closed = False
     try:
         node = MapperNode()
         for msg, odom in _bag_frames(3):  # the node's own callbacks, no DDS needed
@@ -64,9 +65,14 @@ def test_a_mapper_stopped_with_a_frame_in_flight_still_saves_its_map(tmp_path, m
         node._report(late)  # a frame registered just now: no RCLError into a dead context
         # ... and the frame that was in preparation comes out of close()'s last flush
         monkeypatch.setattr(node._pipe, "flush", lambda: list(late))
+        closed = True
         node.close()
+        assert not node._worker.is_alive(), "close() left the mapper's worker running"
     finally:
         if node is not None:
+            if not closed:  # failed before close(): its worker thread and second process
+                node.save_on_exit = False
+                node.close()
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
