@@ -60,10 +60,12 @@ def test_stream_stray_bridge_mapper_agrees_with_arkit(repo_root, tmp_path, stray
                     s=stream_export(
                         exp, "127.0.0.1", port, rate=1.0, indices=range(start, start + n)
                     )
-                )
+                ),
+                daemon=True,  # a stream that hangs must not keep the test process alive
             )
             th.start()
             th.join(timeout=120)
+            assert not th.is_alive(), "stream-stray did not finish within 120 s"
             assert stats["s"].frames_sent == n
 
             def settled() -> bool:
