@@ -54,9 +54,18 @@ def test_a_mapper_stopped_with_a_frame_in_flight_still_saves_its_map(tmp_path, m
         for msg, odom in _bag_frames(3):  # the node's own callbacks, no DDS needed
             node._on_prior(odom)
             node._on_cloud(msg)
+        # the node keeps only the newest frame (max_queue 1), so not all three need map:
+        # wait until nothing is queued or in preparation (it waited for 3 until its 60 s
+        # deadline, and a frame mapped after that count raced the assertion below)
+        def settled() -> bool:
+            with node._slot_lock:
+                idle = not node._queue and not node._pipe.pending
+            return idle and len(node.mapper.poses_odom) >= 2
+
         deadline = time.monotonic() + 60.0
-        while len(node.mapper.poses_odom) < 3 and time.monotonic() < deadline:
+        while not settled() and time.monotonic() < deadline:
             time.sleep(0.1)
+        time.sleep(0.3)  # the worker's report of the last frame
         mapped = len(node.mapper.poses_odom)
         assert mapped >= 2, "the worker mapped no frames"
 
