@@ -10,13 +10,16 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
 
+from wheelgrid_common.services import poll_until
 from wheelgrid_common.testing import (
     bag_cloud_odometry,
     call_service,
@@ -429,40 +432,63 @@ def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
         shutil.rmtree(fallback, ignore_errors=True)
 
 
-def test_a_frame_without_a_prior_says_how_far_the_nearest_pose_is():
+@contextlib.contextmanager
+def mapper_in_process(tmp_path: Path, frames: int) -> Iterator[Any]:
+    """A real MapperNode in this process, ``frames`` of the bundled bag handed to its own
+    callbacks (no DDS needed) and mapped: yields it once nothing is queued or in preparation."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    with rclpy_context() as ctx:
+        params = [
+            Parameter("output_dir", value=str(tmp_path)),
+            Parameter("save_on_exit", value=False),
+            Parameter("topic", value="/in_process/points"),
+            Parameter("pose_prior_topic", value="/in_process/odometry"),
+        ]
+        node = MapperNode(context=ctx, parameter_overrides=params)
+        try:
+            for msg, odom in bag_cloud_odometry(BAG, frames):
+                node._on_prior(odom)
+                node._on_cloud(msg)
+                time.sleep(0.3)  # the newest-frame policy: one at a time, each mapped
+
+            def settled() -> bool:
+                with node._slot_lock:
+                    return not node._queue and not node._pipe.pending
+
+            assert poll_until(settled, 60.0, 0.05), "the mapper did not settle"
+            yield node
+        finally:
+            node.close()
+            node.destroy_node()
+
+
+def test_a_frame_without_a_prior_says_how_far_the_nearest_pose_is(tmp_path):
     """A pose topic on another clock (stamps 50 s off) logged only "no pose ... near a frame",
     as if the poses were merely late."""
-    from collections import deque
-    from types import SimpleNamespace
-
-    from wheelgrid_mapping.mapper_node import MapperNode
-
-    node = SimpleNamespace(prior_topic="/iphone/odometry", _priors=deque())
-    assert "none received yet" in MapperNode._no_prior_note(node, 10.0)
-    node._priors.extend([(60.0, None), (60.1, None)])
-    note = MapperNode._no_prior_note(node, 10.0)
-    assert "the nearest is +50.000 s from the frame's stamp" in note, note
+    with mapper_in_process(tmp_path, 1) as node:
+        node._priors.clear()
+        assert "none received yet" in node._no_prior_note(10.0)
+        node._priors.extend([(60.0, np.eye(4)), (60.1, np.eye(4))])
+        note = node._no_prior_note(10.0)
+        assert "the nearest is +50.000 s from the frame's stamp" in note, note
 
 
-def test_kept_frames_are_not_released_under_a_close_loops_already_answered():
+def test_kept_frames_are_not_released_under_a_close_loops_already_answered(tmp_path):
     """The worker set loop closure "off" past max_kept_frames without the service's lock: a
     ~/close_loops answered "closing loops" just before was then lost."""
-    import threading
-    from types import SimpleNamespace
-
-    from wheelgrid_mapping.mapper_node import MapperNode
-
-    released = []
-    mapper = SimpleNamespace(
-        keep_frames=True, poses_odom=[0] * 5, release_frames=lambda: released.append(1)
-    )
-    node = SimpleNamespace(
-        mapper=mapper, max_kept_frames=3, _slot_lock=threading.Condition(),
-        _lock=threading.RLock(), _loop_state="requested", _loop_note="",
-        get_logger=lambda: SimpleNamespace(warning=lambda _m: None),
-    )  # fmt: skip
-    MapperNode._bound_kept_frames(node)
-    assert node._loop_state == "requested" and not released
-    node._loop_state = "ready"
-    MapperNode._bound_kept_frames(node)
-    assert node._loop_state == "off" and released == [1]
+    with mapper_in_process(tmp_path, 3) as node:
+        kept = len(node.mapper.poses_odom)
+        assert kept >= 2 and node.mapper.keep_frames
+        node.max_kept_frames = 1
+        with node._slot_lock:  # the worker waits: as between the service's answer and it
+            node._loop_state = "requested"
+            node._bound_kept_frames()
+            assert node._loop_state == "requested" and node.mapper.keep_frames
+            node._loop_state = "ready"
+            node._bound_kept_frames()
+            assert node._loop_state == "off" and not node.mapper.keep_frames

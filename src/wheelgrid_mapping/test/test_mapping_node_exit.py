@@ -54,6 +54,7 @@ def test_a_mapper_stopped_with_a_frame_in_flight_still_saves_its_map(tmp_path, m
         for msg, odom in _bag_frames(3):  # the node's own callbacks, no DDS needed
             node._on_prior(odom)
             node._on_cloud(msg)
+
         # the node keeps only the newest frame (max_queue 1), so not all three need map:
         # wait until nothing is queued or in preparation (it waited for 3 until its 60 s
         # deadline, and a frame mapped after that count raced the assertion below)

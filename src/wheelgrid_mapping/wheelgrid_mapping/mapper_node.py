@@ -106,8 +106,8 @@ def _stamp_seconds(stamp: Any) -> float:
 
 
 class MapperNode(Node):  # type: ignore[misc]
-    def __init__(self) -> None:
-        super().__init__("mapper")
+    def __init__(self, **kwargs: Any) -> None:  # context=, parameter_overrides= (tests)
+        super().__init__("mapper", **kwargs)
         from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Odometry
         from rclpy.qos import QoSProfile
