@@ -247,6 +247,29 @@ def test_client_silent_after_hello_is_dropped_and_the_phone_gets_back_in() -> No
         assert rec.logged("sent nothing for") and srv.clients_timed_out == 1
 
 
+def test_a_byte_now_and_then_does_not_hold_the_slot() -> None:
+    """The idle timeout was reset by any byte: a client that sent one every so often (a stuck
+    sender, or one holding the slot on purpose) kept the phone out as busy."""
+    with server(idle_timeout_s=0.5) as (srv, rec):
+        with bp.connect("127.0.0.1", srv.port, name="trickle", timeout=2) as slow:
+            half = frame(1)
+            t0 = time.monotonic()
+            for i in range(12):  # a byte every 0.15 s: never 0.5 s silent
+                try:
+                    slow.sendall(half[i : i + 1])
+                except OSError:
+                    break
+                time.sleep(0.15)
+                if srv.clients == 0:
+                    break
+            status = read_status(slow)
+            assert status is not None and "idle" in status.text, status
+            assert time.monotonic() - t0 < 1.5
+        with bp.connect("127.0.0.1", srv.port, name="phone", timeout=2) as sock:
+            sock.sendall(frame(2))
+            assert wait_for(lambda: len(rec.frames) == 1, 2)
+
+
 def test_connections_without_hello_do_not_keep_the_phone_out() -> None:
     """Silent pre-HELLO sockets (a port scan, a stuck app) count against the pending bound,
     not against max_clients: the phone's HELLO is accepted at once."""

@@ -502,6 +502,10 @@ class _LogOnce:
         return held
 
 
+# bytes that count as progress towards a message for the idle timeout, short of a whole one
+IDLE_PROGRESS_BYTES = 64 * 1024
+
+
 @dataclass
 class _Client:
     sock: socket.socket
@@ -509,7 +513,8 @@ class _Client:
     decoder: FrameDecoder
     connected_at: float
     ident: int  # never reused, unlike id(): per-connection state keyed by it cannot leak
-    last_rx: float  # monotonic time of the last byte received (idle timeout)
+    last_rx: float  # monotonic time of the last progress (idle timeout): see IDLE_PROGRESS_BYTES
+    rx_since: int = 0  # bytes received since last_rx was set
     authed: bool = False
     name: str = ""
     errors_in_row: int = 0  # consecutive bad messages, in stream order
@@ -773,12 +778,18 @@ class BridgeServer:
             self._log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected")
             self._close(c, None)
             return
-        c.last_rx = time.monotonic()
         try:
             items = c.decoder.feed_ordered(data)
         except ProtocolError as exc:
             self._unusable(c, exc)
             return
+        # Progress, not any byte, keeps a client: a whole message, or IDLE_PROGRESS_BYTES of
+        # one (a big frame on slow Wi-Fi). A byte every few seconds held the only slot, and
+        # the phone was refused as busy.
+        c.rx_since += len(data)
+        if items or c.rx_since >= IDLE_PROGRESS_BYTES:
+            c.last_rx = time.monotonic()
+            c.rx_since = 0
         for item in items:
             if isinstance(item, ProtocolError):
                 ok = self._rejected(c, item)

@@ -58,8 +58,9 @@ class BridgeConfig:
     hello_timeout_s: float = field(5.0, "a client that sends no HELLO in this time is dropped", "s")
     idle_timeout_s: float = field(
         5.0,
-        "a client that has said HELLO and then sends nothing for this long is dropped, freeing "
-        "its slot (a phone that lost Wi-Fi sends no FIN); a stream of 10+ Hz is never that idle",
+        "a client that has said HELLO and then makes no progress for this long (no whole "
+        "message, nor 64 KiB of one) is dropped, freeing its slot (a phone that lost Wi-Fi "
+        "sends no FIN); a stream of 10+ Hz is never that idle",
         "s",
     )
     max_errors_in_row: int = field(20, "bad messages in a row before a client is disconnected")
