@@ -492,3 +492,73 @@ def test_kept_frames_are_not_released_under_a_close_loops_already_answered(tmp_p
             node._loop_state = "ready"
             node._bound_kept_frames()
             assert node._loop_state == "off" and not node.mapper.keep_frames
+
+
+@pytest.mark.ros
+def test_reset_replaces_the_latched_map_cloud(tmp_path: Path) -> None:
+    """/wheelgrid/map_cloud is transient-local: after ~/reset a subscriber that started later (a
+    restarted grid node, RViz) got the cleared map, in a map frame the frames after the reset
+    no longer share."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_common.qos import MAP_QOS
+
+    with running_mapper(tmp_path, "reset_test", "save_on_exit:=false") as t:
+        for cloud, odom in bag_clouds(6):
+            t.pub.publish(cloud)
+            t.odom_pub.publish(odom)
+            spin_until(t.ex, lambda: False, 0.4)
+        assert spin_until(t.ex, lambda: any(m.width > 0 for m in t.maps), 60.0), "no map"
+        done = call_service(t.ex, t.client("reset"), Trigger.Request)
+        assert done is not None and done.success, done
+        assert spin_until(t.ex, lambda: t.maps[-1].width == 0, 10.0), "no empty map after reset"
+
+        late: list = []  # a subscriber that starts after the reset
+        t.node.create_subscription(PointCloud2, "/wheelgrid/map_cloud", late.append, MAP_QOS)
+        assert spin_until(t.ex, lambda: bool(late), 10.0), "nothing latched"
+        assert late[-1].width * late[-1].height == 0, "the cleared map is still latched"
+        assert late[-1].header.frame_id == "map"
+
+
+def _sec(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+@pytest.mark.ros
+def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
+    """Frames are filtered one ahead: where frames queue, the pose of the last cloud before a
+    frame_id change was published when the next cloud was taken, under that next cloud's
+    frame_id (a map -> sensor transform of one frame labelled as another)."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    from nav_msgs.msg import Odometry
+
+    from wheelgrid_common.qos import SENSOR_QOS
+
+    pairs = bag_clouds(8)
+    renamed = "iphone_depth_optical_frame_2"  # the same camera, its driver restarted
+    for cloud, odom in pairs[4:]:
+        cloud.header.frame_id = renamed
+        odom.child_frame_id = renamed
+    sent = {_sec(c.header.stamp): c.header.frame_id for c, _ in pairs}
+    with running_mapper(tmp_path, "frames_test", "max_queue:=100", "save_on_exit:=false") as t:
+        poses: list = []
+        t.node.create_subscription(Odometry, "/wheelgrid/odometry", poses.append, SENSOR_QOS)
+        spin_until(t.ex, lambda: False, 0.5)
+        for cloud, odom in pairs:  # faster than they are mapped: frames wait in the queue
+            t.odom_pub.publish(odom)
+            t.pub.publish(cloud)
+            spin_until(t.ex, lambda: False, 0.05)
+
+        def both_frames() -> bool:
+            return {p.child_frame_id for p in poses} >= {pairs[0][0].header.frame_id, renamed}
+
+        assert spin_until(t.ex, both_frames, 30.0), [p.child_frame_id for p in poses]
+        spin_until(t.ex, lambda: False, 2.0)
+        for p in poses:
+            stamp = min(sent, key=lambda s: abs(s - _sec(p.header.stamp)))
+            assert abs(stamp - _sec(p.header.stamp)) < 1e-6
+            assert p.child_frame_id == sent[stamp], (stamp, p.child_frame_id, sent[stamp])
