@@ -158,12 +158,21 @@ class BagReader:
         except Exception as exc:
             raise BagError(f"{self.path}: bag is corrupt ({type(exc).__name__}: {exc})") from exc
 
-    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, int, Any]]:
-        """(topic, log time ns, deserialised rosbags message) in log-time order."""
+    def messages(
+        self, topics: Iterable[str], *, damaged_as_none: bool = False
+    ) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time ns, deserialised rosbags message) in log-time order.
+
+        A message that does not deserialise is a ``BagError``, or with ``damaged_as_none`` its
+        place in the order with ``None`` for the message: one damaged message in a long bag
+        then costs the reader that message only (``wheelgrid map`` counts it and maps on)."""
         for topic, msgtype, t_ns, raw in self.raw(topics):
             try:
                 msg = self.reader.deserialize(raw, msgtype)
-            except Exception as exc:
+            except Exception as exc:  # rosbags raises several types for a damaged message
+                if damaged_as_none:
+                    yield topic, t_ns, None
+                    continue
                 raise BagError(
                     f"{self.path}: message on {topic} at {t_ns} ns does not deserialise as "
                     f"{msgtype} ({type(exc).__name__}: {exc})"

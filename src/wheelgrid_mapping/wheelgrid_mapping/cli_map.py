@@ -98,12 +98,10 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
 
     stamps, poses = [], []
     unreadable = 0
-    for _, msgtype, t_ns, data in reader.raw([topic]):  # type: ignore[attr-defined]
-        # one damaged Odometry message costs the frames near it their prior, as a NaN pose
-        # does; it ended the whole run before the first frame
-        try:
-            msg = reader.reader.deserialize(data, msgtype)  # type: ignore[attr-defined]
-        except Exception:  # rosbags raises several types for a damaged message
+    # one damaged Odometry message costs the frames near it their prior, as a NaN pose does;
+    # it ended the whole run before the first frame
+    for _, t_ns, msg in reader.messages([topic], damaged_as_none=True):  # type: ignore[attr-defined]
+        if msg is None:
             unreadable += 1
             continue
         p = msg.pose.pose
@@ -171,13 +169,11 @@ def bag_frames(
 
     def gen() -> Iterator[Frame]:
         try:
-            # raw + deserialise here, not reader.messages(): one message that does not
-            # deserialise ended the whole run with exit 2 and threw away every frame mapped
-            # before it; it is skipped and counted like any other malformed frame
-            for _, msgtype, t_ns, data in reader.raw([name]):
-                try:
-                    msg = reader.reader.deserialize(data, msgtype)
-                except Exception:  # rosbags raises several types for a damaged message
+            # one message that does not deserialise ended the whole run with exit 2 and threw
+            # away every frame mapped before it; it is skipped and counted like any other
+            # malformed frame
+            for _, t_ns, msg in reader.messages([name], damaged_as_none=True):
+                if msg is None:
                     bad.append("undeserialisable")
                     yield np.empty((0, 3)), t_ns * 1e-9, "", None, None
                     continue
