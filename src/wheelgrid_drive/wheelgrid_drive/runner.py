@@ -96,6 +96,20 @@ def planned_grid_check(grid_getter: Callable[[], Any], planned_on: Any) -> CellC
     return check
 
 
+def _line_to_centre(
+    grid: Any, x: float, y: float, yaw: float, step: Step
+) -> tuple[float, float, float]:
+    """(along, across, cell) of the next cell's centre seen from a chair at controller pose
+    (``x``, ``y``, ``yaw``) about to drive ``step`` as the controller drives it (a quarter turn
+    for left/right-forward, then straight along its own yaw): how far ahead along that line,
+    how far off it, and the cell's size."""
+    res = float(grid.resolution)
+    heading = yaw + _TURN[step.action]
+    ux, uy = _SIGN[step.action] * math.cos(heading), _SIGN[step.action] * math.sin(heading)
+    cx, cy = (float(v) for v in grid.cell_center(*step.dst))
+    return (cx - x) * ux + (cy - y) * uy, abs((cy - y) * ux - (cx - x) * uy), res
+
+
 def step_pose_problem(
     grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
 ) -> str | None:
@@ -117,11 +131,8 @@ def step_pose_problem(
             f"the chair at ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
             f"{step.src}, more than {tolerance:g} cell"
         )
-    heading = yaw + _TURN[step.action]
-    d = _SIGN[step.action] * res
-    ex, ey = x + d * math.cos(heading), y + d * math.sin(heading)
-    dx, dy = (float(v) for v in grid.cell_center(*step.dst))
-    miss = math.hypot(ex - dx, ey - dy)
+    along, across, _ = _line_to_centre(grid, x, y, yaw, step)
+    miss = math.hypot(along - res, across)  # where one cell's length ends, from the centre
     if miss > tolerance * res:
         return (
             f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg would end "
@@ -141,12 +152,7 @@ def step_to_centre(
     of its cell, or after a stop mid-cell, that ended beyond the one cell checked free. Both
     ends lie in the two cells, whose union is a rectangle, so the path between stays in them.
     The move must pass within ``tolerance`` cells of the centre (the heading's error)."""
-    res = float(grid.resolution)
-    heading = yaw + _TURN[step.action]
-    ux, uy = _SIGN[step.action] * math.cos(heading), _SIGN[step.action] * math.sin(heading)
-    cx, cy = (float(v) for v in grid.cell_center(*step.dst))
-    along = (cx - x) * ux + (cy - y) * uy
-    miss = abs((cy - y) * ux - (cx - x) * uy)
+    along, miss, res = _line_to_centre(grid, x, y, yaw, step)
     if miss > tolerance * res or not 0.25 * res <= along <= 1.5 * res:
         return 0.0, (
             f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg passes "
@@ -196,20 +202,14 @@ def run_steps(
             return RunResult(False, i, total, "aborted before the next command", aborted=True)
         if on_start is not None:
             on_start(step)
-        if cell_check is not None:
-            reason = cell_check(step.dst)
-            if reason:
-                link.stop()
-                if on_step is not None:
-                    on_step(step, command_record(step, "REFUSED", reason=reason))
-                return RunResult(False, i, total, f"refused: {reason}", refused=True)
-        if pose_check is not None:
+        reason = cell_check(step.dst) if cell_check is not None else None
+        if not reason and pose_check is not None:
             reason = pose_check(step)
-            if reason:
-                link.stop()
-                if on_step is not None:
-                    on_step(step, command_record(step, "REFUSED", reason=reason))
-                return RunResult(False, i, total, f"refused: {reason}", refused=True)
+        if reason:
+            link.stop()
+            if on_step is not None:
+                on_step(step, command_record(step, "REFUSED", reason=reason))
+            return RunResult(False, i, total, f"refused: {reason}", refused=True)
         try:
             seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
         except LinkAbortedError as exc:
