@@ -63,7 +63,7 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         # one line and exit 2, as a bad parameter value: it was rclpy's traceback, exit 1
         import sys
 
-        reason = " ".join(part.split(", at /")[0] for part in str(exc).splitlines()[:1])
+        reason = (str(exc).splitlines() or [""])[0].split(", at /")[0]  # rcl's first line
         print(f"[FATAL] cannot start: {reason}", file=sys.stderr)
         return 2
     node = None
