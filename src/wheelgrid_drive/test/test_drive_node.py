@@ -111,10 +111,10 @@ def sim_moves(sim):
 
 
 @contextlib.contextmanager
-def driving_along_row_3(make_sim):
-    """A node and a real-time controller, a grid, then a 4-cell plan along row 3: yields
-    ``(harness, sim, grid)`` once the chair is driving the plan's first cell."""
-    sim = make_sim(time_scale=1.0)
+def plan_along_row_3(make_sim, **sim_kw):
+    """A node and a controller (``make_sim(**sim_kw)``), a grid, then a 4-cell plan along row 3
+    just published: yields ``(harness, sim, grid)``."""
+    sim = make_sim(**sim_kw)
     grid = free_grid()
     with (
         rclpy_context() as ctx,
@@ -123,6 +123,14 @@ def driving_along_row_3(make_sim):
         assert h.matched()
         h.give_grid(grid)
         h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        yield h, sim, grid
+
+
+@contextlib.contextmanager
+def driving_along_row_3(make_sim):
+    """:func:`plan_along_row_3` with a real-time controller, once the chair is driving the
+    plan's first cell."""
+    with plan_along_row_3(make_sim, time_scale=1.0) as (h, sim, grid):
         assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
         yield h, sim, grid
 
@@ -615,15 +623,7 @@ def test_a_grid_between_a_steps_check_and_its_command_stops_the_chair(make_sim, 
         return wrapped
 
     monkeypatch.setattr(drive_node, "planned_grid_check", check_then_grid)
-    sim = make_sim()
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.give_grid(grid)
-        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+    with plan_along_row_3(make_sim) as (h, sim, grid):
         assert h.spin(lambda: any("cell being entered" in s.message for s in h.states), 10.0), [
             s.message for s in h.states[-5:]
         ]
