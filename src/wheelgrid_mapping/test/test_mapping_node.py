@@ -10,7 +10,6 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -451,10 +450,17 @@ def mapper_in_process(tmp_path: Path, frames: int) -> Iterator[Any]:
         ]
         node = MapperNode(context=ctx, parameter_overrides=params)
         try:
+
+            def taken() -> bool:
+                with node._slot_lock:
+                    return not node._queue
+
             for msg, odom in bag_cloud_odometry(BAG, frames):
                 node._on_prior(odom)
                 node._on_cloud(msg)
-                time.sleep(0.3)  # the newest-frame policy: one at a time, each mapped
+                # the newest-frame policy (max_queue 1): one at a time, each taken by the worker
+                # (a fixed sleep let a worker slow to wake on a loaded machine drop one)
+                assert poll_until(taken, 60.0, 0.01), "the mapper's worker took no frame"
 
             def settled() -> bool:
                 with node._slot_lock:
