@@ -221,3 +221,53 @@ def test_stream_stray_sends_decodable_frames_with_token(
         np.testing.assert_allclose(f.depth_m(), sf.depth, atol=1e-6)
         np.testing.assert_array_equal(f.confidence, sf.confidence)
         np.testing.assert_allclose(f.pose_optical(), sf.pose, atol=1e-9)
+
+
+def test_stream_stray_says_so_when_the_bridge_stops_under_it(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """A bridge stopped mid-stream (Ctrl-C on `wheelgrid launch --iphone`) closed the
+    connection without a word, and stream-stray reported "Connection reset by peer" as if the
+    network had failed."""
+    import threading
+
+    third = threading.Event()
+    got: list[int] = []
+
+    def on_frame(f: bp.Frame, c: object) -> None:
+        got.append(f.seq)
+        if len(got) == 3:
+            third.set()
+
+    srv = bp.BridgeServer(on_frame, lambda lv, t: None, port=0)
+    srv.start()
+    stopper = threading.Thread(target=lambda: third.wait(30) and srv.stop(), daemon=True)
+    stopper.start()
+    try:
+        args = [str(stray_capture), "--to", f"127.0.0.1:{srv.port}", "--frames", "120"]
+        assert stream_main(args) == 1
+    finally:
+        stopper.join(30)
+        srv.stop()
+    err = capsys.readouterr().err
+    assert "the bridge closed the connection after " in err, err
+    assert "of 120 frames: the bridge is stopping (status SHUTDOWN)" in err, err
+    assert "reset" not in err.lower(), err
+
+
+def test_parting_status_reads_what_the_bridge_said_before_it_closed() -> None:
+    """Said, it is read even after the peer's reset; not said, there is nothing to read."""
+    import socket
+
+    for said in (True, False):
+        a, b = socket.socketpair()
+        with a, b:
+            if said:
+                a.sendall(bp.encode_status(bp.STATUS_PROTOCOL_ERROR, "idle timeout"))
+            a.close()
+            st = bp.parting_status(b, timeout=2.0)
+        if said:
+            assert st is not None
+            assert bp.status_words(st) == "idle timeout (status PROTOCOL_ERROR)"
+        else:
+            assert st is None

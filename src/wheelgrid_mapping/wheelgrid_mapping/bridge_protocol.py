@@ -59,6 +59,14 @@ STATUS_OK = 0
 STATUS_BAD_TOKEN = 1
 STATUS_BUSY = 2
 STATUS_PROTOCOL_ERROR = 3
+STATUS_SHUTDOWN = 4  # the bridge is stopping: sent to every connection before it closes
+STATUS_NAMES = {
+    STATUS_OK: "OK",
+    STATUS_BAD_TOKEN: "BAD_TOKEN",
+    STATUS_BUSY: "BUSY",
+    STATUS_PROTOCOL_ERROR: "PROTOCOL_ERROR",
+    STATUS_SHUTDOWN: "SHUTDOWN",
+}
 
 # Limits. Defaults fit an iPhone (256x192) with a wide margin; receivers may lower them.
 MAX_FRAME_BYTES = 8 * 1024 * 1024  # largest message body accepted (bytes)
@@ -640,7 +648,9 @@ class BridgeServer:
             self._thread.join(timeout=5.0)
             self._thread = None
         for c in list(self._clients.values()):
-            self._close(c, None)
+            # said before the close: a sender then tells "the bridge stopped" from a crash
+            # (stream-stray reported a clean stop as "connection reset by peer")
+            self._close(c, (STATUS_SHUTDOWN, "the bridge is stopping"))
         if self._listener is not None:
             self._sel.close()
             self._listener.close()
@@ -883,6 +893,29 @@ class BridgeServer:
                 f"bridge: frame {m.seq} not published: {exc}",
             )
         return True
+
+
+def parting_status(sock: socket.socket, timeout: float = 1.0) -> Status | None:
+    """The STATUS a bridge sent before it closed a sender's connection (stopping, idle timeout,
+    a protocol error), read after a send failed: None where it sent none (it crashed, or the
+    network went). Linux keeps bytes received before the peer's reset readable."""
+    dec = FrameDecoder(accept=(MSG_STATUS,))
+    last: Status | None = None
+    deadline = time.monotonic() + timeout
+    with contextlib.suppress(OSError, ProtocolError):
+        while (left := deadline - time.monotonic()) > 0:
+            sock.settimeout(left)
+            data = sock.recv(4096)
+            if not data:
+                break
+            for m in dec.feed(data):
+                if isinstance(m, Status) and m.code != STATUS_OK:
+                    last = m
+    return last
+
+
+def status_words(status: Status) -> str:
+    return f"{status.text} (status {STATUS_NAMES.get(status.code, status.code)})"
 
 
 def connect(

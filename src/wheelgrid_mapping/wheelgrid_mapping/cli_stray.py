@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -28,6 +29,8 @@ from wheelgrid_mapping.bridge_protocol import (
     Frame,
     connect,
     encode_frame,
+    parting_status,
+    status_words,
 )
 from wheelgrid_mapping.depth import check_min_confidence
 from wheelgrid_mapping.stray import StrayExport, StrayFrame
@@ -110,6 +113,16 @@ class StreamStats:
     skipped: int = 0  # frames whose images do not read: not sent, as a phone drops a frame
 
 
+class BridgeClosedError(ConnectionError):
+    """The bridge ended the stream: its text says why, where the bridge said it."""
+
+
+def _closed_text(sock: socket.socket, exc: OSError, sent: int, total: int) -> str:
+    status = parting_status(sock)
+    said = status_words(status) if status else f"without a status ({exc.strerror or exc})"
+    return f"the bridge closed the connection after {sent} of {total} frames: {said}"
+
+
 def stream_export(
     exp: StrayExport,
     host: str,
@@ -153,7 +166,11 @@ def stream_export(
                 lag = time.monotonic() - slot
                 stats.max_lag_s = max(stats.max_lag_s, lag)
                 stats.late_frames += lag > 0.05
-            sock.sendall(data)
+            try:
+                sock.sendall(data)
+            except OSError as exc:
+                text = _closed_text(sock, exc, stats.frames_sent, len(idx))
+                raise BridgeClosedError(text) from None
             stats.frames_sent += 1
             stats.bytes_sent += len(data)
         stats.capture_s = exp.stamp(idx[-1]) - t_first
@@ -204,6 +221,8 @@ def stream_main(argv: list[str]) -> int:
             f"nothing listens on {host}:{port} (is the bridge running: `wheelgrid launch "
             "--iphone`?)",
         )
+    except BridgeClosedError as exc:
+        return _fail(1, f"streaming to {host}:{port} stopped: {exc}")
     except (OSError, ConnectionError) as exc:
         return _fail(1, f"streaming to {host}:{port} failed: {exc}")
     print(
