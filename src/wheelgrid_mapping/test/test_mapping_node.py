@@ -500,6 +500,57 @@ def test_kept_frames_are_not_released_under_a_close_loops_already_answered(tmp_p
             assert node._loop_state == "off" and not node.mapper.keep_frames
 
 
+def test_reset_during_a_loop_closure_answers_at_once_and_clears_before_the_next_frame(
+    tmp_path, monkeypatch
+):
+    """~/reset waited for the map while a loop closure held it: the graph's passes make no
+    cancel check, so the single-threaded executor ran nothing else (status, map timer, clouds)
+    until the solve ended."""
+    import threading
+
+    from std_srvs.srv import Trigger
+
+    with mapper_in_process(tmp_path, 3) as node:
+        assert len(node.mapper.poses_odom) >= 2
+        entered, release = threading.Event(), threading.Event()
+
+        def uninterruptible_solve(cfg: Any, progress: Any) -> Any:
+            entered.set()
+            release.wait(60.0)  # as the graph's passes: no progress call, no cancel check
+            return None  # cancelled meanwhile: the node must not read it
+
+        monkeypatch.setattr(node.mapper, "close_loops", uninterruptible_solve)
+        assert node._on_close_loops(Trigger.Request(), Trigger.Response()).success
+        assert entered.wait(30.0), "the worker did not start the loop closure"
+        got: dict[str, Any] = {}
+        caller = threading.Thread(
+            target=lambda: got.update(r=node._on_reset(Trigger.Request(), Trigger.Response()))
+        )
+        caller.start()
+        caller.join(10.0)
+        waited = caller.is_alive()
+        release.set()
+        caller.join(30.0)
+        assert not waited, "~/reset waited for the solve: the executor ran nothing meanwhile"
+        assert got["r"].success and "cleared before the next frame" in got["r"].message
+        refused = node._on_close_loops(Trigger.Request(), Trigger.Response())
+        assert node.counts["received"] == 0
+        # a frame that comes after the answer is mapped into the new map, not dropped as
+        # "after close" nor cleared with the old one
+        msg, odom = bag_cloud_odometry(BAG, 1)[0]
+        node._on_prior(odom)
+        node._on_cloud(msg)
+
+        def fresh() -> bool:
+            with node._slot_lock:
+                idle = not node._queue and not node._pipe.pending and not node._reset_pending
+            return idle and node._loop_state == "ready" and len(node.mapper.poses_odom) == 1
+
+        assert poll_until(fresh, 60.0, 0.05), (node._loop_state, len(node.mapper.poses_odom))
+        assert node.counts["received"] == 1 and node.counts["after_close"] == 0
+        assert not refused.success  # nothing to close in a map being cleared
+
+
 @pytest.mark.ros
 def test_reset_replaces_the_latched_map_cloud(tmp_path: Path) -> None:
     """/wheelgrid/map_cloud is transient-local: after ~/reset a subscriber that started later (a

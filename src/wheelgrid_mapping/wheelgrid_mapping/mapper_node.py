@@ -156,6 +156,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self._loop_state = "ready" if self.loop_cfg.enabled else "off"
         self._loop_note = ""
         self._loop_cancel = False
+        # a ~/reset answered while a loop closure held the map: the worker clears the map as
+        # soon as the closure lets go of it, before it maps any frame
+        self._reset_pending = False
         self._sensor_frame = DEFAULT_FRAME_ID
         # each frame's own frame_id until its outcome is reported: frames are filtered one
         # ahead, so the frame just taken may not be the one whose pose comes out next
@@ -231,7 +234,7 @@ class MapperNode(Node):  # type: ignore[misc]
 
     def _on_cloud(self, msg: Any) -> None:
         self.counts["received"] += 1
-        if self._loop_state in _FINAL:
+        if self._loop_state in _FINAL and not self._reset_pending:
             self.counts["after_close"] += 1
             self._log_once(
                 "closed",
@@ -299,10 +302,15 @@ class MapperNode(Node):  # type: ignore[misc]
                     and not self._stop
                     and self._loop_state != "requested"
                     and not self._pipe.pending
+                    and not self._reset_pending
                 ):
                     self._slot_lock.wait(0.5)
                 if self._stop:
                     return
+                if self._reset_pending:
+                    with self._lock:
+                        self._clear_map()
+                    continue
                 # frames received before a ~/close_loops are mapped first, and the one in
                 # preparation is finished
                 frame = self._queue.popleft() if self._queue else None
@@ -560,22 +568,44 @@ class MapperNode(Node):  # type: ignore[misc]
             response.message = f"cannot save: {exc}"
         return response
 
+    def _clear_intake(self) -> None:
+        """~/reset's work on what came in, with ``_slot_lock`` held: done when it answers."""
+        self.counts["skipped_busy"] += len(self._queue)
+        self._queue.clear()
+        self._generation += 1  # a frame the worker has in hand must not map after the reset
+        for key in self.counts:  # "counters cleared" means the node's own too
+            self.counts[key] = 0
+        self._map_dirty = False
+
+    def _clear_map(self) -> None:
+        """~/reset's work on the map, with ``_slot_lock`` and ``_lock`` held: done when it
+        answers, or by the worker once a loop closure lets go of the map."""
+        self._pipe.discard()  # the frame in preparation belonged to the old map
+        self._frame_ids.clear()
+        self.mapper.reset()  # kept frames go too; keep them again if max_kept_frames stopped it
+        self.mapper.keep_frames = self.loop_cfg.enabled
+        self._loop_state = "ready" if self.loop_cfg.enabled else "off"
+        self._loop_note = ""
+        self._loop_cancel = False
+        self._reset_pending = False
+
     def _on_reset(self, request: Any, response: Any) -> Any:
         self._loop_cancel = True  # a running loop closure stops at its next submap
-        with self._slot_lock, self._lock:
-            self.counts["skipped_busy"] += len(self._queue)
-            self._queue.clear()
-            self._generation += 1
-            self._pipe.discard()  # the frame in preparation belonged to the old map
-            self._frame_ids.clear()
-            self.mapper.reset()  # kept frames go too; keep them again if max_kept_frames stopped it
-            self.mapper.keep_frames = self.loop_cfg.enabled
-            for key in self.counts:  # "counters cleared" means the node's own too
-                self.counts[key] = 0
-            self._loop_state = "ready" if self.loop_cfg.enabled else "off"
-            self._loop_note = ""
-            self._loop_cancel = False
-        self._map_dirty = False
+        with self._slot_lock:
+            if self._loop_state == "running" or self._reset_pending:
+                # The worker holds the map until the solve's next check, which the graph's
+                # passes do not make: waiting for it here stalled every other callback (the
+                # status, the map timer, clouds) for as long. The worker clears the map as
+                # soon as it lets go, before it maps any frame that comes after this answer.
+                self._clear_intake()
+                self._reset_pending = True
+                self._slot_lock.notify()
+                deferred = True
+            else:
+                deferred = False
+                with self._lock:
+                    self._clear_intake()
+                    self._clear_map()
         # The map topic is transient-local: left alone it kept the cleared map for every
         # subscriber that starts later (a restarted grid node made a grid of it, placed in a
         # map frame the next frames no longer share). An empty map cloud replaces it.
@@ -583,13 +613,21 @@ class MapperNode(Node):  # type: ignore[misc]
         empty.header.stamp = self.get_clock().now().to_msg()
         self.map_pub.publish(empty)
         response.success = True
-        response.message = "map, trajectory and counters cleared"
+        response.message = (
+            "loop closure cancelled; map, trajectory and counters cleared before the next "
+            "frame is mapped"
+            if deferred
+            else "map, trajectory and counters cleared"
+        )
         return response
 
     def _on_close_loops(self, request: Any, response: Any) -> Any:
         with self._slot_lock:
             state, frames = self._loop_state, len(self.mapper.poses_odom)
-            if state == "off":
+            if self._reset_pending:
+                response.success = False
+                response.message = "a ~/reset is clearing the map: nothing to close yet"
+            elif state == "off":
                 response.success = False
                 response.message = (
                     "loop closure is off ("
@@ -637,6 +675,8 @@ class MapperNode(Node):  # type: ignore[misc]
             if self._lock.acquire(timeout=5.0):
                 try:  # the frame taken last is mapped, so that the map saved below has it
                     if not self._worker.is_alive():
+                        if self._reset_pending:  # answered: the map it cleared is not saved
+                            self._clear_map()  # (the worker is gone: no _slot_lock after _lock)
                         self._report(self._pipe.flush())
                 finally:
                     self._lock.release()
