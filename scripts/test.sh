@@ -10,4 +10,4 @@ export ROS_DOMAIN_ID=$(( (RANDOM % 100) + 1 ))
 echo "test: ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE ROS_LOG_DIR=$ROS_LOG_DIR"
 ruff check src test bench conftest.py
 ruff format --check src test bench conftest.py
-python -m pytest -p no:dash -p no:cacheprovider "$@"
+python -m pytest -p no:dash -p no:cacheprovider --durations=15 "$@"  # the slowest, to keep the suite short

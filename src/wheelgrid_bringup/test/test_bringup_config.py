@@ -161,7 +161,7 @@ def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, ca
         ("- mapper\n", "expected a mapping of node name"),
     ):
         bad.write_text(text)
-        with pytest.raises(ValueError, match="") as info:
+        with pytest.raises(ValueError) as info:
             check_params_file(bad)
         assert says in str(info.value), (text, str(info.value))
     assert launch_main(["--params", str(bad), "--no-drive", "--duration", "1"]) == 2
