@@ -529,10 +529,12 @@ def test_reset_during_a_loop_closure_answers_at_once_and_clears_before_the_next_
         caller.start()
         caller.join(10.0)
         waited = caller.is_alive()
+        meanwhile = node._loop_note  # what /wheelgrid/mapper_status says until it lets go
         release.set()
         caller.join(30.0)
         assert not waited, "~/reset waited for the solve: the executor ran nothing meanwhile"
         assert got["r"].success and "cleared before the next frame" in got["r"].message
+        assert meanwhile.startswith("cancelled by ~/reset"), meanwhile
         refused = node._on_close_loops(Trigger.Request(), Trigger.Response())
         assert node.counts["received"] == 0
         # a frame that comes after the answer is mapped into the new map, not dropped as

@@ -395,9 +395,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self.get_logger().info(f"closing loops over {frames} frames ...")
 
         def progress(done: int, total: int) -> None:
-            self._loop_note = f"{done}/{total} submaps"
             if self._loop_cancel:
                 raise _CancelledError
+            self._loop_note = f"{done}/{total} submaps"
 
         # The outcome is set while the map is still held: a ~/reset waiting for it then finds
         # it and overrides it, never the other way round.
@@ -599,6 +599,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 # soon as it lets go, before it maps any frame that comes after this answer.
                 self._clear_intake()
                 self._reset_pending = True
+                self._loop_note = "cancelled by ~/reset: the map is cleared once it lets go"
                 self._slot_lock.notify()
                 deferred = True
             else:
