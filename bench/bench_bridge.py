@@ -6,8 +6,8 @@ time into an ``iphone_bridge`` process and counts frames sent (TCP), published (
 the bridge's CPU use and the bridge-receive -> subscriber latency of /iphone/points.
 
 Baseline (same process, same frames): the bridge with Fast DDS's default transports
-(``WHEELGRID_FASTDDS_PROFILE=0``), i.e. without the large shared-memory profile the bridge
-applies by default. Ratio = figure / baseline.
+(``WHEELGRID_FASTDDS_PROFILE=0``), i.e. without the large shared-memory profile every wheelgrid
+process applies by default (wheelgrid_common/fastdds_loopback.xml). Ratio = figure / baseline.
 
     python bench/bench_bridge.py [--quick] [--json FILE]
 """

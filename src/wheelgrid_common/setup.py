@@ -6,6 +6,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={PACKAGE: ["fastdds_loopback.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/wheelgrid_common"]),
         ("share/wheelgrid_common", ["package.xml"]),

@@ -107,3 +107,76 @@ def test_call_service_asks_again_and_keeps_the_slow_first_answer():
             ex.shutdown()
             node.destroy_node()
             server.destroy_node()
+
+
+def test_the_fastdds_profile_is_used_only_where_nothing_else_was_chosen(monkeypatch):
+    """Every wheelgrid process runs Fast DDS with a 16 MB shared-memory segment and UDP on
+    127.0.0.1 (only the bridge did: a bag player's 786 kB clouds went out as UDP fragments,
+    and on a loaded machine more than half of them never arrived, bench/bench_transport.py);
+    never over a choice the user made, nor where /dev/shm cannot hold the segments."""
+    import shutil
+    from collections import namedtuple
+
+    from wheelgrid_common import ros_env
+
+    base = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+    roomy = namedtuple("usage", "total used free")(2**34, 0, 2**34)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: roomy)
+    assert ros_env.fastdds_profile(base) == ros_env.FASTDDS_PROFILE
+    assert ros_env.FASTDDS_PROFILE.is_file()
+    for chosen in (
+        {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"},
+        {"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"},
+        {"WHEELGRID_FASTDDS_PROFILE": "0"},
+        {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"},
+        {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"},  # a remote RViz must stay reachable
+        {"ROS_STATIC_PEERS": "192.168.1.7"},
+    ):
+        assert ros_env.fastdds_profile({**base, **chosen}) is None, chosen
+    env = dict(base, ROS_LOG_DIR="/tmp/wheelgrid-test-profile-log")
+    assert ros_env.configure_ros_env(env)["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(
+        ros_env.FASTDDS_PROFILE
+    )
+    small = namedtuple("usage", "total used free")(2**26, 0, 2**26)  # a container's 64 MB
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: small)
+    assert ros_env.fastdds_profile(base) is None
+
+
+def test_a_process_started_with_the_profile_gets_the_large_shared_memory_segment():
+    """Fast DDS reads a profile it cannot parse as no profile at all, silently: the segment
+    it makes is what shows the file took effect."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from wheelgrid_common.ros_env import FASTDDS_PROFILE, child_env, fastdds_profile
+
+    env = child_env()
+    if env.get("FASTRTPS_DEFAULT_PROFILES_FILE") == str(FASTDDS_PROFILE):
+        del env["FASTRTPS_DEFAULT_PROFILES_FILE"]  # ours, set by configure_ros_env
+    if fastdds_profile(env) is None:
+        pytest.skip("no Fast DDS profile here (another RMW, a user's profile, or a small /dev/shm)")
+    shm = Path("/dev/shm")
+    code = (
+        "from wheelgrid_common.ros_env import configure_ros_env; configure_ros_env()\n"
+        "import rclpy, sys; from rclpy.node import Node; from std_msgs.msg import Bool\n"
+        "rclpy.init(); n = Node('profile_probe'); n.create_publisher(Bool, '/probe', 1)\n"
+        "print('up', flush=True); sys.stdin.readline()\n"
+    )
+
+    def new_segments(switch: str) -> list[int]:
+        before = set(shm.iterdir())
+        env = child_env(WHEELGRID_FASTDDS_PROFILE=switch)
+        env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code], env=env, stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
+            return [p.stat().st_size for p in set(shm.iterdir()) - before if p.is_file()]
+        finally:
+            proc.communicate("\n", timeout=30)
+
+    assert max(new_segments("1"), default=0) >= 16 * 1024 * 1024
+    assert max(new_segments("0"), default=0) < 16 * 1024 * 1024

@@ -1,16 +1,19 @@
 """Running ROS 2 safely from pip wheels, and the same code under a full apt install.
 
 Every process that starts rclpy goes through :func:`configure_ros_env` first, so DDS discovery
-stays on this machine unless the user explicitly chose otherwise, and rclpy has a log folder
-even where ``HOME`` is unset (it refuses to start without one).
+stays on this machine unless the user explicitly chose otherwise, large messages (a whole
+iPhone cloud) go through shared memory instead of UDP fragments that a loaded machine drops,
+and rclpy has a log folder even where ``HOME`` is unset (it refuses to start without one).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, Mapping, MutableMapping
 from importlib.util import find_spec
+from pathlib import Path
 from typing import Any
 
 
@@ -29,7 +32,40 @@ def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMap
         env["ROS_LOG_DIR"] = base
     os.makedirs(env["ROS_LOG_DIR"], exist_ok=True)
     env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    profile = fastdds_profile(env)
+    if profile is not None:
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(profile)
     return env
+
+
+#: Fast DDS transports for this machine only: shared memory that holds a whole iPhone cloud,
+#: UDP on 127.0.0.1 (see the file for what it was measured to change).
+FASTDDS_PROFILE = Path(__file__).with_name("fastdds_loopback.xml")
+#: ``WHEELGRID_FASTDDS_PROFILE=0`` runs Fast DDS with its own default transports.
+PROFILE_SWITCH_ENV = "WHEELGRID_FASTDDS_PROFILE"
+#: /dev/shm must have this much free for the profile (16 MB segments, one per participant).
+SHM_FREE_NEEDED = 256 * 1024 * 1024
+
+
+def fastdds_profile(env: Mapping[str, str]) -> Path | None:
+    """The profile to run Fast DDS with, or None where it must not be used: another RMW, a
+    profile the user set, discovery beyond this machine (a remote RViz would be cut off by a
+    loopback-only UDP), or a /dev/shm too small for the segments (a container's 64 MB default):
+    Fast DDS's own transports then, as without wheelgrid."""
+    if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
+        return None
+    if env.get("FASTRTPS_DEFAULT_PROFILES_FILE") or env.get("FASTDDS_DEFAULT_PROFILES_FILE"):
+        return None
+    if env.get(PROFILE_SWITCH_ENV, "1") == "0":  # the benchmarks' baseline: Fast DDS defaults
+        return None
+    if env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") != "LOCALHOST" or env.get("ROS_STATIC_PEERS"):
+        return None
+    try:
+        if shutil.disk_usage("/dev/shm").free < SHM_FREE_NEEDED:
+            return None
+    except OSError:
+        return None
+    return FASTDDS_PROFILE if FASTDDS_PROFILE.is_file() else None
 
 
 def child_env(domain_id: int | None = None, **extra: str) -> dict[str, str]:

@@ -168,9 +168,9 @@ def _make_node() -> Any:
 
 def main() -> None:
     from wheelgrid_common.ros_env import spin_node
-    from wheelgrid_mapping.iphone_bridge_node import use_large_shm_profile
 
-    use_large_shm_profile()  # organised clouds exceed Fast DDS's default 512 KB SHM segment
+    # organised clouds exceed Fast DDS's default 512 KB SHM segment: spin_node's
+    # configure_ros_env gives every wheelgrid process a 16 MB one
     sys.exit(spin_node(_make_node))
 
 

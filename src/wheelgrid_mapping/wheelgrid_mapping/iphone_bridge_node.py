@@ -351,72 +351,12 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
     return IPhoneBridgeNode()
 
 
-# Fast DDS's default shared-memory segment is 512 KB: an organised iPhone cloud (590 KB) does
-# not fit, falls back to UDP fragments, and at 60 Hz best-effort loses up to half the frames
-# (measured: 48 of 90 clouds arrived). A 16 MB segment delivers all of them. UDP stays bound to
-# 127.0.0.1, so nothing leaves the machine (the suite's default discovery range is LOCALHOST).
-SHM_PROFILE_XML = """<?xml version="1.0" encoding="UTF-8"?>
-<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <profiles>
-    <transport_descriptors>
-      <transport_descriptor>
-        <transport_id>wheelgrid_shm</transport_id>
-        <type>SHM</type>
-        <segment_size>16777216</segment_size>
-      </transport_descriptor>
-      <transport_descriptor>
-        <transport_id>wheelgrid_udp_lo</transport_id>
-        <type>UDPv4</type>
-        <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
-      </transport_descriptor>
-    </transport_descriptors>
-    <participant profile_name="wheelgrid_large_shm" is_default_profile="true">
-      <rtps>
-        <userTransports>
-          <transport_id>wheelgrid_shm</transport_id>
-          <transport_id>wheelgrid_udp_lo</transport_id>
-        </userTransports>
-        <useBuiltinTransports>false</useBuiltinTransports>
-      </rtps>
-    </participant>
-  </profiles>
-</dds>
-"""
-PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
-PROFILE_SWITCH_ENV = "WHEELGRID_FASTDDS_PROFILE"
-
-
-def use_large_shm_profile(env: dict[str, str] | None = None) -> str | None:
-    """Point Fast DDS at a large-SHM, loopback-only profile unless the user chose otherwise.
-
-    Skipped when a profile is already set, when ``WHEELGRID_FASTDDS_PROFILE=0``, for another
-    RMW, or when discovery is not LOCALHOST (the user wants other machines: a loopback-only
-    UDP transport would cut them off). Must run before ``rclpy.init``. Returns the file used.
-    """
-    from wheelgrid_common.ros_env import configure_ros_env
-
-    e: Any = os.environ if env is None else env
-    configure_ros_env(e)
-    if (
-        e.get(PROFILE_ENV)
-        or e.get(PROFILE_SWITCH_ENV, "1") == "0"
-        or e.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp"
-        or e.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST") != "LOCALHOST"
-    ):
-        return None
-    path = os.path.join(e["ROS_LOG_DIR"], "wheelgrid_fastdds_large_shm.xml")
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "w") as fh:
-        fh.write(SHM_PROFILE_XML)
-    os.replace(tmp, path)
-    e[PROFILE_ENV] = path
-    return path
-
-
 def main() -> None:
     from wheelgrid_common.ros_env import spin_node
 
-    use_large_shm_profile()
+    # spin_node's configure_ros_env gives it the large shared-memory profile
+    # (wheelgrid_common/fastdds_loopback.xml): an organised cloud exceeds Fast DDS's default
+    # 512 KB segment, and best-effort UDP fragments lose up to half of them
     sys.exit(spin_node(_make_node))
 
 
