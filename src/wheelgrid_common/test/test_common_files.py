@@ -241,3 +241,67 @@ def test_a_binary_file_given_as_a_yaml_is_one_clear_error(tmp_path):
     write_ply(tmp_path / "map.ply", np.ones((10, 3)) * np.pi)
     with pytest.raises(ValueError, match=r"map\.ply: not a YAML file"):
         read_map(tmp_path / "map.ply")
+
+
+def _png(path, pixels, mode=None):
+    from PIL import Image
+
+    Image.fromarray(np.asarray(pixels), mode).save(path)
+
+
+_NAV2_HEAD = "resolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\n"
+
+
+def test_colour_and_16_bit_images_read_as_nav2_map_server_reads_them(tmp_path):
+    """map_server averages R, G and B and scales any bit depth: PIL's convert("L") weighted
+    the channels (yellow, unknown for Nav2, read as free) and clipped 16-bit samples (map_saver's
+    unknown gray 205 read as white, i.e. free)."""
+    _png(tmp_path / "c.png", np.array([[[255, 255, 0], [0, 255, 0], [254, 254, 254]]], np.uint8))
+    (tmp_path / "c.yaml").write_text(
+        "image: c.png\nmode: trinary\n" + _NAV2_HEAD + "occupied_thresh: 0.65\nfree_thresh: 0.25\n"
+    )
+    # yellow: mean 170, occupancy 0.333 -> unknown; green: mean 85, 0.667 -> occupied
+    assert read_map(tmp_path / "c.yaml").data.tolist() == [[-1, 100, 0]]
+    _png(tmp_path / "d.png", np.array([[205 * 257, 254 * 257, 0]], np.uint16))
+    (tmp_path / "d.yaml").write_text("image: d.png\n" + _NAV2_HEAD)
+    assert read_map(tmp_path / "d.yaml").data.tolist() == [[-1, 0, 100]]
+
+
+def test_transparent_pixels_read_as_nav2_map_server_reads_them(tmp_path):
+    """Nav2's map_saver writes scale mode's unknown cells as transparent gray (0.5): map_server
+    reads any pixel that is not opaque as unknown there, and in trinary mode averages the
+    alpha in with R, G and B. With alpha dropped the gray read as a cost of 61, or as free
+    under a free_thresh above 0.498; a transparent white read as free."""
+    scale = np.array(
+        [[[128, 128, 128, 0], [255, 255, 255, 255], [0, 0, 0, 255], [153, 153, 153, 255]]],
+        np.uint8,
+    )
+    _png(tmp_path / "s.png", scale)
+    thresholds = "occupied_thresh: 0.65\nfree_thresh: 0.25\n"
+    (tmp_path / "s.yaml").write_text("image: s.png\nmode: scale\n" + _NAV2_HEAD + thresholds)
+    # map_saver's cell 40 is gray 0.6 = 153: occupancy 0.4, rint(100 * 0.15 / 0.4) = 38
+    assert read_map(tmp_path / "s.yaml").data.tolist() == [[-1, 0, 100, 38]]
+    (tmp_path / "s2.yaml").write_text(
+        "image: s.png\nmode: scale\n" + _NAV2_HEAD + "occupied_thresh: 0.65\nfree_thresh: 0.55\n"
+    )
+    assert read_map(tmp_path / "s2.yaml").data[0, 0] == -1
+    _png(tmp_path / "t.png", np.array([[[255, 255, 255, 0], [254, 254, 254, 255]]], np.uint8))
+    (tmp_path / "t.yaml").write_text("image: t.png\nmode: trinary\n" + _NAV2_HEAD + thresholds)
+    # (255 * 3 + 0) / 4 = 191.25: occupancy 0.25, not below free_thresh -> unknown
+    assert read_map(tmp_path / "t.yaml").data.tolist() == [[-1, 0]]
+
+
+def test_raw_mode_reads_values_as_nav2_map_server_does(tmp_path):
+    """map_server's raw mode takes the pixel value as the cell's, rounded, and ignores negate:
+    negated here, a raw unknown (255) read as free (0)."""
+    (tmp_path / "r.pgm").write_bytes(b"P2\n4 1\n255\n0 100 255 101\n")
+    (tmp_path / "r.yaml").write_text(
+        "image: r.pgm\nmode: raw\nresolution: 0.05\norigin: [0, 0, 0]\nnegate: 1\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.25\n"
+    )
+    assert read_map(tmp_path / "r.yaml").data.tolist() == [[0, 100, -1, -1]]
+    (tmp_path / "r16.pgm").write_bytes(b"P2\n2 1\n65535\n25800 25600\n")  # 100.39 and 99.61
+    (tmp_path / "r16.yaml").write_text(
+        (tmp_path / "r.yaml").read_text().replace("r.pgm", "r16.pgm")
+    )
+    assert read_map(tmp_path / "r16.yaml").data.tolist() == [[100, 100]]

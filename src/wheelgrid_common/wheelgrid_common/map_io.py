@@ -155,6 +155,30 @@ def read_pgm(path: str | Path) -> np.ndarray:
     return img * (255.0 / maxval)
 
 
+def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """A non-PGM map image as nav2_map_server's GraphicsMagick sees it: the plain mean of R, G
+    and B scaled to 0..255 whatever the bit depth, and the alpha (0..255, 255 = opaque) where
+    the image has one, else None.
+
+    PIL's ``convert("L")`` weighted the channels (a yellow pixel, unknown for map_server, read
+    as free), clipped 16-bit samples at 255 (map_saver's unknown gray read as white: free) and
+    dropped the alpha (map_saver's scale mode writes unknown cells transparent)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode.startswith("I;16"):
+                return np.asarray(im, dtype=np.float64) * (255.0 / 65535.0), None
+            if im.mode in ("I", "F"):  # 32-bit samples: no scale map_server would agree on
+                raise ValueError(f"{path}: {im.mode} (32-bit) images are not read as maps")
+            has_alpha = im.has_transparency_data
+            rgba = np.asarray(im.convert("RGBA"), dtype=np.float64)
+    except UnidentifiedImageError as exc:
+        raise ValueError(f"{path}: not an image ({exc})") from exc
+    return rgba[..., :3].mean(axis=2), rgba[..., 3] if has_alpha else None
+
+
 def _is_finite_number(value: Any) -> bool:
     """A YAML int or float that is finite (YAML's true/false are not numbers here)."""
     return not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
@@ -209,28 +233,27 @@ def read_map(yaml_path: str | Path) -> Grid:
     image_path = Path(doc["image"])
     if not image_path.is_absolute():
         image_path = yaml_path.parent / image_path
+    alpha: np.ndarray | None = None
     if image_path.suffix.lower() == ".pgm":
         img = read_pgm(image_path)
     else:
-        from PIL import Image, UnidentifiedImageError
-
-        try:
-            with Image.open(image_path) as im:
-                img = np.asarray(im.convert("L"), dtype=np.float64)
-        except UnidentifiedImageError as exc:
-            raise ValueError(f"{image_path}: not an image ({exc})") from exc
+        img, alpha = read_image(image_path)
     if mode == "raw":
-        value = 255.0 - img if negate else img
+        # map_server: round(shade * 255) is the cell's value; negate plays no part in raw mode
+        value = np.rint(img)
         data = np.where((value >= 0) & (value <= 100), value, UNKNOWN).astype(np.int8)
     else:
-        shade = img / 255.0
+        # map_server averages the alpha in with R, G and B in trinary mode (transparent darkens)
+        shade = (img if alpha is None or mode != "trinary" else (3.0 * img + alpha) / 4.0) / 255.0
         occ = shade if negate else 1.0 - shade
         data = np.full(img.shape, UNKNOWN, dtype=np.int8)
         data[occ > occ_t] = OCCUPIED
         data[occ < free_t] = FREE
         if mode == "scale":
             mid = (occ >= free_t) & (occ <= occ_t)
-            data[mid] = np.rint(99.0 * (occ[mid] - free_t) / (occ_t - free_t)).astype(np.int8)
+            data[mid] = np.rint(100.0 * (occ[mid] - free_t) / (occ_t - free_t)).astype(np.int8)
+            if alpha is not None:  # map_saver's scale mode writes unknown as transparent
+                data[alpha < 255.0] = UNKNOWN
         else:
             gray = 255.0 - PIX_UNKNOWN if negate else PIX_UNKNOWN
             data[np.rint(img) == gray] = UNKNOWN
