@@ -621,3 +621,46 @@ def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
             stamp = min(sent, key=lambda s: abs(s - _sec(p.header.stamp)))
             assert abs(stamp - _sec(p.header.stamp)) < 1e-6
             assert p.child_frame_id == sent[stamp], (stamp, p.child_frame_id, sent[stamp])
+
+
+def test_each_pose_carries_its_clouds_exact_stamp(tmp_path: Path) -> None:
+    """The pose (and its /tf) went out stamped with the cloud's stamp after a round trip
+    through a float: at epoch times (1.7e9 s) that is some 100 ns off, so the map -> sensor
+    transform of a cloud never had the cloud's own stamp (a tf lookup at the cloud's time
+    extrapolated into the future; an exact-time sync never paired them)."""
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    sent = bag_cloud_odometry(BAG, 4)
+    with rclpy_context() as ctx:
+        params = [
+            Parameter("output_dir", value=str(tmp_path)),
+            Parameter("save_on_exit", value=False),
+            Parameter("topic", value="/stamp_test/points"),
+            Parameter("pose_prior_topic", value="/stamp_test/odometry"),
+            Parameter("max_queue", value=100),
+        ]
+        node = MapperNode(context=ctx, parameter_overrides=params)
+        published: list = []
+        node.odom_pub = SimpleNamespace(publish=published.append)
+        try:
+            for msg, odom in sent:
+                node._on_prior(odom)
+                node._on_cloud(msg)
+
+            def settled() -> bool:
+                with node._slot_lock:
+                    return not node._queue and not node._pipe.pending
+
+            assert poll_until(settled, 60.0, 0.05), "the mapper did not settle"
+        finally:
+            node.close()
+            node.destroy_node()
+    assert len(published) >= 2, len(published)
+    stamps = {(m.header.stamp.sec, m.header.stamp.nanosec) for m, _ in sent}
+    for pose in published:
+        got = (pose.header.stamp.sec, pose.header.stamp.nanosec)
+        assert got in stamps, (got, sorted(stamps))

@@ -143,7 +143,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._pipe = FramePipeline(self.mapper, cfg.prepare_ahead)
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()
-        self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None]] = deque()
+        self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None, Any]] = deque()
         self._stop = False
         self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
@@ -160,9 +160,10 @@ class MapperNode(Node):  # type: ignore[misc]
         # soon as the closure lets go of it, before it maps any frame
         self._reset_pending = False
         self._sensor_frame = DEFAULT_FRAME_ID
-        # each frame's own frame_id until its outcome is reported: frames are filtered one
-        # ahead, so the frame just taken may not be the one whose pose comes out next
-        self._frame_ids: dict[float, str] = {}
+        # each frame's own frame_id and header stamp until its outcome is reported: frames are
+        # filtered one ahead, so the frame just taken may not be the one whose pose comes out
+        # next. The stamp goes out as received: a float of epoch seconds is ~100 ns off.
+        self._frame_ids: dict[float, tuple[str, Any]] = {}
 
         self.map_pub = self.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
         self.odom_pub = self.create_publisher(Odometry, "/wheelgrid/odometry", SENSOR_QOS)
@@ -262,7 +263,7 @@ class MapperNode(Node):  # type: ignore[misc]
             return
         if msg.is_bigendian:
             self._log_once("bigendian", "big-endian PointCloud2 converted to host order", False)
-        frame = (pts, _stamp_seconds(msg.header.stamp), msg.header.frame_id, conf)
+        frame = (pts, _stamp_seconds(msg.header.stamp), msg.header.frame_id, conf, msg.header.stamp)
         with self._slot_lock:
             if len(self._queue) >= self.max_queue:
                 self._queue.popleft()
@@ -328,7 +329,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     done = self._pipe.flush() if generation == self._generation else []
                 self._report(done)
                 continue
-            pts, stamp, frame_id, conf = frame
+            pts, stamp, frame_id, conf, header_stamp = frame
             if frame_id:
                 self._sensor_frame = frame_id
             prior = self._prior_for(stamp)
@@ -346,7 +347,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     self.counts["skipped_busy"] += 1
                     continue
                 # this frame goes to the second process; the one before it to the map
-                self._frame_ids[stamp] = frame_id or self._sensor_frame
+                self._frame_ids[stamp] = (frame_id or self._sensor_frame, header_stamp)
                 done = self._pipe.push(pts, stamp, frame_id, conf, prior)
             self._report(done)
 
@@ -354,7 +355,7 @@ class MapperNode(Node):  # type: ignore[misc]
         """Logs, the pose and the map's state for frames just added (never raises: a bad frame
         must never kill the mapper)."""
         for stamp, out in done:
-            frame_id = self._frame_ids.pop(stamp, self._sensor_frame)
+            frame_id, header_stamp = self._frame_ids.pop(stamp, (self._sensor_frame, None))
             if out.status == "error":
                 self.get_logger().error(f"frame at {stamp:.3f} s failed: {out.reason}")
             elif out.status == "failed":
@@ -369,7 +370,7 @@ class MapperNode(Node):  # type: ignore[misc]
             if out.status == "used":
                 self._map_dirty = True
                 if out.pose_map is not None:
-                    self._publish_pose(out.pose_map, stamp, frame_id)
+                    self._publish_pose(out.pose_map, stamp, frame_id, header_stamp)
                 self._bound_kept_frames()
 
     def _bound_kept_frames(self) -> None:
@@ -435,13 +436,20 @@ class MapperNode(Node):  # type: ignore[misc]
             return False  # shut down between the check and the publish
         return True
 
-    def _publish_pose(self, T: np.ndarray, stamp: float, frame_id: str) -> None:
+    def _publish_pose(
+        self, T: np.ndarray, stamp: float, frame_id: str, header_stamp: Any = None
+    ) -> None:
+        """The pose of the frame stamped ``header_stamp`` (its cloud's own stamp, exactly:
+        tf lookups and exact-time syncs at the cloud's stamp need it), else from ``stamp``."""
         from nav_msgs.msg import Odometry
 
         msg = Odometry()
         msg.header.frame_id = self.map_frame
-        msg.header.stamp.sec = int(stamp)
-        msg.header.stamp.nanosec = round((stamp - int(stamp)) * 1e9) % 1_000_000_000
+        if header_stamp is not None:
+            msg.header.stamp = header_stamp
+        else:
+            ns = round(stamp * 1e9)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 1_000_000_000)
         msg.child_frame_id = frame_id
         qx, qy, qz, qw = matrix_to_quat(T[:3, :3])
         msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (
