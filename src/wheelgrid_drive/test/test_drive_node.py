@@ -742,3 +742,18 @@ def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
             h.pub_twist.publish(fast)
             h.spin(lambda: False, 0.1)
         assert sim_moves(sim) == []  # inf drove five cells at full speed
+
+
+def test_the_chairs_pose_is_in_the_frame_of_its_grid(make_sim):
+    """The controller's pose is a place on the safe grid (set from its cell centres, checked
+    against them), but /wheelgrid/chair_pose always said "map": with the mapper's map_frame
+    set otherwise the planner ignored every pose (another frame) and RViz could not place it."""
+    sim = make_sim()
+    grid = free_grid()
+    grid.frame_id = "world"
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        assert h.matched()
+        assert h.give_grid(grid)
+        h.poses.clear()
+        assert h.spin(lambda: len(h.poses) >= 2, 5.0)
+        assert {p.header.frame_id for p in h.poses} == {"world"}

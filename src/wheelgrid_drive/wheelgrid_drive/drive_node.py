@@ -334,9 +334,13 @@ class DriveNode(Node):
         self._publish(self.pub_state, msg)
 
     def _on_status(self, st: proto.Status) -> None:
+        """The controller's pose, in the frame of the grid it is a place on: the plan's cells
+        set and check it there (a fixed "map" was ignored by the planner, and misplaced in
+        RViz, whenever the map frame has another name)."""
+        grid = self._job_grid or self._grid
         msg = PoseStamped()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = "map"
+        msg.header.frame_id = grid.frame_id if grid is not None else "map"
         msg.pose.position.x, msg.pose.position.y = float(st.x), float(st.y)
         msg.pose.orientation.z = math.sin(st.yaw / 2.0)
         msg.pose.orientation.w = math.cos(st.yaw / 2.0)
