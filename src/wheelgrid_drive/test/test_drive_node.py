@@ -757,3 +757,50 @@ def test_the_chairs_pose_is_in_the_frame_of_its_grid(make_sim):
         h.poses.clear()
         assert h.spin(lambda: len(h.poses) >= 2, 5.0)
         assert {p.header.frame_id for p in h.poses} == {"world"}
+
+
+def test_the_cmd_vel_watchdog_runs_on_steady_time_under_use_sim_time(make_sim):
+    """With ``use_sim_time`` (a ``/**`` section of a Nav2 simulation's params file) the
+    watchdog's timers ran on /clock: a bag or simulator paused or gone while a /cmd_vel step
+    drove stopped them, and the chair drove on to the end of the step with no /cmd_vel."""
+    from rosgraph_msgs.msg import Clock
+
+    grid = free_grid()
+    x, y = grid.cell_center(3, 3)
+    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))
+    import rclpy
+    from rclpy.context import Context
+
+    ctx = Context()  # a params file's ``/**`` reaches the e-stop node too: a global -p does
+    rclpy.init(context=ctx, args=["--ros-args", "-p", "use_sim_time:=true"])
+    with contextlib.ExitStack() as stack:
+        stack.callback(lambda: ctx.ok() and rclpy.shutdown(context=ctx))
+        h = stack.enter_context(Harness(ctx, sim.slave_path))
+        assert h.drive.get_parameter("use_sim_time").value
+        clock_pub = h.node.create_publisher(Clock, "/clock", 10)
+        start = time.monotonic()
+
+        def tick_clock(seconds):  # sim time runs with the wall clock
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                t = 100.0 + time.monotonic() - start
+                clock_pub.publish(Clock(clock=Time(sec=int(t), nanosec=int(t % 1 * 1e9))))
+                h.spin(lambda: False, 0.02)
+
+        from builtin_interfaces.msg import Time
+
+        assert h.matched()
+        h.give_grid(grid)
+        tick_clock(0.5)
+        tw = h.Twist()
+        tw.linear.x = 0.8
+        h.pub_twist.publish(tw)
+        end = time.monotonic() + 3.0
+        while sim.state == proto.State.IDLE and time.monotonic() < end:
+            tick_clock(0.05)
+        assert sim.state != proto.State.IDLE  # a 1.2 m step: ~1.5 s
+        t_paused = time.monotonic()
+        h.spin(lambda: sim.state == proto.State.IDLE, 3.0)  # /clock paused, no /cmd_vel
+        stop = next((e for e in sim.events if e.what == "stop" and e.t > t_paused), None)
+        assert stop is not None, [e.what for e in sim.events]
+        assert sim.result == proto.Result.STOPPED and sim.x < x + 1.2 - 0.1

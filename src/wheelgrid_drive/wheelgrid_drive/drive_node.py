@@ -31,6 +31,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Path
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Bool, String
@@ -215,7 +216,11 @@ class DriveNode(Node):
             except LinkError as exc:
                 self._set_state(ERROR, f"{exc}; retrying")
             self.link.start_heartbeat()  # also reconnects a port that is not there yet
-        self.create_timer(0.05, self._cmd_vel_tick)
+        # The /cmd_vel watchdog measures staleness on the monotonic clock, and its timers run
+        # on steady time too: on the node's clock, use_sim_time (a Nav2 simulation's ``/**``)
+        # stopped them whenever /clock paused, and a step drove on with no /cmd_vel.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(0.05, self._cmd_vel_tick, clock=steady)
         self.create_timer(1.0 / max(c.state_rate, 0.1), self._publish_state)
 
         # A launcher names its node with a global ``-r __node:=drive``, which renames every
@@ -240,7 +245,7 @@ class DriveNode(Node):
         self._estop_node.create_subscription(
             Bool, "/wheelgrid/estop", self._on_estop_best_effort, SENSOR_QOS
         )
-        self._estop_node.create_timer(0.05, self._cmd_vel_guard)
+        self._estop_node.create_timer(0.05, self._cmd_vel_guard, clock=steady)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
         self._estop_executor.add_node(self._estop_node)
         self._estop_thread = threading.Thread(
