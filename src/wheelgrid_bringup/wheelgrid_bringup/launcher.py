@@ -27,7 +27,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--params", type=Path, help="parameter YAML (default: bringup wheelgrid.yaml)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--bag", type=Path, help="rosbag2 folder or .bag to replay into the mapper")
+    src.add_argument(
+        "--bag",
+        type=Path,
+        help="rosbag2 folder to replay into the mapper (a ROS 1 .bag: rosbags-convert it first)",
+    )
     src.add_argument("--iphone", action="store_true", help="start the iPhone bridge node")
     p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1.0)")
     p.add_argument("--topic", action="append", help="replay only these topics (repeatable)")

@@ -16,7 +16,7 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from wheelgrid_common.bagio import BagReader
+from wheelgrid_common.bagio import BagError, BagReader
 
 REPLAY_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -49,8 +49,24 @@ class BagPlayer:
         self.done = threading.Event()
         self._stop = threading.Event()
         with BagReader(self.bag) as reader:
+            if not reader.reader.is2:
+                # Its bytes are ROS 1 serialisation (no CDR header, Header.seq): published as
+                # they are, every ROS 2 subscriber failed to read them, or misread them.
+                raise BagError(
+                    f"{self.bag}: a ROS 1 bag, whose messages ROS 2 nodes cannot read as they "
+                    f"are: convert it first (`rosbags-convert --src {self.bag} --dst NEW_BAG`) "
+                    "and replay NEW_BAG; `wheelgrid map` reads it as it is"
+                )
             infos = reader.topics()
             wanted = set(topics) if topics else {t.name for t in infos}
+            absent = sorted(wanted - {t.name for t in infos})
+            if absent:
+                # a misspelt --topic replayed nothing of it, without a word
+                listing = ", ".join(f"{t.name} ({t.msgtype})" for t in infos) or "none"
+                raise BagError(
+                    f"{self.bag}: no topic {', '.join(map(repr, absent))} to replay; "
+                    f"topics: {listing}"
+                )
             self.topics = [t for t in infos if t.name in wanted]
             self.total = sum(t.count for t in self.topics)
         self._pubs = {
