@@ -118,14 +118,50 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
     return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
 
 
+class PriorMatch:
+    """Which frames found no odometry message within 0.1 s of their stamp (``--prior arkit``
+    on a bag): such a frame registers without a prior, and when that is every frame (clouds
+    and odometry stamped on different clocks) the map was made geometry-only, without a word."""
+
+    def __init__(self, odom_stamps: np.ndarray) -> None:
+        self.odom_stamps = odom_stamps
+        self.frames = 0  # readable frames the prior was looked up for
+        self.missing: list[float] = []  # their stamps where none was found
+
+    def warning(self) -> str:
+        """One line for stderr, or '' when every frame found its prior."""
+        if not self.missing:
+            return ""
+        line = (
+            f"{len(self.missing)} of {self.frames} frames had no odometry message within 0.1 s "
+            "of their stamp and registered without a prior"
+        )
+        if len(self.missing) == self.frames and self.frames:
+            odom = (
+                f"{self.odom_stamps.min():.3f} .. {self.odom_stamps.max():.3f} s"
+                if self.odom_stamps.size
+                else "none"
+            )
+            line += (
+                f" (frames stamped {min(self.missing):.3f} .. {max(self.missing):.3f} s, the "
+                f"odometry {odom}: is one on another clock?)"
+            )
+        return line
+
+
 def bag_frames(
-    path: Path, topic: str | None, prior: bool = False, prior_topic: str | None = None
+    path: Path,
+    topic: str | None,
+    prior: bool = False,
+    prior_topic: str | None = None,
+    match: list[PriorMatch] | None = None,
 ) -> tuple[int, Iterator[Frame], list[str]]:
     """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause.
 
     With ``prior`` the nav_msgs/Odometry topic ``prior_topic``, or the bag's only one (the
     bridge's /iphone/odometry, i.e. ARKit), gives each frame a pose prior: the odometry message
-    nearest in time (<= 0.1 s).
+    nearest in time (<= 0.1 s). ``match`` receives the :class:`PriorMatch` that counts the
+    frames without one.
     """
     from wheelgrid_common.bagio import BagError, BagReader
     from wheelgrid_common.pointcloud2 import CloudError, has_field, organised, read_fields
@@ -145,6 +181,8 @@ def bag_frames(
                 # user whose bag did not open that the bag lacked an Odometry topic
                 raise BagError(f"{exc} (--prior arkit needs one nav_msgs/Odometry topic)") from exc
             prior_stamps, prior_poses = _odometry_poses(reader, odom)
+            if match is not None:
+                match.append(PriorMatch(prior_stamps))
         elif any(t.msgtype == ODOMETRY for t in reader.topics()):
             print(
                 "wheelgrid map: hint: the bag has a nav_msgs/Odometry topic; --prior arkit uses "
@@ -191,8 +229,13 @@ def bag_frames(
                     continue
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
+                pose = prior_for(stamp)
+                if prior and match:
+                    match[0].frames += 1
+                    if pose is None:
+                        match[0].missing.append(stamp)
                 # the pixel grid, for the mixed-pixel test
-                yield organised(pts, msg), stamp, msg.header.frame_id, conf, prior_for(stamp)
+                yield organised(pts, msg), stamp, msg.header.frame_id, conf, pose
         except BagError as exc:
             raise InputError(str(exc)) from exc
         finally:
@@ -340,12 +383,15 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError("--prior-topic names the prior's topic: give --prior arkit too")
     path: Path = args.input
     bad: list[str] = []
+    match: list[PriorMatch] = []
     if is_stray(path):
         if args.topic or args.prior_topic:
             raise InputError("--topic and --prior-topic apply to bags, not to a Stray export")
         total, frames = stray_frames(path, args.prior == "arkit", bad)
     else:
-        total, frames, bad = bag_frames(path, args.topic, args.prior == "arkit", args.prior_topic)
+        total, frames, bad = bag_frames(
+            path, args.topic, args.prior == "arkit", args.prior_topic, match
+        )
     if args.max_frames > 0:
         total = min(total, args.max_frames)
     ensure_out_dir(args.out)
@@ -391,6 +437,9 @@ def _run(args: argparse.Namespace) -> int:
             f"{path}: its metadata lists {total} message(s) on the topic but none could be read: "
             "a recording cut short? `wheelgrid bag-recover` reads what such a bag holds"
         )
+    unmatched = match[0].warning() if match else ""
+    if unmatched:
+        print(f"wheelgrid map: warning: {unmatched}", file=sys.stderr)
     if bad and len(bad) == n:
         raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
     if mapper.frames_empty == n - len(bad):
@@ -438,6 +487,11 @@ def _run(args: argparse.Namespace) -> int:
             {
                 "input": str(path),
                 "malformed_frames": {c: bad.count(c) for c in sorted(set(bad))},
+                **(
+                    {"prior": {"frames": match[0].frames, "frames_without": len(match[0].missing)}}
+                    if match
+                    else {}
+                ),
                 "wall_s": round(time.perf_counter() - t0, 3),
             },
         )
