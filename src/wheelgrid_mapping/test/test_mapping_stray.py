@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -160,3 +161,24 @@ def test_real_capture_walls_of_different_frames_line_up(stray_capture: Path) -> 
             fractions[axes] = float(np.mean(d < 0.05))
         assert fractions[False] > 0.6, f"frames {a},{b}: only {fractions[False]:.2f} within 5 cm"
         assert fractions[True] < fractions[False] - 0.3, fractions
+
+
+def test_frames_after_a_short_odometry_csv_keep_their_order(stray_capture: Path, tmp_path) -> None:
+    """A capture cut short writes depth past odometry.csv's last row. Those frames' stamps were
+    extrapolated at 60 Hz from the first row: over 900 frames of the real capture (really
+    59.93 Hz) that put frame 900 15 ms before frame 899, a clock that went back (a mapper
+    restarts its keyframe clock there, a stream paces on it). They go on from the last row."""
+    from wheelgrid_mapping.stray import StrayExport
+
+    export = tmp_path / "cut"
+    (export / "depth").mkdir(parents=True)
+    (export / "camera_matrix.csv").write_bytes((stray_capture / "camera_matrix.csv").read_bytes())
+    for src in sorted((stray_capture / "depth").glob("*.png"))[:905]:
+        (export / "depth" / src.name).symlink_to(src)
+    lines = (stray_capture / "odometry.csv").read_text().splitlines()
+    (export / "odometry.csv").write_text("\n".join(lines[:901]) + "\n")  # rows of frames 0..899
+    ex = StrayExport(export)
+    stamps = [ex.stamp(i) for i in range(len(ex))]
+    assert len(stamps) == 905 and ex.frames_without_pose == 5
+    assert all(b > a for a, b in itertools.pairwise(stamps))
+    assert stamps[900] - stamps[899] == pytest.approx(1 / 60, abs=1e-6)

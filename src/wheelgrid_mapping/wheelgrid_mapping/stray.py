@@ -17,6 +17,7 @@ frames:
 
 from __future__ import annotations
 
+import bisect
 import csv
 import math
 import sys
@@ -126,6 +127,7 @@ class StrayExport:
         self._K_rgb = _read_camera_matrix(cam)
         odo = self.path / "odometry.csv"
         self._odometry = _read_odometry(odo) if odo.exists() else {}
+        self._known: list[int] | None = None  # odometry's frame numbers, sorted when needed
         self._conf_dir = self.path / "confidence"
         first = self._first_readable(files)
         if first.ndim != 2:
@@ -180,12 +182,18 @@ class StrayExport:
         return self._stamp_of(int(self._depth_files[i].stem))
 
     def _stamp_of(self, index: int) -> float:
-        """Odometry time of frame ``index``; else extrapolated at 60 Hz on the same clock."""
+        """Odometry time of frame ``index``; else extrapolated at 60 Hz on the same clock from
+        the nearest row before it (the first row for frames before every row). Extrapolated
+        from the first row, the frames after a short odometry.csv came stamped before the
+        last row's frame (a capture runs a little under 60 Hz): a clock that went back."""
         if index in self._odometry:
             return self._odometry[index][0]
         if self._odometry:
-            first = min(self._odometry)
-            return self._odometry[first][0] + (index - first) / NOMINAL_RATE_HZ
+            if self._known is None:
+                self._known = sorted(self._odometry)
+            k = bisect.bisect_left(self._known, index)
+            ref = self._known[k - 1] if k > 0 else self._known[0]
+            return self._odometry[ref][0] + (index - ref) / NOMINAL_RATE_HZ
         return index / NOMINAL_RATE_HZ
 
     def frame(self, i: int) -> StrayFrame:
