@@ -87,10 +87,10 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
             assert fine.resolution == pytest.approx(0.05) and fine.origin[2] == 0.0
             assert set(np.unique(fine.data).tolist()) <= {-1, 0, 100}
 
-            # Bad maps: an empty cloud, everything above the safe height, no floor, and the
-            # same room flattened to z = 0 (an all-free grid, before it was refused).
+            # Bad maps: everything above the safe height, no floor, and the same room
+            # flattened to z = 0 (an all-free grid, before it was refused). An empty one is a
+            # cleared map, which withdraws the grid (its own test below).
             bad_clouds = [
-                np.empty((0, 3)),
                 np.column_stack([np.arange(50.0), np.zeros(50), np.full(50, 2.2)]),
                 np.column_stack([np.arange(500.0) / 50, np.zeros(500), np.full(500, 0.9)]),
                 np.column_stack([cloud[:, :2], np.zeros(len(cloud))]),
@@ -99,7 +99,7 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
                 pub.publish(to_pointcloud2(bad, "map"))
                 assert _wait_for_log(log, "kept the previous grid", i, 20.0), log.read_text()
             text = log.read_text()
-            assert "empty" in text and "all_above_band" in text and "no_floor" in text
+            assert "all_above_band" in text and "no_floor" in text
             assert "only_floor" in text
             spin_until(ex, lambda: len(grids) > 1, timeout=1.0)
             assert len(grids) == 1 and len(fines) == 1  # nothing new was published
@@ -199,3 +199,60 @@ def test_a_params_file_that_does_not_parse_stops_the_node_with_exit_2(tmp_path):
     out = proc.stderr + proc.stdout
     assert proc.returncode == 2, out
     assert "[FATAL] cannot start" in out and "Traceback" not in out, out
+
+
+def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_it_back():
+    """The mapper's ~/reset publishes an empty map cloud and starts a new map whose frame is
+    placed under the next pose: the running grid node kept the old grid, so the planner and the
+    drive went on planning and checking routes on cells of a map that no longer exists, in a
+    frame the new poses do not share. Now an empty map withdraws it: the same geometry, every
+    cell unknown (the planner finds no route, a running move sees its cells change and stops),
+    and a later parameter change does not recompute the cleared map."""
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.map_io import UNKNOWN
+    from wheelgrid_nav.grid_node import GridNode
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with rclpy_context() as ctx:
+        grid_node = GridNode(
+            context=ctx, parameter_overrides=[Parameter("max_rate_hz", value=100.0)]
+        )
+        node = Node("grid_reset_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(grid_node)
+        ex.add_node(node)
+        try:
+            grids: list = []
+            fines: list = []
+            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", grids.append, MAP_QOS)
+            node.create_subscription(OccupancyGrid, "/map", fines.append, MAP_QOS)
+            pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 15.0)
+            pub.publish(to_pointcloud2(cloud, "map"))
+            assert spin_until(ex, lambda: grids and fines, 20.0)
+            good = from_occupancy_grid(grids[-1])
+            assert (good.data == 0).any()
+
+            pub.publish(to_pointcloud2(np.empty((0, 3)), "map"))  # the mapper's ~/reset
+            assert spin_until(ex, lambda: len(grids) > 1 and len(fines) > 1, 10.0), (
+                "the grid of the cleared map stayed published"
+            )
+            gone = from_occupancy_grid(grids[-1])
+            assert gone.data.shape == good.data.shape and gone.frame_id == good.frame_id
+            assert gone.resolution == good.resolution and gone.origin == good.origin
+            assert (gone.data == UNKNOWN).all()
+            assert (from_occupancy_grid(fines[-1]).data == UNKNOWN).all()
+
+            n = len(grids)
+            assert grid_node.set_parameters([Parameter("safe_height", value=1.6)])[0].successful
+            spin_until(ex, lambda: len(grids) > n, 1.0)
+            assert len(grids) == n, "a parameter change republished the cleared map's grid"
+        finally:
+            ex.shutdown()
+            grid_node.destroy_node()
+            node.destroy_node()

@@ -5,7 +5,9 @@ MAP_QOS (reliable, transient local) so RViz, Nav2 and the planner get the curren
 they start. The grid is recomputed at most ``max_rate_hz`` times a second while the map keeps
 changing (the newest cloud wins). A cloud that cannot give a safe grid (empty, no floor, all
 points above the safe height, malformed) is reported with a warning and the previous grid stays
-published: an all-free grid from a bad map would send the chair into walls.
+published: an all-free grid from a bad map would send the chair into walls. An empty map is the
+exception: it is the mapper's ``~/reset``, whose next map lies in a new frame, so the previous
+grid is withdrawn (republished with every cell unknown).
 
 ``~/save`` (std_srvs/Trigger) writes grid.yaml/pgm, fine.yaml/pgm and grid.png into the
 ``output_dir`` parameter. Parameters may be changed at run time (``set_parameters``): invalid
@@ -17,10 +19,11 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -28,7 +31,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from wheelgrid_common import params
-from wheelgrid_common.map_io import to_occupancy_grid
+from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
 from wheelgrid_common.qos import MAP_QOS
 from wheelgrid_common.ros_env import spin_node
@@ -81,8 +84,11 @@ class GridNode(Node):
         try:
             points = read_xyz(msg)
         except CloudError as exc:
-            self._reject(f"unusable map cloud ({exc})")
-            return
+            if exc.cause != "empty":
+                self._reject(f"unusable map cloud ({exc})")
+                return
+            # the mapper's ~/reset (a 1 x 0 cloud): an empty map, which withdraws the grid
+            points = np.empty((0, 3))
         self._pending = (points, msg.header.frame_id or "map")
         self._maybe_compute()
 
@@ -99,6 +105,9 @@ class GridNode(Node):
         try:
             result = build_grid(points, self.grid_cfg, frame_id=frame_id)
         except GridError as exc:
+            if exc.cause == "empty" and self.result is not None:
+                self._withdraw(exc)
+                return
             self._reject(f"bad map ({exc.cause}): {exc}")
             return
         self.result = result
@@ -113,6 +122,25 @@ class GridNode(Node):
             f"grid {result.grid.rows} x {result.grid.cols} from {st['map_points']} map points "
             f"(yaw {st['yaw_deg']:.2f} deg): {st['occupied']} occupied, {st['free']} free, "
             f"{st['unknown']} unknown, {1000 * (time.monotonic() - self._last_compute):.0f} ms"
+        )
+
+    def _withdraw(self, exc: GridError) -> None:
+        """An empty map is the mapper's ~/reset (or a map with no finite point): the map the
+        grid was made of no longer exists, and the next map's frame is placed under its first
+        pose, so the old cells no longer lie where the new poses are. Kept, the planner and the
+        drive went on using them. Both grids are replaced by their geometry with every cell
+        unknown (no route; a running move sees its cells change and stops), and the map is
+        forgotten, so a parameter change cannot bring the old grid back."""
+        assert self.result is not None
+        old = self.result
+        self.result = None
+        self._last_good = None
+        stamp = self.get_clock().now().to_msg()
+        for grid, pub in ((old.grid, self.grid_pub), (old.fine, self.fine_pub)):
+            unknown = replace(grid, data=np.full_like(grid.data, UNKNOWN))
+            pub.publish(to_occupancy_grid(unknown, stamp))
+        self.get_logger().warning(
+            f"the map was cleared ({exc}): grid withdrawn, every cell unknown until a new map"
         )
 
     def _on_set_parameters(self, changed: list[Any]) -> SetParametersResult:
