@@ -434,3 +434,52 @@ def test_a_start_turned_between_two_grid_directions_gets_no_route(tmp_path):
         n = len(h.paths)
         h.init_pub.publish(start_msg(grid, (2, 0), math.radians(-72.0)))  # 18 deg off "down"
         assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
+
+
+def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(tmp_path):
+    """The e-stop shares the planner's executor with the learning: pressed and released while a
+    route was learned (up to max_seconds), both waited behind it, so the route to the goal of
+    before the e-stop was published first -- after the drive had seen the clear, so it drove it
+    with no new command -- and only then the e-stop's empty path. Now e-stops that came during
+    the learning are read before a route is published: none is, and the path is empty."""
+    from std_msgs.msg import Bool
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    log = tmp_path / "planner.log"
+    # check_every this large makes the (converging) learning take seconds on this grid
+    args = python_module(
+        "wheelgrid_nav.planner_node",
+        "--ros-args",
+        "-p",
+        "check_every:=20000",
+        "-p",
+        "max_episodes:=1000000000000",
+        "-p",
+        "max_seconds:=60.0",
+    )
+    with (
+        open(log, "w") as logf,
+        managed_process(args, stdout=logf, stderr=subprocess.STDOUT),
+        rclpy_context() as ctx,
+    ):
+        h = Harness(ctx)
+        try:
+            estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+            assert h.wait_matched(timeout=30.0), log.read_text()
+            assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 15.0)
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            spin_until(h.ex, lambda: False, 1.0)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
+            estop.publish(Bool(data=True))
+            spin_until(h.ex, lambda: False, 0.2)
+            estop.publish(Bool(data=False))
+            assert spin_until(h.ex, lambda: "e-stop" in log.read_text(), 60.0), log.read_text()
+            spin_until(h.ex, lambda: False, 1.0)
+            assert h.paths, log.read_text()
+            assert all(p.poses == [] for p in h.paths), (
+                "a route to the goal of before the e-stop was published\n" + log.read_text()
+            )
+        finally:
+            h.close()

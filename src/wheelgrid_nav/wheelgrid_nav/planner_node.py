@@ -19,7 +19,8 @@ the grid's geometry) triggers a replan from the newest start.
 
 An e-stop (``/wheelgrid/estop`` true) drops the goal and publishes an empty path, and goals
 are refused until it is cleared: nothing the planner does after a clear moves the chair until
-a new goal comes.
+a new goal comes. E-stops that arrive while a route is learned are read before it is
+published, and a route learned across one is not published.
 
 Parameter ``method`` defaults to ``qlearning-heading`` (the paper uses plain ``qlearning``):
 the node always knows the chair's heading from its pose, and costing turns and backing up the
@@ -178,7 +179,10 @@ def _make_node_class() -> type:
             # An e-stop ends the goal: cleared, the chair drove on to it at the next grid change
             # (the map grows during a scan) with no new command. A goal during one is refused.
             self._estop = False
-            self.create_subscription(Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS)
+            self._estop_presses = 0  # e-stops (true) received: a route learned across one is void
+            self._estop_sub = self.create_subscription(
+                Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS
+            )
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
 
         # ---- inputs ---------------------------------------------------------------------
@@ -227,6 +231,7 @@ def _make_node_class() -> type:
                 self._estop = False
                 return
             self._estop = True
+            self._estop_presses += 1
             if self.goal is not None:
                 self.get_logger().warning("e-stop: goal dropped; publishing an empty path")
                 self.goal = None
@@ -351,11 +356,33 @@ def _make_node_class() -> type:
                 )
                 self._publish_route(grid, [])
                 return
+            presses = self._estop_presses
+            self._take_waiting_estops()
+            if self._estop_presses != presses:
+                # the e-stop has dropped the goal and published an empty path: this route
+                # leads to the goal of before it
+                self.get_logger().warning("route learned across an e-stop: not published")
+                return
             self.get_logger().info(
                 f"route {start} -> {goal} facing {heading}: {len(res.moves)} moves "
                 f"({res.episodes} episodes, {res.seconds * 1000:.0f} ms)"
             )
             self._publish_route(grid, res.cells, heading)
+
+        def _take_waiting_estops(self) -> None:
+            """Handle the e-stops that arrived while a route was learned, before it goes out.
+
+            The learning holds this node's executor for up to ``max_seconds``: an e-stop
+            pressed and released meanwhile waited behind it, the route to the goal of before
+            the press was published after the drive had seen the release (and it drove it with
+            no new command), and only then came the e-stop's empty path."""
+            sub = self._estop_sub
+            with sub.handle:
+                while True:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        return
+                    self._on_estop(taken[0])
 
         def _publish_route(
             self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
