@@ -357,7 +357,15 @@ def _make_node_class() -> type:
                 self._publish_route(grid, [])
                 return
             presses = self._estop_presses
-            self._take_waiting_estops()
+            try:
+                self._take_waiting_estops()
+            except Exception as exc:  # rclpy's take_message is not public API: fail safe
+                self.get_logger().error(
+                    f"cannot read the e-stops that came while the route was learned ({exc!r}); "
+                    "route not published, an empty path instead"
+                )
+                self._publish_route(grid, [])
+                return
             if self._estop_presses != presses:
                 # the e-stop has dropped the goal and published an empty path: this route
                 # leads to the goal of before it
@@ -375,7 +383,9 @@ def _make_node_class() -> type:
             The learning holds this node's executor for up to ``max_seconds``: an e-stop
             pressed and released meanwhile waited behind it, the route to the goal of before
             the press was published after the drive had seen the release (and it drove it with
-            no new command), and only then came the e-stop's empty path."""
+            no new command), and only then came the e-stop's empty path. ``take_message`` is
+            what rclpy's own executor calls, but not public API: where it fails, the caller
+            publishes no route rather than one an e-stop may have voided."""
             sub = self._estop_sub
             with sub.handle:
                 while True:
