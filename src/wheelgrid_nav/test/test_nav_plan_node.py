@@ -483,3 +483,34 @@ def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(
             )
         finally:
             h.close()
+
+
+def test_no_route_goes_out_where_the_estops_that_came_while_it_was_learned_cannot_be_read():
+    """The check for e-stops that came during the learning uses rclpy's take_message, which is
+    not public API: if a later rclpy broke it, the route learned meanwhile was published
+    unchecked (or the node died); it must publish an empty path instead."""
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), 1.2)
+    with rclpy_context() as ctx:
+        node = make_node(context=ctx)
+        try:
+            node.grid = grid
+            x, y = grid.cell_center(2, 0)
+            node.start = (float(x), float(y), -math.pi / 2)  # facing down the grid
+            gx, gy = grid.cell_center(6, 5)
+            node.goal = (float(gx), float(gy))
+            published: list[list] = []
+            node._publish_route = lambda g, cells, heading=None: published.append(list(cells))
+
+            def broken() -> None:
+                raise AttributeError("'Subscription' object has no attribute 'take_message'")
+
+            node._take_waiting_estops = broken
+            node._plan()
+            assert published == [[]], published
+            node._take_waiting_estops = lambda: None  # readable again: the route goes out
+            node._plan()
+            assert len(published) == 2 and published[1][0] == (2, 0) and published[1][-1] == (6, 5)
+        finally:
+            node.destroy_node()
