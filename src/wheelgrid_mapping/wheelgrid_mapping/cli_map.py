@@ -123,8 +123,8 @@ class PriorMatch:
     on a bag): such a frame registers without a prior, and when that is every frame (clouds
     and odometry stamped on different clocks) the map was made geometry-only, without a word."""
 
-    def __init__(self, odom_stamps: np.ndarray) -> None:
-        self.odom_stamps = odom_stamps
+    def __init__(self) -> None:
+        self.odom_stamps: np.ndarray | None = None  # set where the bag gave a prior topic
         self.frames = 0  # readable frames the prior was looked up for
         self.missing: list[float] = []  # their stamps where none was found
 
@@ -137,9 +137,10 @@ class PriorMatch:
             "of their stamp and registered without a prior"
         )
         if len(self.missing) == self.frames and self.frames:
+            stamps = self.odom_stamps
             odom = (
-                f"{self.odom_stamps.min():.3f} .. {self.odom_stamps.max():.3f} s"
-                if self.odom_stamps.size
+                f"{stamps.min():.3f} .. {stamps.max():.3f} s"
+                if stamps is not None and stamps.size
                 else "none"
             )
             line += (
@@ -154,14 +155,13 @@ def bag_frames(
     topic: str | None,
     prior: bool = False,
     prior_topic: str | None = None,
-    match: list[PriorMatch] | None = None,
+    match: PriorMatch | None = None,
 ) -> tuple[int, Iterator[Frame], list[str]]:
     """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause.
 
     With ``prior`` the nav_msgs/Odometry topic ``prior_topic``, or the bag's only one (the
     bridge's /iphone/odometry, i.e. ARKit), gives each frame a pose prior: the odometry message
-    nearest in time (<= 0.1 s). ``match`` receives the :class:`PriorMatch` that counts the
-    frames without one.
+    nearest in time (<= 0.1 s), and ``match`` counts the frames without one.
     """
     from wheelgrid_common.bagio import BagError, BagReader
     from wheelgrid_common.pointcloud2 import CloudError, has_field, organised, read_fields
@@ -182,7 +182,7 @@ def bag_frames(
                 raise BagError(f"{exc} (--prior arkit needs one nav_msgs/Odometry topic)") from exc
             prior_stamps, prior_poses = _odometry_poses(reader, odom)
             if match is not None:
-                match.append(PriorMatch(prior_stamps))
+                match.odom_stamps = prior_stamps
         elif any(t.msgtype == ODOMETRY for t in reader.topics()):
             print(
                 "wheelgrid map: hint: the bag has a nav_msgs/Odometry topic; --prior arkit uses "
@@ -230,10 +230,10 @@ def bag_frames(
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
                 pose = prior_for(stamp)
-                if prior and match:
-                    match[0].frames += 1
+                if prior and match is not None:
+                    match.frames += 1
                     if pose is None:
-                        match[0].missing.append(stamp)
+                        match.missing.append(stamp)
                 # the pixel grid, for the mixed-pixel test
                 yield organised(pts, msg), stamp, msg.header.frame_id, conf, pose
         except BagError as exc:
@@ -383,7 +383,7 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError("--prior-topic names the prior's topic: give --prior arkit too")
     path: Path = args.input
     bad: list[str] = []
-    match: list[PriorMatch] = []
+    match = PriorMatch()
     if is_stray(path):
         if args.topic or args.prior_topic:
             raise InputError("--topic and --prior-topic apply to bags, not to a Stray export")
@@ -437,7 +437,7 @@ def _run(args: argparse.Namespace) -> int:
             f"{path}: its metadata lists {total} message(s) on the topic but none could be read: "
             "a recording cut short? `wheelgrid bag-recover` reads what such a bag holds"
         )
-    unmatched = match[0].warning() if match else ""
+    unmatched = match.warning()
     if unmatched:
         print(f"wheelgrid map: warning: {unmatched}", file=sys.stderr)
     if bad and len(bad) == n:
@@ -488,8 +488,8 @@ def _run(args: argparse.Namespace) -> int:
                 "input": str(path),
                 "malformed_frames": {c: bad.count(c) for c in sorted(set(bad))},
                 **(
-                    {"prior": {"frames": match[0].frames, "frames_without": len(match[0].missing)}}
-                    if match
+                    {"prior": {"frames": match.frames, "frames_without": len(match.missing)}}
+                    if match.odom_stamps is not None
                     else {}
                 ),
                 "wall_s": round(time.perf_counter() - t0, 3),
