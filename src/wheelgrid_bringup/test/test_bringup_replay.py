@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from wheelgrid_common.bagio import BagError, BagReader
+from wheelgrid_common.bagio import BagError
+from wheelgrid_common.testing import ros1_cloud_bag
 
 PKG = Path(__file__).resolve().parents[1]
 SCAN = PKG.parents[1] / "bags" / "paper_room" / "scan"
@@ -14,28 +15,7 @@ SCAN = PKG.parents[1] / "bags" / "paper_room" / "scan"
 
 def _ros1_bag(path: Path) -> Path:
     """The paper room's first clouds as a ROS 1 .bag (ROS 1 serialisation, Header.seq)."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    ts = get_typestore(Stores.ROS1_NOETIC)
-    PC2 = ts.types["sensor_msgs/msg/PointCloud2"]
-    PF = ts.types["sensor_msgs/msg/PointField"]
-    Header = ts.types["std_msgs/msg/Header"]
-    Time = ts.types["builtin_interfaces/msg/Time"]
-    with BagReader(SCAN) as src, Writer(path) as w:
-        conn = w.add_connection("/iphone/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
-        for n, (_, t_ns, m) in enumerate(src.messages(["/iphone/points"])):
-            if n >= 2:
-                break
-            fields = [PF(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-                      for f in m.fields]  # fmt: skip
-            stamp = Time(sec=m.header.stamp.sec, nanosec=m.header.stamp.nanosec)
-            msg = PC2(header=Header(seq=n, stamp=stamp, frame_id=m.header.frame_id),
-                      height=m.height, width=m.width, fields=fields,
-                      is_bigendian=m.is_bigendian, point_step=m.point_step,
-                      row_step=m.row_step, data=m.data, is_dense=m.is_dense)  # fmt: skip
-            w.write(conn, t_ns, ts.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
-    return path
+    return ros1_cloud_bag(SCAN, path, 2)
 
 
 def test_a_ros1_bag_is_refused_by_the_replay_with_the_conversion_to_run(tmp_path: Path) -> None:

@@ -191,3 +191,32 @@ def bag_cloud_odometry(bag: Any, n: int) -> list:
             if len(clouds) >= n and len(odoms) >= n:
                 break
     return list(zip(clouds[:n], odoms[:n], strict=True))
+
+
+def ros1_cloud_bag(src: Any, dst: Path, n: int) -> Path:
+    """The first ``n`` /iphone/points clouds of the rosbag2 ``src`` written as a ROS 1 .bag at
+    ``dst`` (ROS 1 serialisation, with Header.seq): what older iPhone tools record."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from wheelgrid_common.bagio import BagReader
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    PC2 = ts.types["sensor_msgs/msg/PointCloud2"]
+    PF = ts.types["sensor_msgs/msg/PointField"]
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    with BagReader(src) as reader, Writer(dst) as w:
+        conn = w.add_connection("/iphone/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
+        for k, (_, t_ns, m) in enumerate(reader.messages(["/iphone/points"])):
+            if k >= n:
+                break
+            fields = [PF(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
+                      for f in m.fields]  # fmt: skip
+            stamp = Time(sec=m.header.stamp.sec, nanosec=m.header.stamp.nanosec)
+            msg = PC2(header=Header(seq=k, stamp=stamp, frame_id=m.header.frame_id),
+                      height=m.height, width=m.width, fields=fields,
+                      is_bigendian=m.is_bigendian, point_step=m.point_step,
+                      row_step=m.row_step, data=m.data, is_dense=m.is_dense)  # fmt: skip
+            w.write(conn, t_ns, ts.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
+    return dst

@@ -583,30 +583,9 @@ def test_measure_along_a_walls_normal_from_the_map(tmp_path: Path, capsys) -> No
 
 def test_map_from_a_ros1_bag(sim_dir: Path, tmp_path: Path) -> None:
     """The same frames as a ROS 1 .bag (what older iPhone tools record) map the same way."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
+    from wheelgrid_common.testing import ros1_cloud_bag
 
-    from wheelgrid_common.bagio import BagReader
-
-    ts = get_typestore(Stores.ROS1_NOETIC)
-    PC2 = ts.types["sensor_msgs/msg/PointCloud2"]
-    PF = ts.types["sensor_msgs/msg/PointField"]
-    Header = ts.types["std_msgs/msg/Header"]
-    Time = ts.types["builtin_interfaces/msg/Time"]
-    bag1 = tmp_path / "scan.bag"
-    with BagReader(sim_dir / "scan") as src, Writer(bag1) as w:
-        conn = w.add_connection("/iphone/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
-        for n, (_, t_ns, m) in enumerate(src.messages(["/iphone/points"])):
-            if n >= 6:
-                break
-            fields = [PF(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-                      for f in m.fields]  # fmt: skip
-            stamp = Time(sec=m.header.stamp.sec, nanosec=m.header.stamp.nanosec)
-            msg = PC2(header=Header(seq=n, stamp=stamp, frame_id=m.header.frame_id),
-                      height=m.height, width=m.width, fields=fields,
-                      is_bigendian=m.is_bigendian, point_step=m.point_step,
-                      row_step=m.row_step, data=m.data, is_dense=m.is_dense)  # fmt: skip
-            w.write(conn, t_ns, ts.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
+    bag1 = ros1_cloud_bag(sim_dir / "scan", tmp_path / "scan.bag", 6)
     out = tmp_path / "map1"
     # Six frames without a prior register only the first (the rest are refused as degenerate):
     # accept single-frame evidence here, this test is about reading ROS 1 bags.
