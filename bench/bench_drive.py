@@ -34,6 +34,7 @@ import time
 import tty
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import MotorLink
@@ -152,6 +153,23 @@ def watchdog(n: int, timeout: float) -> list[float]:
     return out
 
 
+def plan_msg(n: int, places: list[tuple[float, float]]) -> Any:
+    """A nav_msgs/Path of ``n`` poses going back and forth between ``places`` (frame map)."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path as PathMsg
+
+    plan = PathMsg()
+    plan.header.frame_id = "map"
+    for i in range(n):
+        ps = PoseStamped()
+        ps.header.frame_id = "map"
+        x, y = places[i % len(places)]
+        ps.pose.position.x, ps.pose.position.y = float(x), float(y)
+        ps.pose.orientation.w = 1.0
+        plan.poses.append(ps)
+    return plan
+
+
 def estop_ros(n: int, long_plan: int = 0) -> list[float]:
     """/wheelgrid/estop (Bool) -> STOP frame at the simulator, drive node over DDS loopback.
 
@@ -159,7 +177,6 @@ def estop_ros(n: int, long_plan: int = 0) -> list[float]:
     that the drive node's executor is reading it when the e-stop comes.
     """
     import numpy as np
-    from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import OccupancyGrid
     from nav_msgs.msg import Path as PathMsg
     from rclpy.executors import SingleThreadedExecutor
@@ -187,15 +204,7 @@ def estop_ros(n: int, long_plan: int = 0) -> list[float]:
             pub = node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
             gpub = node.create_publisher(OccupancyGrid, "/wheelgrid/safe_grid", MAP_QOS)
             ppub = node.create_publisher(PathMsg, "/wheelgrid/plan", MAP_QOS)
-            plan = PathMsg()
-            plan.header.frame_id = "map"
-            for i in range(long_plan):  # back and forth between two free cells
-                ps = PoseStamped()
-                ps.header.frame_id = "map"
-                x, y = grid.cell_center(2, 2 + i % 2)
-                ps.pose.position.x, ps.pose.position.y = float(x), float(y)
-                ps.pose.orientation.w = 1.0
-                plan.poses.append(ps)
+            plan = plan_msg(long_plan, [grid.cell_center(2, 2), grid.cell_center(2, 3)])
             gpub.publish(to_occupancy_grid(grid))
             spin_until(ex, lambda: pub.get_subscription_count() > 0, 10.0)
             try:
@@ -233,7 +242,6 @@ def bare_bool_ros(n: int, long_plan: int = 0) -> list[float]:
     node has. ``long_plan`` > 0: the same node also takes the plan, published 30 ms before the
     Bool as in :func:`estop_ros`, as a drive node without a thread of its own for the e-stop
     would."""
-    from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Path as PathMsg
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -263,14 +271,7 @@ def bare_bool_ros(n: int, long_plan: int = 0) -> list[float]:
         spinner.start()
         pub = node.create_publisher(Bool, "/bench/estop", RELIABLE_QOS)
         ppub = node.create_publisher(PathMsg, "/bench/plan", MAP_QOS)
-        plan = PathMsg()
-        plan.header.frame_id = "map"
-        for i in range(long_plan):
-            ps = PoseStamped()
-            ps.header.frame_id = "map"
-            ps.pose.position.x = float(i % 2)
-            ps.pose.orientation.w = 1.0
-            plan.poses.append(ps)
+        plan = plan_msg(long_plan, [(0.0, 0.0), (1.0, 0.0)])
 
         def wait(pred: Callable[[], bool], timeout: float) -> bool:
             deadline = time.monotonic() + timeout
