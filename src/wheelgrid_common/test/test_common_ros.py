@@ -150,6 +150,7 @@ def test_a_process_started_with_the_profile_gets_the_large_shared_memory_segment
     from pathlib import Path
 
     from wheelgrid_common.ros_env import FASTDDS_PROFILE, child_env, fastdds_profile
+    from wheelgrid_common.testing import managed_process
 
     env = child_env()
     if env.get("FASTRTPS_DEFAULT_PROFILES_FILE") == str(FASTDDS_PROFILE):
@@ -168,15 +169,13 @@ def test_a_process_started_with_the_profile_gets_the_large_shared_memory_segment
         before = set(shm.iterdir())
         env = child_env(WHEELGRID_FASTDDS_PROFILE=switch)
         env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
-        proc = subprocess.Popen(
+        # managed_process stops the child whatever happens here (a readline that fails)
+        with managed_process(
             [sys.executable, "-c", code], env=env, stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        try:
+        ) as proc:  # fmt: skip
             assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
             return [p.stat().st_size for p in set(shm.iterdir()) - before if p.is_file()]
-        finally:
-            proc.communicate("\n", timeout=30)
 
     assert max(new_segments("1"), default=0) >= 16 * 1024 * 1024
     assert max(new_segments("0"), default=0) < 16 * 1024 * 1024
