@@ -252,6 +252,7 @@ def planner_with_chair(grid):
         h = Harness(ctx)
         chair_pub = h.node.create_publisher(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
         h.ex.add_node(planner)
+        h.planner = planner
         try:
             assert h.wait_matched()
             assert spin_until(h.ex, lambda: chair_pub.get_subscription_count() > 0, 15.0)
@@ -309,7 +310,8 @@ def test_a_chair_creeping_by_millimetres_a_heartbeat_counts_as_moved(tmp_path):
 def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
     """A new grid smaller than the route raised IndexError in the grid callback and ended the
     node; a grid in another frame was planned on with map coordinates; a goal refused for
-    its frame left the old goal, planned to at the next start."""
+    its frame left the old goal, planned to at the next start. A grid that leaves no route
+    drops the goal: the old grid back plans nothing until the goal is sent again."""
     from rclpy.parameter import Parameter
 
     from wheelgrid_nav.planner_node import make_node
@@ -333,16 +335,25 @@ def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
             small = Grid(np.zeros((3, 3), np.int8), RES, ORIGIN)
             h.grid_pub.publish(to_occupancy_grid(small))
             assert h.next_path(n).poses == []  # (6, 5) is off the 3 x 3 grid: no route
-            assert planner.grid.data.shape == (3, 3)
+            assert planner.grid.data.shape == (3, 3) and planner.goal is None
+            plans = planner.plans
+            h.grid_pub.publish(to_occupancy_grid(grid))  # the route is open again
+            assert spin_until(h.ex, lambda: planner.grid.data.shape == (8, 8), 10.0)
+            spin_until(h.ex, lambda: False, 0.5)
+            assert planner.plans == plans  # ... but the goal is gone: nothing planned
 
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))  # sent again
+            assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
             n = len(h.paths)
             other = to_occupancy_grid(grid)
             other.header.frame_id = "odom"  # start and goal were given in map
             h.grid_pub.publish(other)
-            assert h.next_path(n).poses == []
+            assert h.next_path(n).poses == [] and planner.goal is None
 
             n = len(h.paths)
-            h.grid_pub.publish(to_occupancy_grid(grid))  # back in map: the route again
+            h.grid_pub.publish(to_occupancy_grid(grid))  # back in map
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
             assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
             n = len(h.paths)
             refused = goal_msg(grid, (6, 4))
@@ -423,7 +434,8 @@ def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_pa
 def test_a_start_turned_between_two_grid_directions_gets_no_route(tmp_path):
     """A start facing 45 deg went to "right" by a tie: the route was published, and the drive
     (which accepts 20 deg at most) refused it. Now the planner says why, with an empty path;
-    18 deg off still plans, as the drive still drives it."""
+    18 deg off still plans, as the drive still drives it (the goal sent again: a goal with no
+    route is dropped)."""
     grid = Grid(paper_grid(), RES, ORIGIN)
     with planner_with_chair(grid) as (h, _chair_pub):
         h.init_pub.publish(start_msg(grid, (2, 0), math.radians(45.0)))
@@ -433,6 +445,9 @@ def test_a_start_turned_between_two_grid_directions_gets_no_route(tmp_path):
         assert h.next_path(n).poses == []
         n = len(h.paths)
         h.init_pub.publish(start_msg(grid, (2, 0), math.radians(-72.0)))  # 18 deg off "down"
+        turned = math.radians(-72.0)  # two topics: the start must be in first
+        assert spin_until(h.ex, lambda: h.planner.start[2] == pytest.approx(turned), 10.0)
+        h.goal_pub.publish(goal_msg(grid, (6, 5)))
         assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
 
 
@@ -509,8 +524,69 @@ def test_no_route_goes_out_where_the_estops_that_came_while_it_was_learned_canno
             node._take_waiting_estops = broken
             node._plan()
             assert published == [[]], published
-            node._take_waiting_estops = lambda: None  # readable again: the route goes out
+            assert node.goal is None  # dropped with the route: nothing plans to it later
+            node._take_waiting_estops = lambda: None  # readable again: the goal sent again
+            node.goal = (float(gx), float(gy))
             node._plan()
             assert len(published) == 2 and published[1][0] == (2, 0) and published[1][-1] == (6, 5)
         finally:
             node.destroy_node()
+
+
+def test_a_goal_refused_or_reached_is_never_planned_to_again(tmp_path):
+    """A goal kept past its end moved the chair with no command: one with no route when sent
+    (a cell the growing map had not reached yet) was planned to at a later grid change, and a
+    goal reached long ago was planned back to from wherever the chair had been driven since,
+    once the grid changed under the old route."""
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    walled = paper_grid()
+    walled[2, 5] = walled[2, 6] = walled[2, 7] = 100  # with row 3 this seals the south half
+    with rclpy_context() as ctx:
+        planner = make_node(context=ctx)
+        h = Harness(ctx)
+        h.ex.add_node(planner)
+        try:
+            assert h.wait_matched()
+            h.grid_pub.publish(to_occupancy_grid(Grid(walled, RES, ORIGIN)))
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            assert spin_until(h.ex, lambda: planner.grid is not None and planner.start, 10.0)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            assert h.next_path(n).poses == [] and planner.goal is None
+            # the wall opens: the old goal is not planned to
+            plans = planner.plans
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            assert spin_until(h.ex, lambda: planner.grid.data[2, 5] == 0, 10.0)
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            spin_until(h.ex, lambda: False, 0.5)
+            assert planner.plans == plans and len(h.paths) == n + 1
+
+            # sent again it is planned, then reached: the chair's pose in the goal cell ends it
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            assert cells_of(h.next_path(n + 1), grid) == PAPER_ROUTE
+            assert planner.goal is not None
+            h.init_pub.publish(start_msg(grid, (6, 5), -math.pi / 2))
+            assert spin_until(h.ex, lambda: planner.goal is None, 10.0)
+            # driven away by hand, then the grid grows under the old route: nothing planned
+            plans, n = planner.plans, len(h.paths)
+            h.init_pub.publish(start_msg(grid, (0, 0), 0.0))
+            assert spin_until(
+                h.ex, lambda: planner.start[:2] == pytest.approx(grid.cell_center(0, 0)), 10.0
+            )
+            bigger = np.zeros((9, 8), np.int8)
+            bigger[:8] = paper_grid()
+            h.grid_pub.publish(to_occupancy_grid(Grid(bigger, RES, ORIGIN)))
+            assert spin_until(h.ex, lambda: planner.grid.data.shape == (9, 8), 10.0)
+            spin_until(h.ex, lambda: False, 0.5)
+            assert planner.plans == plans and len(h.paths) == n
+
+            # a goal in the chair's own cell: a one-cell route, and done at once
+            h.goal_pub.publish(goal_msg(grid, (0, 0)))
+            path = h.next_path(n)
+            assert cells_of(path, grid) == [(0, 0)] and planner.goal is None
+        finally:
+            h.ex.remove_node(planner)
+            planner.destroy_node()
+            h.close()

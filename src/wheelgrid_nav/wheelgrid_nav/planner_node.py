@@ -14,8 +14,16 @@ cell; the start cell carries the heading planned from; MAP_QOS) and
 All the planning is in :mod:`wheelgrid_nav.planner`; this module only translates messages.
 Safety rules: whenever there is no verified route (unreachable goal, start or goal not free,
 training not converged, pose in an unknown frame) an EMPTY Path is published, so a drive that
-follows the old route stops. A new grid that blocks any cell of the current route (or changes
-the grid's geometry) triggers a replan from the newest start.
+follows the old route stops, and the goal is dropped. A new grid that blocks any cell of the
+current route (or changes the grid's geometry) triggers a replan from the newest start.
+
+A goal lives from its ``/goal_pose`` until the chair stands in its cell, an e-stop, a new goal,
+or a planning attempt that finds no route. A goal kept past either of the last two moved the
+chair with no command: one refused while the map was still growing was planned to at a later
+grid change, minutes on, and a goal reached long ago was planned back to from wherever the
+user had driven the chair since, the next time the grid changed under the old route. So the
+only goal ever planned to is one the user sent and that has neither failed nor been reached;
+send it again after a "no route".
 
 An e-stop (``/wheelgrid/estop`` true) drops the goal and publishes an empty path, and goals
 are refused until it is cleared: nothing the planner does after a clear moves the chair until
@@ -223,6 +231,8 @@ def _make_node_class() -> type:
             if blocked:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
+            else:
+                self._drop_if_reached()
 
         def _on_estop(self, msg: Any) -> None:
             if not msg.data:
@@ -272,7 +282,21 @@ def _make_node_class() -> type:
                 forward_yaw(pose.orientation, child),
             )
             self.start_frame = frame
+            self._drop_if_reached()
             return True
+
+        def _drop_if_reached(self) -> None:
+            """Forget the goal once the chair stands in its cell. Nothing is published: the
+            drive finishes its last move to the cell's centre on its own."""
+            grid = self.grid
+            if grid is None or self.goal is None or self.start is None:
+                return
+            if {self.start_frame, self.goal_frame} - {"", grid.frame_id}:
+                return  # _plan says why it cannot place them
+            here = grid.cell_of(self.start[0], self.start[1])
+            if here == grid.cell_of(self.goal[0], self.goal[1]):
+                self.get_logger().info(f"goal {here} reached: goal done")
+                self.goal = None
 
         def _follow_start(self, pose: Any, frame: str, child: str) -> None:
             """A start from a stream (odometry, the chair's pose): planned from at once only
@@ -322,11 +346,11 @@ def _make_node_class() -> type:
             grid = self.grid
             for what, frame in (("start", self.start_frame), ("goal", self.goal_frame)):
                 if frame and frame != grid.frame_id:
-                    self.get_logger().warning(
+                    self._no_route(
+                        grid,
                         f"the grid is in frame {grid.frame_id!r}, the {what} in {frame!r}: "
-                        "no route (no tf); publishing an empty path"
+                        "no route (no tf)",
                     )
-                    self._publish_route(grid, [])
                     return
             self.plans += 1
             start = grid.cell_of(self.start[0], self.start[1])
@@ -335,26 +359,22 @@ def _make_node_class() -> type:
             off = math.remainder(self.start[2] - grid.origin[2] - _DIR_ANGLE[heading], math.tau)
             if abs(off) > HEADING_TOLERANCE_RAD:
                 # 45 deg went to "right" by a tie: a route was published and the drive refused it
-                self.get_logger().warning(
+                self._no_route(
+                    grid,
                     f"no route: the chair's heading is {math.degrees(abs(off)):.0f} deg off the "
                     f"grid's nearest direction ({heading}), more than "
                     f"{math.degrees(HEADING_TOLERANCE_RAD):.0f}: which way each move turns is "
-                    "a guess; turn the chair along the grid; publishing an empty path"
+                    "a guess; turn the chair along the grid",
                 )
-                self._publish_route(grid, [])
                 return
             method = self.node_cfg.method
             try:
                 res = plan(grid.data, start, goal, self.cfg, method=method, heading=heading)
             except PlanInputError as exc:
-                self.get_logger().warning(f"no route: {exc}; publishing an empty path")
-                self._publish_route(grid, [])
+                self._no_route(grid, f"no route: {exc}")
                 return
             if not res.ok:
-                self.get_logger().warning(
-                    f"no route from {start} to {goal}: {res.reason}; publishing an empty path"
-                )
-                self._publish_route(grid, [])
+                self._no_route(grid, f"no route from {start} to {goal}: {res.reason}")
                 return
             presses = self._estop_presses
             try:
@@ -362,8 +382,9 @@ def _make_node_class() -> type:
             except Exception as exc:  # rclpy's take_message is not public API: fail safe
                 self.get_logger().error(
                     f"cannot read the e-stops that came while the route was learned ({exc!r}); "
-                    "route not published, an empty path instead"
+                    "route not published, an empty path instead; goal dropped, send it again"
                 )
+                self.goal = None
                 self._publish_route(grid, [])
                 return
             if self._estop_presses != presses:
@@ -376,6 +397,15 @@ def _make_node_class() -> type:
                 f"({res.episodes} episodes, {res.seconds * 1000:.0f} ms)"
             )
             self._publish_route(grid, res.cells, heading)
+            self._drop_if_reached()  # a goal in the chair's own cell: a one-cell route, done
+
+        def _no_route(self, grid: Grid | None, why: str) -> None:
+            """The chair stops (an empty path) and the goal is dropped: kept, it was planned
+            to at whatever later grid change let a route through, with no command."""
+            dropped = "; goal dropped, send it again" if self.goal is not None else ""
+            self.get_logger().warning(f"{why}; publishing an empty path{dropped}")
+            self.goal = None
+            self._publish_route(grid, [])
 
         def _take_waiting_estops(self) -> None:
             """Handle the e-stops that arrived while a route was learned, before it goes out.
