@@ -777,3 +777,14 @@ def test_too_few_frames_to_level_says_why(tmp_path: Path, capsys) -> None:
     err = capsys.readouterr().err
     assert "cannot level the map" in err and "mapper.evidence_min_frames (2)" in err, err
     assert "Traceback" not in err and not (tmp_path / "m" / "map.ply").exists()
+
+
+def test_frames_that_share_a_stamp_keep_their_own_numbers_in_the_warnings() -> None:
+    """The warnings come back from the pipeline by stamp: with a plain dict the first of two
+    frames stamped alike was reported under the second's number, and the second as -1."""
+    numbers = cli_map.FrameNumbers()
+    numbers.push(5.0, 3)
+    numbers.push(5.0, 4)
+    numbers.push(6.0, 5)
+    assert [numbers.pop(5.0), numbers.pop(5.0), numbers.pop(6.0)] == [3, 4, 5]
+    assert numbers.pop(5.0) == -1  # nothing left under it

@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import sys
 import time
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,29 @@ class InputError(Exception):
 
 def is_stray(path: Path) -> bool:
     return path.is_dir() and (path / "depth").is_dir() and not (path / "metadata.yaml").exists()
+
+
+class FrameNumbers:
+    """A frame's number in the input by its stamp, for the warnings about it, which come back
+    from the pipeline with the stamp only. Frames that share a stamp (a recorder that stamped
+    two clouds alike) queue up under it, in input order as the pipeline returns them: a plain
+    dict gave the first such frame's warning the second's number and the second's -1."""
+
+    def __init__(self) -> None:
+        self._numbers: dict[float, deque[int]] = {}
+
+    def push(self, stamp: float, number: int) -> None:
+        self._numbers.setdefault(float(stamp), deque()).append(number)
+
+    def pop(self, stamp: float) -> int:
+        """The oldest number pushed under ``stamp`` (-1 if none)."""
+        queue = self._numbers.get(float(stamp))
+        if not queue:
+            return -1
+        number = queue.popleft()
+        if not queue:
+            del self._numbers[float(stamp)]
+        return number
 
 
 def stray_frames(
@@ -401,11 +425,11 @@ def _run(args: argparse.Namespace) -> int:
     pipe = FramePipeline(mapper, cfg.prepare_ahead)
     t0 = time.perf_counter()
     n = 0
-    index: dict[float, int] = {}  # a frame's number by its stamp, for the messages
+    index = FrameNumbers()
 
     def report(done: list[tuple[float, FrameOutcome]]) -> None:
         for stamp, out in done:
-            k = index.pop(stamp, -1)
+            k = index.pop(stamp)
             if out.status == "failed":
                 print(
                     f"\nWARNING frame {k}: registration failed: {out.reason}; "
@@ -425,7 +449,7 @@ def _run(args: argparse.Namespace) -> int:
             if pts.shape[0] == 0:
                 bar.update(1)
                 continue
-            index[float(stamp)] = n - 1
+            index.push(stamp, n - 1)
             report(pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior))
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
         report(pipe.flush())
