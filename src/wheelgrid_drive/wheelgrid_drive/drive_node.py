@@ -34,6 +34,7 @@ from nav_msgs.msg import OccupancyGrid, Path
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, String
 
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
@@ -58,6 +59,14 @@ from wheelgrid_drive.runner import (
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
+
+# Reliable like the plan's publisher, but never the plan kept for late joiners (see __init__).
+PLAN_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 MAX_PATH_POSES = 10_000  # a plan's poses: a route across a building is a few hundred cells
 
@@ -189,7 +198,12 @@ class DriveNode(Node):
         self.pub_cmds = pub(String, "/wheelgrid/drive_commands", RELIABLE_QOS)
         self.pub_pose = pub(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
         self.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
-        self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, MAP_QOS)
+        # Volatile, not the topic's transient-local: the plan the topic keeps for late joiners
+        # (RViz, the monitor) is one made before this node started, and a restarted drive
+        # node, its e-stop latch gone with it, drove it where the chair still stood at its
+        # start. The publication-time check in _on_plan alone failed when the wall clock had
+        # stepped back since (NTP): a volatile reader is never sent a plan of before.
+        self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, PLAN_QOS)
         self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
 
         try:
@@ -444,9 +458,8 @@ class DriveNode(Node):
     def _on_plan(self, msg: Path, info: dict[str, Any] | None) -> None:
         published = received_ns(info, "source_timestamp")
         if msg.poses and 0 < published < self._started_ns:
-            # The plan topic keeps its last plan for late joiners: a drive restarted by its
-            # launcher (its e-stop latch gone with it) got the plan of before, and drove it
-            # if the chair still stood at its start. Nothing made before this node is driven.
+            # A second guard behind the volatile subscription (an RMW that sent a volatile
+            # reader the kept plan all the same): nothing made before this node is driven.
             self._set_state(
                 WARN,
                 f"plan refused: published {(self._started_ns - published) / 1e9:.1f} s before "
@@ -474,8 +487,8 @@ class DriveNode(Node):
             )
             return
         if self._grid is None and msg.poses:
-            # Latched plan and grid arrive in any order at start-up: keep the plan until the grid
-            # is here (it is checked against it then), never run it unchecked.
+            # A plan and the latched grid arrive in any order at start-up: keep the plan until
+            # the grid is here (it is checked against it then), never run it unchecked.
             with self._gate:
                 parked = not self._estop_since(arrival)
                 if parked:
