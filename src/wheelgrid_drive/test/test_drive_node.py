@@ -511,6 +511,22 @@ def test_a_stale_cmd_vel_stops_the_chair_while_the_executor_is_held_up(make_sim)
         assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)
 
 
+def test_a_cmd_vel_read_late_is_as_old_as_when_it_came(make_sim):
+    """A Twist's age is from when it reached the process, not from when the executor got to
+    it: a stream that ended while the executor was held up (a long plan read, a job joined)
+    was read afterwards as fresh, and the chair drove a step on a command already stale."""
+    with chair_in_cell_3_3(make_sim) as (h, sim, _x):
+        tw = h.Twist()
+        tw.linear.x = 0.8
+        for _ in range(3):  # the joystick's last Twists; then it goes silent
+            h.pub_twist.publish(tw)
+        time.sleep(2.0 * h.drive.cfg.cmd_vel_timeout)  # the executor is held up meanwhile
+        h.spin(lambda: bool(sim_moves(sim)), 2.0)  # read now; read as fresh, it drove at once
+        assert sim_moves(sim) == [] and sim.state == proto.State.IDLE
+        h.pub_twist.publish(tw)  # a Twist of now drives
+        assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 3.0), sim_moves(sim)
+
+
 def test_vanished_port_is_reported_and_recovered(make_sim, tmp_path):
     port = str(tmp_path / "ttyWG")
     sim1 = make_sim(link=port)

@@ -551,7 +551,7 @@ class DriveNode(Node):
         moves = actions.moves_from_cells(cells)
         return actions.plan_steps(cells[0], moves, heading), cells, grid
 
-    def _on_twist(self, msg: Twist) -> None:
+    def _on_twist(self, msg: Twist, info: dict[str, Any] | None) -> None:
         if not all(math.isfinite(v) for v in (msg.linear.x, msg.angular.z)):
             # inf drove full speed, NaN turned: a commander this broken gets a stop
             self.get_logger().warning(
@@ -560,8 +560,14 @@ class DriveNode(Node):
                 throttle_duration_sec=2.0,
             )
             msg = Twist()
+        # Its age counts from when it reached this process, not from now: Twists that came
+        # while the executor was held up (a long plan read, an old job joined) were read as
+        # fresh afterwards, and the chair drove a step on a stream that had already ended.
+        # A wall clock stepped forward since makes it older (a stop), never younger.
+        received = received_ns(info)
+        age_s = max(0.0, (time.time_ns() - received) / 1e9) if received else 0.0
         self._last_twist = msg
-        self._last_twist_t = time.monotonic()
+        self._last_twist_t = time.monotonic() - age_s
 
     # ---- jobs ---------------------------------------------------------------------------------
 
