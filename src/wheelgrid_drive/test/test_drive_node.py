@@ -494,6 +494,38 @@ def test_a_best_effort_estop_latches_but_cannot_clear(make_sim):
         assert h.spin(lambda: not h.drive._estop, 3.0)
 
 
+def test_the_best_effort_copy_of_a_cleared_estop_does_not_latch_it_again(make_sim):
+    """A reliable e-stop reaches both e-stop subscriptions. The e-stop executor serves them in
+    its own order: the reliable e-stop, the reliable clear, then the best-effort copy of that
+    same e-stop, which latched it again after the clear (seen on a loaded machine: the chair
+    stayed stopped for good behind an e-stop the user had cleared). Served here in that order;
+    a new e-stop, on either subscription, still latches."""
+    sim = make_sim()
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        t = time.time_ns()
+
+        def info(seq, dt):
+            return {
+                "source_timestamp": t + dt,
+                "received_timestamp": t + dt + 50_000,
+                "publication_sequence_number": seq,
+                "reception_sequence_number": None,
+            }
+
+        estop, clear = h.Bool(data=True), h.Bool(data=False)
+        h.drive._on_estop_message(estop, info(1, 0))
+        assert h.drive._estop
+        h.drive._on_estop_message(clear, info(2, 1000))
+        assert not h.drive._estop
+        h.drive._on_estop_best_effort(estop, info(1, 0))  # the copy of the e-stop just cleared
+        assert not h.drive._estop
+        h.drive._on_estop_best_effort(estop, info(3, 2000))  # a new one (a joystick's)
+        assert h.drive._estop
+        h.drive._on_estop_message(clear, info(4, 3000))
+        h.drive._on_estop_message(estop, info(5, 4000))
+        assert h.drive._estop
+
+
 def test_a_stale_cmd_vel_stops_the_chair_while_the_executor_is_held_up(make_sim):
     """The /cmd_vel watchdog's stop runs on the e-stop thread: with the node's executor held
     up (here: not spun at all, as when it reads a long plan), the step does not go on blind."""

@@ -24,6 +24,7 @@ import math
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -93,6 +94,19 @@ def received_ns(info: dict[str, Any] | None, key: str = "received_timestamp") ->
         return int(info.get(key) or 0)
     except (TypeError, ValueError):
         return 0
+
+
+def sample_key(info: dict[str, Any] | None) -> tuple[int, int] | None:
+    """(publication time, publisher's sequence number) of a sample, the same on every
+    subscription that receives it; None where the middleware gives no publication time."""
+    published = received_ns(info, "source_timestamp")
+    if not published:
+        return None
+    assert info is not None
+    try:
+        return published, int(info.get("publication_sequence_number") or 0)
+    except (TypeError, ValueError):
+        return published, 0
 
 
 @dataclass
@@ -176,6 +190,8 @@ class DriveNode(Node):
         self._estops = 0
         self._estop_received_ns = 0  # when the last e-stop reached this process (system clock)
         self._estop_failed = False  # the e-stop thread died: nothing can clear the latch
+        # the last samples the reliable e-stop subscription served (see _on_estop_best_effort)
+        self._estop_samples: deque[tuple[int, int]] = deque(maxlen=64)
         self._abort = threading.Event()
         self._worker: threading.Thread | None = None
         self._job = "idle"
@@ -420,8 +436,16 @@ class DriveNode(Node):
             self._set_state(ERROR, f"chair stopped: {why}")
 
     def _on_estop_message(self, msg: Bool, info: dict[str, Any] | None) -> None:
-        """The e-stop thread's one callback: whatever goes wrong, it must not end that thread.
-        (``info`` has no default: rclpy passes it only to callbacks that need two arguments.)"""
+        """The reliable e-stop subscription's callback. (``info`` has no default: rclpy passes
+        it only to callbacks that need two arguments.)"""
+        key = sample_key(info)
+        if key is not None:
+            self._estop_samples.append(key)
+        self._handle_estop(msg, info)
+
+    def _handle_estop(self, msg: Bool, info: dict[str, Any] | None) -> None:
+        """Both e-stop subscriptions end here: whatever goes wrong, it must not end the e-stop
+        thread."""
         try:
             self._on_estop(msg, received_ns(info))
         except Exception as exc:
@@ -430,8 +454,11 @@ class DriveNode(Node):
             self.get_logger().error(f"e-stop handling failed: {exc!r}; chair stopped")
 
     def _on_estop_best_effort(self, msg: Bool, info: dict[str, Any] | None) -> None:
-        if msg.data and not self._estop:
-            self._on_estop_message(msg, info)
+        # The copy of a sample the reliable subscription has served is not a new e-stop: the
+        # executor may serve it after the clear that followed it, which it undid (the chair
+        # stayed stopped behind an e-stop the user had cleared).
+        if msg.data and not self._estop and sample_key(info) not in self._estop_samples:
+            self._handle_estop(msg, info)
 
     def _latch_estop(self, received: int = 0) -> None:
         """Latch the e-stop, drop what it must not let run, and send STOP now (never queued
