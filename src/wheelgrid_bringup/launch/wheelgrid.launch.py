@@ -7,13 +7,21 @@ For machines with a full ROS 2 Jazzy install: the same nodes and the same parame
 (a frame sent before is lost, and a later one would set the map frame). ``motor_port`` given
 overrides the parameter file's drive ``port``; left out, the file's port stands.
 ``iphone:=true`` and ``bag:=`` are refused together, as `wheelgrid launch` refuses them.
+A node that exits ends the launch, as `wheelgrid launch` stops the chain when any node dies:
+a drive node went on driving its plan with its grid node or planner dead.
 """
 
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, TimerAction
+from launch.actions import (
+    DeclareLaunchArgument,
+    ExecuteProcess,
+    OpaqueFunction,
+    Shutdown,
+    TimerAction,
+)
 from launch.conditions import IfCondition
 from launch.substitutions import (
     AndSubstitution,
@@ -77,6 +85,7 @@ def generate_launch_description():
                 parameters=[params, *extra],
                 output="screen",
                 condition=condition,
+                on_exit=Shutdown(reason="mapper exited"),
             )
         )
     for package, executable, name in CHAIN:
@@ -87,6 +96,7 @@ def generate_launch_description():
                 name=name,
                 parameters=[params],
                 output="screen",
+                on_exit=Shutdown(reason=f"{name} exited"),
             )
         )
     port = LaunchConfiguration("motor_port")
@@ -102,6 +112,7 @@ def generate_launch_description():
                 parameters=[params, *extra],
                 output="screen",
                 condition=IfCondition(AndSubstitution(LaunchConfiguration("drive"), given)),
+                on_exit=Shutdown(reason="drive exited"),
             )
         )
     actions.append(
@@ -112,6 +123,7 @@ def generate_launch_description():
             parameters=[params],
             output="screen",
             condition=IfCondition(LaunchConfiguration("iphone")),
+            on_exit=Shutdown(reason="iphone_bridge exited"),
         )
     )
     actions.append(

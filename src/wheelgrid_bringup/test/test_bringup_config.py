@@ -125,6 +125,23 @@ def test_launch_file_refuses_two_sources_and_leaves_the_files_port_alone():
         run(bag="/x/scan.bag", iphone="false")
 
 
+def test_launch_file_ends_the_launch_when_any_node_exits():
+    """`wheelgrid launch` stops the chain when any node dies; under ros2 launch the others ran
+    on, and the drive node went on driving its plan with its grid node or planner dead. The
+    bag replay ending is no reason to stop."""
+    tree = ast.parse((PKG / "launch" / "wheelgrid.launch.py").read_text())
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
+    nodes = [n for n in calls if getattr(n.func, "id", "") == "Node"]
+    assert nodes
+    for node in nodes:
+        on_exit = next((kw.value for kw in node.keywords if kw.arg == "on_exit"), None)
+        assert isinstance(on_exit, ast.Call) and getattr(on_exit.func, "id", "") == "Shutdown", (
+            ast.unparse(node)
+        )
+    (play,) = [n for n in calls if getattr(n.func, "id", "") == "ExecuteProcess"]
+    assert all(kw.arg != "on_exit" for kw in play.keywords)
+
+
 def test_node_argv_passes_params_file_and_overrides():
     argv = node_argv("grid", Path("/p.yaml"), {"safe_height": 1.4, "thin_obstacle_guard": False})
     assert argv[argv.index("--params-file") + 1] == "/p.yaml"
