@@ -69,6 +69,10 @@ class Harness:
         self.pub_grid.publish(to_occupancy_grid(grid))
         return self.spin(lambda: self.drive._grid is not None, timeout)
 
+    def armed(self, timeout=10.0):
+        """Spin until /cmd_vel may drive: a young drive ignores it (STARTUP_QUIET_S)."""
+        return self.spin(lambda: self.drive._twist_armed, timeout)
+
     def matched(self):
         return self.spin(
             lambda: (
@@ -335,6 +339,7 @@ def chair_in_cell_3_3(make_sim):
     with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
         assert h.matched()
         h.give_grid(grid)
+        assert h.armed()
         yield h, sim, x
 
 
@@ -401,6 +406,7 @@ def test_a_cmd_vel_step_drives_to_the_next_cells_centre_or_not_at_all(
     with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
         assert h.matched()
         h.give_grid(grid)
+        assert h.armed()
         tw = h.Twist()
         tw.linear.x = 0.8
         if drives:
@@ -862,6 +868,10 @@ def test_the_cmd_vel_watchdog_runs_on_steady_time_under_use_sim_time(make_sim):
         assert h.matched()
         h.give_grid(grid)
         tick_clock(0.5)
+        end = time.monotonic() + 10.0
+        while not h.drive._twist_armed and time.monotonic() < end:
+            tick_clock(0.05)
+        assert h.drive._twist_armed
         tw = h.Twist()
         tw.linear.x = 0.8
         h.pub_twist.publish(tw)
@@ -874,3 +884,41 @@ def test_the_cmd_vel_watchdog_runs_on_steady_time_under_use_sim_time(make_sim):
         stop = next((e for e in sim.events if e.what == "stop" and e.t > t_paused), None)
         assert stop is not None, [e.what for e in sim.events]
         assert sim.result == proto.Result.STOPPED and sim.x < x + 1.2 - 0.1
+
+
+def test_a_joystick_held_forward_while_the_drive_starts_does_not_drive(make_sim):
+    """A restarted drive has lost its e-stop latch: a stream held forward through the restart
+    drove the chair as soon as the node could read it. /cmd_vel drives only after a zero Twist
+    (or STARTUP_QUIET_S without any), as a wheelchair controller refuses a deflected stick at
+    power-on."""
+    import rclpy
+    from geometry_msgs.msg import Twist
+
+    grid = free_grid()
+    x, y = grid.cell_center(3, 3)
+    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))
+    with rclpy_context() as ctx:
+        joystick = rclpy.create_node("wg_joystick", context=ctx)
+        pub = joystick.create_publisher(Twist, "/cmd_vel", RELIABLE_QOS)
+        forward = Twist()
+        forward.linear.x = 0.8
+        with Harness(ctx, sim.slave_path) as h:
+            h.ex.add_node(joystick)
+
+            def hold(seconds):  # the stick held forward, at 20 Hz
+                end = time.monotonic() + seconds
+                while time.monotonic() < end:
+                    pub.publish(forward)
+                    h.spin(lambda: False, 0.05)
+
+            assert h.matched()
+            h.give_grid(grid)
+            hold(3.0)  # past STARTUP_QUIET_S: the stream was there all along
+            assert sim_moves(sim) == [] and sim.state == proto.State.IDLE
+            assert not h.drive._twist_armed
+            pub.publish(Twist())  # the stick let go
+            assert h.armed()
+            pub.publish(forward)
+            assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 3.0), sim_moves(sim)
+            h.ex.remove_node(joystick)
+        joystick.destroy_node()

@@ -70,6 +70,12 @@ PLAN_QOS = QoSProfile(
 )
 
 MAX_PATH_POSES = 10_000  # a plan's poses: a route across a building is a few hundred cells
+# /cmd_vel drives only once it has been zero, or silent this long since the node started: a
+# joystick held forward while the drive (re)started, its e-stop latch gone with the old
+# process, drove the chair at once. A wheelchair controller refuses a deflected stick at
+# power-on for the same reason. 2 s covers DDS discovery on loopback, so a stream that is
+# already running is heard within it.
+STARTUP_QUIET_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -206,8 +212,10 @@ class DriveNode(Node):
         # the action of the /cmd_vel step last started; None once /cmd_vel went stale
         self._twist_running: str | None = None
         # False from an e-stop until /cmd_vel has been zero or silent: a stream that went on
-        # through the e-stop drove the chair the moment it was cleared
-        self._twist_armed = True
+        # through the e-stop drove the chair the moment it was cleared. False at start too,
+        # until a zero Twist or STARTUP_QUIET_S without one (see there).
+        self._twist_armed = False
+        self._started_mono = time.monotonic()
 
         pub = self.create_publisher
         self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
@@ -720,14 +728,22 @@ class DriveNode(Node):
 
     # ---- /cmd_vel -----------------------------------------------------------------------------
 
+    def _arm_if_quiet(self) -> None:
+        """/cmd_vel is silent: it may drive again, unless an e-stop is latched or the node is
+        too young to have heard a stream already running. Under the gate: an e-stop latched
+        between reading ``_estop`` and writing the flag was undone by the write."""
+        settled = time.monotonic() - self._started_mono >= STARTUP_QUIET_S
+        with self._gate:
+            self._twist_armed = settled and not self._estop
+
     def _cmd_vel_tick(self) -> None:
         twist = self._last_twist
         if twist is None:
-            self._twist_armed = not self._estop
+            self._arm_if_quiet()
             return
         if self._twist_stale():
             self._last_twist = None
-            self._twist_armed = not self._estop
+            self._arm_if_quiet()
             if self._twist_running is not None:
                 self._twist_running = None
                 self._abort.set()
@@ -740,12 +756,16 @@ class DriveNode(Node):
         if not self._twist_armed:
             if action is not None:
                 self.get_logger().warning(
-                    "/cmd_vel ignored: it went on through the e-stop; send a zero Twist (or "
-                    f"none for {self.cfg.cmd_vel_timeout:g} s) to drive with it again",
+                    "/cmd_vel ignored: it was already moving when the drive started, or it "
+                    "went on through the e-stop; send a zero Twist (or none for "
+                    f"{max(self.cfg.cmd_vel_timeout, STARTUP_QUIET_S):g} s) to drive with it",
                     throttle_duration_sec=2.0,
                 )
                 return
-            self._twist_armed = True
+            with self._gate:  # a zero Twist: armed, unless an e-stop came meanwhile
+                self._twist_armed = not self._estop
+            if not self._twist_armed:
+                return
         if self._busy():
             if self._job == "plan":
                 self.get_logger().warning(
