@@ -15,6 +15,7 @@ from wheelgrid_nav.grid import (
     classify_density,
     continuous_obstacles,
     height_classes,
+    linear_obstacles,
     project,
     thin_obstacle_guard,
     wall_yaw,
@@ -342,6 +343,9 @@ def test_invalid_config_is_rejected():
         ({"floor_fill": 60}, "invents 3 m of floor"),
         ({"min_floor_points": 0}, "min_floor_points must be >= 1"),
         ({"boundary_margin": 0.25}, "boundary_margin must be <= 0.2 m"),
+        ({"guard_line_length": 0.1}, "guard_line_length must be 0"),
+        ({"guard_line_length": 1.5}, "guard_line_length must be 0"),
+        ({"guard_line_min_points": 0}, "guard_line_min_points must be >= 1"),
     ):
         with pytest.raises(ValueError, match=message):
             build_grid(cloud, GridConfig(**kw))  # type: ignore[arg-type]
@@ -363,3 +367,103 @@ def test_a_raster_too_fine_for_the_floor_is_refused_before_it_is_allocated():
     with pytest.raises(GridError, match="raise pixel_size") as info:  # 9000 x 9000 pixels
         build_grid(np.vstack([floor, posts]), GridConfig(pixel_size=0.01, cell_size=1.2))
     assert info.value.cause == "too_large"
+
+
+# --- the guard's line rule: rods, ropes and cables one map point thick --------------------------
+
+
+def rope(p0, p1, seed: int, spacing: float = 0.02, noise: float = 0.005) -> np.ndarray:
+    """A rod or rope as the mapper leaves it: one line of points at the map's 2 cm voxel
+    spacing, each jittered by ~5 mm."""
+    a, b = np.asarray(p0, dtype=float), np.asarray(p1, dtype=float)
+    t = np.linspace(0.0, 1.0, int(np.linalg.norm(b - a) / spacing) + 1)[:, None]
+    return a + t * (b - a) + np.random.default_rng(seed).normal(0.0, noise, (t.size, 3))
+
+
+ROOM_3x3 = room_cloud([], size=(3.6, 3.6), spacing=SPACING)
+NO_LINES = GridConfig(guard_line_length=0.0)  # the guard before the line rule
+
+
+@pytest.mark.parametrize(
+    "p0, p1",
+    [
+        ((1.25, 1.77, 0.8), (2.35, 1.77, 0.8)),  # a rope across the middle cell at 80 cm
+        ((1.5, 1.82, 1.2), (1.9, 1.82, 1.2)),  # a 40 cm rod at chest height
+        ((1.25, 1.32, 0.3), (2.35, 1.32, 0.3)),  # a cable at 30 cm, near the cell's edge
+    ],
+)
+def test_guard_catches_a_rope_or_rod_one_map_point_thick(p0, p1):
+    res = build_grid(np.vstack([ROOM_3x3, rope(p0, p1, seed=1)]))
+    assert res.density[1, 1] <= res.config.density_threshold  # eq 10 misses it
+    assert res.grid.data[1, 1] == OCCUPIED and res.guard[1, 1]
+    assert np.count_nonzero(occupied(res)) == 1
+    # what the point rule alone said: free, a chair planned through the rope
+    before = build_grid(np.vstack([ROOM_3x3, rope(p0, p1, seed=1)]), NO_LINES)
+    assert before.grid.data[1, 1] == FREE
+
+
+def test_guard_catches_a_2cm_pole():
+    # Three lines of points around a 2 cm pole from floor to 1.5 m: its points stack in one
+    # pixel, which the point rule already catches (this guards that it stays caught).
+    pole = np.vstack(
+        [
+            rope(
+                (1.8 + 0.01 * math.cos(a), 1.8 + 0.01 * math.sin(a), 0.0),
+                (1.8 + 0.01 * math.cos(a), 1.8 + 0.01 * math.sin(a), 1.5),
+                seed=i,
+            )
+            for i, a in enumerate((0.0, 2.1, 4.2))
+        ]
+    )
+    res = build_grid(np.vstack([ROOM_3x3, pole]))
+    assert res.grid.data[1, 1] == OCCUPIED and res.guard[1, 1]
+    assert np.count_nonzero(occupied(res)) == 1
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_scattered_noise_does_not_make_a_line(seed):
+    rng = np.random.default_rng(seed)
+    line = rope((1.25, 1.77, 0.8), (2.35, 1.77, 0.8), seed=1)
+
+    def noise(n: int, y0: float, y1: float) -> np.ndarray:
+        """n points scattered over the middle cell's x span at band heights (flying pixels,
+        speckles), their y within [y0, y1]."""
+        return np.column_stack(
+            [rng.uniform(1.25, 2.35, n), rng.uniform(y0, y1, n), rng.uniform(0.1, 1.4, n)]
+        )
+
+    # As many points as the rope (56): they blacken about twice as many pixels, so eq 10
+    # occupies the cell as before, but the guard sees no line in them.
+    res = build_grid(np.vstack([ROOM_3x3, noise(line.shape[0], 1.25, 2.35)]))
+    assert res.density[1, 1] > res.config.density_threshold
+    assert not res.guard.any()
+    # As many black pixels as the rope (22, a density under δ): over the cell, or packed in a
+    # 20 cm strip along the rope's line where it would chain if anywhere, the cell stays free.
+    rope_pixels = round(build_grid(np.vstack([ROOM_3x3, line])).density[1, 1] * 24 * 24)
+    for y0, y1 in ((1.25, 2.35), (1.67, 1.87)):
+        res = build_grid(np.vstack([ROOM_3x3, noise(rope_pixels, y0, y1)]))
+        assert res.density[1, 1] <= res.config.density_threshold
+        assert not res.guard.any() and not occupied(res).any()
+
+
+def test_line_rule_on_hand_made_image():
+    obs = np.zeros((12, 12), dtype=bool)
+    counts = np.zeros((12, 12), dtype=np.int64)
+    obs[2, 1:8] = True  # a horizontal line of 7 pixels, 3 points each: links (9 per 3x3)
+    counts[2, 1:8] = 3
+    for i in range(5):  # a diagonal of 5 pixels (4 * sqrt 2 + 1 = 6.7 pixels along its axis)
+        obs[6 + i, 1 + i] = True
+        counts[6 + i, 1 + i] = 3
+    obs[9, 8:11] = True  # a short line of 3 pixels: too short
+    counts[9, 8:11] = 3
+    obs[5, 5:11] = True  # a row of lone points, 1 a pixel: 3 per 3x3, not links
+    counts[5, 5:11] = 1
+    lines = linear_obstacles(obs, counts, min_points=5, min_length_px=6)
+    assert lines[2, 1:8].all() and lines[6:11].sum() == 5
+    assert not lines[9, 8:11].any() and not lines[5, 5:11].any()
+    assert lines.sum() == 12
+    # a 7-pixel threshold keeps the straight line, not the shorter diagonal
+    assert linear_obstacles(obs, counts, 5, 7).sum() == 7
+    guard = thin_obstacle_guard(obs, counts, 6, 6, 12, 5, 6)
+    assert guard.tolist() == [[True, True], [True, False]]
+    assert not thin_obstacle_guard(obs, counts, 6, 6, 12).any()  # the point rule alone
