@@ -206,7 +206,13 @@ def estop_ros(n: int, long_plan: int = 0) -> list[float]:
             ppub = node.create_publisher(PathMsg, "/wheelgrid/plan", MAP_QOS)
             plan = plan_msg(long_plan, [grid.cell_center(2, 2), grid.cell_center(2, 3)])
             gpub.publish(to_occupancy_grid(grid))
-            spin_until(ex, lambda: pub.get_subscription_count() > 0, 10.0)
+            # the drive reads plans volatile: a plan published before its reader matched is
+            # never sent to it, and the round would time an e-stop with no plan being read
+            spin_until(
+                ex,
+                lambda: pub.get_subscription_count() > 0 and ppub.get_subscription_count() > 0,
+                10.0,
+            )
             try:
                 for _ in range(n):
                     pub.publish(Bool(data=False))
