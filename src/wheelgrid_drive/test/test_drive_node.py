@@ -922,3 +922,18 @@ def test_a_joystick_held_forward_while_the_drive_starts_does_not_drive(make_sim)
             assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 3.0), sim_moves(sim)
             h.ex.remove_node(joystick)
         joystick.destroy_node()
+
+
+def test_a_plan_that_took_over_from_a_cmd_vel_step_is_not_stopped_when_the_stream_ends(make_sim):
+    """The /cmd_vel watchdog stopped whatever ran once the stream went stale: a plan that had
+    taken over from a /cmd_vel step was stopped mid-route when the joystick fell silent."""
+    with driving_along_row_3(make_sim) as (h, sim, _grid):
+        assert h.drive._job == "plan"
+        # the bookkeeping a replaced /cmd_vel step leaves: its action, and a stream gone stale
+        h.drive._twist_running = "FORWARD"
+        h.drive._last_twist = h.Twist()
+        h.drive._last_twist_t = time.monotonic() - 10.0
+        assert h.spin(lambda: h.drive._twist_running is None, 3.0)  # the tick has run
+        assert h.spin(lambda: len(sim_moves(sim)) == 3 and sim.state == proto.State.IDLE, 15.0)
+        assert sim.result == proto.Result.DONE, sim.result
+        assert not any("no /cmd_vel" in s.message for s in h.states)

@@ -746,9 +746,16 @@ class DriveNode(Node):
             self._arm_if_quiet()
             if self._twist_running is not None:
                 self._twist_running = None
-                self._abort.set()
-                self.link.stop()
-                self._set_state(WARN, "no /cmd_vel for too long: chair stopped")
+                with self._gate:  # the job and its abort event, as _start_job sets them
+                    taken_over = self._job not in ("cmd_vel", "idle")
+                    abort = self._abort
+                # Only a /cmd_vel step ends with its stream (idle: the e-stop thread's guard
+                # stopped it already): a plan that took over from one was stopped here once
+                # the joystick fell silent, mid-route.
+                if not taken_over:
+                    abort.set()
+                    self.link.stop()
+                    self._set_state(WARN, "no /cmd_vel for too long: chair stopped")
             return
         if self._estop:
             return
