@@ -5,6 +5,7 @@ import os
 import signal
 import sys
 import textwrap
+import threading
 
 import pytest
 
@@ -280,3 +281,46 @@ def test_an_unacknowledged_stop_silences_the_link_so_the_watchdog_stops_the_chai
     # then STOP again, acknowledged: the link speaks again
     assert wait(lambda: not link.stop_owed, timeout=3.0)
     assert link.status().result in (proto.Result.WATCHDOG, proto.Result.STOPPED)
+
+
+def test_a_move_is_never_retried_on_a_reopened_port(make_sim, make_link, wait, tmp_path):
+    """A FORWARD whose port vanished and came back while it waited for its ACK was retried on
+    the new connection, after the reconnection's STOP: the chair drove off with no fresh command
+    after a link fault. The window is the reader thread reporting the loss (the observer, a
+    node's logger, can be slow) while the heartbeat thread reopens the port; the observer here
+    holds it open until the reopened controller has had its STOP, so the race is always lost."""
+    port = str(tmp_path / "ttyWG")
+    sim1 = make_sim(link=port)
+    link = make_link(port, reply_timeout=5.0, reconnect_period=0.1)
+    sims = []
+
+    def on_event(kind, message):
+        link.events.append((kind, message))
+        if kind == "vanished" and not sims:
+            sims.append(make_sim(link=port))  # the adapter comes back under the same name
+            assert wait(lambda: link.stats.reconnects == 1, 10.0)
+            assert wait(lambda: any(e.what == "stop" for e in sims[0].events), 10.0)
+
+    link.on_event = on_event
+    link.status()  # the move's own first request (it reads the controller's last SEQ) passes
+    sim1.drop_move_next = 1  # the FORWARD is lost: its ACK is awaited for reply_timeout
+    out = {}
+
+    def drive():
+        try:
+            out["seq"] = link.move("FORWARD", 1.2, 3.0)
+        except LinkError as exc:
+            out["error"] = exc
+
+    th = threading.Thread(target=drive)
+    th.start()
+    assert wait(lambda: sim1.drop_move_next == 0, 10.0)
+    sim1.vanish()  # unplugged while the host waits for the FORWARD's ACK
+    th.join(30.0)
+    assert not th.is_alive()
+    sim2 = sims[0]
+    assert "error" in out, f"the FORWARD was retried on the reopened port: {moves(sim2)}"
+    assert moves(sim1) == [] and moves(sim2) == []
+    rx = [e.detail for e in sim2.events if e.what == "rx"]
+    assert rx[0] == "STOP" and not set(rx) & set(proto.MOVE_TYPES), rx
+    assert not sim2.status().moving

@@ -4,6 +4,10 @@ Safety rules this class implements (docs/serial-protocol.md, "host duties"):
 
 * Every request waits for its reply with a timeout and is retried with the SAME sequence
   number, so the controller can recognise a retry and never executes a move twice.
+* A request is retried only on the connection it was first sent on (STOP alone goes out on
+  any): a port lost while it waits fails it, even when the port is back by the time it would
+  retry. A move retried on a reopened port ran after that port's STOP -- the chair drove off
+  on its own after a link fault, to a controller that had no move to take it for a retry of.
 * A garbled reply (CRC/framing damage), a reply of the wrong type, a NAK, or a reply to a
   sequence number nobody is waiting for is logged and counts as a failure -- never ignored.
 * A vanished port (USB unplugged, pty closed) is detected by the reader thread, reported, and
@@ -197,8 +201,12 @@ class MotorLink:
             except Exception:  # a broken observer must not break the safety path
                 log.exception("on_event callback failed")
 
-    def _drop_port(self, why: str, report: bool = True) -> None:
+    def _drop_port(self, why: str, report: bool = True, lost: Any = None) -> None:
+        """Close the port (only if it is still ``lost``, when given: a failure of an old
+        connection must not close the one that replaced it)."""
         with self._state_lock:
+            if lost is not None and self._ser is not lost:
+                return
             ser, self._ser = self._ser, None
         if ser is None:
             return
@@ -239,7 +247,7 @@ class MotorLink:
                 data = ser.read(max(1, ser.in_waiting))
             except Exception as exc:  # SerialException / OSError(EIO) when the device vanishes
                 if self._ser is ser and not self._closing.is_set():
-                    self._drop_port(str(exc))
+                    self._drop_port(str(exc), lost=ser)
                 return
             if data:
                 for item in self._decoder.feed(data):
@@ -274,16 +282,23 @@ class MotorLink:
                 self._seq = (self._seq + 1) & 0xFF
             return self._seq
 
-    def _write(self, data: bytes) -> None:
-        ser = self._ser
-        if ser is None:
+    def _write(self, data: bytes, ser: Any = None) -> None:
+        """Write on the current port, or only on ``ser`` when given: a write on a connection
+        since lost fails (on the closed port object itself if it is lost meanwhile), never
+        reaching the port that replaced it."""
+        current = self._ser
+        if current is None:
             raise LinkError(f"port {self.port} is not connected")
+        if ser is None:
+            ser = current
+        elif ser is not current:
+            raise LinkError(f"port {self.port} was lost and reopened since this request began")
         try:
             with self._write_lock:
                 ser.write(data)
                 ser.flush()
         except Exception as exc:
-            self._drop_port(f"write failed: {exc}")
+            self._drop_port(f"write failed: {exc}", lost=ser)
             raise LinkError(f"write to {self.port} failed: {exc}") from exc
         self.stats.sent += 1
 
@@ -316,27 +331,36 @@ class MotorLink:
     ) -> proto.Frame:
         """Send one request and return its valid reply (ACK, NAK or STATUS), retrying on failure.
 
-        Raises LinkError when no valid reply came after all attempts or the port is lost, and
-        for anything but STOP while a STOP is owed (:attr:`stop_owed`): any valid frame feeds
-        the controller's watchdog, which must be left to stop the motors.
+        Raises LinkError when no valid reply came after all attempts or the port is lost (a
+        request other than STOP is never retried on a reopened port: a retried move would start
+        the chair after the reconnection's STOP), and for anything but STOP while a STOP is
+        owed (:attr:`stop_owed`): any valid frame feeds the controller's watchdog, which must
+        be left to stop the motors.
         """
-        if self._stop_owed_at is not None and mtype != proto.MsgType.STOP:
+        is_stop = mtype == proto.MsgType.STOP
+        if self._stop_owed_at is not None and not is_stop:
             raise LinkError(
                 f"{mtype.name} not sent: a STOP went unacknowledged, and the link stays silent "
                 "until one is, so that the controller's watchdog stops the motors"
             )
+        ser = self._ser  # the connection this request belongs to (STOP: any)
+        if ser is None and not is_stop:
+            raise LinkError(f"{mtype.name} not sent: port {self.port} is not connected")
         seq = self._next_seq(avoid_seq)
         data = proto.encode(seq, mtype, payload)
         attempts = 1 + (self.retries if retries is None else retries)
         last = ""
         for attempt in range(attempts):
+            if attempt and not is_stop and self._ser is not ser:
+                last = f"{last}; port lost, not retried on another connection"
+                break
             if attempt:
                 self.stats.retries += 1
             waiter = _Waiter(int(mtype))
             with self._state_lock:
                 self._pending[seq] = waiter
             try:
-                self._write(data)
+                self._write(data, None if is_stop else ser)
                 if not waiter.event.wait(self.reply_timeout):
                     self.stats.timeouts += 1
                     last = f"no reply within {self.reply_timeout * 1000:.0f} ms"

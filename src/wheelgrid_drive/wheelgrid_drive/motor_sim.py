@@ -94,6 +94,7 @@ class MotorSim:
         self.drop_tx_next = 0  # lose the next N replies
         self.corrupt_tx_next = 0  # damage the next N replies
         self.drop_stop_next = 0  # lose the next N STOP frames (a wire that garbles just those)
+        self.drop_move_next = 0  # lose the next N move frames (FORWARD, LEFT_FORWARD, ...)
         self._segments: list[_Segment] = []
         # the last accepted move (seq, type, payload, reply): the only one a retry can repeat
         self._last_move: tuple[int, int, bytes, bytes] | None = None
@@ -241,6 +242,9 @@ class MotorSim:
             return
         if self.drop_stop_next > 0 and item.type == proto.MsgType.STOP:
             self.drop_stop_next -= 1
+            return
+        if self.drop_move_next > 0 and item.type in proto.MOVE_NAMES:
+            self.drop_move_next -= 1
             return
         if self.cfg.drop and self._rng.random() < self.cfg.drop:
             return
