@@ -324,3 +324,29 @@ def test_a_move_is_never_retried_on_a_reopened_port(make_sim, make_link, wait, t
     rx = [e.detail for e in sim2.events if e.what == "rx"]
     assert rx[0] == "STOP" and not set(rx) & set(proto.MOVE_TYPES), rx
     assert not sim2.status().moving
+
+
+def test_a_plan_is_not_resumed_after_its_link_was_lost_and_reopened(
+    make_sim, make_link, wait, tmp_path
+):
+    """A port lost and reopened between two steps of a plan, with no request in flight: the
+    next step's MOVE went out on the reopened port after its STOP, and the chair drove on
+    after a link fault with no new command."""
+    port = str(tmp_path / "ttyWG")
+    sim1 = make_sim(link=port, pose=(0.6, -3.0, YAW["down"]))
+    link = make_link(port, reconnect_period=0.1)
+    steps = plan_steps((2, 0), ["right"] * 3, "down")
+    sims = []
+
+    def on_step(step, record):
+        if step is steps[0]:  # the first move done: the adapter is unplugged and comes back
+            sim1.vanish()
+            assert wait(lambda: link.stats.disconnects == 1, 10.0)
+            sims.append(make_sim(link=port, pose=(1.8, -3.0, 0.0)))
+            assert wait(lambda: link.stats.reconnects == 1, 10.0)
+            assert wait(lambda: any(e.what == "stop" for e in sims[0].events), 10.0)
+
+    result = run_steps(link, steps, distance_m=1.2, speed_kmh=3.0, on_step=on_step)
+    assert not result.ok and result.done == 1 and "lost during the plan" in result.error
+    assert [d for _, d in moves(sim1)] == ["LEFT_FORWARD"]
+    assert moves(sims[0]) == [], "the plan went on on the reopened port"

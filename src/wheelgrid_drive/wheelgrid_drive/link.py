@@ -144,6 +144,10 @@ class MotorLink:
         self._reader: threading.Thread | None = None
         self._heartbeat: threading.Thread | None = None
         self._stop_owed_at: float | None = None  # when a STOP went unacknowledged (monotonic)
+        # Counts every opening and every loss of the port: a caller that notes it before a
+        # sequence of moves tells from a change that the link was lost meanwhile (see
+        # runner.run_steps), even when the port was reopened before it looked.
+        self.connection = 0
 
     @property
     def stop_owed(self) -> bool:
@@ -170,7 +174,9 @@ class MotorLink:
         with contextlib.suppress(Exception):
             ser.reset_input_buffer()  # stale bytes from before us are not replies to us
         self._decoder = proto.FrameDecoder()
-        self._ser = ser
+        with self._state_lock:
+            self._ser = ser
+            self.connection += 1
         self._reader = threading.Thread(
             target=self._read_loop, args=(ser,), name="motor-link-reader", daemon=True
         )
@@ -208,6 +214,8 @@ class MotorLink:
             if lost is not None and self._ser is not lost:
                 return
             ser, self._ser = self._ser, None
+            if ser is not None:
+                self.connection += 1
         if ser is None:
             return
         with contextlib.suppress(Exception):

@@ -194,8 +194,13 @@ def run_steps(
     callback sees the announced cell (and aborts). ``pose_check(step)``, after the cell check,
     refuses a step the chair does not stand where it can be driven from (see
     :func:`step_pose_problem`).
+
+    A link lost at any time during the run ends it, even when the port is back before the next
+    step: the reconnection's STOP is where the chair stays, and the next step's MOVE, sent on
+    the reopened port, drove on after a link fault with no new command.
     """
     total = len(steps)
+    connection = link.connection
     for i, step in enumerate(steps):
         if abort is not None and abort.is_set():
             link.stop()
@@ -210,6 +215,12 @@ def run_steps(
             if on_step is not None:
                 on_step(step, command_record(step, "REFUSED", reason=reason))
             return RunResult(False, i, total, f"refused: {reason}", refused=True)
+        if link.connection != connection:
+            link.stop()
+            why = "the link to the controller was lost during the plan: not resumed"
+            if on_step is not None:
+                on_step(step, command_record(step, "FAILED", reason=why))
+            return RunResult(False, i, total, why)
         try:
             seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
         except LinkAbortedError as exc:
