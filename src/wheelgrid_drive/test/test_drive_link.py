@@ -350,3 +350,30 @@ def test_a_plan_is_not_resumed_after_its_link_was_lost_and_reopened(
     assert not result.ok and result.done == 1 and "lost during the plan" in result.error
     assert [d for _, d in moves(sim1)] == ["LEFT_FORWARD"]
     assert moves(sims[0]) == [], "the plan went on on the reopened port"
+
+
+def test_a_reopened_port_takes_nothing_before_its_stop(make_sim, make_link, wait, tmp_path):
+    """Host duty 5: the first frame on a reopened port is STOP. Another thread's request (a
+    plan's status read, a new move) could go out between the reopening and that STOP; here it
+    is made from the "reconnected" observer, which runs in exactly that gap."""
+    port = str(tmp_path / "ttyWG")
+    sim1 = make_sim(link=port)
+    link = make_link(port, reconnect_period=0.1)
+    refused = []
+
+    def on_event(kind, message):
+        link.events.append((kind, message))
+        if kind == "reconnected":
+            try:
+                link.status()
+            except LinkError as exc:
+                refused.append(str(exc))
+
+    link.on_event = on_event
+    sim1.vanish()
+    sim2 = make_sim(link=port)
+    assert wait(lambda: link.stats.reconnects == 1, 10.0)
+    rx = [e.detail for e in sim2.events if e.what == "rx"]
+    assert rx and rx[0] == "STOP", rx
+    assert refused and "just reopened" in refused[0], refused
+    assert link.status().result is not None  # once the STOP is acknowledged, requests go out

@@ -144,6 +144,9 @@ class MotorLink:
         self._reader: threading.Thread | None = None
         self._heartbeat: threading.Thread | None = None
         self._stop_owed_at: float | None = None  # when a STOP went unacknowledged (monotonic)
+        # A reopened port takes nothing but STOP until one is acknowledged (host duty 5): a
+        # request of another thread could otherwise go out between the reopening and its STOP.
+        self._stop_first = False
         # Counts every opening and every loss of the port: a caller that notes it before a
         # sequence of moves tells from a change that the link was lost meanwhile (see
         # runner.run_steps), even when the port was reopened before it looked.
@@ -166,7 +169,7 @@ class MotorLink:
         self._open_port()
         return self
 
-    def _open_port(self) -> None:
+    def _open_port(self, stop_first: bool = False) -> None:
         try:
             ser = self._factory(self.port, self.baud)
         except Exception as exc:  # pyserial raises SerialException/OSError/ValueError
@@ -175,6 +178,7 @@ class MotorLink:
             ser.reset_input_buffer()  # stale bytes from before us are not replies to us
         self._decoder = proto.FrameDecoder()
         with self._state_lock:
+            self._stop_first = stop_first
             self._ser = ser
             self.connection += 1
         self._reader = threading.Thread(
@@ -238,13 +242,13 @@ class MotorLink:
         if self.connected:
             return True
         try:
-            self._open_port()
+            self._open_port(stop_first=True)
         except LinkError as exc:
             log.debug("reconnect failed: %s", exc)
             return False
-        self.stats.reconnects += 1
         self._emit("reconnected", f"port {self.port} reopened; sending STOP", logging.WARNING)
         self.stop()
+        self.stats.reconnects += 1  # counted once its STOP went out: the port takes requests
         return True
 
     # ---- reader thread ------------------------------------------------------------------------
@@ -346,6 +350,11 @@ class MotorLink:
         be left to stop the motors.
         """
         is_stop = mtype == proto.MsgType.STOP
+        if self._stop_first and not is_stop and self._stop_owed_at is None:
+            raise LinkError(
+                f"{mtype.name} not sent: port {self.port} was just reopened, and its first frame "
+                "is the STOP, not yet acknowledged"
+            )
         if self._stop_owed_at is not None and not is_stop:
             raise LinkError(
                 f"{mtype.name} not sent: a STOP went unacknowledged, and the link stays silent "
@@ -404,6 +413,7 @@ class MotorLink:
             if self._stop_owed_at is not None:
                 self._emit("stop", "STOP acknowledged: the link speaks again", logging.WARNING)
             self._stop_owed_at = None
+            self._stop_first = False
             return True
         self._stop_owed_at = time.monotonic()
         self._emit(
