@@ -166,7 +166,10 @@ def test_a_process_started_with_the_profile_gets_the_large_shared_memory_segment
     )
 
     def new_segments(switch: str) -> list[int]:
-        before = set(shm.iterdir())
+        """Sizes of the shared-memory files the child maps. Read from its own
+        /proc/PID/maps: files that appeared in /dev/shm meanwhile were once counted, and any
+        other DDS process started then (a second test run) added its 16 MB segment to the
+        count of the child without the profile."""
         env = child_env(WHEELGRID_FASTDDS_PROFILE=switch)
         env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
         # managed_process stops the child whatever happens here (a readline that fails)
@@ -175,7 +178,10 @@ def test_a_process_started_with_the_profile_gets_the_large_shared_memory_segment
             stdout=subprocess.PIPE, text=True,
         ) as proc:  # fmt: skip
             assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
-            return [p.stat().st_size for p in set(shm.iterdir()) - before if p.is_file()]
+            maps = Path(f"/proc/{proc.pid}/maps").read_text().splitlines()
+            mapped = {ln.split(maxsplit=5)[5] for ln in maps if len(ln.split(maxsplit=5)) == 6}
+            files = [Path(m) for m in mapped if m.startswith(f"{shm}/")]
+            return [f.stat().st_size for f in files if f.is_file()]
 
     assert max(new_segments("1"), default=0) >= 16 * 1024 * 1024
     assert max(new_segments("0"), default=0) < 16 * 1024 * 1024
