@@ -169,6 +169,10 @@ class Monitor:
         with self.state.lock:
             self.state.chair_track.append((t, msg.pose.position.x, msg.pose.position.y, yaw))
 
+    def plan_readers(self) -> int:
+        """Subscriptions to the plan topic this node's graph knows of (its own included)."""
+        return int(self.node.count_subscribers("/wheelgrid/plan"))
+
     # -- actions -----------------------------------------------------------------------------
     def send_initial_pose(self, x: float, y: float, yaw: float, frame: str = "map") -> None:
         from geometry_msgs.msg import PoseWithCovarianceStamped

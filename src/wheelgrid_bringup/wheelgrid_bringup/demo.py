@@ -341,7 +341,17 @@ def main(argv: list[str] | None = None) -> int:
             params,
             {"port": str(pty_link), "initial_heading": heading, "set_pose_on_plan": True},
         )
-        time.sleep(1.5)
+        # The drive reads plans volatile (a plan made before it listens is never driven, so a
+        # restarted drive cannot take the plan of before): the goal goes out once the drive is
+        # up and its plan reader is seen, not after a guessed delay (1.5 s was too short for
+        # a drive starting on a loaded machine; its route went out before it listened).
+        if not chain.wait(
+            lambda: bool(monitor.state.drive_message) and monitor.plan_readers() >= 2,
+            60.0,
+            "drive",
+        ):
+            raise RuntimeError("the drive node did not come up (no state or no plan reader)")
+        time.sleep(0.5)
         monitor.send_initial_pose(sx, sy, yaw, grid.frame_id)
         time.sleep(0.5)
         gx, gy = grid.cell_center(*goal)
