@@ -70,7 +70,9 @@ class Harness:
         return self.spin(lambda: self.drive._grid is not None, timeout)
 
     def armed(self, timeout=10.0):
-        """Spin until /cmd_vel may drive: a young drive ignores it (STARTUP_QUIET_S)."""
+        """A zero Twist, then spin until /cmd_vel may drive: a young drive ignores it
+        (STARTUP_QUIET_S) until a zero Twist, or that long without one."""
+        self.pub_twist.publish(self.Twist())
         return self.spin(lambda: self.drive._twist_armed, timeout)
 
     def matched(self):
@@ -868,6 +870,7 @@ def test_the_cmd_vel_watchdog_runs_on_steady_time_under_use_sim_time(make_sim):
         assert h.matched()
         h.give_grid(grid)
         tick_clock(0.5)
+        h.pub_twist.publish(h.Twist())  # a zero Twist arms a young drive's /cmd_vel
         end = time.monotonic() + 10.0
         while not h.drive._twist_armed and time.monotonic() < end:
             tick_clock(0.05)
