@@ -379,16 +379,29 @@ def _dilate(img: np.ndarray, radius: int) -> np.ndarray:
     return out
 
 
-def continuous_obstacles(obstacles: np.ndarray, counts: np.ndarray, min_points: int) -> np.ndarray:
+def obstacle_support(obstacles: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(H, W) points in each pixel's 3x3 neighbourhood, black pixels' points only: what both
+    of the guard's rules read (the guard computes it once for the two)."""
+    return _neighbour_count(np.where(np.asarray(obstacles, dtype=bool), counts, 0))
+
+
+def continuous_obstacles(
+    obstacles: np.ndarray,
+    counts: np.ndarray,
+    min_points: int,
+    support: np.ndarray | None = None,
+) -> np.ndarray:
     """Black pixels that belong to a continuous obstacle (the guard's evidence).
 
     A black pixel counts when its 3x3 neighbourhood holds at least ``min_points`` points: a bar,
     a wall edge or a table rim crossing the cell has points along it, a thin pole has its points
     stacked over its height in one pixel. A lone speckle of one or two noise points does not:
-    it still counts in the density of eq 9, but cannot occupy a cell by itself.
+    it still counts in the density of eq 9, but cannot occupy a cell by itself. ``support``:
+    :func:`obstacle_support`, where the caller has it already.
     """
     obs = np.asarray(obstacles, dtype=bool)
-    support = _neighbour_count(np.where(obs, counts, 0))
+    if support is None:
+        support = obstacle_support(obs, counts)
     return obs & (support >= min_points)
 
 
@@ -439,6 +452,7 @@ def linear_obstacles(
     min_points: int,
     min_length_px: float,
     solid_points: int | None = None,
+    support: np.ndarray | None = None,
 ) -> np.ndarray:
     """Black pixels that belong to a linear obstacle: a rod, a rope, a cable (the guard's
     second kind of evidence).
@@ -460,9 +474,11 @@ def linear_obstacles(
     (a pixel or two of its scanned edge spilling over a cell border) joined it into one long
     component and occupied the neighbouring cell: on ``make demo``'s map that made truth-free
     cell (4, 3) occupied. A rope tied to a post still counts, from where the post's points end.
+    ``support``: :func:`obstacle_support`, where the caller has it already.
     """
     obs = np.asarray(obstacles, dtype=bool)
-    support = _neighbour_count(np.where(obs, counts, 0))
+    if support is None:
+        support = obstacle_support(obs, counts)
     links = obs & (support >= min_points)
     if solid_points is not None:
         links &= support < solid_points
@@ -503,10 +519,16 @@ def thin_obstacle_guard(
 ) -> np.ndarray:
     """(rows, cols) bool: cells holding any pixel of a continuous or (when
     ``line_min_length_px`` > 0) a linear obstacle."""
-    solid = continuous_obstacles(obstacles, counts, min_points)
+    support = obstacle_support(obstacles, counts)
+    solid = continuous_obstacles(obstacles, counts, min_points, support)
     if line_min_length_px > 0:
         solid |= linear_obstacles(
-            obstacles, counts, line_min_points, line_min_length_px, solid_points=min_points
+            obstacles,
+            counts,
+            line_min_points,
+            line_min_length_px,
+            solid_points=min_points,
+            support=support,
         )
     h, w = solid.shape
     return solid.reshape(h // m, m, w // n, n).any(axis=(1, 3))
