@@ -231,8 +231,6 @@ def _make_node_class() -> type:
             if blocked:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
-            else:
-                self._drop_if_reached()
 
         def _on_estop(self, msg: Any) -> None:
             if not msg.data:
