@@ -101,6 +101,28 @@ class Harness:
         self.node.destroy_node()
 
 
+@contextlib.contextmanager
+def planner_process(tmp_path, *params):
+    """The planner's real entry point as a child process, given ``params`` (``name:=value``)
+    and logging to ``tmp_path/planner.log``, and a harness matched to it: yields
+    ``(harness, log)``; the process is stopped whatever happens."""
+    log = tmp_path / "planner.log"
+    args = python_module(
+        "wheelgrid_nav.planner_node", "--ros-args", *(a for p in params for a in ("-p", p))
+    )
+    with (
+        open(log, "w") as logf,
+        managed_process(args, stdout=logf, stderr=subprocess.STDOUT),
+        rclpy_context() as ctx,
+    ):
+        h = Harness(ctx)
+        try:
+            assert h.wait_matched(timeout=30.0), log.read_text()
+            yield h, log
+        finally:
+            h.close()
+
+
 def test_planner_node_plans_replans_and_stops(tmp_path):
     from rclpy.parameter import Parameter
 
@@ -201,33 +223,22 @@ def test_odometry_start_and_console_entry(tmp_path):
     from nav_msgs.msg import Odometry
 
     grid = Grid(paper_grid(), RES, ORIGIN)
-    log = tmp_path / "planner.log"
-    args = python_module("wheelgrid_nav.planner_node", "--ros-args", "-p", "method:=qlearning")
-    with (
-        open(log, "w") as logf,
-        managed_process(args, stdout=logf, stderr=subprocess.STDOUT),
-        rclpy_context() as ctx,
-    ):
-        h = Harness(ctx)
-        try:
-            assert h.wait_matched(timeout=30.0), log.read_text()
-            h.grid_pub.publish(to_occupancy_grid(grid))
-            odom = Odometry()
-            odom.header.frame_id = "map"
-            odom.child_frame_id = "iphone_depth_optical_frame"
-            x, y = grid.cell_center(6, 0)
-            odom.pose.pose.position.x, odom.pose.pose.position.y = float(x), float(y)
-            q = odom.pose.pose.orientation
-            q.x, q.y, q.z, q.w = -0.5, 0.5, -0.5, 0.5  # optical z along map +x
-            h.goal_pub.publish(goal_msg(grid, (6, 4)))
-            for _ in range(20):  # sensor QoS is best effort: send a few, as a 10 Hz stream would
-                h.odom_pub.publish(odom)
-                if spin_until(h.ex, lambda: bool(h.paths), 0.25):
-                    break
-            path = h.next_path(0)
-            assert cells_of(path, grid) == [(6, c) for c in range(5)], log.read_text()
-        finally:
-            h.close()
+    with planner_process(tmp_path, "method:=qlearning") as (h, log):
+        h.grid_pub.publish(to_occupancy_grid(grid))
+        odom = Odometry()
+        odom.header.frame_id = "map"
+        odom.child_frame_id = "iphone_depth_optical_frame"
+        x, y = grid.cell_center(6, 0)
+        odom.pose.pose.position.x, odom.pose.pose.position.y = float(x), float(y)
+        q = odom.pose.pose.orientation
+        q.x, q.y, q.z, q.w = -0.5, 0.5, -0.5, 0.5  # optical z along map +x
+        h.goal_pub.publish(goal_msg(grid, (6, 4)))
+        for _ in range(20):  # sensor QoS is best effort: send a few, as a 10 Hz stream would
+            h.odom_pub.publish(odom)
+            if spin_until(h.ex, lambda: bool(h.paths), 0.25):
+                break
+        path = h.next_path(0)
+        assert cells_of(path, grid) == [(6, c) for c in range(5)], log.read_text()
 
 
 def chair_msg(grid, cell, yaw):
@@ -460,44 +471,26 @@ def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(
     from std_msgs.msg import Bool
 
     grid = Grid(paper_grid(), RES, ORIGIN)
-    log = tmp_path / "planner.log"
     # check_every this large makes the (converging) learning take seconds on this grid
-    args = python_module(
-        "wheelgrid_nav.planner_node",
-        "--ros-args",
-        "-p",
-        "check_every:=20000",
-        "-p",
-        "max_episodes:=1000000000000",
-        "-p",
-        "max_seconds:=60.0",
-    )
-    with (
-        open(log, "w") as logf,
-        managed_process(args, stdout=logf, stderr=subprocess.STDOUT),
-        rclpy_context() as ctx,
-    ):
-        h = Harness(ctx)
-        try:
-            estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
-            assert h.wait_matched(timeout=30.0), log.read_text()
-            assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 15.0)
-            h.grid_pub.publish(to_occupancy_grid(grid))
-            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
-            spin_until(h.ex, lambda: False, 1.0)
-            h.goal_pub.publish(goal_msg(grid, (6, 5)))
-            spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
-            estop.publish(Bool(data=True))
-            spin_until(h.ex, lambda: False, 0.2)
-            estop.publish(Bool(data=False))
-            assert spin_until(h.ex, lambda: "e-stop" in log.read_text(), 60.0), log.read_text()
-            spin_until(h.ex, lambda: False, 1.0)
-            assert h.paths, log.read_text()
-            assert all(p.poses == [] for p in h.paths), (
-                "a route to the goal of before the e-stop was published\n" + log.read_text()
-            )
-        finally:
-            h.close()
+    with planner_process(
+        tmp_path, "check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0"
+    ) as (h, log):
+        estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+        assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 15.0)
+        h.grid_pub.publish(to_occupancy_grid(grid))
+        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+        spin_until(h.ex, lambda: False, 1.0)
+        h.goal_pub.publish(goal_msg(grid, (6, 5)))
+        spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
+        estop.publish(Bool(data=True))
+        spin_until(h.ex, lambda: False, 0.2)
+        estop.publish(Bool(data=False))
+        assert spin_until(h.ex, lambda: "e-stop" in log.read_text(), 60.0), log.read_text()
+        spin_until(h.ex, lambda: False, 1.0)
+        assert h.paths, log.read_text()
+        assert all(p.poses == [] for p in h.paths), (
+            "a route to the goal of before the e-stop was published\n" + log.read_text()
+        )
 
 
 def test_no_route_goes_out_where_the_estops_that_came_while_it_was_learned_cannot_be_read():
