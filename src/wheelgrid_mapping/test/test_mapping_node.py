@@ -462,24 +462,43 @@ def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
         shutil.rmtree(fallback, ignore_errors=True)
 
 
+def in_process_mapper_node(ctx: Any, tmp_path: Path, prefix: str, **params: Any) -> Any:
+    """A real MapperNode in context ``ctx``, saving nowhere on exit, on the topics
+    ``PREFIX/points`` and ``PREFIX/odometry`` (fed through its own callbacks; no DDS needed),
+    with ``params`` beside."""
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    values = {
+        "output_dir": str(tmp_path),
+        "save_on_exit": False,
+        "topic": f"{prefix}/points",
+        "pose_prior_topic": f"{prefix}/odometry",
+        **params,
+    }
+    overrides = [Parameter(k, value=v) for k, v in values.items()]
+    return MapperNode(context=ctx, parameter_overrides=overrides)
+
+
+def wait_settled(node: Any) -> None:
+    """Until nothing is queued in ``node`` or in preparation."""
+
+    def settled() -> bool:
+        with node._slot_lock:
+            return not node._queue and not node._pipe.pending
+
+    assert poll_until(settled, 60.0, 0.05), "the mapper did not settle"
+
+
 @contextlib.contextmanager
 def mapper_in_process(tmp_path: Path, frames: int) -> Iterator[Any]:
     """A real MapperNode in this process, ``frames`` of the bundled bag handed to its own
     callbacks (no DDS needed) and mapped: yields it once nothing is queued or in preparation."""
     if not BAG.exists():
         pytest.skip("bags/paper_room: not present")
-    from rclpy.parameter import Parameter
-
-    from wheelgrid_mapping.mapper_node import MapperNode
-
     with rclpy_context() as ctx:
-        params = [
-            Parameter("output_dir", value=str(tmp_path)),
-            Parameter("save_on_exit", value=False),
-            Parameter("topic", value="/in_process/points"),
-            Parameter("pose_prior_topic", value="/in_process/odometry"),
-        ]
-        node = MapperNode(context=ctx, parameter_overrides=params)
+        node = in_process_mapper_node(ctx, tmp_path, "/in_process")
         try:
 
             def taken() -> bool:
@@ -492,12 +511,7 @@ def mapper_in_process(tmp_path: Path, frames: int) -> Iterator[Any]:
                 # the newest-frame policy (max_queue 1): one at a time, each taken by the worker
                 # (a fixed sleep let a worker slow to wake on a loaded machine drop one)
                 assert poll_until(taken, 60.0, 0.01), "the mapper's worker took no frame"
-
-            def settled() -> bool:
-                with node._slot_lock:
-                    return not node._queue and not node._pipe.pending
-
-            assert poll_until(settled, 60.0, 0.05), "the mapper did not settle"
+            wait_settled(node)
             yield node
         finally:
             node.close()
@@ -661,32 +675,16 @@ def test_each_pose_carries_its_clouds_exact_stamp(tmp_path: Path) -> None:
     extrapolated into the future; an exact-time sync never paired them)."""
     if not BAG.exists():
         pytest.skip("bags/paper_room: not present")
-    from rclpy.parameter import Parameter
-
-    from wheelgrid_mapping.mapper_node import MapperNode
-
     sent = bag_cloud_odometry(BAG, 4)
     with rclpy_context() as ctx:
-        params = [
-            Parameter("output_dir", value=str(tmp_path)),
-            Parameter("save_on_exit", value=False),
-            Parameter("topic", value="/stamp_test/points"),
-            Parameter("pose_prior_topic", value="/stamp_test/odometry"),
-            Parameter("max_queue", value=100),
-        ]
-        node = MapperNode(context=ctx, parameter_overrides=params)
+        node = in_process_mapper_node(ctx, tmp_path, "/stamp_test", max_queue=100)
         published: list = []
         node.odom_pub = SimpleNamespace(publish=published.append)
         try:
             for msg, odom in sent:
                 node._on_prior(odom)
                 node._on_cloud(msg)
-
-            def settled() -> bool:
-                with node._slot_lock:
-                    return not node._queue and not node._pipe.pending
-
-            assert poll_until(settled, 60.0, 0.05), "the mapper did not settle"
+            wait_settled(node)
         finally:
             node.close()
             node.destroy_node()
