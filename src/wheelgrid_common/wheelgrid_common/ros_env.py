@@ -83,6 +83,17 @@ def tf2_available() -> bool:
     return find_spec("tf2_msgs") is not None
 
 
+def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:
+    """A timer of ``node`` on steady time, for its housekeeping (publishing at a bounded rate,
+    status, watchdogs). On the node's own clock, ``use_sim_time`` (a Nav2 params file's
+    ``/**`` section, a replay with a clock) stopped such timers whenever ``/clock`` was absent,
+    paused or ended with its bag: a map already made was never published, a grid never
+    computed, a status never sent. Messages keep the node's clock in their stamps."""
+    from rclpy.clock import Clock, ClockType
+
+    return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
 def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, clean up; return an exit code.
 

@@ -840,7 +840,8 @@ def test_the_chairs_pose_is_in_the_frame_of_its_grid(make_sim):
 def test_the_cmd_vel_watchdog_runs_on_steady_time_under_use_sim_time(make_sim):
     """With ``use_sim_time`` (a ``/**`` section of a Nav2 simulation's params file) the
     watchdog's timers ran on /clock: a bag or simulator paused or gone while a /cmd_vel step
-    drove stopped them, and the chair drove on to the end of the step with no /cmd_vel."""
+    drove stopped them, and the chair drove on to the end of the step with no /cmd_vel. The
+    state's timer too, and no state was published."""
     from rosgraph_msgs.msg import Clock
 
     grid = free_grid()
@@ -887,6 +888,10 @@ def test_the_cmd_vel_watchdog_runs_on_steady_time_under_use_sim_time(make_sim):
         stop = next((e for e in sim.events if e.what == "stop" and e.t > t_paused), None)
         assert stop is not None, [e.what for e in sim.events]
         assert sim.result == proto.Result.STOPPED and sim.x < x + 1.2 - 0.1
+        # the state goes on while /clock stands still: on ROS time it stopped, and a launcher
+        # or the demo waiting for the drive's state never saw the drive
+        h.states.clear()
+        assert h.spin(lambda: len(h.states) >= 3, 3.0), "no drive state while /clock paused"
 
 
 def test_a_joystick_held_forward_while_the_drive_starts_does_not_drive(make_sim):

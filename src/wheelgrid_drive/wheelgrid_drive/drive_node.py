@@ -32,7 +32,6 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Path
-from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -41,7 +40,7 @@ from std_msgs.msg import Bool, String
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
-from wheelgrid_common.ros_env import exit_logger, spin_node
+from wheelgrid_common.ros_env import exit_logger, spin_node, steady_timer
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkError, MotorLink
@@ -256,10 +255,10 @@ class DriveNode(Node):
             self.link.start_heartbeat()  # also reconnects a port that is not there yet
         # The /cmd_vel watchdog measures staleness on the monotonic clock, and its timers run
         # on steady time too: on the node's clock, use_sim_time (a Nav2 simulation's ``/**``)
-        # stopped them whenever /clock paused, and a step drove on with no /cmd_vel.
-        steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(0.05, self._cmd_vel_tick, clock=steady)
-        self.create_timer(1.0 / max(c.state_rate, 0.1), self._publish_state)
+        # stopped them whenever /clock paused, and a step drove on with no /cmd_vel. The
+        # state too: with no /clock it was never published, and no launcher saw the drive.
+        steady_timer(self, 0.05, self._cmd_vel_tick)
+        steady_timer(self, 1.0 / max(c.state_rate, 0.1), self._publish_state)
 
         # A launcher names its node with a global ``-r __node:=drive``, which renames every
         # node of the process: the e-stop node was a second "drive", whose rosout publisher
@@ -283,7 +282,7 @@ class DriveNode(Node):
         self._estop_node.create_subscription(
             Bool, "/wheelgrid/estop", self._on_estop_best_effort, SENSOR_QOS
         )
-        self._estop_node.create_timer(0.05, self._cmd_vel_guard, clock=steady)
+        steady_timer(self._estop_node, 0.05, self._cmd_vel_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
         self._estop_executor.add_node(self._estop_node)
         self._estop_thread = threading.Thread(

@@ -693,3 +693,43 @@ def test_each_pose_carries_its_clouds_exact_stamp(tmp_path: Path) -> None:
     for pose in published:
         got = (pose.header.stamp.sec, pose.header.stamp.nanosec)
         assert got in stamps, (got, sorted(stamps))
+
+
+def test_the_map_is_published_under_use_sim_time_with_no_clock(tmp_path):
+    """``use_sim_time`` (a Nav2 params file's ``/**`` section, or a replay with ``--clock``)
+    put the map's publishing timer on ROS time: with no ``/clock``, or once a replayed bag
+    ended and its clock stopped, the timer never fired and the frames mapped were never
+    published, without a word. The timer is housekeeping and runs on steady time; the
+    messages keep the node's clock in their stamps."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.qos import MAP_QOS
+
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    with rclpy_context() as ctx:
+        node = in_process_mapper_node(
+            ctx, tmp_path, "/sim_time", use_sim_time=True, publish_period=0.1
+        )
+        listener = Node("sim_time_listener", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        ex.add_node(listener)
+        maps: list = []
+        listener.create_subscription(PointCloud2, "/wheelgrid/map_cloud", maps.append, MAP_QOS)
+        try:
+            assert node.get_clock().now().nanoseconds == 0  # no /clock: ROS time stands at 0
+            for msg, odom in bag_cloud_odometry(BAG, 2):
+                node._on_prior(odom)
+                node._on_cloud(msg)
+                wait_settled(node)
+            assert spin_until(ex, lambda: any(m.width > 0 for m in maps), timeout=10.0)
+            got = next(m for m in maps if m.width > 0)
+            assert (got.header.stamp.sec, got.header.stamp.nanosec) == (0, 0)
+        finally:
+            ex.shutdown()
+            listener.destroy_node()
+            node.close()
+            node.destroy_node()

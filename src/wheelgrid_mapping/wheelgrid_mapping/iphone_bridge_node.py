@@ -212,7 +212,7 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
 
     from wheelgrid_common.params import declare_dataclass
     from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
-    from wheelgrid_common.ros_env import exit_logger
+    from wheelgrid_common.ros_env import exit_logger, steady_timer
 
     class IPhoneBridgeNode(Node):
         def __init__(self) -> None:
@@ -262,7 +262,7 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
                 f"(token {'required' if token else 'not required: loopback only'})"
             )
             self._diag = (DiagnosticArray, DiagnosticStatus, KeyValue)
-            self.create_timer(1.0, self._publish_status)
+            steady_timer(self, 1.0, self._publish_status)
 
         def _log(self, level: str, text: str) -> None:
             # One call per severity: rclpy raises when one call site logs at two severities,

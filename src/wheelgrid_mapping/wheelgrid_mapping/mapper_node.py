@@ -44,7 +44,7 @@ from wheelgrid_common.pointcloud2 import (
     read_fields,
     to_pointcloud2,
 )
-from wheelgrid_common.ros_env import exit_logger, spin_node, tf2_available
+from wheelgrid_common.ros_env import exit_logger, spin_node, steady_timer, tf2_available
 
 from .loop_closure import LoopClosureConfig, closed_note
 from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, MapperConfig
@@ -196,7 +196,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self.create_service(Trigger, "~/save_map", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(Trigger, "~/close_loops", self._on_close_loops)
-        self.create_timer(self.publish_period, self._on_timer)
+        steady_timer(self, self.publish_period, self._on_timer)
         self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(

@@ -256,3 +256,54 @@ def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_
             ex.shutdown()
             grid_node.destroy_node()
             node.destroy_node()
+
+
+def test_a_map_held_back_by_the_rate_limit_is_computed_under_use_sim_time_with_no_clock():
+    """A map cloud that comes within ``1 / max_rate_hz`` of the last grid waits for the node's
+    timer. Under ``use_sim_time`` that timer ran on ROS time: with no ``/clock`` (or a replayed
+    bag's clock that had stopped) it never fired, and the newest map (here: the room after an
+    obstacle appeared) never became a grid, while the old grid stayed published as current.
+    The timer now runs on steady time."""
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_nav.grid_node import GridNode
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with rclpy_context() as ctx:
+        grid_node = GridNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("max_rate_hz", value=2.0),
+                Parameter("use_sim_time", value=True),
+            ],
+        )
+        node = Node("grid_sim_time_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(grid_node)
+        ex.add_node(node)
+        try:
+            grids: list = []
+            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", grids.append, MAP_QOS)
+            pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
+            assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 15.0)
+            pub.publish(to_pointcloud2(cloud, "map"))
+            assert spin_until(ex, lambda: grids, 20.0)
+            first = from_occupancy_grid(grids[-1])
+            # a block filling the free corner cell at the origin, published at once: held back
+            # by the rate limit (its row is the last: rows run down from the highest y)
+            assert first.data[-1, 0] == 0
+            x0 = first.origin[0] + 0.5 * first.resolution
+            y0 = first.origin[1] + 0.5 * first.resolution
+            g = np.linspace(-0.55, 0.55, 23)
+            block = np.array([(x0 + a, y0 + b, z) for a in g for b in g for z in (0.3, 0.6)])
+            pub.publish(to_pointcloud2(np.vstack([cloud, block]), "map"))
+            assert spin_until(ex, lambda: len(grids) > 1, 10.0), "the held-back map was lost"
+            assert from_occupancy_grid(grids[-1]).data[-1, 0] == OCCUPIED
+        finally:
+            ex.shutdown()
+            grid_node.destroy_node()
+            node.destroy_node()

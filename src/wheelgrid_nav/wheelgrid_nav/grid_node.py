@@ -34,7 +34,7 @@ from wheelgrid_common import params
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
 from wheelgrid_common.qos import MAP_QOS
-from wheelgrid_common.ros_env import spin_node
+from wheelgrid_common.ros_env import spin_node, steady_timer
 from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
 
 MAP_CLOUD_TOPIC = "/wheelgrid/map_cloud"
@@ -73,7 +73,7 @@ class GridNode(Node):
         self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
         self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
         self.create_service(Trigger, "~/save", self._on_save)
-        self._timer = self.create_timer(max(self.period, 0.05), self._maybe_compute)
+        self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f"waiting for {MAP_CLOUD_TOPIC}; safe_height {self.cfg.safe_height} m, cell "
@@ -157,7 +157,7 @@ class GridNode(Node):
         self.cfg, self.grid_cfg = cfg, grid_cfg
         self.period = 1.0 / cfg.max_rate_hz if cfg.max_rate_hz > 0 else 0.0
         self.destroy_timer(self._timer)
-        self._timer = self.create_timer(max(self.period, 0.05), self._maybe_compute)
+        self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
         if self._pending is None and self._last_good is not None:
             self._pending = self._last_good
         self.get_logger().info("parameters changed: " + ", ".join(p.name for p in changed))
