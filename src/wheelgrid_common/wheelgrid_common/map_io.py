@@ -14,6 +14,7 @@ occ = 0.196) reloads as FREE -- unacceptable for a wheelchair.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -75,6 +76,19 @@ class Grid:
 def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) -> Path:
     """Write ``grid`` as map_server YAML + binary PGM (trinary); returns the YAML path."""
     yaml_path = Path(yaml_path)
+    # the pair replaces the old pair together: a YAML whose origin or size no longer matches
+    # its PGM would put a loading map_server's obstacles in the wrong place
+    write_together(map_writers(yaml_path, grid, image_name))
+    return yaml_path
+
+
+def map_writers(
+    yaml_path: str | Path, grid: Grid, image_name: str | None = None
+) -> dict[Path, Callable[[Path], object]]:
+    """The writers of ``grid``'s PGM and YAML for :func:`~wheelgrid_common.fileio.write_together`
+    (PGM first), so that a caller can replace them together with other files of the same
+    result: the grid stage's two maps and their picture are one set, not two pairs."""
+    yaml_path = Path(yaml_path)
     image_name = image_name or yaml_path.with_suffix(".pgm").name
     pix = np.full(grid.data.shape, PIX_UNKNOWN, dtype=np.uint8)
     pix[grid.data == FREE] = PIX_FREE
@@ -92,15 +106,10 @@ def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) 
     if grid.meta:
         meta = yaml.safe_dump(grid.meta, default_flow_style=True, width=float("inf")).strip()
         text += "# wheelgrid: " + meta.replace("\n", " ") + "\n"
-    # the pair replaces the old pair together: a YAML whose origin or size no longer matches
-    # its PGM would put a loading map_server's obstacles in the wrong place
-    write_together(
-        {
-            yaml_path.parent / image_name: lambda p: write_pgm(p, pix),
-            yaml_path: lambda p: p.write_text(text),
-        }
-    )
-    return yaml_path
+    return {
+        yaml_path.parent / image_name: lambda p: write_pgm(p, pix),
+        yaml_path: lambda p: p.write_text(text),
+    }
 
 
 def write_pgm(path: str | Path, pixels: np.ndarray) -> None:

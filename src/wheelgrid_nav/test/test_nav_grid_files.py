@@ -1,6 +1,7 @@
 """`wheelgrid grid` and its files: map_server round trip, grid.png, exit codes and messages."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -185,3 +186,42 @@ def test_cli_refuses_an_empty_out(tmp_path, capsys, monkeypatch):
     assert exc.value.code == 2
     assert "empty folder name" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.ply"]
+
+
+def test_a_failed_write_keeps_the_whole_old_set_of_grid_files(tmp_path, monkeypatch):
+    """grid.yaml/pgm, fine.yaml/pgm and grid.png are one grid's files. Each pair was replaced
+    on its own and grid.png written in place: a full disk while writing fine.pgm (the largest
+    map) left the new grid.yaml beside the old fine.yaml (Nav2's /map of another scan), and
+    one while writing grid.png left a cut-off picture beside the new grid."""
+    import wheelgrid_common.map_io as map_io
+    import wheelgrid_nav.grid_png as grid_png
+
+    first = build_grid(room_cloud(paper_like_boxes(), spacing=0.04))
+    write_outputs(first, tmp_path)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    second = build_grid(
+        transform(room_cloud(paper_like_boxes(), spacing=0.04), math.radians(8.0), (1.0, 2.0))
+    )
+    real_write_pgm = map_io.write_pgm
+
+    def fine_fills_the_disk(path, pixels):
+        if "fine" in path.name:
+            path.write_bytes(b"P5\n")  # cut off, as by ENOSPC
+            raise OSError(28, "No space left on device")
+        real_write_pgm(path, pixels)
+
+    monkeypatch.setattr(map_io, "write_pgm", fine_fills_the_disk)
+    with pytest.raises(OSError, match="No space"):
+        write_outputs(second, tmp_path)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    monkeypatch.setattr(map_io, "write_pgm", real_write_pgm)
+
+    class CutOffPicture:
+        def save(self, path, format=None):
+            Path(path).write_bytes(b"\x89PNG\r\n")
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(grid_png, "render", lambda result: CutOffPicture())
+    with pytest.raises(OSError, match="No space"):
+        write_outputs(second, tmp_path)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

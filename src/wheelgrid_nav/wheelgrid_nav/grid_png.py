@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from wheelgrid_common.map_io import FREE, OCCUPIED, write_map
+from wheelgrid_common.fileio import write_together
+from wheelgrid_common.map_io import FREE, OCCUPIED, map_writers
 from wheelgrid_nav.grid import GridResult, classify_density
 
 _WHITE = (255, 255, 255)
@@ -124,15 +125,23 @@ def write_png(path: str | Path, result: GridResult) -> Path:
 def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> dict[str, Path]:
     """Write DIR/grid.yaml + grid.pgm (cells), DIR/fine.yaml + fine.pgm (fine safe obstacle map)
     and DIR/grid.png; returns name -> path. The YAML/PGM pairs are what Nav2's map_server loads
-    (trinary, unknown stays unknown on reload: see wheelgrid_common.map_io)."""
+    (trinary, unknown stays unknown on reload: see wheelgrid_common.map_io).
+
+    The five files are one result and replace the old ones together or not at all. Written
+    pair by pair, with grid.png in place, a full disk while writing fine.pgm (the largest)
+    left the new grid.yaml beside the old fine.yaml (Nav2's /map of another scan), and one
+    while writing grid.png a cut-off picture beside the new grid."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    files = {
-        "grid.yaml": write_map(out / "grid.yaml", result.grid),
-        "fine.yaml": write_map(out / "fine.yaml", result.fine),
+    writers = {
+        **map_writers(out / "grid.yaml", result.grid),
+        **map_writers(out / "fine.yaml", result.fine),
     }
-    files["grid.pgm"] = out / "grid.pgm"
-    files["fine.pgm"] = out / "fine.pgm"
     if png:
-        files["grid.png"] = write_png(out / "grid.png", result)
+        picture = render(result)
+        writers[out / "grid.png"] = lambda p: picture.save(p, format="PNG")
+    write_together(writers)
+    files = {name: out / name for name in ("grid.yaml", "fine.yaml", "grid.pgm", "fine.pgm")}
+    if png:
+        files["grid.png"] = out / "grid.png"
     return files
