@@ -225,3 +225,14 @@ def test_a_failed_write_keeps_the_whole_old_set_of_grid_files(tmp_path, monkeypa
     with pytest.raises(OSError, match="No space"):
         write_outputs(second, tmp_path)
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_no_png_leaves_no_picture_of_another_grid(map_ply, tmp_path):
+    """``--no-png`` into a folder of an earlier run left that run's grid.png beside the new
+    grid: a person checking the picture before the chair moves saw another grid's cells."""
+    out = tmp_path / "out"
+    assert main([map_ply, "--out", str(out), "-q"]) == 0
+    assert (out / "grid.png").is_file()
+    assert main([map_ply, "--out", str(out), "-q", "--no-png", "--safe-height", "1.6"]) == 0
+    assert (read_map(out / "grid.yaml").data[4, 4:] == OCCUPIED).all()
+    assert not (out / "grid.png").exists()

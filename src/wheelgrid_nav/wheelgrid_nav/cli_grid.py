@@ -44,7 +44,11 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         help="YAML with grid parameters (plain mapping, a 'grid:' section, or a ROS params file)",
     )
-    p.add_argument("--no-png", action="store_true", help="skip grid.png")
+    p.add_argument(
+        "--no-png",
+        action="store_true",
+        help="skip grid.png (an older grid.png in --out is removed: it shows another grid)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="print only the summary line")
     return p
 

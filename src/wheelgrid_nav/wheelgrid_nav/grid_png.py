@@ -130,7 +130,8 @@ def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> 
     The five files are one result and replace the old ones together or not at all. Written
     pair by pair, with grid.png in place, a full disk while writing fine.pgm (the largest)
     left the new grid.yaml beside the old fine.yaml (Nav2's /map of another scan), and one
-    while writing grid.png a cut-off picture beside the new grid."""
+    while writing grid.png a cut-off picture beside the new grid. Without ``png``, an older
+    grid.png in DIR is removed once the new maps are in place."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     writers = {
@@ -141,6 +142,11 @@ def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> 
         picture = render(result)
         writers[out / "grid.png"] = lambda p: picture.save(p, format="PNG")
     write_together(writers)
+    stale = out / "grid.png"
+    if not png and (stale.is_file() or stale.is_symlink()):
+        # an earlier run's picture beside the new grid shows another grid's cells to the
+        # person who checks it before the chair moves
+        stale.unlink()
     files = {name: out / name for name in ("grid.yaml", "fine.yaml", "grid.pgm", "fine.pgm")}
     if png:
         files["grid.png"] = out / "grid.png"
