@@ -9,7 +9,14 @@ import yaml
 from PIL import Image
 
 from wheelgrid_common.fileio import write_ply
-from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN, read_map
+from wheelgrid_common.map_io import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    read_map,
+    to_occupancy_grid,
+    write_map,
+)
 from wheelgrid_nav.cli_grid import main
 from wheelgrid_nav.grid import build_grid
 from wheelgrid_nav.grid_png import write_outputs
@@ -236,3 +243,89 @@ def test_no_png_leaves_no_picture_of_another_grid(map_ply, tmp_path):
     assert main([map_ply, "--out", str(out), "-q", "--no-png", "--safe-height", "1.6"]) == 0
     assert (read_map(out / "grid.yaml").data[4, 4:] == OCCUPIED).all()
     assert not (out / "grid.png").exists()
+
+
+def _nav2_map_server_load(yaml_path):
+    """nav2_map_server's loader (map_io.cpp loadMapYaml + loadMapFromFile, trinary, 8-bit
+    gray) written out independently of wheelgrid_common.map_io: image path relative to the
+    YAML's folder, occ = 1 - shade, ``occupied_thresh < occ`` occupied, ``occ < free_thresh``
+    free, else unknown, and image row y stored at OccupancyGrid row ``height - y - 1``.
+    Returns (data as a flat list, width, height, resolution, origin)."""
+    doc = yaml.safe_load(Path(yaml_path).read_text())
+    for key in ("image", "resolution", "origin", "free_thresh", "occupied_thresh", "negate"):
+        assert key in doc, key  # Nav2 requires each of them
+    assert len(doc["origin"]) == 3 and doc["mode"] == "trinary" and doc["negate"] == 0
+    image = doc["image"]
+    path = Path(image) if image.startswith("/") else Path(yaml_path).parent / image
+    magic, size, maxval, body = path.read_bytes().split(b"\n", 3)
+    width, height = (int(v) for v in size.split())
+    assert magic == b"P5" and maxval == b"255" and len(body) == width * height
+    data = [0] * (width * height)
+    for y in range(height):
+        for x in range(width):
+            occ = 1.0 - body[y * width + x] / 255.0
+            if doc["occupied_thresh"] < occ:
+                cell = 100
+            elif occ < doc["free_thresh"]:
+                cell = 0
+            else:
+                cell = -1
+            data[width * (height - y - 1) + x] = cell
+    return data, width, height, doc["resolution"], doc["origin"]
+
+
+def _occupancy_at(msg, x, y):
+    """The value an OccupancyGrid gives the map point (x, y) (REP: cell (0, 0) at the origin
+    pose, rows along its y axis), or None outside."""
+    o = msg.info.origin
+    yaw = 2.0 * math.atan2(o.orientation.z, o.orientation.w)
+    dx, dy = x - o.position.x, y - o.position.y
+    gx = math.cos(yaw) * dx + math.sin(yaw) * dy
+    gy = -math.sin(yaw) * dx + math.cos(yaw) * dy
+    i, j = math.floor(gx / msg.info.resolution), math.floor(gy / msg.info.resolution)
+    if not (0 <= i < msg.info.width and 0 <= j < msg.info.height):
+        return None
+    return msg.data[j * msg.info.width + i]
+
+
+def test_files_and_topics_agree_with_nav2_map_server_and_the_table_ii_cells(tmp_path):
+    """What a Nav2 map_server would publish from grid.yaml and fine.yaml is, cell for cell, the
+    OccupancyGrid the grid node publishes; our own reader gives the same cells; and a room
+    point lands, on the published grid, in the (row, col) the planner calls it (row 0 the top,
+    down = row + 1). A turned, non-square room, a folder and file names with spaces, and a
+    second write over the first."""
+    yaw, shift = math.radians(12.0), (1.0, 2.0)
+    out = tmp_path / "saved maps"
+    boxes = paper_like_boxes()
+    write_outputs(build_grid(room_cloud(boxes, spacing=0.04)), out)  # to be overwritten
+    res = build_grid(
+        transform(room_cloud(boxes, size=(9.6, 7.2), spacing=0.04), yaw, shift),
+        frame_id="map",
+    )
+    res.grid.data[0, 1] = UNKNOWN  # all three values
+    write_outputs(res, out)
+    assert res.grid.data.shape == (6, 8)
+    for name, grid in (("grid.yaml", res.grid), ("fine.yaml", res.fine)):
+        data, width, height, resolution, origin = _nav2_map_server_load(out / name)
+        msg = to_occupancy_grid(grid)
+        assert (width, height) == (msg.info.width, msg.info.height) == grid.data.shape[::-1]
+        assert data == list(msg.data)
+        assert resolution == msg.info.resolution and msg.header.frame_id == "map"
+        assert origin == pytest.approx([*grid.origin])
+        back = read_map(out / name)
+        np.testing.assert_array_equal(back.data, grid.data)
+        assert back.origin == pytest.approx(grid.origin)
+        assert {-1, 0, 100} <= set(data) or name == "fine.yaml"
+    # the same grid under a file name with a space, map_server's image path beside it
+    write_map(out / "my grid.yaml", res.grid)
+    assert yaml.safe_load((out / "my grid.yaml").read_text())["image"] == "my grid.pgm"
+    assert _nav2_map_server_load(out / "my grid.yaml")[0] == list(to_occupancy_grid(res.grid).data)
+    # a room point in cell (r, c) of the room (row 0 along the top wall, y = 7.2 m) is there
+    # on the published grid, and in (r, c) of Grid.cell_of
+    msg = to_occupancy_grid(res.grid)
+    for r in range(6):
+        for c in range(8):
+            room = np.array([[(c + 0.5) * 1.2, 7.2 - (r + 0.5) * 1.2, 0.0]])
+            x, y = transform(room, yaw, shift)[0, :2]
+            assert res.grid.cell_of(x, y) == (r, c)
+            assert _occupancy_at(msg, x, y) == res.grid.data[r, c]
