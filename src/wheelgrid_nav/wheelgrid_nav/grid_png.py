@@ -115,13 +115,6 @@ def render(result: GridResult) -> Image.Image:
     return canvas
 
 
-def write_png(path: str | Path, result: GridResult) -> Path:
-    """Render :func:`render` to ``path`` (PNG)."""
-    path = Path(path)
-    render(result).save(path, format="PNG")
-    return path
-
-
 def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> dict[str, Path]:
     """Write DIR/grid.yaml + grid.pgm (cells), DIR/fine.yaml + fine.pgm (fine safe obstacle map)
     and DIR/grid.png; returns name -> path. The YAML/PGM pairs are what Nav2's map_server loads
