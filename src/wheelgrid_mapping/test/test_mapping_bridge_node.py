@@ -342,3 +342,31 @@ def test_depth_to_cloud_matches_streams_by_stamp() -> None:
         got = read_fields(cloud)
         np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
         np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], atol=1e-6)
+
+
+def test_bridge_status_goes_out_under_use_sim_time_with_no_clock() -> None:
+    """The status timer ran on ROS time: under ``use_sim_time`` (a Nav2 params file's ``/**``)
+    with no ``/clock`` the bridge never said whether a phone was connected."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+
+    from wheelgrid_common.qos import RELIABLE_QOS
+
+    port = free_port()
+    cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}", "-p", "use_sim_time:=true")
+    with managed_process(cmd) as proc, rclpy_context() as ctx:
+        import rclpy
+
+        node = rclpy.create_node("wg_bridge_status_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        try:
+            got: list[Any] = []
+            node.create_subscription(
+                DiagnosticArray, "/iphone/bridge_status", got.append, RELIABLE_QOS
+            )
+            wait_listening(port, proc)
+            assert spin_until(ex, lambda: got, timeout=15.0), "no bridge status"
+        finally:
+            ex.shutdown()
+            node.destroy_node()
