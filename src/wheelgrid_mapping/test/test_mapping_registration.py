@@ -331,3 +331,66 @@ def test_two_real_room_scans_register_onto_their_reference_transform() -> None:
         return o3d.pipelines.registration.evaluate_registration(b, a, 0.05, T).fitness
 
     assert overlap(res.pose) >= overlap(reference)
+
+
+def _drive(world: np.ndarray, seed: int, priors: list[np.ndarray]) -> tuple[list, list]:
+    """Register a slow drive (5 cm, 1 deg a frame at 5 Hz) with the given priors; the results
+    and each frame's position error against the truth (m)."""
+    rng = np.random.default_rng(seed)
+    reg = Registrar(RegistrationConfig())
+    poses = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(len(priors))]
+    results, errors = [], []
+    for i, (T, prior) in enumerate(zip(poses, priors, strict=True)):
+        res = reg.register(view(world, T, rng), 0.2 * i, prior=prior)
+        err = np.linalg.inv(np.linalg.inv(poses[0]) @ T) @ res.pose
+        results.append(res)
+        errors.append(float(np.linalg.norm(err[:3, 3])))
+    return results, errors
+
+
+def test_a_prior_whose_world_jumps_is_re_anchored_not_followed(world: np.ndarray) -> None:
+    """ARKit relocalising moves its world by 2 m between two frames. The frame at the jump
+    fails, loudly; the next relocalises on the true pose. Before, every frame failed until
+    enough time had passed for 2 m to be a plausible drive, and then one registered 1.9 m off
+    (the floor gave it the overlap) and mapping "resumed" there: the map doubled."""
+    truth = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(20)]
+    shift = np.eye(4)
+    shift[:3, :3] = rpy_matrix(0.0, 0.0, 0.3)
+    shift[:3, 3] = [2.0, -0.5, 0.0]
+    priors = [T if i < 8 else shift @ T for i, T in enumerate(truth)]
+    results, errors = _drive(world, 31, priors)
+    for i, (res, err) in enumerate(zip(results, errors, strict=True)):
+        if res.accepted:
+            assert err < 0.03, (i, err)
+    assert not results[8].accepted and "pose prior jumped" in results[8].reason
+    assert results[9].accepted and results[9].relocalised, results[9].reason
+    # the prior as used is continuous across the jump (what the mapper keeps of it)
+    step = np.linalg.inv(results[7].prior) @ results[9].prior
+    assert np.linalg.norm(step[:3, 3]) < 0.2
+
+
+def test_a_prior_that_froze_and_caught_up_lets_mapping_resume(world: np.ndarray) -> None:
+    """The prior freezes for 2 s (tracking lost) and then catches up in one step. Before, every
+    frame after it failed for good ("disagrees with pose prior by 0.36 m"): the catch-up was
+    added to motion ICP had already tracked."""
+    truth = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(24)]
+    priors = [truth[6] if 6 <= i < 16 else T for i, T in enumerate(truth)]
+    results, errors = _drive(world, 32, priors)
+    assert all(res.accepted for res in results[18:]), [r.reason for r in results[16:]]
+    assert max(errors[18:]) < 0.15  # what ICP tracked during the freeze, not the catch-up
+
+
+def test_a_prior_that_froze_while_frames_failed_resumes_on_its_catch_up(world: np.ndarray) -> None:
+    """Where the frames failed while the prior was frozen, its catch-up is the true motion: the
+    raw step (the prior's world as of the last accepted frame) is tried too, and wins."""
+    rng = np.random.default_rng(33)
+    reg = Registrar(RegistrationConfig())
+    truth = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(22)]
+    for i, T in enumerate(truth):
+        frozen = 6 <= i < 16
+        pts = rng.random((3000, 3)) * 3 + [0.5, -1.5, -1.5] if frozen else view(world, T, rng)
+        res = reg.register(pts, 0.2 * i, prior=truth[6] if frozen else T)
+        if i >= 18:
+            assert res.accepted, (i, res.reason)
+            err = np.linalg.inv(np.linalg.inv(truth[0]) @ T) @ res.pose
+            assert np.linalg.norm(err[:3, 3]) < 0.03

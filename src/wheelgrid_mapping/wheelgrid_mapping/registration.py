@@ -354,6 +354,24 @@ class RegResult:
     fitness: float = 0.0
     relocalised: bool = False
     seconds: float = 0.0
+    # the pose prior as registration used it: its world re-anchored at every jump, so that
+    # what the mapper keeps of it (gravity, the loop closure's prior drift) is continuous too
+    prior: np.ndarray | None = None
+
+
+@dataclass
+class _Attempt:
+    """One alignment of a frame from one guess, checked (:meth:`Registrar._attempt`)."""
+
+    pose: np.ndarray
+    fitness: float
+    reason: str  # "" where every check passed
+    guess: np.ndarray
+    corr: np.ndarray  # ICP's correction of the guess, the part the view observes
+    info: np.ndarray | None
+    prior_step: np.ndarray | None
+    step: np.ndarray  # from the last accepted pose
+    prior: np.ndarray | None  # the prior as used (continuous world)
 
 
 @dataclass
@@ -397,7 +415,14 @@ class Registrar:
         self.last_pose = np.eye(4)
         self.last_delta = np.eye(4)
         self.last_stamp: float | None = None
-        self.last_prior: np.ndarray | None = None
+        self.last_prior: np.ndarray | None = None  # the last accepted frame's, continuous
+        # The prior's world re-anchored at its jumps (:meth:`_continuous_prior`): the fix
+        # applied to every raw prior now, the one as of the last accepted frame, and the
+        # previous frame's continuous prior and stamp, which a jump is measured against.
+        self._prior_fix = np.eye(4)
+        self._fix_at_accept = np.eye(4)
+        self._prev_prior: np.ndarray | None = None
+        self._prev_prior_stamp: float | None = None
         self.counters = RegCounters()
         self.prior_scale_fit = PriorScaleEstimate()
         # the steps joined so far into one scale measurement: the chain of the prior's steps
@@ -481,16 +506,117 @@ class Registrar:
         frame_down = inputs.down
         if frame_down.shape[0] < cfg.min_points // 4 or pts.shape[0] < cfg.min_points:
             return self._fail(f"too few points ({pts.shape[0]})", t0)
-        first = self.last_stamp is None
-        if first:
+        relocalising = self.state == "relocalising"
+        # The prior's world as of the last accepted frame: a discontinuity since then
+        # (:meth:`_continuous_prior`) is either the prior's world jumping (ARKit relocalising:
+        # its raw step would put the frame metres off) or the prior catching up after it froze
+        # (its raw step is right). Only the map can tell: while relocalising, both are tried.
+        raw_fix = self._fix_at_accept
+        virtual, jumped = (None, "") if prior is None else self._continuous_prior(prior, stamp)
+        if self.last_stamp is None:  # the first frame: the map begins with it
             self._integrate(frame_down, np.eye(4))
-            self.last_stamp = stamp
-            self.last_prior = prior
+            self._accepted_prior(stamp, virtual)
             self.counters.accepted += 1
-            return RegResult(np.eye(4), True, fitness=1.0, seconds=time.perf_counter() - t0)
+            return RegResult(
+                np.eye(4), True, fitness=1.0, seconds=time.perf_counter() - t0, prior=virtual
+            )
+        if jumped:
+            return self._fail(jumped, t0)
+        hypotheses = [virtual]
+        if relocalising and prior is not None and not np.array_equal(raw_fix, self._prior_fix):
+            hypotheses.append(raw_fix @ np.asarray(prior, dtype=np.float64))
+        tries = [self._attempt(inputs, stamp, h, relocalising) for h in hypotheses]
+        passed = [t for t in tries if not t.reason]
+        best = max(passed or tries, key=lambda t: t.fitness)
+        if passed and best is not tries[0]:
+            # the map agrees with the prior's raw step since the last accepted frame (it froze
+            # and caught up): its world is the one from before the discontinuity
+            self._prior_fix = raw_fix
+            self._prev_prior = best.prior
+        pose, fitness, reason, guess = best.pose, best.fitness, best.reason, best.guess
+        if reason:
+            return self._fail(reason, t0, fitness, pose)
 
+        if relocalising or best.prior_step is None or best.info is None:
+            self._scale_window = None  # a scale measurement spans registered steps only
+        else:
+            self._measure_prior_scale(best.prior_step, best.corr, best.info)
+        if not relocalising:
+            self._threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
+        self._integrate(frame_down, pose)
+        self.last_delta = best.step if not relocalising else np.eye(4)
+        self.last_pose = pose
+        self._accepted_prior(stamp, best.prior)
+        self.counters.accepted += 1
+        if relocalising:
+            self.counters.relocalised += 1
+            self.state = "ok"
+        return RegResult(
+            pose,
+            True,
+            fitness=fitness,
+            relocalised=relocalising,
+            seconds=time.perf_counter() - t0,
+            prior=best.prior,
+        )
+
+    def _accepted_prior(self, stamp: float, prior: np.ndarray | None) -> None:
+        """Remember an accepted frame's stamp and (continuous) prior: the next guess starts
+        from them, and the prior's world as of now is the "raw" hypothesis of a later
+        relocalisation."""
+        self.last_stamp = stamp
+        self.last_prior = prior
+        self._fix_at_accept = self._prior_fix.copy()
+
+    def _continuous_prior(self, prior: np.ndarray, stamp: float) -> tuple[np.ndarray, str]:
+        """``prior`` in a world continuous from frame to frame, and a failure reason where the
+        prior jumped since the previous frame that had one (a step no chair makes, by the same
+        ``max_speed`` / ``max_turn_rate`` rule as the registered pose).
+
+        Why: a visual-inertial prior re-anchors its world now and then (ARKit relocalising
+        against its own map moves it by metres) or freezes and then catches up. Its step since
+        the last accepted frame then holds the jump, and every later guess with it: the frame
+        after an ARKit jump of 2 m failed, and once enough time had passed for 2 m to be a
+        plausible drive, a frame registered 1.9 m off (the floor alone gave it the overlap) and
+        mapping "resumed" there, the map doubled. At a jump the prior's world is re-anchored so
+        that this frame's prior is the previous frame's (the step across it is lost, one
+        frame's motion, which relocalisation's wider search absorbs); the turn of the re-anchor
+        is kept about the prior's z where it is within 10 deg of a turn about it (a
+        gravity-aligned prior keeps gravity through a relocalisation), else taken whole.
+        """
+        cfg = self.cfg
+        virtual = self._prior_fix @ prior
+        reason = ""
+        if self._prev_prior is not None and self._prev_prior_stamp is not None:
+            jump = np.linalg.inv(self._prev_prior) @ virtual
+            dt = max(float(stamp - self._prev_prior_stamp), cfg.min_dt)
+            dist, turn = float(np.linalg.norm(jump[:3, 3])), rotation_angle_deg(jump)
+            if dist > cfg.max_speed * dt + cfg.voxel_size or turn > cfg.max_turn_rate * dt + 5.0:
+                fix = self._prev_prior @ np.linalg.inv(virtual)
+                R = fix[:3, :3]
+                if np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))) <= 10.0:
+                    yaw = np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])
+                    c, s_ = np.cos(yaw), np.sin(yaw)
+                    fix[:3, :3] = [[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]
+                    fix[:3, 3] = self._prev_prior[:3, 3] - fix[:3, :3] @ virtual[:3, 3]
+                self._prior_fix = fix @ self._prior_fix
+                virtual = fix @ virtual
+                reason = f"pose prior jumped ({dist:.2f} m, {turn:.0f} deg in {dt:.2f} s)"
+        self._prev_prior, self._prev_prior_stamp = virtual, float(stamp)
+        return virtual, reason
+
+    def _attempt(
+        self, inputs: FrameInputs, stamp: float, prior: np.ndarray | None, relocalising: bool
+    ) -> _Attempt:
+        """Align one frame from the guess ``prior`` (continuous, or None) gives and run every
+        check on the result; changes nothing, so that two guesses can be tried."""
+        cfg = self.cfg
+        assert self.last_stamp is not None
+        frame_down = inputs.down
         prior_step = None
-        if prior is not None and self.last_prior is not None:
+        with_prior = prior is not None and self.last_prior is not None
+        if with_prior:
+            assert prior is not None and self.last_prior is not None
             target = prior
             if cfg.prior_scale != 1.0:
                 # Horizontal only, in the prior's own frame (z up: REP-105's odom, ARKit's
@@ -507,14 +633,12 @@ class Registrar:
         else:
             guess = self.last_pose @ self.last_delta
         source = inputs.source
-        with_prior = prior is not None and self.last_prior is not None
         if with_prior:
             sigma = cfg.prior_threshold
         elif cfg.fixed_threshold > 0:
             sigma = cfg.fixed_threshold
         else:
             sigma = float(self._threshold.get_threshold())
-        relocalising = self.state == "relocalising"
         scale = cfg.relocalise_scale if relocalising else 1.0
         pose = self._align(source, guess, 3.0 * sigma * scale, sigma * scale)
         corr = np.linalg.inv(guess) @ pose  # ICP's correction of the guess (sensor frame)
@@ -534,7 +658,7 @@ class Registrar:
                 cfg.prior_translation_gain,
                 cfg.prior_rotation_gain,
                 None if cfg.prior_tilt_gain < 0 else cfg.prior_tilt_gain,
-                np.asarray(prior, dtype=np.float64)[2, :3],  # its world's z in this sensor frame
+                prior[2, :3],  # its world's z in this sensor frame
             )
         fitness = self._fitness(transform(frame_down, pose))
 
@@ -556,27 +680,7 @@ class Registrar:
                 reason = f"disagrees with pose prior by {np.linalg.norm(dev[:3, 3]):.2f} m"
             elif rotation_angle_deg(dev) > cfg.max_prior_deviation_deg:
                 reason = f"disagrees with pose prior by {rotation_angle_deg(dev):.0f} deg"
-        if reason:
-            return self._fail(reason, t0, fitness, pose)
-
-        if relocalising or prior_step is None or info is None:
-            self._scale_window = None  # a scale measurement spans registered steps only
-        else:
-            self._measure_prior_scale(prior_step, corr, info)
-        if not relocalising:
-            self._threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
-        self._integrate(frame_down, pose)
-        self.last_delta = step if not relocalising else np.eye(4)
-        self.last_pose = pose
-        self.last_stamp = stamp
-        self.last_prior = prior
-        self.counters.accepted += 1
-        if relocalising:
-            self.counters.relocalised += 1
-            self.state = "ok"
-        return RegResult(
-            pose, True, fitness=fitness, relocalised=relocalising, seconds=time.perf_counter() - t0
-        )
+        return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior)
 
     def _measure_prior_scale(
         self, prior_step: np.ndarray, correction: np.ndarray, info: np.ndarray
