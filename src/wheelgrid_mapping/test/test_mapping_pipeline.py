@@ -558,3 +558,27 @@ def test_a_frame_stamped_in_the_future_does_not_stop_the_keyframes() -> None:
     assert admitted == [0.0, 0.2, 1e6, 0.4, 0.6, 0.8]  # 0.65 is between keyframes
     assert m.clock_jumps == 1 and m.frames_skipped == 1
     assert m.report()["frames"]["clock_jumps"] == 1
+
+
+def test_a_repeated_or_late_frame_is_skipped_and_the_trajectory_stays_monotone(
+    tmp_path: Path,
+) -> None:
+    """A message delivered twice was mapped twice: trajectory.tum held its stamp twice (no TUM
+    reader takes that) and its own flying pixels counted as a second frame's evidence. A late
+    frame gave the file a stamp going back. Both are skipped and counted; the report's counts
+    add up."""
+    from wheelgrid_common.fileio import read_tum
+
+    rng = np.random.default_rng(41)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+    frame = body_frame_room(rng, True)
+    outcomes = []
+    for stamp in (0.0, 0.2, 0.4, 0.4, 0.6, 0.5, 0.8):
+        outcomes.append(m.add_frame(frame + rng.normal(0, 0.002, frame.shape), stamp, "base_link"))
+    assert [o.status for o in outcomes].count("skipped") == 2
+    rep = m.save(tmp_path)
+    fr = rep["frames"]
+    assert fr["out_of_order"] == 2 and fr["skipped"] == 2 and fr["clock_jumps"] == 0
+    assert fr["read"] == fr["used"] + fr["failed"] + fr["empty"] + fr["skipped"]
+    stamps, _ = read_tum(tmp_path / "trajectory.tum")
+    assert list(stamps) == [0.0, 0.2, 0.4, 0.6, 0.8]

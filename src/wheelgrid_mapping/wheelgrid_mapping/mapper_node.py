@@ -522,6 +522,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_skipped_busy": self.counts["skipped_busy"],
             "frames_between_keyframes": self.mapper.frames_skipped,
             "clock_jumps": self.mapper.clock_jumps,
+            "frames_out_of_order": self.mapper.out_of_order,  # repeats, late: skipped
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,
             "priors_refused": self.mapper.priors_refused,

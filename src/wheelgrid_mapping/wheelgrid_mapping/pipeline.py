@@ -155,6 +155,9 @@ FLOOR_CHECK_GROWTH = 2.0
 # The floor found on the whole map holding this many times the map points within 3 cm that
 # z = 0 holds: z = 0 misses part of the floor, and the map frame is taken from the floor found.
 FLOOR_CHECK_GAIN = 1.1
+# A frame stamped at most this long before the last keyframe (or at its very stamp) is a repeat
+# or a late frame, skipped; one stamped farther back is a clock jump, and mapping goes on (s).
+LATE_FRAME_WINDOW = 1.0
 # report.json lists this many registration failures one by one (all are counted): a
 # lost scan fails on hundreds of frames, and the list would bury the rest of the report
 MAX_LISTED_FAILURES = 200
@@ -337,6 +340,7 @@ class Mapper:
         self.frames_read = 0
         self.frames_skipped = 0
         self.clock_jumps = 0  # frames stamped before the last keyframe (the clock went back)
+        self.out_of_order = 0  # of frames_skipped: repeats and late frames (LATE_FRAME_WINDOW)
         self.frames_empty = 0
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
         self.failures: list[dict[str, Any]] = []
@@ -405,6 +409,17 @@ class Mapper:
         self.frames_read += 1
         if self.convention is None:
             self.convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
+        if (
+            self._last_processed is not None
+            and 0.0 <= self._last_processed - stamp < LATE_FRAME_WINDOW
+        ):
+            # The frame before again (a message delivered twice, two clouds stamped alike) or
+            # a late one: mapped, it gave trajectory.tum a stamp twice or going back (no TUM
+            # reader takes that), and a repeat counted its own flying pixels as a second frame's
+            # evidence. A step back of LATE_FRAME_WINDOW or more is a clock jump (below).
+            self.frames_skipped += 1
+            self.out_of_order += 1
+            return FrameOutcome("skipped", "stamped at or before the frame before it")
         if self._last_processed is not None and stamp < self._last_processed:
             # A stamp before the last keyframe's: a publisher restarted, a clock was set, or
             # one frame came stamped in the future. The keyframe clock restarts here; kept on
@@ -860,6 +875,7 @@ class Mapper:
                 "empty": self.frames_empty,
                 "skipped": self.frames_skipped,
                 "clock_jumps": self.clock_jumps,
+                "out_of_order": self.out_of_order,
                 "relocalised": c.relocalised,
                 "priors_refused": self.priors_refused,
             },
