@@ -582,3 +582,36 @@ def test_a_repeated_or_late_frame_is_skipped_and_the_trajectory_stays_monotone(
     assert fr["read"] == fr["used"] + fr["failed"] + fr["empty"] + fr["skipped"]
     stamps, _ = read_tum(tmp_path / "trajectory.tum")
     assert list(stamps) == [0.0, 0.2, 0.4, 0.6, 0.8]
+
+
+def test_the_report_says_registration_was_lost_at_the_end_and_counts_add_up(
+    tmp_path: Path,
+) -> None:
+    """Saved while relocalising, the report said nothing of it: the frames after the last one
+    mapped are missing, and a failure share under 10 % gave no warning either. A frame whose
+    registration raised was read and in no count at all."""
+    from wheelgrid_mapping.cli_map import lost_at_end
+    from wheelgrid_mapping.prefetch import FramePipeline
+
+    rng = np.random.default_rng(42)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2, prepare_ahead=False))
+    frame = body_frame_room(rng, True)
+    few = frame[:40]  # valid, too few to register
+    with FramePipeline(m, False) as pipe:
+        for i in range(4):
+            pipe.push(frame + rng.normal(0, 0.002, frame.shape), 0.2 * i, "base_link", None, None)
+        pipe.push(few, 0.8, "base_link", None, None)  # too few points
+        real = m.registrar.register
+        m.registrar.register = lambda *a, **k: (_ for _ in ()).throw(MemoryError("test"))
+        pipe.push(frame, 1.0, "base_link", None, None)
+        pipe.flush()
+        m.registrar.register = real
+        pipe.push(few, 1.2, "base_link", None, None)
+        pipe.flush()
+    rep = m.save(tmp_path)
+    fr = rep["frames"]
+    assert fr["errors"] == 1 and fr["failed"] == 2 and fr["used"] == 4
+    assert fr["read"] == fr["used"] + fr["failed"] + fr["empty"] + fr["skipped"] + fr["errors"]
+    assert rep["registration"] == {"state": "relocalising", "failed_since_used": 2}
+    assert "still lost at the end: the last 2 frame(s)" in lost_at_end(rep["registration"])
+    assert lost_at_end({"state": "ok", "failed_since_used": 0}) == ""

@@ -377,6 +377,21 @@ def failure_verdict(frames: dict[str, int], with_prior: bool) -> str:
     )
 
 
+def lost_at_end(registration: dict[str, Any]) -> str:
+    """One line where registration was still lost when the map was saved, or ''.
+
+    Why: the frames after the last one mapped are missing from the map, and below
+    :data:`FAILED_SHARE_WARNING` nothing else said so: a run that lost its way for the last
+    stretch read as a map of the whole route."""
+    if registration.get("state") != "relocalising":
+        return ""
+    n = registration.get("failed_since_used", 0)
+    return (
+        f"registration was still lost at the end: the last {n} frame(s) failed and the map "
+        "ends at the last frame registered; the route after it is not mapped"
+    )
+
+
 def ensure_out_dir(out: Path) -> None:
     """The output folder made (or found writable) before the first frame is mapped: a typo in
     ``--out`` must cost a second, not a mapping run of minutes that then cannot be saved."""
@@ -544,6 +559,9 @@ def _run(args: argparse.Namespace) -> int:
             "(NaN, a zero quaternion); those frames registered without one",
             file=sys.stderr,
         )
+    lost = lost_at_end(rep.get("registration", {}))
+    if lost:
+        print(f"wheelgrid map: warning: {lost}", file=sys.stderr)
     verdict = failure_verdict(fr, args.prior == "arkit")
     if verdict:
         print(f"wheelgrid map: warning: {verdict}", file=sys.stderr)

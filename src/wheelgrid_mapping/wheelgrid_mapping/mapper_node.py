@@ -571,6 +571,11 @@ class MapperNode(Node):  # type: ignore[misc]
             response.message = (
                 f"wrote {out}/map.ply ({rep['points']['map']} points), trajectory.tum, report.json"
             )
+            from .cli_map import lost_at_end
+
+            lost = lost_at_end(rep["registration"])
+            if lost:  # saved while relocalising: the map is consistent, but not all of the route
+                response.message += f"; {lost}"
             self.get_logger().info(response.message)
         except (RuntimeError, OSError) as exc:
             response.success = False

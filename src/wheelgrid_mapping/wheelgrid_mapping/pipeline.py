@@ -341,6 +341,8 @@ class Mapper:
         self.frames_skipped = 0
         self.clock_jumps = 0  # frames stamped before the last keyframe (the clock went back)
         self.out_of_order = 0  # of frames_skipped: repeats and late frames (LATE_FRAME_WINDOW)
+        self.frames_errored = 0  # raised while prepared or registered (FrameOutcome "error")
+        self.failed_since_used = 0  # registration failures since the last frame mapped
         self.frames_empty = 0
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
         self.failures: list[dict[str, Any]] = []
@@ -396,6 +398,7 @@ class Mapper:
         """Forget the oldest admitted frame: its preparation failed (it stays counted as read)."""
         if self._admitted:
             self._admitted.pop(0)
+            self.frames_errored += 1
 
     def admit(self, stamp: float, frame_id: str = DEFAULT_FRAME_ID) -> FrameOutcome | None:
         """The first half of :meth:`add_frame`, before any work on the points: counts the frame,
@@ -463,7 +466,9 @@ class Mapper:
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
             self.failures.append({"frame": index, "stamp": stamp, "reason": res.reason})
+            self.failed_since_used += 1
             return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
+        self.failed_since_used = 0
         self.stamps.append(float(stamp))
         self.poses_odom.append(res.pose)
         if prior is not None:
@@ -878,6 +883,13 @@ class Mapper:
                 "out_of_order": self.out_of_order,
                 "relocalised": c.relocalised,
                 "priors_refused": self.priors_refused,
+                "errors": self.frames_errored,
+            },
+            # where registration stood when the report was made: "relocalising" means the
+            # last failed_since_used frames are not in the map (it ends at the last one used)
+            "registration": {
+                "state": self.registrar.state,
+                "failed_since_used": self.failed_since_used,
             },
             "failure_reasons": dict(c.failure_reasons),
             "failures": self.failures[:MAX_LISTED_FAILURES],

@@ -174,6 +174,7 @@ class FramePipeline:
         try:
             return frame.stamp, self.mapper.add_prepared(prepared, frame.prior)
         except Exception as exc:
+            self.mapper.frames_errored += 1  # read, and neither used, failed nor skipped
             return frame.stamp, FrameOutcome("error", repr(exc))
 
     def discard(self) -> None:
