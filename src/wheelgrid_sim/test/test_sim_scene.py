@@ -166,3 +166,23 @@ def test_paper_trajectory_is_wheelchair_like() -> None:
     for rot in poses[:, :3, :3]:
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(rot) == pytest.approx(1.0)
+
+
+def test_distance_to_surfaces_counts_only_faces_seen_from_inside_the_room() -> None:
+    """The shell boxes' outer faces (behind the walls, under the floor slab, on top of the
+    ceiling) are no surface a scanner in the room can see: a map point 20 cm behind a wall is
+    20 cm off the truth, not on it (it used to measure 0 from the wall box's far face)."""
+    s = paper_scene()
+    pts = np.array(
+        [
+            [-0.2, 5.0, 1.0],  # on the west wall box's outer face
+            [-0.15, 5.0, 1.0],  # 15 cm into the west wall (5 cm from its outer face)
+            [5.0, 5.0, -0.2],  # under the floor slab
+            [9.85, 2.0, 1.0],  # 5 cm beyond the east wall box
+            [5.0, 7.0, 2.9],  # on the ceiling box's top face
+            [-0.03, 5.0, 1.0],  # 3 cm behind the west wall's inner face: a noisy wall point
+        ]
+    )
+    np.testing.assert_allclose(
+        s.distance_to_surfaces(pts), [0.2, 0.15, 0.2, 0.25, 0.2, 0.03], atol=1e-9
+    )

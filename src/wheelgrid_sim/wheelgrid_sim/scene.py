@@ -188,10 +188,26 @@ class Scene:
         )
         return pts[keep]
 
-    def distance_to_surfaces(self, points: np.ndarray) -> np.ndarray:
-        """Unsigned distance of each point to the nearest box SURFACE (any box), metres."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    def interior_box_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`box_arrays` clipped to the room's interior (``room`` x ``[0, ceiling]``).
+
+        The floor, ceiling and walls are 20 cm thick boxes OUTSIDE the interior; clipped, each
+        is the flat face a scanner in the room sees (its far faces, behind the walls and under
+        the floor, are no surface anything in the room can return). Boxes wholly outside are
+        dropped."""
         lo, hi = self.box_arrays()
+        x0, y0, x1, y1 = self.room
+        lo = np.maximum(lo, [x0, y0, 0.0])
+        hi = np.minimum(hi, [x1, y1, self.ceiling])
+        keep = (lo <= hi).all(axis=1)
+        return lo[keep], hi[keep]
+
+    def distance_to_surfaces(self, points: np.ndarray) -> np.ndarray:
+        """Unsigned distance of each point to the nearest true SURFACE seen from inside the
+        room, metres: any box's face within the interior (:meth:`interior_box_arrays`), so a
+        point 20 cm behind a wall is 20 cm off, not on the wall box's far face."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        lo, hi = self.interior_box_arrays()
         best = np.full(p.shape[0], np.inf)
         for k in range(lo.shape[0]):
             d_out = np.maximum(np.maximum(lo[k] - p, p - hi[k]), 0.0)

@@ -1,0 +1,44 @@
+"""The benchmark's truth metrics, checked against distances worked out by hand."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+
+from wheelgrid_sim import paper_scene
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def bench_module(name: str) -> ModuleType:
+    """A bench/ script as a module (bench/ is no package): its functions, not its main()."""
+    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # its dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_near_surface_share_ignores_the_far_faces_of_walls_floor_and_ceiling() -> None:
+    """ "Map points within 5 cm of a true surface" measured each point to every face of every
+    scene box, the 20 cm thick shell boxes' far faces included: a wall mapped 15-25 cm behind
+    the true one, or a floor 15-25 cm too low, counted as on the truth."""
+    near_surface_pct = bench_module("bench_mapping").near_surface_pct
+    scene = json.loads(paper_scene().dumps())
+    behind = np.array(
+        [
+            [-0.18, 5.0, 1.0],  # 18 cm behind the west wall
+            [9.8, 2.0, 1.0],  # 20 cm behind the east wall
+            [5.0, 7.0, -0.19],  # 19 cm under the floor
+            [5.0, 7.0, 2.88],  # 18 cm above the ceiling
+        ]
+    )
+    assert near_surface_pct(behind, scene) == 0.0
+    on = np.array([[-0.02, 5.0, 1.0], [5.0, 7.0, 0.01], [1.1, 5.4, 0.74]])
+    assert near_surface_pct(on, scene) == 100.0
