@@ -68,7 +68,7 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
                 return answer
 
             early = call_save()
-            assert not early.success and "no grid yet" in early.message
+            assert not early.success and "no grid: nothing received" in early.message
 
             pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
             pub.publish(to_pointcloud2(cloud, "map"))
@@ -247,6 +247,16 @@ def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_
             assert gone.resolution == good.resolution and gone.origin == good.origin
             assert (gone.data == UNKNOWN).all()
             assert (from_occupancy_grid(fines[-1]).data == UNKNOWN).all()
+            # ~/save says why there is nothing to save (it said "nothing received")
+            from std_srvs.srv import Trigger
+
+            answer = grid_node._on_save(Trigger.Request(), Trigger.Response())
+            assert not answer.success and "the map was cleared" in answer.message
+            high = np.column_stack([np.arange(50.0), np.zeros(50), np.full(50, 2.2)])
+            pub.publish(to_pointcloud2(high, "map"))  # refused: everything above the band
+            assert spin_until(ex, lambda: "refused" in grid_node._no_grid, 10.0)
+            answer = grid_node._on_save(Trigger.Request(), Trigger.Response())
+            assert "the last map was refused" in answer.message, answer.message
 
             n = len(grids)
             assert grid_node.set_parameters([Parameter("safe_height", value=1.6)])[0].successful

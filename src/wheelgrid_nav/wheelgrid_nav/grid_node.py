@@ -69,6 +69,9 @@ class GridNode(Node):
         self._pending: tuple[Any, str] | None = None
         self._last_good: tuple[Any, str] | None = None
         self._last_compute = -float("inf")
+        # why there is no grid, for ~/save's answer: "nothing received" was said too after
+        # the map was cleared (~/reset) or when every map so far was refused
+        self._no_grid = f"nothing received on {MAP_CLOUD_TOPIC}"
         self.grid_pub = self.create_publisher(OccupancyGrid, SAFE_GRID_TOPIC, MAP_QOS)
         self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
         self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
@@ -94,6 +97,8 @@ class GridNode(Node):
 
     def _reject(self, why: str) -> None:
         kept = "kept the previous grid" if self.result is not None else "no grid published yet"
+        if self.result is None:
+            self._no_grid = f"the last map was refused: {why}"
         self.get_logger().warning(f"{why}; {kept}")
 
     def _maybe_compute(self) -> None:
@@ -135,6 +140,7 @@ class GridNode(Node):
         old = self.result
         self.result = None
         self._last_good = None
+        self._no_grid = "the map was cleared (the mapper's ~/reset); no grid until a new map"
         stamp = self.get_clock().now().to_msg()
         for grid, pub in ((old.grid, self.grid_pub), (old.fine, self.fine_pub)):
             unknown = replace(grid, data=np.full_like(grid.data, UNKNOWN))
@@ -166,7 +172,7 @@ class GridNode(Node):
     def _on_save(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
         if self.result is None:
             resp.success = False
-            resp.message = "no grid yet: nothing received on " + MAP_CLOUD_TOPIC
+            resp.message = "no grid: " + self._no_grid
             return resp
         try:
             from wheelgrid_nav.grid_png import write_outputs
