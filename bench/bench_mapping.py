@@ -65,6 +65,7 @@ from wheelgrid_mapping.preprocess import (
     voxel_downsample,
 )
 from wheelgrid_mapping.registration import RegistrationConfig, rotation_angle_deg, transform
+from wheelgrid_sim.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT / ".." / "shared"
@@ -104,31 +105,13 @@ def run_mapper(
     return m
 
 
-def box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Distance of each point to the nearest box surface (inside points: to the nearest face)."""
-    d = np.full(points.shape[0], np.inf)
-    for a, b in zip(lo, hi, strict=True):
-        q = np.maximum(np.maximum(a - points, points - b), 0.0)
-        dd = np.linalg.norm(q, axis=1)
-        inside = (points >= a).all(axis=1) & (points <= b).all(axis=1)
-        dd[inside] = np.minimum((points[inside] - a).min(axis=1), (b - points[inside]).min(axis=1))
-        d = np.minimum(d, dd)
-    return d
-
-
 def near_surface_pct(pts_room: np.ndarray, scene: dict[str, Any]) -> float:
-    """Share (%) of map points (room frame) within 5 cm of a surface of the scene's boxes.
-
-    The boxes are clipped to the room's interior first: the floor, ceiling and walls are 20 cm
-    thick boxes outside it, and their far faces (behind a wall, under the floor) are no true
-    surface; unclipped, a wall mapped 15-25 cm behind the true one counted as on it."""
-    x0, y0, x1, y1 = scene["room"]
-    lo = np.array([b["min"] for b in scene["boxes"]], dtype=np.float64)
-    hi = np.array([b["max"] for b in scene["boxes"]], dtype=np.float64)
-    lo = np.maximum(lo, [x0, y0, 0.0])
-    hi = np.minimum(hi, [x1, y1, float(scene.get("ceiling", 2.7))])
-    keep = (lo <= hi).all(axis=1)
-    return 100.0 * float(np.mean(box_distance(pts_room, lo[keep], hi[keep]) < 0.05))
+    """Share (%) of map points (room frame) within 5 cm of a true surface of the scene: the
+    simulator's own measure (:meth:`wheelgrid_sim.scene.Scene.distance_to_surfaces`), whose
+    boxes are clipped to the room's interior, so that a wall mapped 15-25 cm behind the true
+    one does not count as on the 20 cm wall box's far face."""
+    dist = Scene.from_json(scene).distance_to_surfaces(pts_room)
+    return 100.0 * float(np.mean(dist < 0.05))
 
 
 # Table I analogues in the paper scene (room frame boxes around each surface, true distance).
