@@ -258,7 +258,7 @@ class MotorLink:
             try:
                 data = ser.read(max(1, ser.in_waiting))
             except Exception as exc:  # SerialException / OSError(EIO) when the device vanishes
-                if self._ser is ser and not self._closing.is_set():
+                if not self._closing.is_set():  # dropped only if it is still the port
                     self._drop_port(str(exc), lost=ser)
                 return
             if data:
