@@ -1,9 +1,13 @@
 """The grid node over real DDS (loopback): both grids transient-local, bad maps keep the previous
 grid, ~/save writes the files."""
 
+import contextlib
 import math
 import subprocess
 import time
+from collections.abc import Iterator
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -201,6 +205,38 @@ def test_a_params_file_that_does_not_parse_stops_the_node_with_exit_2(tmp_path):
     assert "[FATAL] cannot start" in out and "Traceback" not in out, out
 
 
+@contextlib.contextmanager
+def in_process_grid(**params: Any) -> Iterator[SimpleNamespace]:
+    """A real GridNode with ``params``, and a test node in the same context that publishes map
+    clouds (``pub``, matched) and collects both grids (``grids``, ``fines``); ``ex`` spins both."""
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_nav.grid_node import GridNode
+
+    with rclpy_context() as ctx:
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        grid_node = GridNode(context=ctx, parameter_overrides=overrides)
+        node = Node("grid_in_process_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(grid_node)
+        ex.add_node(node)
+        try:
+            t = SimpleNamespace(grid_node=grid_node, ex=ex, grids=[], fines=[])
+            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", t.grids.append, MAP_QOS)
+            node.create_subscription(OccupancyGrid, "/map", t.fines.append, MAP_QOS)
+            t.pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
+            assert spin_until(ex, lambda: t.pub.get_subscription_count() > 0, 15.0)
+            yield t
+        finally:
+            ex.shutdown()
+            grid_node.destroy_node()
+            node.destroy_node()
+
+
 def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_it_back():
     """The mapper's ~/reset publishes an empty map cloud and starts a new map whose frame is
     placed under the next pose: the running grid node kept the old grid, so the planner and the
@@ -208,64 +244,42 @@ def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_
     frame the new poses do not share. Now an empty map withdraws it: the same geometry, every
     cell unknown (the planner finds no route, a running move sees its cells change and stops),
     and a later parameter change does not recompute the cleared map."""
-    from nav_msgs.msg import OccupancyGrid
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import PointCloud2
 
     from wheelgrid_common.map_io import UNKNOWN
-    from wheelgrid_nav.grid_node import GridNode
 
     cloud = room_cloud(paper_like_boxes(), spacing=0.05)
-    with rclpy_context() as ctx:
-        grid_node = GridNode(
-            context=ctx, parameter_overrides=[Parameter("max_rate_hz", value=100.0)]
+    with in_process_grid(max_rate_hz=100.0) as t:
+        grid_node, ex, grids, fines, pub = t.grid_node, t.ex, t.grids, t.fines, t.pub
+        pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(ex, lambda: grids and fines, 20.0)
+        good = from_occupancy_grid(grids[-1])
+        assert (good.data == 0).any()
+
+        pub.publish(to_pointcloud2(np.empty((0, 3)), "map"))  # the mapper's ~/reset
+        assert spin_until(ex, lambda: len(grids) > 1 and len(fines) > 1, 10.0), (
+            "the grid of the cleared map stayed published"
         )
-        node = Node("grid_reset_test", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(grid_node)
-        ex.add_node(node)
-        try:
-            grids: list = []
-            fines: list = []
-            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", grids.append, MAP_QOS)
-            node.create_subscription(OccupancyGrid, "/map", fines.append, MAP_QOS)
-            pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
-            assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 15.0)
-            pub.publish(to_pointcloud2(cloud, "map"))
-            assert spin_until(ex, lambda: grids and fines, 20.0)
-            good = from_occupancy_grid(grids[-1])
-            assert (good.data == 0).any()
+        gone = from_occupancy_grid(grids[-1])
+        assert gone.data.shape == good.data.shape and gone.frame_id == good.frame_id
+        assert gone.resolution == good.resolution and gone.origin == good.origin
+        assert (gone.data == UNKNOWN).all()
+        assert (from_occupancy_grid(fines[-1]).data == UNKNOWN).all()
+        # ~/save says why there is nothing to save (it said "nothing received")
+        from std_srvs.srv import Trigger
 
-            pub.publish(to_pointcloud2(np.empty((0, 3)), "map"))  # the mapper's ~/reset
-            assert spin_until(ex, lambda: len(grids) > 1 and len(fines) > 1, 10.0), (
-                "the grid of the cleared map stayed published"
-            )
-            gone = from_occupancy_grid(grids[-1])
-            assert gone.data.shape == good.data.shape and gone.frame_id == good.frame_id
-            assert gone.resolution == good.resolution and gone.origin == good.origin
-            assert (gone.data == UNKNOWN).all()
-            assert (from_occupancy_grid(fines[-1]).data == UNKNOWN).all()
-            # ~/save says why there is nothing to save (it said "nothing received")
-            from std_srvs.srv import Trigger
+        answer = grid_node._on_save(Trigger.Request(), Trigger.Response())
+        assert not answer.success and "the map was cleared" in answer.message
+        high = np.column_stack([np.arange(50.0), np.zeros(50), np.full(50, 2.2)])
+        pub.publish(to_pointcloud2(high, "map"))  # refused: everything above the band
+        assert spin_until(ex, lambda: "refused" in grid_node._no_grid, 10.0)
+        answer = grid_node._on_save(Trigger.Request(), Trigger.Response())
+        assert "the last map was refused" in answer.message, answer.message
 
-            answer = grid_node._on_save(Trigger.Request(), Trigger.Response())
-            assert not answer.success and "the map was cleared" in answer.message
-            high = np.column_stack([np.arange(50.0), np.zeros(50), np.full(50, 2.2)])
-            pub.publish(to_pointcloud2(high, "map"))  # refused: everything above the band
-            assert spin_until(ex, lambda: "refused" in grid_node._no_grid, 10.0)
-            answer = grid_node._on_save(Trigger.Request(), Trigger.Response())
-            assert "the last map was refused" in answer.message, answer.message
-
-            n = len(grids)
-            assert grid_node.set_parameters([Parameter("safe_height", value=1.6)])[0].successful
-            spin_until(ex, lambda: len(grids) > n, 1.0)
-            assert len(grids) == n, "a parameter change republished the cleared map's grid"
-        finally:
-            ex.shutdown()
-            grid_node.destroy_node()
-            node.destroy_node()
+        n = len(grids)
+        assert grid_node.set_parameters([Parameter("safe_height", value=1.6)])[0].successful
+        spin_until(ex, lambda: len(grids) > n, 1.0)
+        assert len(grids) == n, "a parameter change republished the cleared map's grid"
 
 
 def test_a_map_held_back_by_the_rate_limit_is_computed_under_use_sim_time_with_no_clock():
@@ -274,46 +288,19 @@ def test_a_map_held_back_by_the_rate_limit_is_computed_under_use_sim_time_with_n
     bag's clock that had stopped) it never fired, and the newest map (here: the room after an
     obstacle appeared) never became a grid, while the old grid stayed published as current.
     The timer now runs on steady time."""
-    from nav_msgs.msg import OccupancyGrid
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from rclpy.parameter import Parameter
-    from sensor_msgs.msg import PointCloud2
-
-    from wheelgrid_nav.grid_node import GridNode
-
     cloud = room_cloud(paper_like_boxes(), spacing=0.05)
-    with rclpy_context() as ctx:
-        grid_node = GridNode(
-            context=ctx,
-            parameter_overrides=[
-                Parameter("max_rate_hz", value=2.0),
-                Parameter("use_sim_time", value=True),
-            ],
-        )
-        node = Node("grid_sim_time_test", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(grid_node)
-        ex.add_node(node)
-        try:
-            grids: list = []
-            node.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", grids.append, MAP_QOS)
-            pub = node.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
-            assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 15.0)
-            pub.publish(to_pointcloud2(cloud, "map"))
-            assert spin_until(ex, lambda: grids, 20.0)
-            first = from_occupancy_grid(grids[-1])
-            # a block filling the free corner cell at the origin, published at once: held back
-            # by the rate limit (its row is the last: rows run down from the highest y)
-            assert first.data[-1, 0] == 0
-            x0 = first.origin[0] + 0.5 * first.resolution
-            y0 = first.origin[1] + 0.5 * first.resolution
-            g = np.linspace(-0.55, 0.55, 23)
-            block = np.array([(x0 + a, y0 + b, z) for a in g for b in g for z in (0.3, 0.6)])
-            pub.publish(to_pointcloud2(np.vstack([cloud, block]), "map"))
-            assert spin_until(ex, lambda: len(grids) > 1, 10.0), "the held-back map was lost"
-            assert from_occupancy_grid(grids[-1]).data[-1, 0] == OCCUPIED
-        finally:
-            ex.shutdown()
-            grid_node.destroy_node()
-            node.destroy_node()
+    with in_process_grid(max_rate_hz=2.0, use_sim_time=True) as t:
+        ex, grids, pub = t.ex, t.grids, t.pub
+        pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(ex, lambda: grids, 20.0)
+        first = from_occupancy_grid(grids[-1])
+        # a block filling the free corner cell at the origin, published at once: held back
+        # by the rate limit (its row is the last: rows run down from the highest y)
+        assert first.data[-1, 0] == 0
+        x0 = first.origin[0] + 0.5 * first.resolution
+        y0 = first.origin[1] + 0.5 * first.resolution
+        g = np.linspace(-0.55, 0.55, 23)
+        block = np.array([(x0 + a, y0 + b, z) for a in g for b in g for z in (0.3, 0.6)])
+        pub.publish(to_pointcloud2(np.vstack([cloud, block]), "map"))
+        assert spin_until(ex, lambda: len(grids) > 1, 10.0), "the held-back map was lost"
+        assert from_occupancy_grid(grids[-1]).data[-1, 0] == OCCUPIED
