@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import subprocess
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,11 +50,35 @@ class Counter:
         return {t: len(v) for t, v in self.msgs.items()}
 
 
+@contextlib.contextmanager
+def bridge_and_listener(name: str, *params: str) -> Iterator[tuple[int, Any, Any, Any]]:
+    """The bridge as a process on a free port with ``params`` (``key:=value``), and a node
+    ``name`` with its executor in this process to listen to it: (port, process, node,
+    executor). Every one of them is stopped at the end, whatever fails."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    port = free_port()
+    args = [arg for param in (f"port:={port}", *params) for arg in ("-p", param)]
+    with (
+        managed_process(python_module(BRIDGE, "--ros-args", *args)) as proc,
+        rclpy_context() as ctx,
+    ):
+        import rclpy
+
+        node = rclpy.create_node(name, context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        try:
+            yield port, proc, node, ex
+        finally:
+            ex.shutdown()
+            node.destroy_node()
+
+
 def test_stream_stray_through_bridge_loses_no_frame(stray_capture: Path) -> None:
     """90 real frames (1.5 s) at 1x real time: sent == published == received on every topic."""
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
     from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
@@ -62,14 +88,7 @@ def test_stream_stray_through_bridge_loses_no_frame(stray_capture: Path) -> None
 
     exp = StrayExport(stray_capture)
     start, n = 300, 90
-    port = free_port()
-    cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}")
-    with managed_process(cmd) as proc, rclpy_context() as ctx:
-        import rclpy
-
-        node = rclpy.create_node("bridge_test_sub", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
+    with bridge_and_listener("bridge_test_sub") as (port, proc, node, ex):
         topics = {
             "/iphone/points": PointCloud2,
             "/iphone/odometry": Odometry,
@@ -103,8 +122,6 @@ def test_stream_stray_through_bridge_loses_no_frame(stray_capture: Path) -> None
         th.join()
         sent = result["stats"].frames_sent
         spin_until(ex, lambda: status[-1].get("frames_published") == str(n), 5)
-        node.destroy_node()
-        ex.shutdown()
     assert sent == n
     assert status[-1]["frames_published"] == str(n) and status[-1]["messages_rejected"] == "0"
     assert counter.counts() == dict.fromkeys(topics, n), counter.counts()
@@ -220,20 +237,12 @@ def test_bad_parameters_are_one_fatal_line_and_exit_2(module: str, param: str) -
 def test_offset_stamps_are_per_client() -> None:
     """Two phones at once, stamp_mode offset: each keeps its own clock offset, so each
     stream's published spacing is its phone's (0.1 s), not the arrival spacing (0.2 s)."""
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import CameraInfo
 
     from wheelgrid_common.qos import SENSOR_QOS
     from wheelgrid_mapping import bridge_protocol as bp
 
-    port = free_port()
-    cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}", "-p", "max_clients:=2")
-    with managed_process(cmd) as proc, rclpy_context() as ctx:
-        import rclpy
-
-        node = rclpy.create_node("bridge_offset_sub", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
+    with bridge_and_listener("bridge_offset_sub", "max_clients:=2") as (port, proc, node, ex):
         got: dict[int, list[float]] = {16: [], 8: []}  # by width: phone A, phone B
         node.create_subscription(
             CameraInfo,
@@ -254,8 +263,6 @@ def test_offset_stamps_are_per_client() -> None:
                 b.sendall(_frame(5.0 + 0.1 * i, w=8, h=6))
                 spin_until(ex, lambda: False, 0.1)
             spin_until(ex, lambda: len(got[16]) == 4 and len(got[8]) == 4, 5)
-        node.destroy_node()
-        ex.shutdown()
     for stamps in got.values():
         assert len(stamps) == 4, got
         np.testing.assert_allclose(np.diff(stamps), 0.1, atol=1e-4)
@@ -348,25 +355,16 @@ def test_bridge_status_goes_out_under_use_sim_time_with_no_clock() -> None:
     """The status timer ran on ROS time: under ``use_sim_time`` (a Nav2 params file's ``/**``)
     with no ``/clock`` the bridge never said whether a phone was connected."""
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
 
     from wheelgrid_common.qos import RELIABLE_QOS
 
-    port = free_port()
-    cmd = python_module(BRIDGE, "--ros-args", "-p", f"port:={port}", "-p", "use_sim_time:=true")
-    with managed_process(cmd) as proc, rclpy_context() as ctx:
-        import rclpy
-
-        node = rclpy.create_node("wg_bridge_status_test", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-        try:
-            got: list[Any] = []
-            node.create_subscription(
-                DiagnosticArray, "/iphone/bridge_status", got.append, RELIABLE_QOS
-            )
-            wait_listening(port, proc)
-            assert spin_until(ex, lambda: got, timeout=15.0), "no bridge status"
-        finally:
-            ex.shutdown()
-            node.destroy_node()
+    with bridge_and_listener("wg_bridge_status_test", "use_sim_time:=true") as (
+        port,
+        proc,
+        node,
+        ex,
+    ):
+        got: list[Any] = []
+        node.create_subscription(DiagnosticArray, "/iphone/bridge_status", got.append, RELIABLE_QOS)
+        wait_listening(port, proc)
+        assert spin_until(ex, lambda: got, timeout=15.0), "no bridge status"
