@@ -492,13 +492,14 @@ def wait_settled(node: Any) -> None:
 
 
 @contextlib.contextmanager
-def mapper_in_process(tmp_path: Path, frames: int) -> Iterator[Any]:
-    """A real MapperNode in this process, ``frames`` of the bundled bag handed to its own
-    callbacks (no DDS needed) and mapped: yields it once nothing is queued or in preparation."""
+def mapper_in_process(tmp_path: Path, frames: int, **params: Any) -> Iterator[Any]:
+    """A real MapperNode in this process (``params`` beside the defaults), ``frames`` of the
+    bundled bag handed to its own callbacks (no DDS needed) and mapped: yields it once nothing
+    is queued or in preparation."""
     if not BAG.exists():
         pytest.skip("bags/paper_room: not present")
     with rclpy_context() as ctx:
-        node = in_process_mapper_node(ctx, tmp_path, "/in_process")
+        node = in_process_mapper_node(ctx, tmp_path, "/in_process", **params)
         try:
 
             def taken() -> bool:
@@ -707,29 +708,18 @@ def test_the_map_is_published_under_use_sim_time_with_no_clock(tmp_path):
 
     from wheelgrid_common.qos import MAP_QOS
 
-    if not BAG.exists():
-        pytest.skip("bags/paper_room: not present")
-    with rclpy_context() as ctx:
-        node = in_process_mapper_node(
-            ctx, tmp_path, "/sim_time", use_sim_time=True, publish_period=0.1
-        )
-        listener = Node("sim_time_listener", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
+    with mapper_in_process(tmp_path, 2, use_sim_time=True, publish_period=0.1) as node:
+        listener = Node("sim_time_listener", context=node.context)
+        ex = SingleThreadedExecutor(context=node.context)
         ex.add_node(node)
         ex.add_node(listener)
         maps: list = []
         listener.create_subscription(PointCloud2, "/wheelgrid/map_cloud", maps.append, MAP_QOS)
         try:
             assert node.get_clock().now().nanoseconds == 0  # no /clock: ROS time stands at 0
-            for msg, odom in bag_cloud_odometry(BAG, 2):
-                node._on_prior(odom)
-                node._on_cloud(msg)
-                wait_settled(node)
             assert spin_until(ex, lambda: any(m.width > 0 for m in maps), timeout=10.0)
             got = next(m for m in maps if m.width > 0)
             assert (got.header.stamp.sec, got.header.stamp.nanosec) == (0, 0)
         finally:
             ex.shutdown()
             listener.destroy_node()
-            node.close()
-            node.destroy_node()
