@@ -305,3 +305,15 @@ def test_raw_mode_reads_values_as_nav2_map_server_does(tmp_path):
         (tmp_path / "r.yaml").read_text().replace("r.pgm", "r16.pgm")
     )
     assert read_map(tmp_path / "r16.yaml").data.tolist() == [[100, 100]]
+
+
+def test_folders_named_with_a_tilde_are_under_the_users_home(tmp_path, monkeypatch):
+    """``--out=~/run`` (bash expands no ``~`` after ``=``) and a node's ``output_dir: ~/maps``
+    made a folder literally named ``~`` in the current folder."""
+    from wheelgrid_common.fileio import out_folder, user_folder
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert out_folder("~/run") == tmp_path / "run"
+    assert user_folder("~/maps") == tmp_path / "maps"
+    monkeypatch.chdir(tmp_path)
+    assert user_folder("maps") == tmp_path / "maps"  # relative: to where it was started

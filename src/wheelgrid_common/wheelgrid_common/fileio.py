@@ -265,7 +265,16 @@ def out_folder(text: str) -> Path:
         import argparse
 
         raise argparse.ArgumentTypeError("an empty folder name (an unset shell variable?)")
-    return Path(text)
+    return Path(text).expanduser()
+
+
+def user_folder(text: str) -> Path:
+    """A folder named in a parameter or option, absolute, with ``~`` as the user's home. No
+    shell expands a ROS parameter (``output_dir: ~/maps`` in a params file), nor an option
+    written ``--out=~/maps``: both made a folder literally named ``~`` beside wherever the
+    node was started, and ``rm -rf ~`` is what a user then types to clean it up. Absolute,
+    because a service caller may not know where the node was started."""
+    return Path(text).expanduser().absolute()
 
 
 def folder_problem(folder: Path) -> str | None:

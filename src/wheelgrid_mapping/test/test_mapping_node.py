@@ -723,3 +723,21 @@ def test_the_map_is_published_under_use_sim_time_with_no_clock(tmp_path):
         finally:
             ex.shutdown()
             listener.destroy_node()
+
+
+def test_save_map_puts_a_tilde_output_dir_under_the_users_home(tmp_path, monkeypatch):
+    """``output_dir: ~/maps`` in a params file reaches the node as written (no shell expands a
+    ROS parameter): ~/save_map made a folder literally named ``~`` where the node was started,
+    and a user cleaning it up types ``rm -rf ~``. It now means the user's home."""
+    from std_srvs.srv import Trigger
+
+    home, started = tmp_path / "home", tmp_path / "started_here"
+    home.mkdir()
+    started.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(started)
+    with mapper_in_process(tmp_path, 2, output_dir="~/maps") as node:
+        answer = node._on_save(Trigger.Request(), Trigger.Response())
+    assert answer.success, answer.message
+    assert (home / "maps" / "map.ply").is_file() and str(home / "maps") in answer.message
+    assert not (started / "~").exists()

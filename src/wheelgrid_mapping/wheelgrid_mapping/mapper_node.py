@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import matrix_to_quat, pose_or_nan
+from wheelgrid_common.fileio import matrix_to_quat, pose_or_nan, user_folder
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.pointcloud2 import (
     CloudError,
@@ -67,7 +67,10 @@ class MapperNodeConfig:
     pose_prior_topic: str = field(
         "", "nav_msgs/Odometry pose prior (ARKit: /iphone/odometry); empty = register without"
     )
-    output_dir: str = field("wheelgrid_map", "where ~/save_map writes map.ply etc.")
+    output_dir: str = field(
+        "wheelgrid_map",
+        "where ~/save_map writes map.ply etc. (relative: to where the node started; ~ = home)",
+    )
     save_on_exit: bool = field(
         True,
         "on Ctrl-C / SIGTERM a map not saved since it last changed is written to "
@@ -546,9 +549,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._publish(self.status_pub, arr)
 
     def _on_save(self, request: Any, response: Any) -> Any:
-        # absolute in what it says: output_dir is relative to where the node was started,
-        # which the user calling the service may not know
-        out = Path(self.output_dir).absolute()
+        out = user_folder(self.output_dir)
         if self._loop_state in _CLOSING:
             # the worker holds the map; waiting here would stall every other callback
             response.success = False
@@ -710,7 +711,7 @@ class MapperNode(Node):  # type: ignore[misc]
             if frames == 0 or self._map_state() == self._saved:
                 return  # nothing mapped, or ~/save_map already has exactly this map
             extra = {"node_counts": dict(self.counts), "saved_on_exit": True}
-            out = Path(self.output_dir).absolute() / "on_exit"
+            out = user_folder(self.output_dir) / "on_exit"
             try:
                 rep = self.mapper.save(out, extra)
             except OSError as exc:

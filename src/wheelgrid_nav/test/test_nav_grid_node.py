@@ -304,3 +304,23 @@ def test_a_map_held_back_by_the_rate_limit_is_computed_under_use_sim_time_with_n
         pub.publish(to_pointcloud2(np.vstack([cloud, block]), "map"))
         assert spin_until(ex, lambda: len(grids) > 1, 10.0), "the held-back map was lost"
         assert from_occupancy_grid(grids[-1]).data[-1, 0] == OCCUPIED
+
+
+def test_save_puts_a_tilde_output_dir_under_the_users_home(tmp_path, monkeypatch):
+    """``output_dir: ~/grids`` reached ~/save as written (no shell expands a ROS parameter)
+    and the five files went into a folder literally named ``~``; it now means the home."""
+    from std_srvs.srv import Trigger
+
+    home, started = tmp_path / "home", tmp_path / "started_here"
+    home.mkdir()
+    started.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(started)
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with in_process_grid(output_dir="~/grids") as t:
+        t.pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(t.ex, lambda: t.grids, 20.0)
+        answer = t.grid_node._on_save(Trigger.Request(), Trigger.Response())
+    assert answer.success, answer.message
+    assert (home / "grids" / "grid.yaml").is_file() and (home / "grids" / "grid.pgm").is_file()
+    assert not (started / "~").exists()

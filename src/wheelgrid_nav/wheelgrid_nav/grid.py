@@ -297,7 +297,8 @@ class GridNodeConfig(GridConfig):
     grid is recomputed. The CLI reads the same YAML (node-only keys are ignored there)."""
 
     output_dir: str = field(
-        "out/grid", "folder where ~/save writes grid.yaml/pgm, fine.yaml/pgm and grid.png"
+        "out/grid",
+        "folder where ~/save writes grid.yaml/pgm, fine.yaml/pgm and grid.png (~ = home)",
     )
     max_rate_hz: float = field(
         1.0,

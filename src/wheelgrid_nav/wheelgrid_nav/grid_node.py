@@ -20,7 +20,6 @@ import math
 import sys
 import time
 from dataclasses import fields, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,6 +30,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from wheelgrid_common import params
+from wheelgrid_common.fileio import user_folder
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
 from wheelgrid_common.qos import MAP_QOS
@@ -177,7 +177,7 @@ class GridNode(Node):
         try:
             from wheelgrid_nav.grid_png import write_outputs
 
-            files = write_outputs(self.result, Path(self.cfg.output_dir).absolute())
+            files = write_outputs(self.result, user_folder(self.cfg.output_dir))
         except OSError as exc:
             resp.success = False
             resp.message = f"cannot write {self.cfg.output_dir}: {exc}"
