@@ -1,5 +1,5 @@
 """ros2 launch wheelgrid_bringup wheelgrid.launch.py [params:=FILE] [bag:=BAG] [rate:=R]
-[iphone:=true] [drive:=false] [motor_port:=/dev/ttyUSB0]
+[clock:=true] [iphone:=true] [drive:=false] [motor_port:=/dev/ttyUSB0]
 
 For machines with a full ROS 2 Jazzy install: the same nodes and the same parameter file as
 `wheelgrid launch` (which needs neither launch nor ros2). A rosbag2 bag is replayed with
@@ -7,6 +7,8 @@ For machines with a full ROS 2 Jazzy install: the same nodes and the same parame
 (a frame sent before is lost, and a later one would set the map frame). ``motor_port`` given
 overrides the parameter file's drive ``port``; left out, the file's port stands.
 ``iphone:=true`` and ``bag:=`` are refused together, as `wheelgrid launch` refuses them.
+``clock:=true`` (with ``bag:=``, as `wheelgrid launch --bag --clock`) plays the bag with
+``--clock`` and runs every node with ``use_sim_time``, on the bag's time.
 A node that exits ends the launch, as `wheelgrid launch` stops the chain when any node dies:
 a drive node went on driving its plan with its grid node or planner dead.
 """
@@ -28,8 +30,9 @@ from launch.substitutions import (
     EqualsSubstitution,
     LaunchConfiguration,
     NotEqualsSubstitution,
+    NotSubstitution,
 )
-from launch_ros.actions import Node
+from launch_ros.actions import Node, SetParameter
 
 # (package, executable, node name) -- keep in step with wheelgrid_bringup.supervisor.NODES.
 CHAIN = [
@@ -47,8 +50,11 @@ def _check_arguments(context, *_args, **_kwargs):
     """Refuse what would start a chain other than the one asked for, before any node starts."""
     bag = context.launch_configurations.get("bag", "")
     iphone = context.launch_configurations.get("iphone", "false").lower() in ("true", "1")
+    clock = context.launch_configurations.get("clock", "false").lower() in ("true", "1")
     if bag and iphone:
         raise RuntimeError("iphone:=true and bag:= are exclusive: one source of frames")
+    if clock and not bag:
+        raise RuntimeError("clock:=true needs bag:= (it sends the bag's time)")
     if bag.endswith(".bag"):
         raise RuntimeError(
             f"bag:={bag} is a ROS 1 bag, which ros2 bag play cannot read: "
@@ -66,10 +72,15 @@ def generate_launch_description():
         DeclareLaunchArgument("params", default_value=default_params),
         DeclareLaunchArgument("bag", default_value=""),
         DeclareLaunchArgument("rate", default_value="1.0"),
+        DeclareLaunchArgument("clock", default_value="false"),
         DeclareLaunchArgument("iphone", default_value="false"),
         DeclareLaunchArgument("drive", default_value="true"),
         DeclareLaunchArgument("motor_port", default_value=""),
         OpaqueFunction(function=_check_arguments),
+        # before the nodes: it reaches every node started after it
+        SetParameter(
+            name="use_sim_time", value=True, condition=IfCondition(LaunchConfiguration("clock"))
+        ),
     ]
     bag = LaunchConfiguration("bag")
     no_bag, with_bag = EqualsSubstitution(bag, ""), NotEqualsSubstitution(bag, "")
@@ -126,16 +137,26 @@ def generate_launch_description():
             on_exit=Shutdown(reason="iphone_bridge exited"),
         )
     )
-    actions.append(
-        TimerAction(
-            period=REPLAY_DELAY_S,
-            actions=[
-                ExecuteProcess(
-                    cmd=["ros2", "bag", "play", bag, "--rate", LaunchConfiguration("rate")],
-                    output="screen",
-                )
-            ],
-            condition=IfCondition(with_bag),
+    clock = LaunchConfiguration("clock")
+    for extra, when in (([], NotSubstitution(clock)), (["--clock"], clock)):
+        actions.append(
+            TimerAction(
+                period=REPLAY_DELAY_S,
+                actions=[
+                    ExecuteProcess(
+                        cmd=[
+                            "ros2",
+                            "bag",
+                            "play",
+                            bag,
+                            "--rate",
+                            LaunchConfiguration("rate"),
+                            *extra,
+                        ],
+                        output="screen",
+                    )
+                ],
+                condition=IfCondition(AndSubstitution(with_bag, when)),
+            )
         )
-    )
     return LaunchDescription(actions)

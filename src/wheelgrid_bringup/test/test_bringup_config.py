@@ -123,6 +123,20 @@ def test_launch_file_refuses_two_sources_and_leaves_the_files_port_alone():
         run(bag="/b", iphone="true")
     with pytest.raises(RuntimeError, match="ROS 1 bag"):
         run(bag="/x/scan.bag", iphone="false")
+    # clock:=true mirrors `wheelgrid launch --bag --clock`: the bag's time on /clock, every
+    # node on it; without a bag there is no time to send
+    assert run(bag="/b", clock="true") == []
+    with pytest.raises(RuntimeError, match="needs bag"):
+        run(bag="", clock="true")
+    assert defaults["clock"] == "false"
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
+    plays = [ast.unparse(n) for n in calls if getattr(n.func, "id", "") == "TimerAction"]
+    assert len(plays) == 1 and "*extra" in plays[0] and "(['--clock'], clock)" in ast.unparse(tree)
+    # SetParameter reaches only the nodes started after it
+    sim_time = [n for n in calls if getattr(n.func, "id", "") == "SetParameter"]
+    nodes = [n for n in calls if getattr(n.func, "id", "") == "Node"]
+    assert len(sim_time) == 1 and "use_sim_time" in ast.unparse(sim_time[0])
+    assert all(sim_time[0].lineno < n.lineno for n in nodes)
 
 
 def test_launch_file_ends_the_launch_when_any_node_exits():

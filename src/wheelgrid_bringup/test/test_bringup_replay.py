@@ -55,3 +55,90 @@ def test_a_replay_topic_the_bag_lacks_is_refused(tmp_path: Path) -> None:
             assert BagPlayer(node, SCAN, ["/iphone/odometry"]).total > 0
         finally:
             node.destroy_node()
+
+
+def test_the_replay_sends_the_bags_time_on_clock_never_ahead_of_its_messages() -> None:
+    """``wheelgrid launch --bag --clock``: the bag's log time on ``/clock``, as ``ros2 bag
+    play --clock`` sends it. Without it, nodes under ``use_sim_time`` had no time at all
+    (their outputs stamped 0), and without ``use_sim_time`` they stamped the replay's wall
+    clock, years after the clouds. The clock starts at the first message, runs at ``rate``
+    times the wall clock, is not ahead of the messages still to come, and ends on the last
+    message's time; an rclpy node under use_sim_time follows it."""
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_common.bagio import BagReader
+    from wheelgrid_common.testing import rclpy_context, spin_until
+
+    with BagReader(SCAN) as reader:
+        times = [t for _topic, _type, t, _raw in reader.raw(["/iphone/odometry"])]
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_clock_test", context=ctx)
+        sim = rclpy.create_node(
+            "replay_clock_sim_time",
+            context=ctx,
+            parameter_overrides=[Parameter("use_sim_time", value=True)],
+        )
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        ex.add_node(sim)
+        got: list[tuple[str, int]] = []  # (what, bag ns) in the order received
+        node.create_subscription(
+            Clock,
+            "/clock",
+            lambda m: got.append(("clock", m.clock.sec * 10**9 + m.clock.nanosec)),
+            10,
+        )
+        node.create_subscription(
+            Odometry,
+            "/iphone/odometry",
+            lambda m: got.append(("odom", m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)),
+            10,
+        )
+        rate, hz = 10.0, 50.0
+        player = BagPlayer(node, SCAN, ["/iphone/odometry"], rate=rate, clock_hz=hz)
+        try:
+            assert spin_until(ex, lambda: not player.unsubscribed(), 10.0)
+            player.start()
+            assert spin_until(ex, lambda: sum(w == "odom" for w, _ in got) >= len(times), 30.0)
+            assert player.done.wait(5.0) and player.error is None
+            assert spin_until(ex, lambda: ("clock", times[-1]) in got, 5.0), got[-3:]
+            clocks = [t for w, t in got if w == "clock"]
+            assert clocks == sorted(clocks), "the clock went back"
+            assert clocks[0] == times[0] and clocks[-1] == times[-1]
+            wall = (times[-1] - times[0]) / 1e9 / rate
+            assert len(clocks) >= 0.5 * wall * hz, (len(clocks), wall)
+            odom_seen: list[int] = []
+            for what, t in got:
+                if what == "odom":
+                    odom_seen.append(t)
+                else:  # at most the next message's time; one message of slack, as the
+                    # executor may take a clock before an odometry that came first
+                    assert t <= times[min(len(odom_seen) + 1, len(times) - 1)], (t, odom_seen)
+            assert sim.get_clock().now().nanoseconds >= times[len(times) // 2]
+        finally:
+            player.stop()
+            ex.shutdown()
+            node.destroy_node()
+            sim.destroy_node()
+
+
+def test_launch_clock_runs_every_node_on_the_bags_time_and_needs_a_bag(capsys) -> None:
+    """``--clock`` without ``use_sim_time`` on the nodes would send a clock nobody follows;
+    with ``--iphone`` there is no bag time to send, and a rate of 0 Hz sends none."""
+    from wheelgrid_bringup.launcher import build_parser, main, node_overrides
+
+    args = build_parser().parse_args(["--bag", str(SCAN), "--clock"])
+    assert args.clock == 40.0
+    for name in ("mapper", "grid", "planner", "drive", "iphone_bridge"):
+        assert node_overrides(name, args)["use_sim_time"] is True
+    plain = build_parser().parse_args(["--bag", str(SCAN)])
+    assert "use_sim_time" not in node_overrides("grid", plain)
+    assert main(["--iphone", "--clock"]) == 2
+    assert "--clock needs --bag" in capsys.readouterr().err
+    assert main(["--bag", str(SCAN), "--clock", "0"]) == 2
+    assert "--clock must be > 0 Hz" in capsys.readouterr().err

@@ -9,6 +9,7 @@ line, and shuts everything down on Ctrl-C or as soon as any node dies (exit 1, n
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import time
@@ -35,11 +36,35 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--iphone", action="store_true", help="start the iPhone bridge node")
     p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1.0)")
     p.add_argument("--topic", action="append", help="replay only these topics (repeatable)")
+    p.add_argument(
+        "--clock",
+        nargs="?",
+        type=float,
+        const=40.0,
+        metavar="HZ",
+        help="with --bag: publish the bag's time on /clock at HZ (default 40, as `ros2 bag "
+        "play --clock`) and start every node with use_sim_time, so that what they publish is "
+        "stamped on the sensor's clock",
+    )
     p.add_argument("--motor-port", help="serial port of the motor controller (drive node)")
     p.add_argument("--no-drive", action="store_true", help="do not start the drive node")
     p.add_argument("--log-dir", type=Path, default=Path("log/launch"), help="node logs")
     p.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0: never)")
     return p
+
+
+def node_overrides(name: str, args: argparse.Namespace) -> dict[str, object]:
+    """The parameters the command line sets on node ``name``, over the params file's."""
+    overrides: dict[str, object] = {}
+    if name == "drive" and args.motor_port:
+        overrides["port"] = args.motor_port
+    if name == "mapper" and args.bag:
+        overrides["max_queue"] = REPLAY_MAX_QUEUE
+    if args.clock is not None:
+        # on the bag's time: without it a node stamps its map, plan and pose with the wall
+        # clock of the replay, years after the clouds it made them from
+        overrides["use_sim_time"] = True
+    return overrides
 
 
 def check_params_file(path: Path) -> None:
@@ -72,6 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.rate <= 0:
         print("wheelgrid launch: --rate must be > 0", file=sys.stderr)
+        return 2
+    if args.clock is not None and not args.bag:
+        # live, time is the sensor's own: there is no bag time to send
+        print("wheelgrid launch: --clock needs --bag (it sends the bag's time)", file=sys.stderr)
+        return 2
+    if args.clock is not None and not (math.isfinite(args.clock) and args.clock > 0):
+        print(f"wheelgrid launch: --clock must be > 0 Hz, not {args.clock}", file=sys.stderr)
         return 2
     configure_ros_env()
     try:
@@ -127,17 +159,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.bag:  # opened before any node starts: a wrong path costs no node start-up
             try:
-                player = BagPlayer(monitor.node, args.bag, args.topic, args.rate)
+                player = BagPlayer(
+                    monitor.node,
+                    args.bag,
+                    args.topic,
+                    args.rate,
+                    clock_hz=args.clock or 0.0,
+                    clock_readers=len(names),
+                )
             except BagError as exc:
                 print(f"wheelgrid launch: {exc}", file=sys.stderr)
                 return 2
         for name in names:
-            overrides: dict[str, object] = {}
-            if name == "drive" and args.motor_port:
-                overrides["port"] = args.motor_port
-            if name == "mapper" and args.bag:
-                overrides["max_queue"] = REPLAY_MAX_QUEUE
-            sup.start_node(name, params, overrides)
+            sup.start_node(name, params, node_overrides(name, args))
             print(
                 f"launch: started {name} (pid {sup.procs[name].proc.pid}, log "
                 f"{sup.procs[name].log_path})",

@@ -2,12 +2,15 @@
 
 Publishes the bag's CDR bytes as they are (no re-serialisation), paced by the recorded log
 times divided by ``rate``. Publishers are reliable so a reliable or a best-effort (sensor-data)
-subscriber both match.
+subscriber both match. With ``clock_hz``, the bag's time also goes out on ``/clock``, as
+``ros2 bag play --clock`` sends it: nodes under ``use_sim_time`` then stamp what they make
+on the sensor's clock, and a stack that looks transforms up at a cloud's stamp finds them.
 """
 
 from __future__ import annotations
 
 import importlib
+import math
 import threading
 import time
 from collections.abc import Iterable
@@ -24,6 +27,14 @@ REPLAY_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+# Only the newest time matters; reliable matches rclpy's best-effort /clock reader and a
+# reliable one alike.
+CLOCK_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 
 def message_class(msgtype: str) -> Any:
@@ -36,11 +47,20 @@ class BagPlayer:
     """Replays selected topics of a bag from a background thread."""
 
     def __init__(
-        self, node: Any, bag: Path, topics: Iterable[str] | None = None, rate: float = 1.0
+        self,
+        node: Any,
+        bag: Path,
+        topics: Iterable[str] | None = None,
+        rate: float = 1.0,
+        clock_hz: float = 0.0,
+        clock_readers: int = 0,
     ) -> None:
         if rate <= 0:
             raise ValueError("rate must be > 0")
+        if not clock_hz >= 0:
+            raise ValueError("clock_hz must be >= 0 (0: no /clock)")
         self.node = node
+        self.clock_readers = clock_readers
         self.bag = Path(bag)
         self.rate = rate
         self.published = 0
@@ -73,11 +93,25 @@ class BagPlayer:
             t.name: node.create_publisher(message_class(t.msgtype), t.name, REPLAY_QOS)
             for t in self.topics
         }
+        self._clock_period = 1.0 / clock_hz if clock_hz > 0 else 0.0
+        self._clock_next = -math.inf  # monotonic time of the next /clock
+        self._clock_pub = None
+        if clock_hz > 0:
+            from rosgraph_msgs.msg import Clock
+
+            self._clock_msg = Clock()
+            self._clock_pub = node.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._thread = threading.Thread(target=self._run, name="bag-replay", daemon=True)
 
     def unsubscribed(self) -> list[str]:
-        """Replayed topics nobody subscribes to yet (a frame sent now would be lost)."""
-        return [t for t, pub in self._pubs.items() if pub.get_subscription_count() == 0]
+        """Replayed topics nobody subscribes to yet (a frame sent now would be lost), and
+        ``/clock`` while fewer than ``clock_readers`` nodes follow it (a node that matched it
+        late stamped its first map or grid with time 0)."""
+        topics = [t for t, pub in self._pubs.items() if pub.get_subscription_count() == 0]
+        clock = self._clock_pub
+        if clock is not None and clock.get_subscription_count() < self.clock_readers:
+            topics.append("/clock")
+        return topics
 
     def start(self, delay: float = 0.0) -> None:
         self._delay = delay
@@ -99,13 +133,38 @@ class BagPlayer:
                 t0_wall = time.monotonic()
                 for topic, _msgtype, t_ns, raw in reader.raw(self._pubs):
                     if t0_bag is None:
-                        t0_bag = t_ns
+                        t0_bag, t0_wall = t_ns, time.monotonic()
                     due = t0_wall + (t_ns - t0_bag) / 1e9 / self.rate
-                    if self._stop.wait(max(0.0, due - time.monotonic())):
+                    if self._wait_until(due, t0_wall, t0_bag):
                         return
                     self._pubs[topic].publish(raw)
                     self.published += 1
+                if self._clock_pub is not None and t0_bag is not None:
+                    self._publish_clock(t_ns)  # the clock ends on the last message's time
         except Exception as exc:  # reported by the launcher's status line, never swallowed
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
             self.done.set()
+
+    def _wait_until(self, due: float, t0_wall: float, t0_bag: int) -> bool:
+        """Sleep until the monotonic time ``due``, sending the bag's time on ``/clock`` every
+        clock period meanwhile; True when stopped. The clock reads ``t0_bag`` plus the wall
+        time since ``t0_wall`` times ``rate``, never past the message about to go out: a node
+        never sees the clock ahead of a message still on its way."""
+        while True:
+            now = time.monotonic()
+            if self._clock_pub is not None and now >= self._clock_next:
+                self._publish_clock(t0_bag + int((min(now, due) - t0_wall) * self.rate * 1e9))
+                self._clock_next = now + self._clock_period
+            left = due - now
+            if left <= 0:
+                return self._stop.is_set()
+            if self._clock_pub is not None:
+                left = min(left, self._clock_next - now)
+            if self._stop.wait(left):
+                return True
+
+    def _publish_clock(self, bag_ns: int) -> None:
+        assert self._clock_pub is not None
+        self._clock_msg.clock.sec, self._clock_msg.clock.nanosec = divmod(bag_ns, 1_000_000_000)
+        self._clock_pub.publish(self._clock_msg)
