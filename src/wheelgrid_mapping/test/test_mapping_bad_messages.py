@@ -157,3 +157,32 @@ def test_the_second_process_ends_quietly_when_the_mapper_has_gone(capfd) -> None
     err = capfd.readouterr().err
     assert proc.exitcode == 0, err
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_a_bad_message_after_the_last_frame_asked_for_is_not_counted(
+    tmp_path: Path, capsys
+) -> None:
+    """`--max-frames 6` on a bag whose 7th cloud is damaged: the 7th was read (to find that the
+    run was over) and counted as malformed, so report.json and the summary named a skipped
+    frame the run never used, and with `--max-frames 1` a good first frame was refused as 'no
+    readable PointCloud2 frame'."""
+    bag = _copy_first(tmp_path, "tail", 7, {6: b"\x00\x01\x00\x00garbage"})
+    out = tmp_path / "map"
+    argv = [
+        str(bag),
+        "--out",
+        str(out),
+        "--prior",
+        "arkit",
+        "--max-frames",
+        "6",
+        "--no-loop-closure",
+    ]
+    assert cli_map.main(argv) == 0
+    captured = capsys.readouterr()
+    assert "unreadable skipped" not in captured.out, captured.out
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["malformed_frames"] == {} and rep["frames"]["read"] == 6
+    argv = [str(bag), "--out", str(tmp_path / "one"), "--max-frames", "1", "--no-loop-closure"]
+    cli_map.main(argv)
+    assert "no readable PointCloud2 frame" not in capsys.readouterr().err

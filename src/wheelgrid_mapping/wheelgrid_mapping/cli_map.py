@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import sys
 import time
 from collections import deque
@@ -433,6 +434,11 @@ def _run(args: argparse.Namespace) -> int:
         )
     if args.max_frames > 0:
         total = min(total, args.max_frames)
+        # islice stops before it asks for one frame more: the generators count a malformed
+        # frame as they yield it, so the frame after the last one asked for, read only to
+        # find the run over, was reported as skipped (and with --max-frames 1 a good first
+        # frame then ended the run as 'no readable PointCloud2 frame')
+        frames = itertools.islice(frames, total)
     ensure_out_dir(args.out)
     if args.no_loop_closure:
         loop.enabled = False
