@@ -186,3 +186,23 @@ def test_a_bad_message_after_the_last_frame_asked_for_is_not_counted(
     argv = [str(bag), "--out", str(tmp_path / "one"), "--max-frames", "1", "--no-loop-closure"]
     cli_map.main(argv)
     assert "no readable PointCloud2 frame" not in capsys.readouterr().err
+
+
+def test_a_metadata_yaml_that_lists_too_few_messages_loses_no_frame(tmp_path: Path, capsys) -> None:
+    """metadata.yaml's message count (hand-edited, a tool that rewrote it) is what the bag's
+    storage is indexed by, not what it holds: the run stopped after as many frames as it
+    listed and dropped the rest of the recording without a word."""
+    import re
+
+    bag = _copy_first(tmp_path, "lies", 6, {})
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    listed = re.sub(r"message_count: 6\n(\s+topic_metadata:\n\s+name: /iphone/points)",
+                    r"message_count: 2\n\1", text)  # fmt: skip
+    assert listed != text
+    meta.write_text(listed)
+    out = tmp_path / "map"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
+    assert cli_map.main(argv) == 0, capsys.readouterr().err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"]["read"] == 6

@@ -463,9 +463,10 @@ def _run(args: argparse.Namespace) -> int:
                 print(f"\nframe {k}: relocalised against the map; mapping resumed", file=sys.stderr)
 
     with pipe, Progress(total, "mapping", "frames") as bar:
+        # no stop at ``total`` here: a bag's count is its metadata.yaml's, which can list fewer
+        # messages than its storage holds, and stopping there dropped the rest of the
+        # recording without a word (--max-frames is the islice above)
         for pts, stamp, frame_id, conf, prior in frames:
-            if n >= total:
-                break
             n += 1
             if pts.shape[0] == 0:
                 bar.update(1)
