@@ -206,3 +206,25 @@ def test_a_metadata_yaml_that_lists_too_few_messages_loses_no_frame(tmp_path: Pa
     assert cli_map.main(argv) == 0, capsys.readouterr().err
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["read"] == 6
+
+
+def test_frames_the_bag_lists_but_does_not_hold_are_reported_lost(tmp_path: Path, capsys) -> None:
+    """A bag whose storage lost some of the messages its index lists (an MCAP chunk zeroed
+    on a damaged card reads as no messages at all, rows gone from a sqlite3 file) mapped the
+    rest and said only 'N frames read': the frames missing from the map went without a word."""
+    import sqlite3
+
+    bag = _copy_first(tmp_path, "holes", 8, {})
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as con:
+        (topic_id,) = con.execute("SELECT id FROM topics WHERE name = ?", (POINTS,)).fetchone()
+        rows = [r for (r,) in con.execute(
+            "SELECT id FROM messages WHERE topic_id = ? ORDER BY timestamp", (topic_id,))]  # fmt: skip
+        con.executemany("DELETE FROM messages WHERE id = ?", [(r,) for r in rows[5:]])
+    out = tmp_path / "map"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
+    assert cli_map.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert "lists 8 message(s) on the topic but only 5 could be read" in err, err
+    assert json.loads((out / "report.json").read_text())["frames"]["read"] == 5

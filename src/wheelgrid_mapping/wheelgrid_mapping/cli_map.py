@@ -483,6 +483,16 @@ def _run(args: argparse.Namespace) -> int:
             f"{path}: its metadata lists {total} message(s) on the topic but none could be read: "
             "a recording cut short? `wheelgrid bag-recover` reads what such a bag holds"
         )
+    if n < total:
+        # storage that lost messages its index lists (a zeroed MCAP chunk reads as none at
+        # all): the map goes on from what was read, but those frames are missing from it, and
+        # 'N frames read' alone did not say that N was less than the recording
+        print(
+            f"wheelgrid map: warning: {path}: its metadata lists {total} message(s) on the topic "
+            f"but only {n} could be read; the other {total - n} are missing from the map "
+            "(damaged storage?)",
+            file=sys.stderr,
+        )
     unmatched = match.warning()
     if unmatched:
         print(f"wheelgrid map: warning: {unmatched}", file=sys.stderr)
