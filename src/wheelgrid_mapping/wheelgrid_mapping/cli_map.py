@@ -119,21 +119,28 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 
 def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """(stamps, 4x4 poses) of an Odometry topic: the pose prior for bags."""
+    from wheelgrid_common.bagio import BagError
     from wheelgrid_common.fileio import pose_or_nan
 
     stamps, poses = [], []
     unreadable = 0
     # one damaged Odometry message costs the frames near it their prior, as a NaN pose does;
     # it ended the whole run before the first frame
-    for _, t_ns, msg in reader.messages([topic], damaged_as_none=True):  # type: ignore[attr-defined]
-        if msg is None:
-            unreadable += 1
-            continue
-        p = msg.pose.pose
-        T = pose_or_nan(p.position, p.orientation)  # the Mapper refuses and counts NaN poses
-        st = msg.header.stamp
-        stamps.append(st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9)
-        poses.append(T)
+    try:
+        for _, t_ns, msg in reader.messages([topic], damaged_as_none=True):  # type: ignore[attr-defined]
+            if msg is None:
+                unreadable += 1
+                continue
+            p = msg.pose.pose
+            T = pose_or_nan(p.position, p.orientation)  # the Mapper refuses and counts NaN poses
+            st = msg.header.stamp
+            stamps.append(st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9)
+            poses.append(T)
+    except BagError as exc:
+        # storage damaged part-way (a bad MCAP chunk): the poses before it are the prior of
+        # the frames before it, which the clouds' own read maps up to the same place; ending
+        # here threw away every frame of the bag
+        print(f"wheelgrid map: warning: {exc}; the pose prior ends there", file=sys.stderr)
     if unreadable:
         print(
             f"wheelgrid map: warning: {unreadable} message(s) on {topic} do not deserialise; "
@@ -181,8 +188,13 @@ def bag_frames(
     prior: bool = False,
     prior_topic: str | None = None,
     match: PriorMatch | None = None,
+    damage: list[str] | None = None,
 ) -> tuple[int, Iterator[Frame], list[str]]:
     """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause.
+
+    Storage that turns out damaged part-way through ends the frames there; with ``damage``
+    given its error is appended to it (the caller maps the frames before it), else it is an
+    :class:`InputError`.
 
     With ``prior`` the nav_msgs/Odometry topic ``prior_topic``, or the bag's only one (the
     bridge's /iphone/odometry, i.e. ARKit), gives each frame a pose prior: the odometry message
@@ -262,7 +274,9 @@ def bag_frames(
                 # the pixel grid, for the mixed-pixel test
                 yield organised(pts, msg), stamp, msg.header.frame_id, conf, pose
         except BagError as exc:
-            raise InputError(str(exc)) from exc
+            if damage is None:
+                raise InputError(str(exc)) from exc
+            damage.append(str(exc))
         finally:
             reader.__exit__()
 
@@ -423,6 +437,7 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError("--prior-topic names the prior's topic: give --prior arkit too")
     path: Path = args.input
     bad: list[str] = []
+    damage: list[str] = []
     match = PriorMatch()
     if is_stray(path):
         if args.topic or args.prior_topic:
@@ -430,7 +445,7 @@ def _run(args: argparse.Namespace) -> int:
         total, frames = stray_frames(path, args.prior == "arkit", bad)
     else:
         total, frames, bad = bag_frames(
-            path, args.topic, args.prior == "arkit", args.prior_topic, match
+            path, args.topic, args.prior == "arkit", args.prior_topic, match, damage
         )
     if args.max_frames > 0:
         total = min(total, args.max_frames)
@@ -476,6 +491,8 @@ def _run(args: argparse.Namespace) -> int:
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
         report(pipe.flush())
         bar.finish(f"used {mapper.registrar.counters.accepted}")
+    if damage and n == 0:
+        raise InputError(damage[0])
     if n == 0:
         # the bag's index promised messages that its storage does not hold (a recording cut
         # off): "all 0 frames have no valid points" said the wrong thing
@@ -483,7 +500,14 @@ def _run(args: argparse.Namespace) -> int:
             f"{path}: its metadata lists {total} message(s) on the topic but none could be read: "
             "a recording cut short? `wheelgrid bag-recover` reads what such a bag holds"
         )
-    if n < total:
+    if damage:
+        # the frames before the damage were mapped: a whole run ended with exit 2 for it
+        print(
+            f"wheelgrid map: warning: {damage[0]}; the map is made from the {n} frame(s) "
+            "read before it",
+            file=sys.stderr,
+        )
+    elif n < total:
         # storage that lost messages its index lists (a zeroed MCAP chunk reads as none at
         # all): the map goes on from what was read, but those frames are missing from it, and
         # 'N frames read' alone did not say that N was less than the recording
