@@ -182,3 +182,23 @@ def test_frames_after_a_short_odometry_csv_keep_their_order(stray_capture: Path,
     assert len(stamps) == 905 and ex.frames_without_pose == 5
     assert all(b > a for a, b in itertools.pairwise(stamps))
     assert stamps[900] - stamps[899] == pytest.approx(1 / 60, abs=1e-6)
+
+
+def test_a_nan_or_zero_quaternion_pose_row_costs_its_frame_its_pose_only(tmp_path: Path) -> None:
+    """ARKit's pose of one frame, NaN or a zero quaternion in odometry.csv, refused the whole
+    export (exit 2 from map, import-stray and stream-stray), where a bag's NaN pose prior costs
+    its frame only. Such a row now gives its frame no pose, is counted with the frames lacking
+    one, and keeps its timestamp; a row that is not numbers at all still refuses the file."""
+    cap = make_export(tmp_path / "cap", 4)
+    rows = (cap / "odometry.csv").read_text().splitlines()
+    rows[2] = "100.016667, 000001, nan, 1.0, 0.0, 0, 0, 0, 1"
+    rows[3] = "100.033333, 000002, 0.2, 1.0, 0.0, 0, 0, 0, 0"
+    (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
+    exp = StrayExport(cap)
+    assert exp.has_poses and exp.frames_without_pose == 2
+    assert exp.missing_poses_note() == (
+        "odometry.csv has no pose for 2 of 4 depth frames (2 of its rows NaN or a zero quaternion)"
+    )
+    assert exp.frame(1).pose is None and exp.frame(2).pose is None
+    assert exp.frame(0).pose is not None and exp.frame(3).pose is not None
+    assert exp.frame(2).stamp == pytest.approx(100.033333)

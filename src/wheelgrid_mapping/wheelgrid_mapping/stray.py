@@ -18,6 +18,7 @@ frames:
 from __future__ import annotations
 
 import bisect
+import contextlib
 import csv
 import math
 import sys
@@ -77,9 +78,15 @@ def _read_camera_matrix(path: Path) -> np.ndarray:
     return K
 
 
-def _read_odometry(path: Path) -> dict[int, tuple[float, np.ndarray]]:
-    """frame number -> (timestamp s, 4x4 pose); ValueError naming the bad line."""
-    out: dict[int, tuple[float, np.ndarray]] = {}
+def _read_odometry(path: Path) -> tuple[dict[int, tuple[float, np.ndarray | None]], int]:
+    """(frame number -> (timestamp s, 4x4 pose or None), rows without a usable pose).
+
+    A row of numbers whose pose is NaN or has a zero quaternion costs its frame the pose only
+    (None; its timestamp is kept when finite), as a bag's NaN pose prior does: it refused the
+    whole export. A row that is not 9 numbers, or has no frame number, still raises
+    ``ValueError`` naming the line: that file is not odometry."""
+    out: dict[int, tuple[float, np.ndarray | None]] = {}
+    unusable = 0
     with open(path, newline="") as fh:
         reader = csv.reader(fh)
         header = [h.strip() for h in next(reader, [])]
@@ -91,12 +98,18 @@ def _read_odometry(path: Path) -> dict[int, tuple[float, np.ndarray]]:
                 continue
             try:
                 t, frame, *v = (float(x) for x in row)
-                if len(v) != 7 or not all(math.isfinite(x) for x in (t, *v)):
-                    raise ValueError("need 9 finite numbers")
-                out[int(frame)] = (t, pose_from_xyz_quat(*v))
+                if len(v) != 7 or not math.isfinite(frame):
+                    raise ValueError("need 9 numbers and a frame number")
             except ValueError as exc:
                 raise ValueError(f"{path}:{lineno}: bad odometry row {row!r} ({exc})") from exc
-    return out
+            pose = None
+            if all(math.isfinite(x) for x in v):
+                with contextlib.suppress(ValueError):  # a zero quaternion
+                    pose = pose_from_xyz_quat(*v)
+            unusable += pose is None
+            if math.isfinite(t):
+                out[int(frame)] = (t, pose)
+    return out, unusable
 
 
 class StrayExport:
@@ -126,7 +139,7 @@ class StrayExport:
         self._depth_files = files
         self._K_rgb = _read_camera_matrix(cam)
         odo = self.path / "odometry.csv"
-        self._odometry = _read_odometry(odo) if odo.exists() else {}
+        self._odometry, self._unusable_poses = _read_odometry(odo) if odo.exists() else ({}, 0)
         self._known: list[int] | None = None  # odometry's frame numbers, sorted when needed
         self._conf_dir = self.path / "confidence"
         first = self._first_readable(files)
@@ -154,13 +167,16 @@ class StrayExport:
 
     @property
     def has_poses(self) -> bool:
-        return bool(self._odometry)
+        return any(pose is not None for _, pose in self._odometry.values())
 
     @property
     def frames_without_pose(self) -> int:
-        """Depth frames that odometry.csv has no row for (a capture cut short writes depth
-        first): with ``--prior arkit`` those frames register without a prior."""
-        return sum(int(p.stem) not in self._odometry for p in self._depth_files)
+        """Depth frames that odometry.csv has no usable pose for (no row: a capture cut short
+        writes depth first; or a NaN / zero-quaternion row): with ``--prior arkit`` those
+        frames register without a prior."""
+        return sum(
+            self._odometry.get(int(p.stem), (0.0, None))[1] is None for p in self._depth_files
+        )
 
     def missing_poses_note(self) -> str:
         """What odometry.csv lacks, for a warning each command ends with its own consequence;
@@ -168,7 +184,9 @@ class StrayExport:
         missing = self.frames_without_pose
         if not missing:
             return ""
-        return f"odometry.csv has no pose for {missing} of {len(self)} depth frames"
+        bad = self._unusable_poses
+        why = f" ({bad} of its rows NaN or a zero quaternion)" if bad else ""
+        return f"odometry.csv has no pose for {missing} of {len(self)} depth frames{why}"
 
     def __len__(self) -> int:
         return len(self._depth_files)
