@@ -202,3 +202,18 @@ def test_a_nan_or_zero_quaternion_pose_row_costs_its_frame_its_pose_only(tmp_pat
     assert exp.frame(1).pose is None and exp.frame(2).pose is None
     assert exp.frame(0).pose is not None and exp.frame(3).pose is not None
     assert exp.frame(2).stamp == pytest.approx(100.033333)
+
+
+def test_a_camera_matrix_of_another_resolution_is_refused(tmp_path: Path) -> None:
+    """camera_matrix.csv is scaled from Stray's 1920x1440 RGB image to the depth resolution.
+    One for another resolution (already at the depth's, or a 4K video's) was scaled all the
+    same: a K off by 7.5x or 2x, every cloud silently stretched. Its principal point, far from
+    the RGB image's centre, now refuses the export with a clear error."""
+    cap = make_export(tmp_path / "cap", 2)
+    for text in (
+        "4.0, 0.0, 4.0\n0.0, 3.0, 3.0\n0.0, 0.0, 1.0",  # already at the 8x6 depth resolution
+        "2704.0, 0.0, 1924.1\n0.0, 2704.0, 1445.8\n0.0, 0.0, 1.0",  # a 3840x2880 video
+    ):
+        (cap / "camera_matrix.csv").write_text(text)
+        with pytest.raises(ValueError, match=r"camera_matrix\.csv: principal point .* 1920x1440"):
+            StrayExport(cap)

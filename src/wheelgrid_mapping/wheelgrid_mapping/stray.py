@@ -33,6 +33,10 @@ from wheelgrid_mapping.depth import pose_from_xyz_quat
 # Stray's camera_matrix.csv describes the RGB video, which is always 1920 x 1440.
 RGB_WIDTH = 1920
 RGB_HEIGHT = 1440
+# How far (a fraction of the image size) camera_matrix.csv's principal point may lie from
+# the RGB image's centre: the real capture's is 0.2-0.4 % off; one at the depth resolution
+# (256x192) is 87 % off, one of a 3840x2880 video 100 %.
+PRINCIPAL_POINT_TOLERANCE = 0.1
 # Stray records at 60 Hz; used for stamps only when odometry.csv is missing.
 NOMINAL_RATE_HZ = 60.0
 
@@ -75,6 +79,20 @@ def _read_camera_matrix(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: not a 3x3 camera matrix ({exc})") from exc
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"{path}: not a valid 3x3 camera matrix (got shape {K.shape})")
+    # It is scaled from the RGB resolution to the depth's; one of another resolution (already
+    # at the depth's, a 4K video's) was scaled all the same and stretched every cloud without
+    # a word. A real camera's principal point lies within a few % of its image's centre.
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if (
+        abs(cx - RGB_WIDTH / 2) > PRINCIPAL_POINT_TOLERANCE * RGB_WIDTH
+        or abs(cy - RGB_HEIGHT / 2) > PRINCIPAL_POINT_TOLERANCE * RGB_HEIGHT
+    ):
+        raise ValueError(
+            f"{path}: principal point ({cx:g}, {cy:g}) is not near the centre "
+            f"({RGB_WIDTH / 2:g}, {RGB_HEIGHT / 2:g}) of Stray's {RGB_WIDTH}x{RGB_HEIGHT} RGB "
+            "image, whose intrinsics this file must hold (they are scaled to the depth "
+            "resolution); intrinsics of another resolution would distort every frame"
+        )
     return K
 
 
