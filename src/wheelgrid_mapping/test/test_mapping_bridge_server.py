@@ -419,3 +419,19 @@ def test_fuzz_server_survives_any_stream(
         assert wait_for(lambda: srv.frames_received > before)
     for c in list(srv._clients.values()):
         assert c.decoder.buffered <= bp.PREFIX.size + srv.max_frame_bytes
+
+
+def test_a_new_connection_does_not_change_the_clients_a_reader_is_counting() -> None:
+    """The node's 1 Hz status timer reads ``clients`` (a loop over the connections) from its
+    own thread. The server thread added each new connection to that same dict in place, and a
+    reader mid-loop got 'RuntimeError: dictionary changed size during iteration' (seen within
+    seconds of reconnects), out of the timer: the bridge node died. A connection now comes in
+    as a new dict, as one that leaves already went, so a loop in progress never sees it."""
+    with server() as (srv, _rec):
+        seen_by_a_reader = srv._clients  # what a loop in progress iterates over
+        with socket.create_connection(("127.0.0.1", srv.port)) as s:
+            assert wait_for(lambda: len(srv._clients) == 1)
+            assert len(seen_by_a_reader) == 0
+            assert srv.clients == 0  # not said HELLO yet
+            s.sendall(bp.encode_hello())
+            assert wait_for(lambda: srv.clients == 1)

@@ -613,6 +613,7 @@ class BridgeServer:
         self.clients_accepted = 0
         self.clients_refused = 0
         self.clients_timed_out = 0  # no HELLO in time, or idle after it
+        # replaced, never changed in place: other threads read it
         self._clients: dict[int, _Client] = {}
         self._ids = itertools.count(1)
         self._log_once = _LogOnce()  # causes that are not one client's (refusals, probes)
@@ -739,7 +740,10 @@ class BridgeServer:
         sock.setblocking(False)
         now = time.monotonic()
         c = _Client(sock, peer, FrameDecoder(self.max_frame_bytes), now, next(self._ids), now)
-        self._clients[sock.fileno()] = c
+        # a new dict, never changed in place (as _close does): the node's status timer loops
+        # over it from another thread (``clients``), and an insert under that loop raised
+        # "dictionary changed size during iteration" out of the timer and ended the node
+        self._clients = {**self._clients, sock.fileno(): c}
         self._sel.register(sock, selectors.EVENT_READ, c)
         self._log("info", f"bridge: connection from {peer}")
 
