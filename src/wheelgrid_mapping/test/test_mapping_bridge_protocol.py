@@ -50,6 +50,17 @@ def test_u16_millimetres_and_arkit_axes_pose() -> None:
     assert g.pose is None and g.pose_optical() is None
 
 
+def test_millimetre_depth_sent_as_float_metres_is_converted() -> None:
+    """``encode_frame`` takes uint16 millimetres (a phone's depth PNG) and converts on the way
+    to the encoding asked for. Asked for DEPTH_F32_M, it sent the millimetres as metres: a
+    wall 1.5 m away arrived 1.5 km away."""
+    mm = np.array([[1500, 0], [65535, 250]], dtype=np.uint16)
+    raw = bp.encode_frame(3.0, K, mm, depth_encoding=bp.DEPTH_F32_M)
+    (f,) = bp.FrameDecoder().feed(raw)
+    assert f.depth_encoding == bp.DEPTH_F32_M
+    np.testing.assert_allclose(f.depth_m(), [[1.5, np.nan], [65.535, 0.25]], rtol=1e-6)
+
+
 def test_stream_split_anywhere_and_hello_status() -> None:
     stream = bp.encode_hello("s3cret", "test") + _frame_bytes(seq=1) + _frame_bytes(seq=2)
     dec = bp.FrameDecoder()

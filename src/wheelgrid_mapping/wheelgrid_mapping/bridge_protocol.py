@@ -193,7 +193,9 @@ def encode_frame(
     """Encode one frame; ``depth`` float (metres) or uint16 (millimetres).
 
     ``depth_encoding`` converts on the way: float depth sent as DEPTH_U16_MM is rounded to mm
-    (NaN -> 0 = no return). ``pose`` is ARKit world <- camera in ``pose_axes``.
+    (NaN -> 0 = no return), uint16 depth sent as DEPTH_F32_M is scaled to metres (0 stays 0 =
+    no return; it went out as metres unscaled, 1000x too far). ``pose`` is ARKit world <-
+    camera in ``pose_axes``.
     """
     d = np.asarray(depth)
     if d.ndim != 2:
@@ -203,7 +205,8 @@ def encode_frame(
         raise ValueError(f"depth {w}x{h} outside 1..{MAX_DIMENSION}")
     enc = depth_encoding or (DEPTH_U16_MM if d.dtype == np.uint16 else DEPTH_F32_M)
     if enc == DEPTH_F32_M:
-        payload = np.ascontiguousarray(d, dtype="<f4").tobytes()
+        metres = d.astype(np.float32) * np.float32(0.001) if d.dtype == np.uint16 else d
+        payload = np.ascontiguousarray(metres, dtype="<f4").tobytes()
     elif enc == DEPTH_U16_MM:
         if d.dtype == np.uint16:
             mm = d
