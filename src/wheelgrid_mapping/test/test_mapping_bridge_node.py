@@ -368,3 +368,50 @@ def test_bridge_status_goes_out_under_use_sim_time_with_no_clock() -> None:
         node.create_subscription(DiagnosticArray, "/iphone/bridge_status", got.append, RELIABLE_QOS)
         wait_listening(port, proc)
         assert spin_until(ex, lambda: got, timeout=15.0), "no bridge status"
+
+
+def test_depth_to_cloud_says_why_no_cloud_comes_when_confidence_never_arrives() -> None:
+    """A camera that publishes depth and camera info but no confidence image (a phone that
+    sends none, an app without one) with the default confidence_topic: every depth image
+    waited for a confidence image that never came and was dropped, and the node said nothing,
+    while no cloud came out. It now says so once, naming the topic and the setting."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from wheelgrid_common.qos import SENSOR_QOS
+    from wheelgrid_mapping.bridge_protocol import DEPTH_U16_MM, Frame
+    from wheelgrid_mapping.iphone_bridge_node import TOPIC_DEPTH, TOPIC_INFO, frame_messages
+
+    K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+    depth = np.full((24, 32), 1500, np.uint16)
+    cmd = python_module("wheelgrid_mapping.depth_to_cloud_node")
+    with (
+        managed_process(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT) as proc,
+        rclpy_context() as ctx,
+    ):
+        import rclpy
+
+        node = rclpy.create_node("d2c_noconf_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        frames = [Frame(100.0 + i / 30, i, K, depth, DEPTH_U16_MM) for i in range(40)]
+        msgs = [{t: m for t, _, m in frame_messages(f, f.stamp)} for f in frames]
+        pubs = {
+            t: node.create_publisher(type(msgs[0][t]), t, SENSOR_QOS)
+            for t in (TOPIC_DEPTH, TOPIC_INFO)
+        }
+        assert spin_until(
+            ex, lambda: all(p.get_subscription_count() == 1 for p in pubs.values()), 20
+        )
+        for m in msgs:
+            for t, p in pubs.items():
+                p.publish(m[t])
+            ex.spin_once(timeout_sec=0.02)
+        spin_until(ex, lambda: False, 1.0)
+        node.destroy_node()
+        ex.shutdown()
+        proc.send_signal(2)
+        out, _ = proc.communicate(timeout=10)
+    text = out.decode(errors="replace")
+    warnings = [line for line in text.splitlines() if "confidence_topic" in line]
+    assert len(warnings) == 1, text
+    assert "/iphone/confidence/image" in warnings[0]

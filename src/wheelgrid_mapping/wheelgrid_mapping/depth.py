@@ -209,6 +209,9 @@ class StampSync:
         self.queue = int(queue)
         self._items: dict[str, list[tuple[float, object]]] = {s: [] for s in self.streams}
         self.dropped = 0
+        # per stream too: a node tells "depth images go unmatched" (it says why) from the
+        # harmless leftovers of the other streams
+        self.dropped_by_stream: dict[str, int] = dict.fromkeys(self.streams, 0)
 
     def add(self, stream: str, stamp: float, item: object) -> dict[str, object] | None:
         if stream not in self._items:
@@ -218,6 +221,7 @@ class StampSync:
         if len(q) > self.queue:
             q.pop(0)
             self.dropped += 1
+            self.dropped_by_stream[stream] += 1
         return self._match(stamp)
 
     def _match(self, stamp: float) -> dict[str, object] | None:
@@ -234,5 +238,6 @@ class StampSync:
             found[s] = best
         for s, (i, _) in found.items():
             self.dropped += i  # older unmatched items of this stream are abandoned
+            self.dropped_by_stream[s] += i
             del self._items[s][: i + 1]
         return {s: item for s, (_, item) in found.items()}

@@ -4,8 +4,9 @@ Works for any depth camera that follows REP-118 (32FC1 metres or 16UC1 millimetr
 the iPhone. The three streams are matched by header stamp with
 :class:`~wheelgrid_mapping.depth.StampSync` (message_filters is not in the ROS wheels); a depth
 image whose camera info (or confidence) never arrives is dropped, never projected with guessed
-intrinsics. Defaults are the bridge's topics, so ``depth_to_cloud`` also serves apps that
-publish only images (Record3D-ROS2, ARKit-to-ROS2 bridges).
+intrinsics, and that is said once, naming the silent topic. Defaults are the bridge's topics,
+so ``depth_to_cloud`` also serves apps that publish only images (Record3D-ROS2, ARKit-to-ROS2
+bridges).
 """
 
 from __future__ import annotations
@@ -108,6 +109,7 @@ def _make_node() -> Any:
                 )
             self.published = 0
             self._warned: set[str] = set()
+            self._seen: set[str] = set()  # streams that have had a message
             self.get_logger().info(
                 f"{self.cfg.depth_topic} + {self.cfg.info_topic}"
                 + (f" + {self.cfg.confidence_topic}" if use_conf else "")
@@ -120,12 +122,41 @@ def _make_node() -> Any:
                 self.get_logger().warning(text)
 
         def _add(self, stream: str, msg: Any) -> None:
+            self._seen.add(stream)
+            dropped = self.sync.dropped_by_stream["depth"]
             group = self.sync.add(stream, _stamp_s(msg), msg)
+            if self.sync.dropped_by_stream["depth"] > dropped:
+                self._say_why_depth_is_dropped()
             if group is not None:
                 try:
                     self._publish(group["depth"], group["info"], group.get("conf"))
                 except ValueError as exc:  # malformed input: log once per cause, keep running
                     self._warn_once(str(exc).split(":")[0], f"frame dropped: {exc}")
+
+        def _say_why_depth_is_dropped(self) -> None:
+            """Once per cause: a depth image left without its camera info or confidence of
+            the same stamp is dropped, never projected with guesses, and a camera that
+            publishes no confidence image (with the default confidence_topic) had every frame
+            dropped while the node said nothing."""
+            topics = {"info": self.cfg.info_topic, "conf": self.cfg.confidence_topic}
+            silent = [topics[s] for s in self.sync.streams if s not in self._seen]
+            if silent:
+                hint = (
+                    " (a camera without confidence images needs confidence_topic:='')"
+                    if self.cfg.confidence_topic in silent
+                    else ""
+                )
+                self._warn_once(
+                    f"silent:{silent}",
+                    f"depth images dropped: nothing has arrived on {', '.join(silent)}, "
+                    f"which each depth image waits for{hint}",
+                )
+            else:
+                self._warn_once(
+                    "unmatched",
+                    "depth images dropped: no camera info / confidence image within "
+                    f"sync_tolerance_s ({self.cfg.sync_tolerance_s} s) of their stamps",
+                )
 
         def _publish(self, depth_msg: Any, info: Any, conf_msg: Any) -> None:
             depth = depth_image_to_metres(
