@@ -217,3 +217,22 @@ def test_a_camera_matrix_of_another_resolution_is_refused(tmp_path: Path) -> Non
         (cap / "camera_matrix.csv").write_text(text)
         with pytest.raises(ValueError, match=r"camera_matrix\.csv: principal point .* 1920x1440"):
             StrayExport(cap)
+
+
+def test_an_odometry_csv_cut_off_mid_row_or_empty_costs_only_those_poses(tmp_path: Path) -> None:
+    """A capture cut short (the phone full, the app killed) writes depth first, and its
+    odometry.csv may end mid-row, or be empty. Either refused the whole export (exit 2): a
+    partial last line (no newline after it) now costs its frame the pose only; an empty file
+    is one without poses. A complete line that is not 9 numbers still refuses the file."""
+    cap = make_export(tmp_path / "cap", 4)
+    text = (cap / "odometry.csv").read_text()
+    (cap / "odometry.csv").write_text(text[: text.rindex(",")])  # frame 3's row, cut off
+    exp = StrayExport(cap)
+    assert exp.has_poses and exp.frames_without_pose == 1 and exp.frame(3).pose is None
+    assert exp.frame(2).pose is not None
+    (cap / "odometry.csv").write_text("")
+    exp = StrayExport(cap)
+    assert not exp.has_poses and exp.frame(0).pose is None
+    (cap / "odometry.csv").write_text(text[: text.rindex(",")] + "\n")  # a whole bad line
+    with pytest.raises(ValueError, match=r"odometry\.csv:5: bad odometry row"):
+        StrayExport(cap)

@@ -102,31 +102,40 @@ def _read_odometry(path: Path) -> tuple[dict[int, tuple[float, np.ndarray | None
     A row of numbers whose pose is NaN or has a zero quaternion costs its frame the pose only
     (None; its timestamp is kept when finite), as a bag's NaN pose prior does: it refused the
     whole export. A row that is not 9 numbers, or has no frame number, still raises
-    ``ValueError`` naming the line: that file is not odometry."""
+    ``ValueError`` naming the line: that file is not odometry. A capture cut short (a full
+    phone, the app killed) may leave the file empty (no poses) or its last line cut off (no
+    newline after it): that row is left out, costing its frame the pose only; both refused
+    the whole export."""
     out: dict[int, tuple[float, np.ndarray | None]] = {}
     unusable = 0
-    with open(path, newline="") as fh:
-        reader = csv.reader(fh)
-        header = [h.strip() for h in next(reader, [])]
-        need = ["timestamp", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
-        if [h for h in header if h] != need:
-            raise ValueError(f"{path}: header {header} is not {need}")
-        for lineno, row in enumerate(reader, start=2):
-            if not row or not "".join(row).strip():
-                continue
-            try:
-                t, frame, *v = (float(x) for x in row)
-                if len(v) != 7 or not math.isfinite(frame):
-                    raise ValueError("need 9 numbers and a frame number")
-            except ValueError as exc:
-                raise ValueError(f"{path}:{lineno}: bad odometry row {row!r} ({exc})") from exc
-            pose = None
-            if all(math.isfinite(x) for x in v):
-                with contextlib.suppress(ValueError):  # a zero quaternion
-                    pose = pose_from_xyz_quat(*v)
-            unusable += pose is None
-            if math.isfinite(t):
-                out[int(frame)] = (t, pose)
+    text = path.read_text(errors="replace")
+    if not text.strip():
+        return out, 0
+    lines = text.splitlines()
+    cut_off = len(lines) if not text.endswith(("\n", "\r")) else -1  # line number, 1-based
+    reader = csv.reader(lines)
+    header = [h.strip() for h in next(reader, [])]
+    need = ["timestamp", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
+    if [h for h in header if h] != need:
+        raise ValueError(f"{path}: header {header} is not {need}")
+    for lineno, row in enumerate(reader, start=2):
+        if not row or not "".join(row).strip():
+            continue
+        try:
+            t, frame, *v = (float(x) for x in row)
+            if len(v) != 7 or not math.isfinite(frame):
+                raise ValueError("need 9 numbers and a frame number")
+        except ValueError as exc:
+            if lineno == cut_off:
+                break
+            raise ValueError(f"{path}:{lineno}: bad odometry row {row!r} ({exc})") from exc
+        pose = None
+        if all(math.isfinite(x) for x in v):
+            with contextlib.suppress(ValueError):  # a zero quaternion
+                pose = pose_from_xyz_quat(*v)
+        unusable += pose is None
+        if math.isfinite(t):
+            out[int(frame)] = (t, pose)
     return out, unusable
 
 
