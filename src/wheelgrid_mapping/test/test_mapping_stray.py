@@ -236,3 +236,16 @@ def test_an_odometry_csv_cut_off_mid_row_or_empty_costs_only_those_poses(tmp_pat
     (cap / "odometry.csv").write_text(text[: text.rindex(",")] + "\n")  # a whole bad line
     with pytest.raises(ValueError, match=r"odometry\.csv:5: bad odometry row"):
         StrayExport(cap)
+
+
+@pytest.mark.parametrize("name", ["odometry.csv", "camera_matrix.csv"])
+def test_an_unreadable_odometry_or_camera_matrix_is_a_clear_error(
+    tmp_path: Path, name: str
+) -> None:
+    """A file of the export that cannot be read (no permission; here a folder in its place)
+    raised OSError, which no command catches: a traceback instead of one line and exit 2."""
+    cap = make_export(tmp_path / "cap", 2)
+    (cap / name).unlink()
+    (cap / name).mkdir()
+    with pytest.raises(ValueError, match=rf"{name}: cannot read it"):
+        StrayExport(cap)

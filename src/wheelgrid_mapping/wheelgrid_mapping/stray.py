@@ -164,9 +164,12 @@ class StrayExport:
             raise ValueError(f"{depth_dir}: no depth frames (NNNNNN.png or .npy)")
         files.sort(key=lambda p: int(p.stem))
         self._depth_files = files
-        self._K_rgb = _read_camera_matrix(cam)
         odo = self.path / "odometry.csv"
-        self._odometry, self._unusable_poses = _read_odometry(odo) if odo.exists() else ({}, 0)
+        try:
+            self._K_rgb = _read_camera_matrix(cam)
+            self._odometry, self._unusable_poses = _read_odometry(odo) if odo.exists() else ({}, 0)
+        except OSError as exc:  # no permission, a folder in its place: no command caught it
+            raise ValueError(f"{exc.filename}: cannot read it ({exc.strerror})") from exc
         self._known: list[int] | None = None  # odometry's frame numbers, sorted when needed
         self._conf_dir = self.path / "confidence"
         first = self._first_readable(files)
