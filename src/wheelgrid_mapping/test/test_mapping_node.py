@@ -10,7 +10,7 @@ import re
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -492,10 +492,16 @@ def wait_settled(node: Any) -> None:
 
 
 @contextlib.contextmanager
-def mapper_in_process(tmp_path: Path, frames: int, **params: Any) -> Iterator[Any]:
+def mapper_in_process(
+    tmp_path: Path,
+    frames: int,
+    edit: Callable[[int, Any], None] | None = None,
+    **params: Any,
+) -> Iterator[Any]:
     """A real MapperNode in this process (``params`` beside the defaults), ``frames`` of the
-    bundled bag handed to its own callbacks (no DDS needed) and mapped: yields it once nothing
-    is queued or in preparation."""
+    bundled bag handed to its own callbacks (no DDS needed), each cloud first given to
+    ``edit(index, cloud)`` where one is given, and mapped: yields it once nothing is queued or
+    in preparation."""
     if not BAG.exists():
         pytest.skip("bags/paper_room: not present")
     with rclpy_context() as ctx:
@@ -506,7 +512,9 @@ def mapper_in_process(tmp_path: Path, frames: int, **params: Any) -> Iterator[An
                 with node._slot_lock:
                     return not node._queue
 
-            for msg, odom in bag_cloud_odometry(BAG, frames):
+            for k, (msg, odom) in enumerate(bag_cloud_odometry(BAG, frames)):
+                if edit is not None:
+                    edit(k, msg)
                 node._on_prior(odom)
                 node._on_cloud(msg)
                 # the newest-frame policy (max_queue 1): one at a time, each taken by the worker
@@ -741,3 +749,18 @@ def test_save_map_puts_a_tilde_output_dir_under_the_users_home(tmp_path, monkeyp
     assert answer.success, answer.message
     assert (home / "maps" / "map.ply").is_file() and str(home / "maps") in answer.message
     assert not (started / "~").exists()
+
+
+def test_a_cloud_in_a_frame_of_the_other_convention_is_skipped_said_once_and_counted(tmp_path):
+    """The first cloud's frame_id (an optical frame) fixes the axes the mapper reads every
+    cloud in; a later cloud stamped in a body frame was mapped in the optical axes, turned 90
+    deg, without a word. It is skipped, said once, and counted in the status."""
+
+    def to_body(k: int, cloud: Any) -> None:
+        if k in (2, 3):
+            cloud.header.frame_id = "base_link"
+
+    with mapper_in_process(tmp_path, 5, to_body) as node:
+        assert node.mapper.other_frame == 2
+        assert node.mapper.registrar.counters.accepted == 3
+        assert "other_frame" in node._logged

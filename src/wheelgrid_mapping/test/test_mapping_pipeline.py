@@ -584,6 +584,35 @@ def test_a_repeated_or_late_frame_is_skipped_and_the_trajectory_stays_monotone(
     assert list(stamps) == [0.0, 0.2, 0.4, 0.6, 0.8]
 
 
+def test_a_cloud_in_a_frame_of_the_other_convention_is_skipped_and_counted(
+    tmp_path: Path,
+) -> None:
+    """With ``sensor_convention: auto`` the first frame's frame_id fixes the axes every frame
+    is read in. A later cloud in a frame of the other REP-103 convention (an optical frame
+    among body ones) was mapped in those axes all the same, turned 90 deg, without a word. It is now skipped and counted; a renamed frame of the same convention (a driver
+    restarted) is mapped, and an explicit sensor_convention reads every frame its way."""
+    rng = np.random.default_rng(43)
+    frame = body_frame_room(rng, True)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2))
+    ids = ["base_link", "base_link", "camera_optical_frame", "base_link_2", "base_link"]
+    outcomes = [
+        m.add_frame(frame + rng.normal(0, 0.002, frame.shape), 0.2 * i, fid)
+        for i, fid in enumerate(ids)
+    ]
+    assert [o.status for o in outcomes] == ["used", "used", "skipped", "used", "used"]
+    assert outcomes[2].cause == "other_frame" and "optical frame" in outcomes[2].reason
+    fr = m.save(tmp_path)["frames"]
+    assert fr["other_frame"] == 1 and fr["skipped"] == 1
+    assert fr["read"] == fr["used"] + fr["failed"] + fr["empty"] + fr["skipped"]
+
+    m = Mapper(cfg=MapperConfig(level_min_frames=2, sensor_convention="body"))
+    outcomes = [
+        m.add_frame(frame + rng.normal(0, 0.002, frame.shape), 0.2 * i, fid)
+        for i, fid in enumerate(ids)
+    ]
+    assert all(o.status == "used" for o in outcomes) and m.other_frame == 0
+
+
 def test_the_report_says_registration_was_lost_at_the_end_and_counts_add_up(
     tmp_path: Path,
 ) -> None:

@@ -463,6 +463,8 @@ def _run(args: argparse.Namespace) -> int:
     n = 0
     index = FrameNumbers()
 
+    causes_said: set[str] = set()
+
     def report(done: list[tuple[float, FrameOutcome]]) -> None:
         for stamp, out in done:
             k = index.pop(stamp)
@@ -474,6 +476,11 @@ def _run(args: argparse.Namespace) -> int:
                 )
             elif out.status == "error":
                 print(f"\nWARNING frame {k}: skipped, it raised {out.reason}", file=sys.stderr)
+            elif out.cause and out.cause not in causes_said:
+                causes_said.add(out.cause)  # the report counts them all
+                print(
+                    f"\nWARNING frame {k} (and any like it): skipped: {out.reason}", file=sys.stderr
+                )
             elif out.relocalised:
                 print(f"\nframe {k}: relocalised against the map; mapping resumed", file=sys.stderr)
 

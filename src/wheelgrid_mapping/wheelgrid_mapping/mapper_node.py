@@ -368,6 +368,10 @@ class MapperNode(Node):  # type: ignore[misc]
                 )
             elif out.status == "empty":
                 self._log_once("empty", f"frame without valid points ({out.reason})")
+            elif out.cause:
+                self._log_once(
+                    out.cause, f"skipping clouds like the one at {stamp:.3f} s: {out.reason}"
+                )
             if out.relocalised:
                 self.get_logger().info(f"relocalised at {stamp:.3f} s; mapping resumed")
             if out.status == "used":
@@ -526,6 +530,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_between_keyframes": self.mapper.frames_skipped,
             "clock_jumps": self.mapper.clock_jumps,
             "frames_out_of_order": self.mapper.out_of_order,  # repeats, late: skipped
+            "frames_other_frame": self.mapper.other_frame,  # the other axis convention: skipped
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,
             "priors_refused": self.mapper.priors_refused,

@@ -261,6 +261,8 @@ class FrameOutcome:
     reason: str = ""
     pose_map: np.ndarray | None = None  # sensor pose in map (None until levelled)
     relocalised: bool = False
+    # of a skipped frame that a user must hear of (not a keyframe interval): "other_frame"
+    cause: str = ""
 
 
 @dataclass
@@ -341,6 +343,7 @@ class Mapper:
         self.frames_skipped = 0
         self.clock_jumps = 0  # frames stamped before the last keyframe (the clock went back)
         self.out_of_order = 0  # of frames_skipped: repeats and late frames (LATE_FRAME_WINDOW)
+        self.other_frame = 0  # of frames_skipped: a frame_id of another axis convention
         self.frames_errored = 0  # raised while prepared or registered (FrameOutcome "error")
         self.failed_since_used = 0  # registration failures since the last frame mapped
         self.frames_empty = 0
@@ -410,8 +413,24 @@ class Mapper:
             # against a map that no longer matches the trajectory it is appended to.
             raise RuntimeError("Mapper.add_frame after close_loops: start a new Mapper")
         self.frames_read += 1
+        convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
         if self.convention is None:
-            self.convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
+            self.convention = convention
+        elif convention != self.convention:
+            # sensor_convention auto: the first frame's frame_id fixed the axes every frame is
+            # read in (levelling, the map's x). A later cloud in a frame of the other
+            # convention (a body frame after an optical one) was mapped in those axes all the
+            # same, turned 90 deg; there is no tf here to bring it over. A renamed frame of the
+            # same convention (a driver restarted) is mapped.
+            self.frames_skipped += 1
+            self.other_frame += 1
+            return FrameOutcome(
+                "skipped",
+                f"frame_id {frame_id!r} names a {convention} frame (REP-103), and this map's "
+                f"frames are {self.convention}, as its first frame's was: its axes would be "
+                "read wrong (set sensor_convention to override)",
+                cause="other_frame",
+            )
         if (
             self._last_processed is not None
             and 0.0 <= self._last_processed - stamp < LATE_FRAME_WINDOW
@@ -881,6 +900,7 @@ class Mapper:
                 "skipped": self.frames_skipped,
                 "clock_jumps": self.clock_jumps,
                 "out_of_order": self.out_of_order,
+                "other_frame": self.other_frame,
                 "relocalised": c.relocalised,
                 "priors_refused": self.priors_refused,
                 "errors": self.frames_errored,
