@@ -98,3 +98,37 @@ def test_a_sqlite3_recording_without_its_metadata_is_given_back_whole(tmp_path, 
     assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
     assert "nothing was cut off" in capsys.readouterr().out
     assert _read(tmp_path / "back") == msgs
+
+
+def test_messages_the_recording_lists_but_that_are_not_recovered_are_counted_lost(
+    tmp_path, capsys
+) -> None:
+    """A file whose footer is intact but whose middle is damaged (zeroed by a bad sector, a
+    sync cut short) is not "nothing was cut off": its own summary, or the folder's
+    metadata.yaml, lists more messages than were copied, and the line says how many."""
+    bag, msgs = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    n = len(data)
+    data[n // 3 : 2 * n // 3] = bytes(2 * n // 3 - n // 3)
+    mcap.write_bytes(bytes(data))
+    for src, out in ((mcap, "a"), (bag, "b")):  # the MCAP summary; metadata.yaml as well
+        assert bag_recover.main([str(src), "--out", str(tmp_path / out)]) == 0
+        line = capsys.readouterr().out
+        got = len(_read(tmp_path / out))
+        assert got < len(msgs)
+        assert "nothing was cut off" not in line
+        assert f"{len(msgs) - got} of the {len(msgs)} messages" in line, line
+
+    # a sqlite3 bag whose metadata.yaml lists rows it no longer has
+    import sqlite3
+
+    bag, msgs = _recording(tmp_path / "sq", "sqlite3")
+    db = next(bag.glob("*.db3"))
+    with sqlite3.connect(db) as con:
+        con.execute("DELETE FROM messages WHERE id % 3 = 0")
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "c")]) == 0
+    line = capsys.readouterr().out
+    got = len(_read(tmp_path / "c"))
+    assert got < len(msgs) and "nothing was cut off" not in line
+    assert f"{len(msgs) - got} of the {len(msgs)} messages" in line, line

@@ -7,6 +7,11 @@ keeps every committed message; only its ``metadata.yaml`` is missing). This copi
 messages into a new, complete rosbag2 bag and says how much was lost; the original is only
 read. Records are walked from the file's header by their length fields: the first record that
 runs past the end of the file (or an opcode MCAP does not have) is where the cut was.
+
+What was copied is then checked against what the recording itself lists (an MCAP file's
+summary statistics, the folder's ``metadata.yaml``): a file whose footer is intact but whose
+middle was damaged (zeroed by a bad sector, a copy cut short) walks to its footer and looks
+complete, yet gives back only the messages before the damage.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from .bagio import MCAP_MAGIC, BagError, typestore
 from .fileio import out_folder
 from .progress import Progress
 
-_HEADER, _FOOTER, _DATA_END = 0x01, 0x02, 0x0F
+_HEADER, _FOOTER, _STATISTICS, _DATA_END = 0x01, 0x02, 0x0B, 0x0F
 
 
 @dataclass
@@ -43,9 +48,15 @@ class Recovery:
     messages: int = 0
     topics: dict[str, int] = field(default_factory=dict)
     bytes_lost: int = 0  # the incomplete tail after the last complete record
-    already_complete: int = 0  # files that had their footer: nothing was lost there
+    already_complete: int = 0  # files that had their footer (damage is counted in ``lost``)
     start_ns: int = 0
     end_ns: int = 0
+    copied: dict[str, int] = field(default_factory=dict)  # messages copied, per file
+    # what the recording's own summary or metadata.yaml lists, for the files that list any
+    # (and listed files that are not there), and how many of those were not copied
+    listed: int = 0
+    lost: int = 0
+    missing: list[str] = field(default_factory=list)  # files metadata.yaml lists, not there
 
 
 def mcap_extent(path: Path) -> Extent:
@@ -74,6 +85,64 @@ def mcap_extent(path: Path) -> Extent:
                 break  # a record the cut went through (or garbage after it)
             end = pos = nxt
         return Extent(start, end, size, False)
+
+
+def mcap_listed(path: Path) -> int | None:
+    """The message count an MCAP file's own summary (its Statistics record) lists, or None
+    where it has no footer, no summary or no statistics (a cut file): the count a recorder
+    wrote when it closed the file, whatever happened to the records since."""
+    with path.open("rb") as f:
+        size = f.seek(0, 2)
+        if size < 8 + 9 + 37:
+            return None
+        f.seek(size - 37)
+        foot = f.read(37)
+        if foot[-8:] != MCAP_MAGIC or foot[0] != _FOOTER:
+            return None
+        pos = struct.unpack("<Q", foot[9:17])[0]
+        if not 8 <= pos <= size - 37:
+            return None
+        while pos + 9 <= size - 37:
+            f.seek(pos)
+            rec = f.read(9)
+            op, length = rec[0], struct.unpack("<Q", rec[1:])[0]
+            if op == _STATISTICS and length >= 8:
+                return int(struct.unpack("<Q", f.read(8))[0])
+            if op == _FOOTER:
+                break
+            pos += 9 + length
+    return None
+
+
+def metadata_listed(folder: Path) -> dict[str, int] | None:
+    """Messages per storage file name that ``folder``'s metadata.yaml lists, or None where
+    there is none (a cut recording) or it lists no per-file counts."""
+    import yaml
+
+    try:
+        info = yaml.safe_load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return {Path(e["path"]).name: int(e["message_count"]) for e in info["files"]}
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        return None
+
+
+def _count_lost(src: Path, files: list[Path], res: Recovery) -> None:
+    """Compare what was copied from each file with what the recording lists for it: the file's
+    summary or metadata.yaml, whichever lists more (a loss either one saw is a loss); files
+    metadata.yaml lists that are not in the folder lost all of theirs."""
+    meta = metadata_listed(src if src.is_dir() else src.parent) or {}
+    for path in files:
+        own = mcap_listed(path) if path.suffix == ".mcap" else None
+        counts = [n for n in (meta.get(path.name), own) if n is not None]
+        if counts:
+            res.listed += max(counts)
+            res.lost += max(max(counts) - res.copied.get(str(path), 0), 0)
+    if src.is_dir():
+        for name, n in sorted(meta.items()):
+            if not (src / name).exists():
+                res.missing.append(name)
+                res.listed += n
+                res.lost += n
 
 
 def _reader(path: Path, extent: Extent) -> Any:
@@ -160,6 +229,7 @@ def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) 
     finally:
         for _, r in readers:
             r.close()
+    _count_lost(Path(src), files, res)
     return res
 
 
@@ -183,6 +253,7 @@ def _copy(
                             conns[key] = _connection(writer, conn, store)
                         writer.write(conns[key], t_ns, data)
                         res.messages += 1
+                        res.copied[str(path)] = res.copied.get(str(path), 0) + 1
                         res.topics[conn.topic] = res.topics.get(conn.topic, 0) + 1
                         res.start_ns = t_ns if res.messages == 1 else min(res.start_ns, t_ns)
                         res.end_ns = max(res.end_ns, t_ns)
@@ -237,6 +308,14 @@ def main(argv: list[str] | None = None) -> int:
         if res.bytes_lost
         else "the file ends after a complete record, without its footer"
     )
+    if res.lost:
+        # a footer reached is no proof: a damaged middle ends the copy early all the same
+        where = f"; not there: {', '.join(res.missing)}" if res.missing else ""
+        state = (
+            f"{res.lost} of the {res.listed} messages the recording lists (its summary, "
+            f"metadata.yaml) are not in it: damaged or missing{where}"
+            + ("" if res.already_complete == len(res.files) else f"; {state}")
+        )
     print(
         f"bag-recover: {res.messages} messages over {span:.1f} s ({topics}) from "
         f"{len(res.files)} file(s) -> {args.out}; {state}"
