@@ -132,3 +132,22 @@ def test_messages_the_recording_lists_but_that_are_not_recovered_are_counted_los
     got = len(_read(tmp_path / "c"))
     assert got < len(msgs) and "nothing was cut off" not in line
     assert f"{len(msgs) - got} of the {len(msgs)} messages" in line, line
+
+
+def test_the_chunks_after_a_damaged_one_are_given_back(tmp_path, capsys) -> None:
+    """A complete MCAP file whose middle was zeroed still has its summary, which says where
+    every chunk starts: the walk from the header stops at the damage, but the chunks after it
+    are intact and are copied too (they were lost with the damaged one)."""
+    bag, msgs = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    n = len(data)
+    data[n // 3 : n // 2] = bytes(n // 2 - n // 3)
+    mcap.write_bytes(bytes(data))
+    assert bag_recover.main([str(mcap), "--out", str(tmp_path / "back")]) == 0
+    line = capsys.readouterr().out
+    got = _read(tmp_path / "back")
+    assert set(msgs[-10:]) <= set(got)  # the last chunk, byte for byte
+    assert set(msgs[:10]) <= set(got)  # and the first
+    assert f"{len(msgs) - len(got)} of the {len(msgs)} messages" in line, line
+    assert "the cut went through" not in line  # nothing was cut off: it was damaged

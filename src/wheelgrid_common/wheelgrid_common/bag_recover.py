@@ -10,8 +10,9 @@ runs past the end of the file (or an opcode MCAP does not have) is where the cut
 
 What was copied is then checked against what the recording itself lists (an MCAP file's
 summary statistics, the folder's ``metadata.yaml``): a file whose footer is intact but whose
-middle was damaged (zeroed by a bad sector, a copy cut short) walks to its footer and looks
-complete, yet gives back only the messages before the damage.
+middle was damaged (zeroed by a bad sector, a copy cut short) has nothing cut off, yet the
+messages of its damaged chunks are gone. Such a file is read chunk by chunk where its summary
+puts them, so the chunks after the damage are copied too.
 """
 
 from __future__ import annotations
@@ -166,6 +167,41 @@ def _reader(path: Path, extent: Extent) -> Any:
     return reader
 
 
+def _indexed_reader(path: Path) -> Any | None:
+    """rosbags' MCAP reader over a file whose footer and summary survived, reading it chunk by
+    chunk where the summary's chunk index puts them; None where there is no such index (a cut
+    file: the walk from the header is all there is).
+
+    A damaged middle (zeroed by a bad sector) stops the walk from the header, and rosbags' own
+    scan leaves the file once one chunk's contents run past their end: every chunk after the
+    damage was lost with it, though the summary says where each one starts and they are intact.
+    A chunk that does not decode is skipped; its messages are counted lost against the
+    summary's statistics (:func:`_count_lost`).
+    """
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    class _ChunkReader(McapReader):  # type: ignore[misc]
+        def messages(self, connections: Any, start: Any = None, stop: Any = None) -> Any:
+            # In file order, as _CutReader: a recorder writes messages in arrival order.
+            for chunk in sorted(self.chunks, key=lambda c: c.chunk_start_offset):
+                self.data_start = chunk.chunk_start_offset
+                self.data_end = chunk.chunk_start_offset + chunk.chunk_length
+                try:
+                    yield from self.messages_scan(connections, start, stop)
+                except Exception:  # a damaged chunk: counted lost, not fatal
+                    continue
+
+    reader = _ChunkReader(path)
+    try:
+        reader.open()
+    except Exception:  # no footer or summary: the walk from the header
+        return None
+    if not reader.chunks:
+        reader.close()
+        return None
+    return reader
+
+
 def bag_files(src: Path) -> list[Path]:
     """The storage files of a rosbag2 folder (in name order, as rosbag2 splits them: MCAP, or
     sqlite3 where there is no MCAP) or one such file."""
@@ -196,6 +232,10 @@ def _open_file(path: Path, res: Recovery) -> Any:
     if path.suffix == ".db3":
         res.already_complete += 1
         return _sqlite_reader(path)
+    indexed = _indexed_reader(path)
+    if indexed is not None:  # footer and summary: nothing was cut off (damage: _count_lost)
+        res.already_complete += 1
+        return indexed
     ext = mcap_extent(path)
     res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
     res.already_complete += int(ext.complete)
