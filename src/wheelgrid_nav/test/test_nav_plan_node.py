@@ -583,3 +583,39 @@ def test_a_goal_refused_or_reached_is_never_planned_to_again(tmp_path):
             h.ex.remove_node(planner)
             planner.destroy_node()
             h.close()
+
+
+def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_start_was_unknown():
+    """The chair's own cell may be unknown (a sensor on the chair never sees the floor under
+    it), and the route starts there. Every new grid -- the grid node republishes at each map
+    update -- found that cell "not free" and replanned: the same route went out again, and the
+    drive stopped the running move for it (then refused it, the chair between two cells). Only
+    an occupied start cell, or any other route cell not free, is a change under the route."""
+    from wheelgrid_nav.planner_node import make_node
+
+    data = np.zeros((6, 6), np.int8)
+    data[2, 0] = -1  # the chair's cell, never seen
+    grid = Grid(data, 1.0)
+    with rclpy_context() as ctx:
+        node = make_node(context=ctx)
+        try:
+            published: list[list] = []
+            publish = node._publish_route
+
+            def record(g, cells, heading=None):
+                published.append(list(cells))
+                publish(g, cells, heading)
+
+            node._publish_route = record
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_initialpose(start_msg(grid, (2, 0), 0.0))
+            node._on_goal(goal_msg(grid, (2, 4)))
+            assert published == [[(2, c) for c in range(5)]]
+            node._on_grid(to_occupancy_grid(grid))  # the same grid again
+            assert len(published) == 1 and node.plans == 1
+            occupied = data.copy()
+            occupied[2, 0] = 100  # the start cell turns occupied: that is a change
+            node._on_grid(to_occupancy_grid(Grid(occupied, 1.0)))
+            assert node.plans == 2 and published[-1] == []
+        finally:
+            node.destroy_node()

@@ -223,14 +223,21 @@ def _make_node_class() -> type:
             )
             # the route's cells are only indices of the old grid: read on a smaller new one
             # they raised IndexError and ended the node
-            blocked = (
-                not same_geometry
-                or not self.route
-                or any(grid.data[r, c] != 0 for r, c in self.route)
-            )
+            blocked = not same_geometry or not self.route or self._route_blocked(grid)
             if blocked:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
+
+        def _route_blocked(self, grid: Grid) -> bool:
+            """Whether ``grid`` (same geometry as the route's) closes a cell of the route, by
+            the rule the route was planned under: its first cell, the chair's own, may be
+            unknown (``allow_unknown_start``). Judged "not free" like the rest, an unknown start
+            cell replanned at every new grid (each map update), and the drive stopped the
+            running move for the same route sent again."""
+            (r0, c0), rest = self.route[0], self.route[1:]
+            first = int(grid.data[r0, c0])
+            first_ok = first == 0 or (self.cfg.allow_unknown_start and first < 0)
+            return not first_ok or any(grid.data[r, c] != 0 for r, c in rest)
 
         def _on_estop(self, msg: Any) -> None:
             if not msg.data:
