@@ -156,6 +156,32 @@ def test_heading_variant_backs_up_a_dead_end_corridor():
     assert res.cost == pytest.approx(3 * 2.0)
 
 
+def corridor_with_a_side_pocket() -> np.ndarray:
+    """A one-cell-wide corridor (row 1) with a one-cell pocket above column 8."""
+    g = np.full((3, 10), 100, dtype=np.int8)
+    g[1, :] = 0
+    g[0, 8] = 0
+    return g
+
+
+def test_heading_variant_turns_round_in_a_side_pocket():
+    """Facing the corridor's end, the cheapest way back is a three-point turn: into the pocket,
+    back out into the same cell, then forward (12 against 16 for backing up eight cells). The
+    route enters (1, 8) twice, at two headings, and was refused as "visits a cell twice": the
+    node's default method had no route to a goal the chair could reach."""
+    res = plan(
+        corridor_with_a_side_pocket(), (1, 8), (1, 0), method="qlearning-heading", heading="right"
+    )
+    assert res.ok, res.reason
+    assert res.cells == [(1, 8), (0, 8), (1, 8)] + [(1, c) for c in range(7, -1, -1)]
+    assert res.cost == pytest.approx(12.0) == res.optimal_cost
+    actions = [a["action"] for a in moves_to_actions(res.cells, "right")]
+    assert actions == ["left-forward", "backward", "left-forward"] + ["forward"] * 7
+    # the plain planner still never comes back to a cell
+    plain = plan(corridor_with_a_side_pocket(), (1, 8), (1, 0))
+    assert plain.ok and len(set(plain.cells)) == len(plain.cells) == 9
+
+
 def test_heading_variant_on_random_grids_hits_the_dijkstra_optimum():
     rng = np.random.default_rng(7)
     for i in range(15):

@@ -48,3 +48,16 @@ def test_unknown_start_does_not_make_the_same_cell_an_acceptable_goal():
         plan(g, (7, 7), (7, 7))
     # a known free start may still be its own goal (a zero-move route)
     assert plan(g, (0, 0), (0, 0)).cells == [(0, 0)]
+
+
+def test_a_heading_route_never_comes_back_into_an_unknown_start_cell():
+    """A three-point turn through the chair's own cell re-enters it, and the drive enters only
+    cells known to be free: from an unknown start the route may only leave it."""
+    g = np.full((3, 10), 100, dtype=np.int8)
+    g[1, :] = 0
+    g[0, 8] = 0  # a pocket beside the start: the turn would come back into (1, 8)
+    g[1, 8] = -1
+    res = plan(g, (1, 8), (1, 0), method="qlearning-heading", heading="right")
+    assert res.ok, res.reason
+    assert res.cells == [(1, c) for c in range(8, -1, -1)]  # backs up the corridor instead
+    assert res.cost == pytest.approx(16.0) == res.optimal_cost

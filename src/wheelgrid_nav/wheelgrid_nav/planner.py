@@ -231,8 +231,13 @@ def _build_mdp(
     goal: tuple[int, int],
     cfg: PlannerConfig,
     heading: str | None,
+    reenter_start: bool = True,
 ) -> _Mdp:
+    """The MDP over ``free``; with ``reenter_start`` False no move enters the start cell (an
+    unknown cell the chair stands on may be left, never driven into)."""
     index, nb = _neighbour_index(free)
+    if not reenter_start:
+        nb[nb == index[start]] = -1
     rc = np.argwhere(free)
     n = len(rc)
     move_cost = -cfg.reward_step
@@ -334,11 +339,14 @@ def verify_route(
     start: Sequence[int],
     goal: Sequence[int],
     bfs_length: int | None = None,
+    allow_revisits: bool = False,
 ) -> list[str]:
     """Independent safety check of a route; returns the problems found (empty = verified).
 
     Checks every cell is inside and free, consecutive cells are 4-neighbours, the route starts
-    at ``start`` and ends at ``goal``, and (given ``bfs_length``) it is no longer than that.
+    at ``start`` and ends at ``goal``, no cell comes twice (unless ``allow_revisits``: a
+    heading-aware route may turn round in a side pocket and come back out into the cell it
+    left, at another heading), and (given ``bfs_length``) it is no longer than that.
     """
     problems = []
     if not cells:
@@ -354,7 +362,7 @@ def verify_route(
         problems.append("route does not begin at the start")
     if tuple(cells[-1]) != tuple(goal):
         problems.append("route does not end at the goal")
-    if len({tuple(c) for c in cells}) != len(cells):
+    if not allow_revisits and len({tuple(c) for c in cells}) != len(cells):
         problems.append("route visits a cell twice")
     if bfs_length is not None and len(cells) - 1 > bfs_length:
         problems.append(f"route has {len(cells) - 1} moves, the shortest has {bfs_length}")
@@ -540,11 +548,13 @@ def plan(
     arr = np.asarray(data)
     grid_free = arr if arr.dtype == bool else free_mask(arr)
     free = grid_free
+    start_unknown = False
     if cfg.allow_unknown_start and arr.dtype != bool:
         r0, c0 = int(start[0]), int(start[1])
         if 0 <= r0 < arr.shape[0] and 0 <= c0 < arr.shape[1] and arr[r0, c0] < 0:
             free = free.copy()
-            free[r0, c0] = True  # the chair stands there; a shortest route never returns to it
+            free[r0, c0] = True  # the chair stands there: it may leave, never come back
+            start_unknown = True
     s = check_cell(free, start, "start")
     # The goal is judged on the grid as given: the relaxation above is for the chair's own
     # cell only, and must not make an unknown goal "free" when the goal is that same cell.
@@ -561,7 +571,12 @@ def plan(
         res.cells, res.converged, res.reason, res.cost, res.optimal_cost = [s], True, "ok", 0, 0
         res.seconds = time.perf_counter() - t0
         return res
-    mdp = _build_mdp(free, s, g, cfg, heading if method == "qlearning-heading" else None)
+    heading_aware = method == "qlearning-heading"
+    # A heading-aware route may come back into a cell (a three-point turn), but not into an
+    # unknown start: the drive enters only cells known to be free, and stopped there.
+    mdp = _build_mdp(
+        free, s, g, cfg, heading if heading_aware else None, reenter_start=not start_unknown
+    )
     optimal = _optimal_cost(mdp)
     out = _learn(mdp, cfg, optimal)
     res.episodes, res.steps, res.updates = out["episodes"], out["steps"], out["updates"]
@@ -576,7 +591,11 @@ def plan(
     res.cost = out["cost"]
     # the plain planner must match BFS exactly; the heading-aware one may trade length for
     # fewer manoeuvres, and is held to the Dijkstra optimum of its own cost model instead.
-    problems = verify_route(free, cells, s, g, bfs_len if method == "qlearning" else None)
+    problems = verify_route(
+        free, cells, s, g, None if heading_aware else bfs_len, allow_revisits=heading_aware
+    )
+    if start_unknown and s in cells[1:]:
+        problems.append(f"route comes back into the unknown start cell ({s[0]},{s[1]})")
     if abs(res.cost - optimal) > 1e-9 * max(1.0, optimal):
         problems.append(f"route cost {res.cost} is not the optimum {optimal}")
     res.seconds = time.perf_counter() - t0
