@@ -619,3 +619,31 @@ def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_sta
             assert node.plans == 2 and published[-1] == []
         finally:
             node.destroy_node()
+
+
+def test_a_goal_that_cannot_be_planned_yet_says_what_it_waits_for():
+    """A goal sent before the first safe grid or start pose got no path and no log line: the
+    user heard nothing, and the chair set off whenever the grid or start came. It is still
+    planned then, but the planner says so when the goal comes."""
+    from types import SimpleNamespace as Ns
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        node = make_node(context=ctx)
+        try:
+            said: list[str] = []
+            logger = Ns(warning=lambda text, **_: said.append(text), info=lambda text, **_: None)
+            node.get_logger = lambda: logger
+            node._on_goal(goal_msg(grid, (6, 5)))
+            assert node.plans == 0 and len(said) == 1
+            assert "/wheelgrid/safe_grid" in said[0] and "start pose" in said[0]
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_goal(goal_msg(grid, (6, 5)))
+            assert len(said) == 2 and "/wheelgrid/safe_grid" not in said[1]
+            assert "/initialpose" in said[1]
+            node._on_initialpose(start_msg(grid, (2, 0), -math.pi / 2))  # planned now
+            assert node.plans == 1 and node.route == PAPER_ROUTE
+        finally:
+            node.destroy_node()

@@ -270,7 +270,25 @@ def _make_node_class() -> type:
                 return
             self.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
             self.goal_frame = msg.header.frame_id
+            self._say_what_the_goal_waits_for()
             self._plan()
+
+        def _say_what_the_goal_waits_for(self) -> None:
+            """Name what a goal that cannot be planned yet waits for: it got no path and no
+            word, and the chair set off when the first grid or start came, maybe minutes on."""
+            missing = []
+            if self.grid is None:
+                missing.append("a safe grid on /wheelgrid/safe_grid")
+            if self.start is None:
+                missing.append(
+                    "a start pose (/initialpose, /wheelgrid/odometry, or "
+                    "/wheelgrid/chair_pose once the chair moves)"
+                )
+            if missing:
+                self.get_logger().warning(
+                    f"goal kept, not planned yet: no {' and no '.join(missing)}; it is planned "
+                    "when that comes (an e-stop or a new goal ends it)"
+                )
 
         def _set_start(self, pose: Any, frame: str, child: str) -> bool:
             if not self._frame_ok(frame, "start pose"):
