@@ -253,3 +253,24 @@ def test_planner_spelling_of_actions_is_accepted():
         a["action"] = a["action"].lower()  # wheelgrid_nav writes "left-forward"
     steps, cells = load_plan(plan)
     assert cells[0] == (2, 0) and steps[0].action == "LEFT_FORWARD" and steps[0].heading == "down"
+
+
+def test_a_plan_from_the_chairs_own_unknown_cell_is_driven_and_an_occupied_start_refused(
+    make_sim, tmp_path, capsys
+):
+    """``wheelgrid plan`` plans from the chair's own cell where the grid has it unknown (a
+    sensor on the chair never sees the floor under it; ``allow_unknown_start``), and the drive
+    node drives such plans; ``wheelgrid drive --grid`` refused them ("start cell (2, 0) is
+    unknown"), so the planner's own output could not be driven from the command line. An
+    occupied start is still refused, and every cell moved into must be free."""
+    data = np.zeros((8, 8), np.int8)
+    data[2, 0] = -1  # the start
+    sim = make_sim()
+    grid = write_map(tmp_path / "own_unknown.yaml", Grid(data, 1.2))
+    rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--grid", str(grid)])
+    assert rc == 0, capsys.readouterr().err
+    assert len(sim_moves(sim)) == 9
+    data[2, 0] = 100
+    grid = write_map(tmp_path / "own_occupied.yaml", Grid(data, 1.2))
+    rc = main([write(tmp_path, table_ii_plan()), "--dry-run", "--grid", str(grid)])
+    assert rc == 2 and "start cell (2, 0) is occupied" in capsys.readouterr().err

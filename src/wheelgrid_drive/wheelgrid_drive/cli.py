@@ -181,7 +181,16 @@ def main(argv: list[str] | None = None) -> int:
         return _err(f"cell size {cell_size} m outside [0.001, {proto.MAX_DISTANCE_MM / 1000:g}] m")
     check: CellCheck | None = grid_cell_check(lambda: grid) if grid is not None else None
     if check is not None:
-        bad = check(cells[0])
+        from wheelgrid_common.map_io import UNKNOWN
+
+        assert grid is not None
+        r0, c0 = cells[0]
+        # The chair's own cell may be unknown, as the planner allows (allow_unknown_start): a
+        # sensor on the chair never sees the floor under it. Refused here, `wheelgrid plan`'s
+        # own plans on such a grid could not be driven; the drive node already took them.
+        # Every cell the chair moves into must still be free (below).
+        own_unknown = grid.inside(r0, c0) and int(grid.data[r0][c0]) == UNKNOWN
+        bad = None if own_unknown else check(cells[0])
         if bad:
             return _err(f"start {bad}")
         # The grid is a file: every cell of the route is known now. Checked only step by step,
