@@ -4,6 +4,7 @@ the route -> a new route; an unreachable goal -> an EMPTY path (so the drive sto
 import contextlib
 import math
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -645,5 +646,41 @@ def test_a_goal_that_cannot_be_planned_yet_says_what_it_waits_for():
             assert "/initialpose" in said[1]
             node._on_initialpose(start_msg(grid, (2, 0), -math.pi / 2))  # planned now
             assert node.plans == 1 and node.route == PAPER_ROUTE
+        finally:
+            node.destroy_node()
+
+
+def test_a_goal_that_waits_longer_than_goal_wait_s_is_dropped():
+    """A goal waiting for the first grid or start pose was planned whenever they came, maybe
+    minutes later, and the chair set off with no command. After ``goal_wait_s`` it is dropped,
+    said, and answered with an empty path; a grid and a start after that plan nothing."""
+    from types import SimpleNamespace as Ns
+
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        node = make_node(context=ctx, parameter_overrides=[Parameter("goal_wait_s", value=0.2)])
+        try:
+            said: list[str] = []
+            logger = Ns(warning=lambda text, **_: said.append(text), info=lambda text, **_: None)
+            node.get_logger = lambda: logger
+            paths: list = []
+            node._publish_route = lambda grid, cells, *a: paths.append(cells)
+            node._on_goal(goal_msg(grid, (6, 5)))
+            node._drop_goal_waited_too_long()  # not yet
+            assert node.goal is not None and paths == []
+            time.sleep(0.3)
+            node._drop_goal_waited_too_long()
+            assert node.goal is None and paths == [[]]
+            assert "goal_wait_s (0.2 s)" in said[-1] and "send it again" in said[-1]
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_initialpose(start_msg(grid, (2, 0), -math.pi / 2))
+            assert node.plans == 0
+            # a goal sent once grid and start are there is planned at once: nothing waits
+            node._on_goal(goal_msg(grid, (6, 5)))
+            assert node.plans == 1 and node._goal_waits_since is None
         finally:
             node.destroy_node()

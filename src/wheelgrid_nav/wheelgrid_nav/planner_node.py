@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,7 +50,7 @@ import numpy as np
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass
 from wheelgrid_common.params import field as pfield
-from wheelgrid_common.ros_env import spin_node
+from wheelgrid_common.ros_env import spin_node, steady_timer
 from wheelgrid_nav.actions import cells_to_moves
 from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, check_config, plan
 
@@ -71,6 +72,13 @@ class PlannerNodeConfig:
     method: str = pfield(
         "qlearning-heading",
         "qlearning (the paper: cells only) or qlearning-heading (turns/backing up cost extra)",
+    )
+    goal_wait_s: float = pfield(
+        10.0,
+        "a goal sent before the first safe grid or start pose is planned if they come within "
+        "this time, else dropped (kept, it was planned whenever they came, minutes later, and "
+        "the chair set off with no command)",
+        "s",
     )
 
 
@@ -158,6 +166,10 @@ def _make_node_class() -> type:
             except ValueError as exc:  # PlanInputError included
                 self.get_logger().fatal(f"bad planner parameters: {exc}")
                 raise SystemExit(2) from None
+            wait = self.node_cfg.goal_wait_s
+            if not (math.isfinite(wait) and wait > 0):
+                self.get_logger().fatal(f"goal_wait_s must be > 0 s, not {wait}")
+                raise SystemExit(2)
             if self.node_cfg.method not in METHODS:
                 self.get_logger().fatal(
                     f"unknown method {self.node_cfg.method!r} (use {' or '.join(METHODS)})"
@@ -166,6 +178,8 @@ def _make_node_class() -> type:
             self.grid: Grid | None = None
             self.start: tuple[float, float, float] | None = None  # x, y, yaw in map
             self.goal: tuple[float, float] | None = None
+            # monotonic time a goal began to wait for the first grid or start (None: planned)
+            self._goal_waits_since: float | None = None
             # the frames start and goal were given in ("" = the grid's): a grid that comes in
             # another frame must not turn their coordinates into cells
             self.start_frame = ""
@@ -191,6 +205,7 @@ def _make_node_class() -> type:
             self._estop_sub = self.create_subscription(
                 Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS
             )
+            steady_timer(self, 0.5, self._drop_goal_waited_too_long)
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
 
         # ---- inputs ---------------------------------------------------------------------
@@ -270,12 +285,12 @@ def _make_node_class() -> type:
                 return
             self.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
             self.goal_frame = msg.header.frame_id
-            self._say_what_the_goal_waits_for()
+            self._goal_waits_since = None
+            if self._say_what_the_goal_waits_for():
+                self._goal_waits_since = time.monotonic()
             self._plan()
 
-        def _say_what_the_goal_waits_for(self) -> None:
-            """Name what a goal that cannot be planned yet waits for: it got no path and no
-            word, and the chair set off when the first grid or start came, maybe minutes on."""
+        def _missing_for_a_goal(self) -> list[str]:
             missing = []
             if self.grid is None:
                 missing.append("a safe grid on /wheelgrid/safe_grid")
@@ -284,11 +299,38 @@ def _make_node_class() -> type:
                     "a start pose (/initialpose, /wheelgrid/odometry, or "
                     "/wheelgrid/chair_pose once the chair moves)"
                 )
+            return missing
+
+        def _say_what_the_goal_waits_for(self) -> bool:
+            """Name what a goal that cannot be planned yet waits for (True where it waits): it
+            got no path and no word, and the chair set off when the first grid or start came,
+            maybe minutes on."""
+            missing = self._missing_for_a_goal()
             if missing:
                 self.get_logger().warning(
                     f"goal kept, not planned yet: no {' and no '.join(missing)}; it is planned "
-                    "when that comes (an e-stop or a new goal ends it)"
+                    f"if that comes within goal_wait_s ({self.node_cfg.goal_wait_s:g} s), "
+                    "else dropped"
                 )
+            return bool(missing)
+
+        def _drop_goal_waited_too_long(self) -> None:
+            """A goal still waiting for the first grid or start after ``goal_wait_s`` ends:
+            planned whenever they came, the chair set off minutes after its goal, with no
+            command, as a goal with no route once did (both are dropped, said, and the chair
+            stopped with an empty path)."""
+            since = self._goal_waits_since
+            if since is None or self.goal is None:
+                return
+            if time.monotonic() - since < self.node_cfg.goal_wait_s:
+                return
+            self._goal_waits_since = None
+            missing = self._missing_for_a_goal()
+            self._no_route(
+                self.grid,
+                f"goal not planned within goal_wait_s ({self.node_cfg.goal_wait_s:g} s): "
+                f"still no {' and no '.join(missing) or 'grid or start'}",
+            )
 
         def _set_start(self, pose: Any, frame: str, child: str) -> bool:
             if not self._frame_ok(frame, "start pose"):
@@ -366,6 +408,7 @@ def _make_node_class() -> type:
         def _plan(self) -> None:
             if self.grid is None or self.start is None or self.goal is None:
                 return
+            self._goal_waits_since = None  # planned (or refused) now: it waits no more
             grid = self.grid
             for what, frame in (("start", self.start_frame), ("goal", self.goal_frame)):
                 if frame and frame != grid.frame_id:
