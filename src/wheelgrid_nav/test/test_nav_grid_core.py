@@ -147,6 +147,21 @@ def test_drop_below_the_floor_blocks():
     assert np.count_nonzero(occupied(res)) == 1
 
 
+@pytest.mark.parametrize("drop_depth", [0.0, -0.1, 0.7])
+def test_a_drop_depth_that_reads_a_pit_as_floor_is_refused(drop_depth):
+    """A 60 cm pit filling cell (1, 1), its floor seen only at its bottom: ``drop_depth`` 0
+    ("disables"), a negative one or 0.7 m made every point of its bottom observed floor, and
+    the cell free. Like ``floor_clearance`` (a kerb up), a step down deeper than 15 cm is an
+    obstacle the chair cannot take."""
+    cloud = room_cloud([], size=(3.6, 3.6), spacing=SPACING)
+    over_pit = (np.abs(cloud[:, 0] - 1.8) < 0.6) & (np.abs(cloud[:, 1] - 1.8) < 0.6)
+    pit = sample_box(Box(1.2, 2.4, 1.2, 2.4, -0.6, -0.6), SPACING)
+    points = np.vstack([cloud[~(over_pit & (cloud[:, 2] == 0.0))], pit])
+    assert build_grid(points).grid.data[1, 1] == OCCUPIED
+    with pytest.raises(ValueError, match="drop_depth must be in"):
+        build_grid(points, GridConfig(drop_depth=drop_depth))
+
+
 # --- unknown is not free ------------------------------------------------------------------------
 
 

@@ -81,6 +81,9 @@ _MIN_ABOVE_FLOOR_FRACTION = 0.005
 _TALL_MAP_M = 5.0
 MIN_PIXEL_SIZE = 0.01  # m
 MAX_FLOOR_CLEARANCE = 0.15  # m: above it, a step is an obstacle to a wheelchair
+# m: the deepest step down that may be read as floor. drop_depth 0 ("disables") or 0.7 m made
+# the bottom of a 60 cm pit observed floor, and its cell free.
+MAX_DROP_DEPTH = 0.15
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
 # m: the boundary rule's strip may hide an obstacle this deep against a wall; (120 - 80) / 2 cm,
 # the chair's clearance along its width in its safe cell. "At most a cell" (1.2 m) emptied the
@@ -118,7 +121,7 @@ class GridConfig:
     drop_depth: float = field(
         0.10,
         "points more than this below the floor are a drop (a step down, a hole) and block like "
-        "obstacles; 0 disables",
+        f"obstacles; in (0, {MAX_DROP_DEPTH}]: anything shallower is read as floor",
         "m",
     )
     pixel_size: float = field(0.05, "side of a fine obstacle-image pixel (and of /map)", "m")
@@ -233,7 +236,9 @@ class GridConfig:
         (``min_observed_fraction`` 0 made every unseen cell free), and neither ``floor_fill``
         (at most 20 cm of invented floor) nor ``boundary_margin`` (at most
         ``MAX_BOUNDARY_MARGIN``, 20 cm, of obstacles taken for the walls) may stretch what was
-        seen. ``pixel_size`` is at least 1 cm: a 1 mm raster of a room took 7 GB."""
+        seen. ``drop_depth`` is in (0, 15 cm]: what lies less deep below the floor is floor, so
+        0 (which once disabled drops) or a deeper one read a pit's bottom as observed floor.
+        ``pixel_size`` is at least 1 cm: a 1 mm raster of a room took 7 GB."""
         check_finite(self)
         self.cell_pixels()
         if self.pixel_size < MIN_PIXEL_SIZE:
@@ -267,6 +272,13 @@ class GridConfig:
             raise ValueError(
                 f"floor_clearance must be in [0, {MAX_FLOOR_CLEARANCE}] m (a kerb a chair "
                 f"cannot climb is an obstacle), not {self.floor_clearance}"
+            )
+        if not 0.0 < self.drop_depth <= MAX_DROP_DEPTH:
+            # less deep is floor: 0 (once "disables") or 0.7 m made the bottom of a 60 cm pit
+            # observed floor, and the cell over it free
+            raise ValueError(
+                f"drop_depth must be in (0, {MAX_DROP_DEPTH}] m (a step down a chair cannot "
+                f"take is an obstacle, not floor), not {self.drop_depth}"
             )
         if not 0.0 <= self.density_threshold < 1.0:
             raise ValueError("density_threshold must be in [0, 1)")
@@ -335,7 +347,8 @@ def height_classes(z: np.ndarray, cfg: GridConfig) -> np.ndarray:
 
     The band is ``floor_clearance < z <= safe_height``: a point exactly at the safe height still
     blocks (the chair's user would touch it). Floor is ``-drop_depth < z <= floor_clearance``,
-    a drop ``z <= -drop_depth`` (unless ``drop_depth <= 0``: then everything low is floor).
+    a drop ``z <= -drop_depth`` (``drop_depth <= 0``, which :meth:`GridConfig.validate`
+    refuses, makes everything low floor).
     Three comparisons summed and a lookup: 3x faster than masked assignments on 1 M points.
     """
     zz = np.asarray(z)
