@@ -324,3 +324,30 @@ def test_save_puts_a_tilde_output_dir_under_the_users_home(tmp_path, monkeypatch
     assert answer.success, answer.message
     assert (home / "grids" / "grid.yaml").is_file() and (home / "grids" / "grid.pgm").is_file()
     assert not (started / "~").exists()
+
+
+def test_a_parameter_change_the_current_map_gives_no_grid_with_is_refused():
+    """``min_floor_points`` above the map's floor points (or a ``pixel_size`` too fine for its
+    floor) was accepted: the recompute failed, the old grid stayed published, and from then
+    on the node's parameters said one thing and its grid another -- a later ``cell_size``
+    1.0, accepted too, never became a grid (1.2 m cells stayed on the topic) and every new
+    map was refused. Now such a change is refused with the reason and leaves the grid and
+    the parameters as they were; a good one is applied and published at once."""
+    from rclpy.parameter import Parameter
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with in_process_grid(max_rate_hz=100.0) as t:
+        grid_node, ex, grids, pub = t.grid_node, t.ex, t.grids, t.pub
+        pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(ex, lambda: grids, 20.0)
+        n = len(grids)
+        (answer,) = grid_node.set_parameters([Parameter("min_floor_points", value=10**7)])
+        assert not answer.successful and "no_floor" in answer.reason, answer.reason
+        assert grid_node.get_parameter("min_floor_points").value == 50
+        assert grid_node.grid_cfg.min_floor_points == 50
+        spin_until(ex, lambda: len(grids) > n, 1.0)
+        assert len(grids) == n
+        (answer,) = grid_node.set_parameters([Parameter("cell_size", value=1.0)])
+        assert answer.successful, answer.reason
+        assert spin_until(ex, lambda: len(grids) > n, 10.0)
+        assert from_occupancy_grid(grids[-1]).resolution == pytest.approx(1.0)

@@ -11,7 +11,8 @@ grid is withdrawn (republished with every cell unknown).
 
 ``~/save`` (std_srvs/Trigger) writes grid.yaml/pgm, fine.yaml/pgm and grid.png into the
 ``output_dir`` parameter. Parameters may be changed at run time (``set_parameters``): invalid
-values are refused, valid ones recompute the grid from the last good map.
+values are refused, valid ones recompute the grid from the last good map at once, and a change
+that map gives no grid with is refused too (the grid and the parameters stay as they were).
 """
 
 from __future__ import annotations
@@ -115,6 +116,10 @@ class GridNode(Node):
                 return
             self._reject(f"bad map ({exc.cause}): {exc}")
             return
+        self._publish(result, points, frame_id)
+
+    def _publish(self, result: GridResult, points: Any, frame_id: str) -> None:
+        """Make ``result`` (built from ``points``) the node's grid and publish both grids."""
         self.result = result
         self._last_good = (points, frame_id)
         stamp = self.get_clock().now().to_msg()
@@ -150,7 +155,11 @@ class GridNode(Node):
         )
 
     def _on_set_parameters(self, changed: list[Any]) -> SetParametersResult:
-        """Validate the new values as a whole; if good, recompute from the last good map."""
+        """Validate the new values as a whole and build the grid of the last good map with them
+        before accepting: a change that map gives no grid with (``min_floor_points`` above its
+        floor points, a ``pixel_size`` too fine for its floor) is refused with the reason. It
+        was accepted, the old grid stayed published, and the parameters no longer said what
+        the grid was made with (a later ``cell_size``, accepted too, never became a grid)."""
         values = {f.name: getattr(self.cfg, f.name) for f in fields(GridNodeConfig)}
         values.update({p.name: p.value for p in changed if p.name in values})
         try:
@@ -160,13 +169,24 @@ class GridNode(Node):
             check_rate(cfg.max_rate_hz)  # 1e-12 killed the node: its timer went first
         except (TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        result, held = None, self._last_good
+        if held is not None:
+            self._last_compute = time.monotonic()
+            points, frame_id = held
+            try:
+                result = build_grid(points, grid_cfg, frame_id=frame_id)
+            except GridError as exc:
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"the current map gives no grid with it ({exc.cause}): {exc}",
+                )
         self.cfg, self.grid_cfg = cfg, grid_cfg
         self.period = 1.0 / cfg.max_rate_hz if cfg.max_rate_hz > 0 else 0.0
         self.destroy_timer(self._timer)
         self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
-        if self._pending is None and self._last_good is not None:
-            self._pending = self._last_good
         self.get_logger().info("parameters changed: " + ", ".join(p.name for p in changed))
+        if result is not None and held is not None:
+            self._publish(result, *held)
         return SetParametersResult(successful=True)
 
     def _on_save(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
