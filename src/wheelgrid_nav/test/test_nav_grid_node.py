@@ -351,3 +351,25 @@ def test_a_parameter_change_the_current_map_gives_no_grid_with_is_refused():
         assert answer.successful, answer.reason
         assert spin_until(ex, lambda: len(grids) > n, 10.0)
         assert from_occupancy_grid(grids[-1]).resolution == pytest.approx(1.0)
+
+
+def test_a_parameter_change_recomputes_a_refused_map():
+    """A map refused with "no floor found ... is the map levelled with the floor at z = 0?"
+    (here its floor lies 12 cm up) and a ``floor_clearance`` raised to take it in: the change
+    was accepted and applied to no map at all, since only a map that once gave a grid was
+    recomputed; with the mapper idle (a bag replayed to its end), no grid ever came. Now the
+    newest map, refused or not, is recomputed with the new values."""
+    from rclpy.parameter import Parameter
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05) + np.array([0.0, 0.0, 0.12])
+    with in_process_grid(max_rate_hz=100.0) as t:
+        grid_node, ex, grids, pub = t.grid_node, t.ex, t.grids, t.pub
+        pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(ex, lambda: "refused" in grid_node._no_grid, 20.0)
+        assert "no_floor" in grid_node._no_grid and not grids
+        (answer,) = grid_node.set_parameters([Parameter("floor_clearance", value=0.15)])
+        assert answer.successful, answer.reason
+        assert spin_until(ex, lambda: grids, 10.0), "the refused map was not recomputed"
+        np.testing.assert_array_equal(
+            from_occupancy_grid(grids[-1]).data == OCCUPIED, paper_like_expected()
+        )

@@ -11,8 +11,9 @@ grid is withdrawn (republished with every cell unknown).
 
 ``~/save`` (std_srvs/Trigger) writes grid.yaml/pgm, fine.yaml/pgm and grid.png into the
 ``output_dir`` parameter. Parameters may be changed at run time (``set_parameters``): invalid
-values are refused, valid ones recompute the grid from the last good map at once, and a change
-that map gives no grid with is refused too (the grid and the parameters stay as they were).
+values are refused, valid ones recompute the grid at once (from the newest map, even a refused
+one the new values make good, else the last good map), and a change the last good map gives
+no grid with is refused too (the grid and the parameters stay as they were).
 """
 
 from __future__ import annotations
@@ -69,6 +70,9 @@ class GridNode(Node):
         self.result: GridResult | None = None
         self._pending: tuple[Any, str] | None = None
         self._last_good: tuple[Any, str] | None = None
+        # the newest map, when it was refused after the last good one: a parameter change
+        # may make it good (a floor_clearance raised for a floor that lies 12 cm up)
+        self._refused: tuple[Any, str] | None = None
         self._last_compute = -float("inf")
         # why there is no grid, for ~/save's answer: "nothing received" was said too after
         # the map was cleared (~/reset) or when every map so far was refused
@@ -114,8 +118,10 @@ class GridNode(Node):
             if exc.cause == "empty" and self.result is not None:
                 self._withdraw(exc)
                 return
+            self._refused = (points, frame_id)
             self._reject(f"bad map ({exc.cause}): {exc}")
             return
+        self._refused = None
         self._publish(result, points, frame_id)
 
     def _publish(self, result: GridResult, points: Any, frame_id: str) -> None:
@@ -144,7 +150,7 @@ class GridNode(Node):
         assert self.result is not None
         old = self.result
         self.result = None
-        self._last_good = None
+        self._last_good = self._refused = None
         self._no_grid = "the map was cleared (the mapper's ~/reset); no grid until a new map"
         stamp = self.get_clock().now().to_msg()
         for grid, pub in ((old.grid, self.grid_pub), (old.fine, self.fine_pub)):
@@ -155,11 +161,15 @@ class GridNode(Node):
         )
 
     def _on_set_parameters(self, changed: list[Any]) -> SetParametersResult:
-        """Validate the new values as a whole and build the grid of the last good map with them
-        before accepting: a change that map gives no grid with (``min_floor_points`` above its
-        floor points, a ``pixel_size`` too fine for its floor) is refused with the reason. It
-        was accepted, the old grid stayed published, and the parameters no longer said what
-        the grid was made with (a later ``cell_size``, accepted too, never became a grid)."""
+        """Validate the new values as a whole and build the grid with them before accepting.
+
+        The newest map, where it was refused, is tried first: the new values may make it good
+        (a map refused for its floor 12 cm up, and ``floor_clearance`` raised: with the mapper
+        idle, no new map came and no grid ever did). Then the last good map: a change it gives
+        no grid with (``min_floor_points`` above its floor points, a ``pixel_size`` too fine for
+        its floor) is refused with the reason. It was accepted, the old grid stayed published,
+        and the parameters no longer said what the grid was made with (a later ``cell_size``,
+        accepted too, never became a grid)."""
         values = {f.name: getattr(self.cfg, f.name) for f in fields(GridNodeConfig)}
         values.update({p.name: p.value for p in changed if p.name in values})
         try:
@@ -169,12 +179,21 @@ class GridNode(Node):
             check_rate(cfg.max_rate_hz)  # 1e-12 killed the node: its timer went first
         except (TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        result, held = None, self._last_good
-        if held is not None:
+        result, held, still = None, None, None
+        if self._refused is not None:
+            # the newest map, refused with the old values, may give a grid with the new ones
+            # (only a map that once gave a grid was recomputed: with the mapper idle, none came)
             self._last_compute = time.monotonic()
-            points, frame_id = held
             try:
-                result = build_grid(points, grid_cfg, frame_id=frame_id)
+                result = build_grid(self._refused[0], grid_cfg, frame_id=self._refused[1])
+                held, self._refused = self._refused, None
+            except GridError as exc:
+                still = exc
+        if result is None and self._last_good is not None:
+            self._last_compute = time.monotonic()
+            held = self._last_good
+            try:
+                result = build_grid(held[0], grid_cfg, frame_id=held[1])
             except GridError as exc:
                 return SetParametersResult(
                     successful=False,
@@ -187,6 +206,8 @@ class GridNode(Node):
         self.get_logger().info("parameters changed: " + ", ".join(p.name for p in changed))
         if result is not None and held is not None:
             self._publish(result, *held)
+        elif still is not None:
+            self._reject(f"the newest map still gives no grid ({still.cause}): {still}")
         return SetParametersResult(successful=True)
 
     def _on_save(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
