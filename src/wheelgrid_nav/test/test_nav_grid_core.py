@@ -317,6 +317,15 @@ def test_far_stray_points_change_nothing(paper_cloud):
     np.testing.assert_array_equal(occupied(res), paper_like_expected())
 
 
+def test_a_stray_point_beyond_the_float32_range_changes_nothing(paper_cloud):
+    """One point 60 km out, or a scanner's FLT_MAX "no return" marker, made the whole room
+    map refused ("re-centre the map"); in the grid node every later map too. A map whose
+    bulk lies that far is still refused (its own test below)."""
+    for far in ([6e4, 0.0, 0.5], [3.4e38, 3.4e38, 3.4e38]):
+        res = build_grid(np.vstack([paper_cloud, [far]]))
+        np.testing.assert_array_equal(occupied(res), paper_like_expected())
+
+
 def test_a_floor_too_large_for_one_map_is_refused():
     rng = np.random.default_rng(1)
     floor = np.column_stack([rng.uniform(0, 300, (20000, 2)), np.zeros(20000)])

@@ -749,13 +749,21 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
         pts = pts[np.isfinite(pts).all(axis=1)]
     if pts.shape[0] == 0:
         raise GridError("empty", "the map has no (finite) points")
-    far = float(np.abs(pts[:, :2]).max())
-    if far > _MAX_COORDINATE:  # float32 spacing there is over 4 mm (0.5 m at UTM's 5e6 m)
+    # float32 spacing beyond _MAX_COORDINATE is over 4 mm (0.5 m at UTM's 5e6 m). A map whose
+    # bulk lies there is refused; a few points there are strays (a glitch, a scanner's FLT_MAX
+    # "no return" marker) that lie off any indoor grid and are dropped: one of them made the
+    # whole room map refused, and in the grid node every later map too.
+    far = (np.abs(pts[:, :2]) > _MAX_COORDINATE).any(axis=1)
+    n_far = int(np.count_nonzero(far))
+    if 2 * n_far > pts.shape[0]:
+        dist = float(np.median(np.abs(pts[far, :2]).max(axis=1)))
         raise GridError(
             "too_large",
-            f"points lie {far / 1000:.0f} km from the map origin, where float32 keeps less than "
+            f"points lie {dist / 1000:.0f} km from the map origin, where float32 keeps less than "
             f"millimetres: re-centre the map (a wheelgrid map's origin is under the first pose)",
         )
+    if n_far:
+        pts = pts[~far]
     cls = height_classes(pts[:, 2], cfg)
     class_counts = np.bincount(cls, minlength=4)
     if class_counts[3] == pts.shape[0]:
