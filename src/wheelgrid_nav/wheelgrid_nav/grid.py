@@ -618,17 +618,15 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     ix = np.floor((sel[:, 0] - x0) / ps).astype(np.int64)
     iy = np.floor((sel[:, 1] - y0) / ps).astype(np.int64)
     w = int(ix.max()) + 1
-    flat = iy * w + ix
-    size = (int(iy.max()) + 1) * w
-    n = np.bincount(flat, minlength=size).astype(np.float64)
-    sz = np.bincount(flat, weights=sel[:, 2], minlength=size)
-    szz = np.bincount(flat, weights=sel[:, 2] ** 2, minlength=size)
-    nz = n > 0
-    mean = np.zeros(size)
-    mean[nz] = sz[nz] / n[nz]
-    var = np.zeros(size)
-    var[nz] = szz[nz] / n[nz] - mean[nz] ** 2
-    vertical = np.flatnonzero(nz & (var > _VERTICAL_STD**2))
+    # Only the pixels that hold points (at most _ALIGN_MAX_POINTS): five float64 images of the
+    # whole extent at half a pixel took 8.8 GB for a 90 m floor at 1 cm pixels, before the size
+    # checks could refuse it.
+    pixels, flat = np.unique(iy * w + ix, return_inverse=True)
+    n = np.bincount(flat).astype(np.float64)
+    mean = np.bincount(flat, weights=sel[:, 2]) / n
+    var = np.bincount(flat, weights=sel[:, 2] ** 2) / n - mean**2
+    is_vertical = var > _VERTICAL_STD**2
+    vertical = pixels[is_vertical]
     if vertical.size < 10:
         return None
     px = (vertical % w + 0.5) * ps
@@ -642,9 +640,7 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     best = float(fine[int(np.argmax(_sharpness(px, py, fine, ps)))])
     # Last step on the points of the vertical pixels themselves (pixel centres are quantised to
     # ps, which limits the angle to ~0.1 degree; 0.1 degree is 2 cm over a 10 m room).
-    on_wall = np.zeros(size, dtype=bool)
-    on_wall[vertical] = True
-    wp = sel[on_wall[flat]]
+    wp = sel[is_vertical[flat]]
     if wp.shape[0] > _ALIGN_REFINE_POINTS:
         wp = wp[:: math.ceil(wp.shape[0] / _ALIGN_REFINE_POINTS)]
     wx = wp[:, 0] - x0 - cx
