@@ -766,3 +766,32 @@ def test_a_cloud_in_a_frame_of_the_other_convention_is_skipped_said_once_and_cou
         assert node.mapper.other_frame == 2
         assert node.mapper.registrar.counters.accepted == 3
         assert "other_frame" in node._logged
+
+
+def test_the_status_counts_a_frame_that_raised_and_the_counts_add_up(tmp_path, monkeypatch):
+    """A frame whose preparation or registration raised was logged and counted in report.json
+    (``frames.errors``) but in no key of /wheelgrid/mapper_status: its frames_received no
+    longer added up to the frames' outcomes, and a user watching it saw a frame vanish."""
+    from wheelgrid_mapping.pipeline import Mapper
+
+    real = Mapper.add_prepared
+    calls = {"n": 0}
+
+    def second_raises(self: Any, prep: Any, prior: Any = None) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise ValueError("a frame that breaks registration")
+        return real(self, prep, prior)
+
+    monkeypatch.setattr(Mapper, "add_prepared", second_raises)
+    with mapper_in_process(tmp_path, 4) as node:
+        sent: list[Any] = []
+        monkeypatch.setattr(node, "_publish", lambda pub, msg: sent.append(msg) or True)
+        node._publish_status()
+        values = {kv.key: kv.value for kv in sent[-1].status[0].values}
+    assert values.get("frames_errored") == "1", values
+    outcomes = (
+        "frames_used", "frames_failed", "frames_skipped_busy", "frames_between_keyframes",
+        "frames_malformed", "frames_empty", "frames_after_close", "frames_errored",
+    )  # fmt: skip
+    assert sum(int(values[k]) for k in outcomes) == int(values["frames_received"]) == 4, values

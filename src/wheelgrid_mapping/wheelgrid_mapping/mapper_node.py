@@ -533,6 +533,9 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_other_frame": self.mapper.other_frame,  # the other axis convention: skipped
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,
+            # raised while prepared or registered (logged): without it the outcomes did not add
+            # up to frames_received, and such a frame vanished from the status
+            "frames_errored": self.mapper.frames_errored,
             "priors_refused": self.mapper.priors_refused,
             "levelled": self.mapper.T_map_odom is not None,
             # where the first floor fit's vertical came from, and the map frame's angle to the
