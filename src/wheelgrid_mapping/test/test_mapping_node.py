@@ -795,3 +795,28 @@ def test_the_status_counts_a_frame_that_raised_and_the_counts_add_up(tmp_path, m
         "frames_malformed", "frames_empty", "frames_after_close", "frames_errored",
     )  # fmt: skip
     assert sum(int(values[k]) for k in outcomes) == int(values["frames_received"]) == 4, values
+
+
+def test_the_second_process_dying_is_said_and_the_node_maps_on(tmp_path, monkeypatch):
+    """The frame-filtering second process killed (the OOM killer, a stray kill): the node went
+    on in one process, slower, and said so in no log line, only in a status key."""
+    from types import SimpleNamespace
+
+    with mapper_in_process(tmp_path, 2) as node:
+        lines: list[str] = []
+        logger = SimpleNamespace(
+            info=lines.append, warning=lines.append, error=lines.append, fatal=lines.append
+        )
+        monkeypatch.setattr(node, "get_logger", lambda: logger)
+        assert node._pipe.ahead, node._pipe.note
+        used = node.mapper.registrar.counters.accepted
+        node._pipe._worker.proc.kill()
+        node._pipe._worker.proc.join(5.0)
+        for msg, odom in bag_cloud_odometry(BAG, 5)[2:]:
+            node._on_prior(odom)
+            node._on_cloud(msg)
+            assert poll_until(lambda: not node._queue, 60.0, 0.01)
+        wait_settled(node)
+        assert node.mapper.registrar.counters.accepted == used + 3  # nothing lost
+        said = [ln for ln in lines if "second process" in ln]
+        assert len(said) == 1 and "this process" in said[0], lines

@@ -144,6 +144,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._lock = threading.RLock()
         # each frame filtered in a second process while the one before registers (same map)
         self._pipe = FramePipeline(self.mapper, cfg.prepare_ahead)
+        self._pipe_note = self._pipe.note  # a change is said once, in _report
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()
         self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None, Any]] = deque()
@@ -357,6 +358,14 @@ class MapperNode(Node):  # type: ignore[misc]
     def _report(self, done: list[tuple[float, FrameOutcome]]) -> None:
         """Logs, the pose and the map's state for frames just added (never raises: a bad frame
         must never kill the mapper)."""
+        if self._pipe_note != self._pipe.note:
+            # the second process died (killed, out of memory): nothing is lost, but frames are
+            # filtered here from now on, slower; only the status key said so
+            self._pipe_note = self._pipe.note
+            self.get_logger().warning(
+                "the second process that filtered frames is gone; frames are filtered in this "
+                f"process from now on, slower, none lost: {self._pipe.note}"
+            )
         for stamp, out in done:
             frame_id, header_stamp = self._frame_ids.pop(stamp, (self._sensor_frame, None))
             if out.status == "error":
