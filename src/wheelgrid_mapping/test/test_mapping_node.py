@@ -820,3 +820,34 @@ def test_the_second_process_dying_is_said_and_the_node_maps_on(tmp_path, monkeyp
         assert node.mapper.registrar.counters.accepted == used + 3  # nothing lost
         said = [ln for ln in lines if "second process" in ln]
         assert len(said) == 1 and "this process" in said[0], lines
+
+
+def test_a_frame_in_hand_at_a_reset_is_not_counted_after_it(tmp_path, monkeypatch):
+    """~/reset clears the counters, and a frame the worker had in hand (waiting for its pose
+    prior) was then counted frames_skipped_busy in the cleared counters: the status after a
+    reset read 1 skipped of 0 received."""
+    import threading
+
+    from std_srvs.srv import Trigger
+
+    with mapper_in_process(tmp_path, 2) as node:
+        entered, release = threading.Event(), threading.Event()
+        real = node._prior_for
+
+        def held(stamp: float) -> Any:
+            entered.set()
+            release.wait(30.0)  # the worker has the frame in hand, as while its prior comes
+            return real(stamp)
+
+        monkeypatch.setattr(node, "_prior_for", held)
+        (old, old_odom), (new, new_odom) = bag_cloud_odometry(BAG, 4)[2:]
+        node._on_prior(old_odom)
+        node._on_cloud(old)
+        assert entered.wait(30.0), "the worker did not take the frame"
+        assert node._on_reset(Trigger.Request(), Trigger.Response()).success
+        monkeypatch.setattr(node, "_prior_for", real)
+        release.set()
+        node._on_prior(new_odom)  # the worker maps it after it let go of the old one
+        node._on_cloud(new)
+        assert poll_until(lambda: len(node.mapper.poses_odom) == 1, 60.0, 0.05)
+        assert node.counts == {"received": 1, "skipped_busy": 0, "malformed": 0, "after_close": 0}

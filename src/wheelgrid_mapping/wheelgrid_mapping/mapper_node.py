@@ -347,8 +347,10 @@ class MapperNode(Node):  # type: ignore[misc]
                 if prior is None:
                     self._log_once("noprior", self._no_prior_note(stamp))
             with self._lock:
-                if generation != self._generation:  # ~/reset came while it was in hand
-                    self.counts["skipped_busy"] += 1
+                if generation != self._generation:
+                    # ~/reset came while it was in hand: dropped with the map, and not counted,
+                    # as it was received before the reset cleared the counters (counted, the
+                    # status read one skipped of none received)
                     continue
                 # this frame goes to the second process; the one before it to the map
                 self._frame_ids[stamp] = (frame_id or self._sensor_frame, header_stamp)
