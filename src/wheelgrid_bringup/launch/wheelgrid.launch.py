@@ -97,6 +97,10 @@ def generate_launch_description():
                 output="screen",
                 condition=condition,
                 on_exit=Shutdown(reason="mapper exited"),
+                # time to save an unsaved map as it stops, as `wheelgrid launch` gives it
+                # (supervisor.STOP_GRACE_S): at launch's 5 s a Ctrl-C during a loop closure
+                # killed it before the save
+                sigterm_timeout="25",
             )
         )
     for package, executable, name in CHAIN:

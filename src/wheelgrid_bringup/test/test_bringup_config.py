@@ -230,3 +230,24 @@ def test_demo_with_a_folder_that_holds_no_bag_says_what_bag_takes(tmp_path, caps
     err = capsys.readouterr().err
     assert "not a rosbag2 bag" in err and "--bag takes a `wheelgrid simulate --out` folder" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_launch_file_gives_the_mapper_time_to_save_as_it_stops():
+    """ros2 launch sends SIGTERM 5 s after its SIGINT by default: a mapper cancelling a loop
+    closure was killed before its save on exit, as under `wheelgrid launch` before."""
+    from wheelgrid_bringup.supervisor import STOP_GRACE_S
+
+    tree = ast.parse((PKG / "launch" / "wheelgrid.launch.py").read_text())
+    mappers = [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call)
+        and getattr(n.func, "id", "") == "Node"
+        and any(
+            kw.arg == "name" and getattr(kw.value, "value", "") == "mapper" for kw in n.keywords
+        )
+    ]
+    assert mappers
+    for node in mappers:
+        timeout = next(kw.value.value for kw in node.keywords if kw.arg == "sigterm_timeout")
+        assert float(timeout) == STOP_GRACE_S["mapper"]

@@ -122,3 +122,30 @@ def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
     finally:
         stop_process(proc)
         _cleanup(pids)
+
+
+def test_the_mapper_is_given_time_to_save_its_map_as_the_chain_stops(tmp_path):
+    """The mapper saves an unsaved map as it stops, after up to 10 s for its worker to let go
+    (a loop closure being cancelled) and 5 s for the map's lock. The launcher gave every node
+    5 s after its SIGINT, then SIGTERM, then SIGKILL 2 s on: a Ctrl-C during a closure killed
+    the mapper before its save, and the scan was lost. A stand-in mapper that needs 7.5 s to
+    save (and, as an rclpy node, outlives SIGTERM) now gets them."""
+    from wheelgrid_bringup.supervisor import Supervisor
+
+    saved = tmp_path / "saved"
+    code = (
+        "import signal, sys, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "try:\n"
+        "    time.sleep(60)\n"
+        "except KeyboardInterrupt:\n"
+        "    time.sleep(7.5)\n"
+        f"    open({str(saved)!r}, 'w').write('map')\n"
+    )
+    sup = Supervisor(tmp_path / "logs")
+    sup.start("mapper", [sys.executable, "-c", code])
+    time.sleep(1.0)  # the child is in its sleep
+    t0 = time.monotonic()
+    codes = sup.stop_all()
+    assert saved.exists(), f"killed after {time.monotonic() - t0:.1f} s, before its save"
+    assert codes["mapper"] == 0

@@ -122,11 +122,20 @@ class Supervisor:
         return "\n".join(text.splitlines()[-lines:])
 
     def stop_all(self) -> dict[str, int | None]:
-        """Stop in reverse start order (drive first: the chair stops before its inputs go)."""
+        """Stop in reverse start order (drive first: the chair stops before its inputs go),
+        each node given ``STOP_GRACE_S`` after its SIGINT (5 s where not listed)."""
         codes: dict[str, int | None] = {}
         for name in reversed(list(self.procs)):
-            codes[name] = stop_process(self.procs[name].proc)
+            grace = STOP_GRACE_S.get(name, 5.0)
+            codes[name] = stop_process(self.procs[name].proc, grace=grace)
         return codes
+
+
+# Seconds between a node's SIGINT and its SIGTERM (then SIGKILL 2 s on). The mapper saves an
+# unsaved map as it stops, after up to 10 s for its worker to let go (a loop closure being
+# cancelled) and 5 s for the map's lock: at 5 s, as every node had, a Ctrl-C during a closure
+# killed it before the save, and the scan was lost.
+STOP_GRACE_S = {"mapper": 25.0}
 
 
 def default_params_file() -> Path:
