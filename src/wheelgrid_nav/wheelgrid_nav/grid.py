@@ -749,16 +749,21 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
     # bulk lies there is refused; a few points there are strays (a glitch, a scanner's FLT_MAX
     # "no return" marker) that lie off any indoor grid and are dropped: one of them made the
     # whole room map refused, and in the grid node every later map too.
-    far = (np.abs(pts[:, :2]) > _MAX_COORDINATE).any(axis=1)
-    n_far = int(np.count_nonzero(far))
-    if 2 * n_far > pts.shape[0]:
+    # (the per-point mask only where the farthest point calls for it: on 1.3 M points it
+    # doubled this check's time, a fifth of the whole grid's)
+    if float(np.abs(pts[:, :2]).max()) > _MAX_COORDINATE:
+        far = (np.abs(pts[:, :2]) > _MAX_COORDINATE).any(axis=1)
+        n_far = int(np.count_nonzero(far))
+    else:
+        far, n_far = None, 0
+    if far is not None and 2 * n_far > pts.shape[0]:
         dist = float(np.median(np.abs(pts[far, :2]).max(axis=1)))
         raise GridError(
             "too_large",
             f"points lie {dist / 1000:.0f} km from the map origin, where float32 keeps less than "
             f"millimetres: re-centre the map (a wheelgrid map's origin is under the first pose)",
         )
-    if n_far:
+    if far is not None and n_far:
         pts = pts[~far]
     cls = height_classes(pts[:, 2], cfg)
     class_counts = np.bincount(cls, minlength=4)
