@@ -377,3 +377,41 @@ def test_a_reopened_port_takes_nothing_before_its_stop(make_sim, make_link, wait
     assert rx and rx[0] == "STOP", rx
     assert refused and "just reopened" in refused[0], refused
     assert link.status().result is not None  # once the STOP is acknowledged, requests go out
+
+
+def _until_next_seq_is(link, seq):
+    """Poll STATUS until the link's next request would carry ``seq`` (the 256-value wrap)."""
+    while (link._seq + 1) & 0xFF != seq:
+        link.status()
+
+
+def test_a_refused_move_does_not_hide_the_last_accepted_one_from_the_seq_rule(make_sim, make_link):
+    """A NAKed move is not the controller's last move (rule 4 remembers accepted ones). The host
+    took the NAKed SEQ for it, so once the accepted move's SEQ came round again, an identical
+    move was ACKed as its retry and never driven."""
+    sim = make_sim(time_scale=1.0)
+    link = make_link(sim.slave_path, heartbeat=False)
+    first = link.move("FORWARD", 0.3, 3.0)  # still driving when the next move comes
+    with pytest.raises(LinkError, match="BUSY"):
+        link.move("LEFT_FORWARD", 0.3, 3.0)
+    _until_next_seq_is(link, first)
+    seq, st = link.execute("FORWARD", 0.3, 3.0)
+    assert seq != first and st.result == proto.Result.DONE
+    assert [d for _, d in moves(sim)] == ["FORWARD", "FORWARD"]
+
+
+def test_a_move_whose_ack_was_lost_is_avoided_by_the_next_moves_seq(make_sim, make_link):
+    """A move the controller accepted while every ACK of it was lost is its last move. The host
+    kept the move before it as the one to avoid, and a later identical move with the lost one's
+    SEQ was answered as its retry: the chair did not move and the step failed."""
+    sim = make_sim(time_scale=50.0)
+    link = make_link(sim.slave_path, heartbeat=False, retries=1)
+    link.execute("FORWARD", 0.05, 3.0)
+    sim.drop_tx_next = 2  # the ACK and the retry's ACK
+    with pytest.raises(LinkError):
+        link.move("FORWARD", 0.05, 3.0)
+    lost = sim.status().last_seq
+    _until_next_seq_is(link, lost)
+    seq, st = link.execute("FORWARD", 0.05, 3.0)
+    assert seq != lost and st.result == proto.Result.DONE
+    assert [d for _, d in moves(sim)] == ["FORWARD"] * 3

@@ -461,15 +461,22 @@ class MotorLink:
                 self._last_move_seq = self.status().last_seq
             frame = self.request(mtype, payload, avoid_seq=self._last_move_seq)
         except LinkError:
+            # The controller may have accepted this move (its ACKs lost) or not: which move
+            # it remembers is unknown, so the next move reads it from STATUS again. Avoiding
+            # the older SEQ, a later identical move with this one's SEQ was taken for its
+            # retry and reported DONE without driving.
+            self._last_move_seq = None
             self.stop()
             raise
-        self._last_move_seq = frame.seq
         if frame.type == proto.MsgType.NAK:
+            # A refused move is not remembered (rule 4 keeps the last ACCEPTED one), so the
+            # SEQ to avoid stays that of the move before it.
             self.stats.naks += 1
             why = _nak_reason(frame)
             self._emit("nak", f"{action} refused: {why}", logging.ERROR)
             self.stop()
             raise LinkError(f"{action} refused by the controller: {why}")
+        self._last_move_seq = frame.seq
         return frame.seq
 
     def wait_done(
