@@ -788,3 +788,28 @@ def test_frames_that_share_a_stamp_keep_their_own_numbers_in_the_warnings() -> N
     numbers.push(6.0, 5)
     assert [numbers.pop(5.0), numbers.pop(5.0), numbers.pop(6.0)] == [3, 4, 5]
     assert numbers.pop(5.0) == -1  # nothing left under it
+
+
+def test_a_loop_closure_or_mapper_number_that_cannot_work_is_one_line(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """``loop_closure: {odometry_sigma: .nan}`` passed validation (NaN fails every comparison)
+    and the solve then pruned all 10 loop edges of the bundled bag without a word; a negative
+    ``max_correction`` refused every loop edge the same way. Each is now exit 2, one line."""
+    cfg = tmp_path / "c.yaml"
+    out = tmp_path / "o"
+    argv = [str(sim_dir / "scan"), "--out", str(out), "--config", str(cfg)]
+    for text, says in (
+        ("loop_closure: {odometry_sigma: .nan}", "loop_closure odometry_sigma must be finite"),
+        ("loop_closure: {submap_seconds: .inf}", "loop_closure submap_seconds must be finite"),
+        ("loop_closure: {max_loop_residual: .nan}", "max_loop_residual must be finite"),
+        ("loop_closure: {max_correction: -0.1}", "max_correction must be >= 0"),
+        ("loop_closure: {odometry_sigma_deg: 0}", "odometry_sigma_deg must be > 0"),
+        ("loop_closure: {observable_ratio: 1.5}", "observable_ratio must be in [0, 1]"),
+        ("mapper: {min_frame_interval: .nan}", "mapper min_frame_interval must be finite"),
+        ("mapper: {map_voxel: .inf}", "mapper map_voxel must be finite"),
+    ):
+        cfg.write_text(text + "\n")
+        assert cli_map.main(argv) == 2 and not out.exists(), text
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and says in err, (text, err)

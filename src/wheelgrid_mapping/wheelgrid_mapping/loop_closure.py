@@ -65,7 +65,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.params import field
+from wheelgrid_common.params import check_finite, field
 
 from .preprocess import voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
@@ -233,7 +233,26 @@ class LoopClosureConfig:
         self.validate()
 
     def validate(self) -> None:
-        """ValueError for settings that cannot work."""
+        """ValueError for settings that cannot work.
+
+        A NaN passes every range test written as a failing comparison: ``odometry_sigma:
+        .nan`` made every edge's weight NaN, and the solve then pruned every loop edge without
+        a word, and a negative ``max_correction`` refused every one of them."""
+        check_finite(self, "loop_closure ")
+        for name in (
+            "max_correction", "max_correction_deg", "edge_prune_threshold", "max_drift_scale",
+            "max_drift_deg_per_m",
+        ):  # fmt: skip
+            if getattr(self, name) < 0:
+                raise ValueError(f"loop_closure {name} must be >= 0, not {getattr(self, name)}")
+        if not self.odometry_sigma_deg > 0:
+            raise ValueError(
+                f"loop_closure odometry_sigma_deg must be > 0, not {self.odometry_sigma_deg}"
+            )
+        if not 0.0 <= self.observable_ratio <= 1.0:
+            raise ValueError(
+                f"loop_closure observable_ratio must be in [0, 1], not {self.observable_ratio}"
+            )
         if self.prior_scale_sigmas < 0:
             raise ValueError(
                 f"loop_closure prior_scale_sigmas must be >= 0 (0 = off), not "

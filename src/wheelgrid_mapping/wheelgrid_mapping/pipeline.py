@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.fileio import write_ply, write_together, write_tum
-from wheelgrid_common.params import field, from_mapping, read_yaml
+from wheelgrid_common.params import check_finite, field, from_mapping, read_yaml
 
 from .evidence import EvidenceMap
 from .levelling import (
@@ -114,7 +114,9 @@ class MapperConfig:
     def validate(self) -> None:
         """ValueError for settings that cannot work (a YAML typo must not end in a traceback
         half-way through a bag). The evidence map, the convention and the mount are checked by
-        the code that uses them, run here once on the settings."""
+        the code that uses them, run here once on the settings. Non-finite numbers first: a
+        NaN passes a test written as a failing comparison (``min_frame_interval: .nan`` did)."""
+        check_finite(self, "mapper ")
         if not self.floor_max_tilt_deg > 0:
             raise ValueError(f"floor_max_tilt_deg must be > 0, not {self.floor_max_tilt_deg}")
         for name in ("max_published_points", "level_min_frames"):
