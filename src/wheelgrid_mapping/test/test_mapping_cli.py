@@ -149,6 +149,7 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
         ("mapper:\n  sensor_convention: camera\n", "sensor_convention must be auto"),
         ("preprocess:\n  min_range: 7.0\n", "min_range < max_range"),
         ("preprocess:\n  sor_k: 0\n", "sor_k >= 1"),
+        ("preprocess:\n  min_confidence: 3\n", "min_confidence must be 0, 1 or 2"),
     ):
         bad_cfg.write_text(text)
         assert cli_map.main(argv) == 2 and not out.exists(), text

@@ -184,6 +184,16 @@ def test_a_non_finite_preprocess_setting_is_refused(key: str, value: float) -> N
         PreprocessConfig(**{key: value})
 
 
+@pytest.mark.parametrize("value", [-1, 3])
+def test_a_min_confidence_outside_arkits_levels_is_refused(value: int) -> None:
+    """``preprocess: {min_confidence: 3}`` passed, and every point of every frame was dropped
+    (ARKit's levels are 0, 1, 2): the map came out empty, frame after frame, without a word."""
+    pts = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]])
+    assert preprocess(pts, PreprocessConfig(min_confidence=2), confidence=[2, 2]).shape[0] > 0
+    with pytest.raises(ValueError, match="min_confidence must be 0, 1 or 2"):
+        PreprocessConfig(min_confidence=value)
+
+
 def test_pfc_flags_a_point_off_a_flat_neighbourhood() -> None:
     rng = np.random.default_rng(3)
     pts = np.vstack([plane(400, rng, (0.3, 0.3)), [[0.15, 0.15, 0.045]]])

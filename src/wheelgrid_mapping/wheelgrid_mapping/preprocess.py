@@ -31,6 +31,8 @@ import numpy as np
 
 from wheelgrid_common.params import check_finite, field
 
+from .depth import check_min_confidence
+
 
 @dataclass
 class PreprocessConfig:
@@ -115,6 +117,9 @@ class PreprocessConfig:
             raise ValueError("mixed_jump must be > 0 and mixed_jump_pitches >= 0")
         if self.pfc_min_offset < 0:
             raise ValueError(f"preprocess pfc_min_offset must be >= 0, not {self.pfc_min_offset}")
+        # ARKit's levels only: min_confidence 3 dropped every point of every frame (the map
+        # came out empty, frame after frame "empty"), -1 meant 0.
+        check_min_confidence(self.min_confidence, "preprocess min_confidence")
 
 
 def valid_mask(
