@@ -8,6 +8,7 @@ nodes declare every field as a ROS parameter with that description, so ``--ros-a
 from __future__ import annotations
 
 import argparse
+import collections.abc
 import dataclasses
 import math
 import typing
@@ -85,6 +86,14 @@ def _coerce(value: Any, typ: Any, name: str) -> Any:
     if typ is str:
         return str(value)
     if origin in (list, tuple):
+        # A sequence (a YAML list; a ROS double array arrives as array.array) or nothing:
+        # ``mount_xyz_rpy: 5`` ended in a TypeError traceback and ``[a, b, c, d, e, f]`` in
+        # another once used; each item is checked as its type.
+        if not isinstance(value, collections.abc.Sequence) or isinstance(value, str | bytes):
+            raise ValueError(f"{name}: expected a list, got {value!r}")
+        args = typing.get_args(typ)
+        if origin is list and len(args) == 1:
+            value = [_coerce(v, args[0], f"{name}[{i}]") for i, v in enumerate(value)]
         return list(value) if origin is list else tuple(value)
     return value
 

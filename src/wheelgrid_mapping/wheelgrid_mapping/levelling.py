@@ -208,6 +208,9 @@ def map_from_mount(xyz_rpy: list[float] | tuple[float, ...], convention: str) ->
     """
     if len(xyz_rpy) != 6:
         raise ValueError("mount_xyz_rpy needs 6 numbers: x y z roll pitch yaw (m, rad)")
+    if not np.isfinite(np.asarray(xyz_rpy, dtype=np.float64)).all():
+        # a NaN mount made every pose NaN: 0 map points, and the run still exited 0
+        raise ValueError(f"mount_xyz_rpy must be 6 finite numbers, not {list(xyz_rpy)}")
     T_base_sensor = np.eye(4)
     T_base_sensor[:3, :3] = rpy_matrix(*xyz_rpy[3:])
     T_base_sensor[:3, 3] = xyz_rpy[:3]
