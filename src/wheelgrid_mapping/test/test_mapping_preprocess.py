@@ -194,6 +194,16 @@ def test_a_min_confidence_outside_arkits_levels_is_refused(value: int) -> None:
         PreprocessConfig(min_confidence=value)
 
 
+def test_a_voxel_too_fine_for_the_range_is_refused() -> None:
+    """``voxel_size: 1e-6`` passed, and every frame then raised "cloud too large for cell"
+    (21 bits a axis): no frame was mapped. The finest cell that fits still works."""
+    with pytest.raises(ValueError, match="voxel_size 1e-06 m is too fine for max_range"):
+        PreprocessConfig(voxel_size=1e-6)
+    cfg = PreprocessConfig(voxel_size=6e-6, enable_sor=False, enable_pfc=False)
+    pts = np.array([[-4.2, -4.2, -0.1], [4.2, 4.2, 0.1], [0.0, 0.0, 1.0]])
+    assert preprocess(pts, cfg).shape == (3, 3)
+
+
 def test_pfc_flags_a_point_off_a_flat_neighbourhood() -> None:
     rng = np.random.default_rng(3)
     pts = np.vstack([plane(400, rng, (0.3, 0.3)), [[0.15, 0.15, 0.045]]])

@@ -109,6 +109,14 @@ class PreprocessConfig:
             )
         if self.voxel_size < 0 or self.target_points < 0:
             raise ValueError("preprocess voxel_size and target_points must be >= 0")
+        if self.voxel_size > 0 and 2.0 * self.max_range / self.voxel_size >= (1 << 21) - 2:
+            # The subdivision packs 21 bits a axis: a frame spans up to 2 max_range, and
+            # voxel_size 1e-6 passed, then failed every frame ("cloud too large for cell").
+            raise ValueError(
+                f"preprocess voxel_size {self.voxel_size} m is too fine for max_range "
+                f"{self.max_range} m (at most 2 max_range / 2^21 cells a axis: "
+                f">= {2.0 * self.max_range / ((1 << 21) - 2):.2g} m)"
+            )
         if self.sor_m < 0:
             # t = mu + m sigma below the mean: eq. 4 then drops most of every surface first
             # where its points are sparsest, at its edges (sor_m -1 kept 470 of 17798 points of
