@@ -289,3 +289,17 @@ def test_voxel_downsample_sorted_and_bitmap_paths_agree() -> None:
         want = np.stack([np.bincount(inv.ravel(), weights=pts[:, a]) for a in range(3)], axis=1)
         want /= np.bincount(inv.ravel())[:, None]
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_points_that_are_not_xyz_triples_are_refused() -> None:
+    """An (N, 4) cloud (x y z intensity) was reshaped to (-1, 3) whenever 4 N divides by 3:
+    every point's coordinates came from parts of two points, and the map was garbage without
+    a word. (N, 3), (H, W, 3) and an empty cloud are still read."""
+    cfg = PreprocessConfig()
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(0.5, 3.0, (600, 3))
+    with pytest.raises(ValueError, match=r"\(N, 3\).*\(600, 4\)"):
+        preprocess(np.column_stack([xyz, np.ones(600)]), cfg)
+    assert preprocess(xyz, cfg).shape[1] == 3
+    assert preprocess(xyz.reshape(20, 30, 3), cfg).shape[1] == 3
+    assert preprocess(np.empty((0, 3)), cfg).shape == (0, 3)

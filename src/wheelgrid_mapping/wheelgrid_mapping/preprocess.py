@@ -723,6 +723,10 @@ def preprocess_for_map(
     """
     st = stats if stats is not None else PreprocessStats()
     organised = np.asarray(points, dtype=np.float64)
+    if organised.size and organised.shape[-1] != 3:
+        # (N, 4) (x y z intensity) reshaped to (-1, 3) whenever 4 N divides by 3, and every
+        # point's coordinates came from two points: a map of garbage, and no word
+        raise ValueError(f"points must be (N, 3) or (H, W, 3) x y z, not {organised.shape}")
     pts = organised.reshape(-1, 3)
     st.input = int(pts.shape[0])
     keep = valid_mask(pts, cfg.min_range, cfg.max_range, confidence, cfg.min_confidence)
