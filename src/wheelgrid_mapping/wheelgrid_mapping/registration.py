@@ -591,7 +591,7 @@ class Registrar:
             jump = np.linalg.inv(self._prev_prior) @ virtual
             dt = max(float(stamp - self._prev_prior_stamp), cfg.min_dt)
             dist, turn = float(np.linalg.norm(jump[:3, 3])), rotation_angle_deg(jump)
-            if dist > cfg.max_speed * dt + cfg.voxel_size or turn > cfg.max_turn_rate * dt + 5.0:
+            if self._implausible(jump, dt):
                 fix = self._prev_prior @ np.linalg.inv(virtual)
                 R = fix[:3, :3]
                 if np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))) <= 10.0:
@@ -670,10 +670,8 @@ class Registrar:
             reason = f"degenerate geometry ({degenerate} unconstrained motion {dirs}, no prior)"
         elif fitness < cfg.min_fitness:
             reason = f"low overlap (fitness {fitness:.2f} < {cfg.min_fitness:.2f})"
-        elif np.linalg.norm(step[:3, 3]) > cfg.max_speed * dt + cfg.voxel_size:
-            reason = f"implausible jump ({np.linalg.norm(step[:3, 3]):.2f} m in {dt:.2f} s)"
-        elif rotation_angle_deg(step) > cfg.max_turn_rate * dt + 5.0:
-            reason = f"implausible turn ({rotation_angle_deg(step):.0f} deg in {dt:.2f} s)"
+        elif implausible := self._implausible(step, dt):
+            reason = implausible
         elif with_prior:
             dev = np.linalg.inv(guess) @ pose
             if np.linalg.norm(dev[:3, 3]) > cfg.max_prior_deviation:
@@ -681,6 +679,18 @@ class Registrar:
             elif rotation_angle_deg(dev) > cfg.max_prior_deviation_deg:
                 reason = f"disagrees with pose prior by {rotation_angle_deg(dev):.0f} deg"
         return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior)
+
+    def _implausible(self, step: np.ndarray, dt: float) -> str:
+        """Why ``step`` (a relative pose over ``dt`` seconds) is no motion a chair makes, or
+        "": the one rule for registered steps and for the pose prior's own jumps."""
+        cfg = self.cfg
+        dist = float(np.linalg.norm(step[:3, 3]))
+        if dist > cfg.max_speed * dt + cfg.voxel_size:
+            return f"implausible jump ({dist:.2f} m in {dt:.2f} s)"
+        turn = rotation_angle_deg(step)
+        if turn > cfg.max_turn_rate * dt + 5.0:
+            return f"implausible turn ({turn:.0f} deg in {dt:.2f} s)"
+        return ""
 
     def _measure_prior_scale(
         self, prior_step: np.ndarray, correction: np.ndarray, info: np.ndarray
