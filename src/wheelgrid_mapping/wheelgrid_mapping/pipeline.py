@@ -492,10 +492,10 @@ class Mapper:
         self.failed_since_used = 0
         self.stamps.append(float(stamp))
         self.poses_odom.append(res.pose)
-        if prior is not None:
-            # the prior as registration used it, its world re-anchored at any jump (ARKit
-            # relocalising): gravity and the loop closure's prior drift read it frame to frame
-            prior = res.prior
+        # the prior as registration used it (None where the frame had none), its world
+        # re-anchored at any jump (ARKit relocalising): gravity and the loop closure's prior
+        # drift read it frame to frame
+        prior = res.prior
         if prior is not None:
             self._prior_up_sum += prior_up_in_odom(res.pose, prior)
         if self.keep_frames:
