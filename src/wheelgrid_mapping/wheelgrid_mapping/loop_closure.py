@@ -241,14 +241,10 @@ class LoopClosureConfig:
         check_finite(self, "loop_closure ")
         for name in (
             "max_correction", "max_correction_deg", "edge_prune_threshold", "max_drift_scale",
-            "max_drift_deg_per_m",
+            "max_drift_deg_per_m", "max_loop_residual",
         ):  # fmt: skip
             if getattr(self, name) < 0:
                 raise ValueError(f"loop_closure {name} must be >= 0, not {getattr(self, name)}")
-        if not self.odometry_sigma_deg > 0:
-            raise ValueError(
-                f"loop_closure odometry_sigma_deg must be > 0, not {self.odometry_sigma_deg}"
-            )
         if not 0.0 <= self.observable_ratio <= 1.0:
             raise ValueError(
                 f"loop_closure observable_ratio must be in [0, 1], not {self.observable_ratio}"
@@ -263,14 +259,11 @@ class LoopClosureConfig:
             "submap_voxel",
             "normal_radius",
             "odometry_sigma",
+            "odometry_sigma_deg",
             "loop_sigma",
         ):
             if getattr(self, name) <= 0:
                 raise ValueError(f"loop_closure {name} must be > 0, not {getattr(self, name)}")
-        if self.max_loop_residual < 0:
-            raise ValueError(
-                f"loop_closure max_loop_residual must be >= 0, not {self.max_loop_residual}"
-            )
         if self.drift_passes < 1:
             raise ValueError(f"loop_closure drift_passes must be >= 1, not {self.drift_passes}")
         if not 0.0 < self.manhattan_gate_deg < 45.0:
