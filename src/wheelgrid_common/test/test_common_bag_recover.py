@@ -90,14 +90,26 @@ def test_what_cannot_be_recovered_is_refused_clearly(tmp_path, capsys) -> None:
 
 
 def test_a_sqlite3_recording_without_its_metadata_is_given_back_whole(tmp_path, capsys) -> None:
-    """A killed sqlite3 recorder leaves every committed message and no metadata.yaml."""
+    """A killed sqlite3 recorder leaves every committed message and no metadata.yaml.
+
+    Nothing then lists how many messages were recorded: what the recorder still held in its
+    cache when it was killed never reached the file, and no count can show it. The line says
+    that much, not "nothing was cut off" (which it said)."""
     bag, msgs = _recording(tmp_path, "sqlite3")
     (bag / "metadata.yaml").unlink()
     with pytest.raises(BagError, match="bag-recover"):
         BagReader(bag).__enter__()
     assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
-    assert "nothing was cut off" in capsys.readouterr().out
+    line = capsys.readouterr().out
+    assert "nothing was cut off" not in line
+    assert "every message committed to rec.db3 copied" in line, line
+    assert "not written out when it stopped cannot be counted" in line, line
     assert _read(tmp_path / "back") == msgs
+    # with its metadata.yaml the count is checked, and a whole bag loses nothing
+    bag2, msgs2 = _recording(tmp_path / "whole", "sqlite3")
+    assert bag_recover.main([str(bag2), "--out", str(tmp_path / "back2")]) == 0
+    assert "nothing was cut off" in capsys.readouterr().out
+    assert _read(tmp_path / "back2") == msgs2
 
 
 def test_messages_the_recording_lists_but_that_are_not_recovered_are_counted_lost(

@@ -58,6 +58,9 @@ class Recovery:
     listed: int = 0
     lost: int = 0
     missing: list[str] = field(default_factory=list)  # files metadata.yaml lists, not there
+    # sqlite3 files nothing lists a count for (no metadata.yaml): what their recorder had not
+    # yet written out when it stopped cannot be counted, so "nothing was cut off" is not known
+    unlisted: list[str] = field(default_factory=list)
 
 
 def mcap_extent(path: Path) -> Extent:
@@ -138,6 +141,8 @@ def _count_lost(src: Path, files: list[Path], res: Recovery) -> None:
         if counts:
             res.listed += max(counts)
             res.lost += max(max(counts) - res.copied.get(str(path), 0), 0)
+        elif path.suffix == ".db3":
+            res.unlisted.append(path.name)
     if src.is_dir():
         for name, n in sorted(meta.items()):
             if not (src / name).exists():
@@ -341,8 +346,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     span = (res.end_ns - res.start_ns) / 1e9 if res.messages else 0.0
     topics = ", ".join(f"{t} {n}" for t, n in sorted(res.topics.items())) or "none"
+    unknown = (
+        f"every message committed to {', '.join(res.unlisted)} copied; no metadata.yaml lists "
+        "how many were recorded, so any the recorder had not written out when it stopped "
+        "cannot be counted"
+    )
     state = (
-        "nothing was cut off"
+        unknown
+        if res.already_complete == len(res.files) and res.unlisted
+        else "nothing was cut off"
         if res.already_complete == len(res.files)
         else f"the cut went through a record: its {res.bytes_lost / 1e3:.0f} kB written are lost"
         if res.bytes_lost
