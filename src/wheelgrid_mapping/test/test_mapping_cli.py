@@ -231,6 +231,45 @@ def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:
     assert "no valid points" in capsys.readouterr().err
 
 
+def test_clouds_without_a_frame_id_are_not_guessed_optical(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """A cloud's frame_id is what says optical or body (REP-103), and the mapper node skips a
+    cloud without one under ``sensor_convention: auto``. `wheelgrid map` read such clouds as
+    the phone's optical frame, silently: a body-frame bag levelled its map on a wall. They are
+    now skipped and counted like the node's, with the setting that maps them named."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
+
+    bag = tmp_path / "noframe"
+    with BagReader(sim_dir / "scan") as r, BagWriter(bag) as w:
+        n = 0
+        for topic, msgtype, t_ns, raw in r.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/odometry":
+                w.write(topic, msgtype, t_ns, deserialize_message(raw, Odometry))
+                continue
+            msg = deserialize_message(raw, PointCloud2)
+            msg.header.frame_id = ""
+            w.write(topic, POINTCLOUD2, t_ns, msg)
+            n += 1
+            if n == 12:
+                break
+    assert cli_map.main([str(bag), "--out", str(tmp_path / "o"), "--prior", "arkit"]) == 2
+    err = capsys.readouterr().err
+    assert "no frame_id" in err and "sensor_convention" in err, err
+    assert not (tmp_path / "o" / "map.ply").exists()
+    # said how they are to be read, they are mapped
+    cfg = tmp_path / "optical.yaml"
+    cfg.write_text("mapper: {sensor_convention: optical}\n")
+    argv = [str(bag), "--out", str(tmp_path / "o2"), "--config", str(cfg), "--prior", "arkit"]
+    assert cli_map.main([*argv, "--no-loop-closure"]) == 0
+    rep = json.loads((tmp_path / "o2" / "report.json").read_text())
+    assert rep["frames"]["used"] >= 10
+
+
 def test_two_cloud_topics_need_topic(tmp_path: Path, capsys) -> None:
     from wheelgrid_common.bagio import BagWriter
     from wheelgrid_common.pointcloud2 import to_pointcloud2

@@ -182,6 +182,9 @@ class PriorMatch:
         return line
 
 
+NO_FRAME_ID = "no frame_id (axes unknown under sensor_convention auto)"
+
+
 def bag_frames(
     path: Path,
     topic: str | None,
@@ -189,8 +192,12 @@ def bag_frames(
     prior_topic: str | None = None,
     match: PriorMatch | None = None,
     damage: list[str] | None = None,
+    guess_axes: bool = True,
 ) -> tuple[int, Iterator[Frame], list[str]]:
     """PointCloud2 frames of a bag; malformed messages are skipped and counted by cause.
+
+    With ``guess_axes`` (``sensor_convention: auto``) a cloud without a frame_id is one: its
+    axes are unknown.
 
     Storage that turns out damaged part-way through ends the frames there; with ``damage``
     given its error is appended to it (the caller maps the frames before it), else it is an
@@ -266,6 +273,13 @@ def bag_frames(
                     continue
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
+                if not msg.header.frame_id and guess_axes:
+                    # the frame_id is what says optical or body (REP-103): read as the phone's
+                    # optical frame, a body-frame bag levelled its map on a wall (the mapper
+                    # node skips such clouds too)
+                    bad.append(NO_FRAME_ID)
+                    yield np.empty((0, 3)), stamp, "", None, None
+                    continue
                 pose = prior_for(stamp)
                 if prior and match is not None:
                     match.frames += 1
@@ -445,7 +459,13 @@ def _run(args: argparse.Namespace) -> int:
         total, frames = stray_frames(path, args.prior == "arkit", bad)
     else:
         total, frames, bad = bag_frames(
-            path, args.topic, args.prior == "arkit", args.prior_topic, match, damage
+            path,
+            args.topic,
+            args.prior == "arkit",
+            args.prior_topic,
+            match,
+            damage,
+            cfg.sensor_convention == "auto",
         )
     if args.max_frames > 0:
         total = min(total, args.max_frames)
@@ -528,7 +548,15 @@ def _run(args: argparse.Namespace) -> int:
     if unmatched:
         print(f"wheelgrid map: warning: {unmatched}", file=sys.stderr)
     if bad and len(bad) == n:
-        raise InputError(f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))})")
+        hint = (
+            f"; {NO_FRAME_ID}: set sensor_convention to optical or body in the --config "
+            "file's mapper: section to say how their axes lie"
+            if NO_FRAME_ID in bad
+            else ""
+        )
+        raise InputError(
+            f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))}){hint}"
+        )
     if mapper.frames_empty == n - len(bad):
         raise InputError(f"{path}: all {n} frames have no valid points (all NaN/out of range)")
     if mapper.registrar.counters.accepted == 0:
