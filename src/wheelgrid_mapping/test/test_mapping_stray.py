@@ -204,6 +204,25 @@ def test_a_nan_or_zero_quaternion_pose_row_costs_its_frame_its_pose_only(tmp_pat
     assert exp.frame(2).stamp == pytest.approx(100.033333)
 
 
+def test_two_odometry_rows_that_disagree_on_a_frame_cost_it_its_pose(tmp_path: Path) -> None:
+    """Two rows for one frame number (an export concatenated, an app's retry) read as the last
+    row's pose, silently: which of the two is ARKit's is not known, and a wrong prior moves the
+    frame. The frame now gets no pose and the note says why; a repeated identical row is one."""
+    cap = make_export(tmp_path / "cap", 4)
+    rows = (cap / "odometry.csv").read_text().splitlines()
+    rows.insert(3, "100.016667, 000001, 0.6, 1.0, 0.0, 0, 0, 0, 1")  # frame 1 again, 0.5 m off
+    rows.append(rows[4])  # frame 2's row twice, the same
+    (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
+    exp = StrayExport(cap)
+    assert exp.frame(1).pose is None
+    assert exp.frame(2).pose is not None and exp.frame(2).pose[0, 3] == pytest.approx(0.2)
+    assert exp.frames_without_pose == 1
+    assert exp.missing_poses_note() == (
+        "odometry.csv has no pose for 1 of 4 depth frames (1 frame with rows that disagree)"
+    )
+    assert exp.frame(1).stamp == pytest.approx(100.016667)
+
+
 def test_a_camera_matrix_of_another_resolution_is_refused(tmp_path: Path) -> None:
     """camera_matrix.csv is scaled from Stray's 1920x1440 RGB image to the depth resolution.
     One for another resolution (already at the depth's, or a 4K video's) was scaled all the

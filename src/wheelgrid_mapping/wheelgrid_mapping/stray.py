@@ -96,8 +96,15 @@ def _read_camera_matrix(path: Path) -> np.ndarray:
     return K
 
 
-def _read_odometry(path: Path) -> tuple[dict[int, tuple[float, np.ndarray | None]], int]:
-    """(frame number -> (timestamp s, 4x4 pose or None), rows without a usable pose).
+def _read_odometry(
+    path: Path,
+) -> tuple[dict[int, tuple[float, np.ndarray | None]], int, int]:
+    """(frame number -> (timestamp s, 4x4 pose or None), rows without a usable pose, frames
+    with rows that disagree).
+
+    Two rows for one frame (an export concatenated, an app's retry) that differ leave it no
+    pose: which is ARKit's is not known (the last one was taken, silently), and a wrong prior
+    moves the frame. Identical repeats are one row.
 
     A row of numbers whose pose is NaN or has a zero quaternion costs its frame the pose only
     (None; its timestamp is kept when finite), as a bag's NaN pose prior does: it refused the
@@ -108,9 +115,11 @@ def _read_odometry(path: Path) -> tuple[dict[int, tuple[float, np.ndarray | None
     the whole export."""
     out: dict[int, tuple[float, np.ndarray | None]] = {}
     unusable = 0
+    rows: dict[int, list[float]] = {}  # each frame's first row of numbers
+    disagree: set[int] = set()
     text = path.read_text(errors="replace")
     if not text.strip():
-        return out, 0
+        return out, 0, 0
     lines = text.splitlines()
     cut_off = len(lines) if not text.endswith(("\n", "\r")) else -1  # line number, 1-based
     reader = csv.reader(lines)
@@ -129,6 +138,14 @@ def _read_odometry(path: Path) -> tuple[dict[int, tuple[float, np.ndarray | None
             if lineno == cut_off:
                 break
             raise ValueError(f"{path}:{lineno}: bad odometry row {row!r} ({exc})") from exc
+        numbers = [t, *v]
+        first = rows.setdefault(int(frame), numbers)
+        if first is not numbers:
+            if not np.allclose(first, numbers, rtol=0.0, atol=1e-9, equal_nan=True):
+                disagree.add(int(frame))
+                if int(frame) in out:
+                    out[int(frame)] = (out[int(frame)][0], None)
+            continue
         pose = None
         if all(math.isfinite(x) for x in v):
             with contextlib.suppress(ValueError):  # a zero quaternion
@@ -136,7 +153,7 @@ def _read_odometry(path: Path) -> tuple[dict[int, tuple[float, np.ndarray | None
         unusable += pose is None
         if math.isfinite(t):
             out[int(frame)] = (t, pose)
-    return out, unusable
+    return out, unusable, len(disagree)
 
 
 class StrayExport:
@@ -167,7 +184,9 @@ class StrayExport:
         odo = self.path / "odometry.csv"
         try:
             self._K_rgb = _read_camera_matrix(cam)
-            self._odometry, self._unusable_poses = _read_odometry(odo) if odo.exists() else ({}, 0)
+            self._odometry, self._unusable_poses, self._disagreeing_poses = (
+                _read_odometry(odo) if odo.exists() else ({}, 0, 0)
+            )
         except OSError as exc:  # no permission, a folder in its place: no command caught it
             raise ValueError(f"{exc.filename}: cannot read it ({exc.strerror})") from exc
         self._known: list[int] | None = None  # odometry's frame numbers, sorted when needed
@@ -214,8 +233,11 @@ class StrayExport:
         missing = self.frames_without_pose
         if not missing:
             return ""
-        bad = self._unusable_poses
-        why = f" ({bad} of its rows NaN or a zero quaternion)" if bad else ""
+        bad, twice = self._unusable_poses, self._disagreeing_poses
+        whys = [f"{bad} of its rows NaN or a zero quaternion"] if bad else []
+        if twice:
+            whys.append(f"{twice} frame{'s' if twice > 1 else ''} with rows that disagree")
+        why = f" ({'; '.join(whys)})" if whys else ""
         return f"odometry.csv has no pose for {missing} of {len(self)} depth frames{why}"
 
     def __len__(self) -> int:
