@@ -22,11 +22,13 @@ from wheelgrid_mapping.preprocess import (
     valid_mask,
     voxel_downsample,
 )
-
-
-def plane(n: int, rng: np.random.Generator, size=(2.0, 2.0), z=0.0) -> np.ndarray:
-    xy = rng.random((n, 2)) * size
-    return np.column_stack([xy, np.full(n, z)])
+from wheelgrid_mapping.thin_check import (
+    near,
+    plane,
+    room_with_thin_obstacles,
+    stretch_centres,
+    thin_obstacle_coverage,
+)
 
 
 def test_valid_mask_drops_nan_inf_range_and_low_confidence() -> None:
@@ -213,38 +215,6 @@ def test_pfc_flags_a_point_off_a_flat_neighbourhood() -> None:
     assert np.median(pfc[:-1]) < 0.7
 
 
-def room_with_thin_obstacles(rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Floor, wall, a 5 cm bar, a 4 cm table leg, a table top; sampled like a close scan."""
-    n = 60_000
-    floor = plane(n, rng, (3.0, 3.0))
-    wall = np.column_stack([rng.random(n // 2) * 3, np.full(n // 2, 3.0), rng.random(n // 2) * 2])
-    t = rng.random(4000) * 2 * np.pi
-    bar = np.column_stack(
-        [0.5 + rng.random(4000) * 2.0, 1.5 + 0.025 * np.cos(t), 0.8 + 0.025 * np.sin(t)]
-    )
-    leg = np.column_stack(
-        [2.0 + rng.random(3000) * 0.04, 0.5 + rng.random(3000) * 0.04, rng.random(3000) * 0.7]
-    )
-    top = np.column_stack(
-        [1.6 + rng.random(8000) * 0.8, 0.3 + rng.random(8000) * 0.6, np.full(8000, 0.72)]
-    )
-    noise = rng.normal(0, 0.003, (1, 3))
-    outliers = rng.random((300, 3)) * [3.0, 3.0, 2.0] + [0, 0, 0.3]
-    parts = {"floor": floor, "wall": wall, "bar": bar, "leg": leg, "top": top}
-    parts = {k: v + noise for k, v in parts.items()}
-    parts["outliers"] = outliers
-    return parts
-
-
-def near(a: np.ndarray, b: np.ndarray, tol: float) -> np.ndarray:
-    """For each point of b: is some point of a within tol."""
-    out = np.zeros(len(b), dtype=bool)
-    for s in range(0, len(b), 2000):
-        d = np.linalg.norm(b[s : s + 2000, None] - a[None], axis=2)
-        out[s : s + 2000] = (d <= tol).any(axis=1)
-    return out
-
-
 @pytest.mark.parametrize("sor_m", [2.5, 0.0])
 def test_filters_keep_thin_obstacles_and_remove_floating_noise(sor_m: float) -> None:
     """At the default m and at the smallest m allowed: a negative m (t below the mean) kept
@@ -259,12 +229,11 @@ def test_filters_keep_thin_obstacles_and_remove_floating_noise(sor_m: float) -> 
     out = preprocess(cloud, cfg, stats=stats)
     assert stats.input == len(cloud) and stats.after_pfc == len(out)
     # Every 10 cm of the bar, of the leg, and of the table's front edge still has points.
-    bar_samples = np.column_stack([np.arange(0.55, 2.5, 0.1), np.full(20, 1.5), np.full(20, 0.8)])
-    leg_samples = np.column_stack([np.full(7, 2.02), np.full(7, 0.52), np.arange(0.05, 0.7, 0.1)])
-    edge_samples = np.column_stack([np.arange(1.65, 2.4, 0.1), np.full(8, 0.3), np.full(8, 0.72)])
-    for name, samples in (("bar", bar_samples), ("leg", leg_samples), ("edge", edge_samples)):
+    for name, samples in stretch_centres().items():
         kept = near(out, samples, 0.05)
         assert kept.all(), f"{name} lost at {samples[~kept]}"
+    # and the start-up check (thin_check), the same room and measure, agrees
+    assert thin_obstacle_coverage(cfg).kept == {"bar": 1.0, "leg": 1.0, "edge": 1.0}
     # Most floating outliers are gone (those that happen to touch a surface may stay).
     gone = ~near(out, parts["outliers"], 0.005)
     assert gone.mean() > 0.8

@@ -92,6 +92,15 @@ class PreprocessConfig:
         "range x pitch / tan(incidence) a pixel, 5x at 11 deg",
         "",
     )
+    accept_thin_obstacle_loss: bool = field(
+        False,
+        "run settings that the start-up check finds erasing a thin obstacle (a 5 cm bar, a "
+        "table leg, a table edge, in a room sampled as the iPhone sees it at 2 m) instead of "
+        "refusing them, with a warning at every start. Only for a sensor very unlike the "
+        "iPhone, whose density the check does not model: for a wheelchair a lost bar is free "
+        "floor to drive into",
+        "",
+    )
 
     def __post_init__(self) -> None:
         self.validate()
