@@ -157,6 +157,34 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
         assert "Traceback" not in err and says in err, err
 
 
+def test_a_config_whose_filters_erase_a_thin_obstacle_is_refused(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """``pfc_min_offset: 0`` with ``pfc_threshold: 0.5`` passed every range check and then
+    removed 55 % of a 5 cm bar from every frame (issue #3): now one line, exit 2, before any
+    frame. The opt-out maps with the same settings, saying so."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("preprocess:\n  pfc_min_offset: 0\n  pfc_threshold: 0.5\n")
+    out = tmp_path / "o"
+    argv = [str(sim_dir / "scan"), "--out", str(out), "--config", str(cfg), "--prior", "arkit"]
+    argv += ["--max-frames", "4"]
+    assert cli_map.main(argv) == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert (
+        "wheelgrid map: config: preprocess settings erase thin obstacles: the 5 cm bar keeps "
+        "45 % of its length (pfc_threshold 0.5, pfc_min_offset 0.0); the defaults keep all of it"
+    ) in err, err
+    cfg.write_text(
+        "preprocess:\n  pfc_min_offset: 0\n  pfc_threshold: 0.5\n"
+        "  accept_thin_obstacle_loss: true\n"
+    )
+    assert cli_map.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "WARNING preprocess.accept_thin_obstacle_loss" in err, err
+    assert "the 5 cm bar keeps 45 % of its length" in err, err
+
+
 def test_a_broken_config_or_output_path_stops_before_the_first_frame(
     sim_dir: Path, tmp_path: Path, capsys
 ) -> None:

@@ -238,6 +238,29 @@ def test_bad_parameters_stop_the_mapper_with_exit_2(param: str) -> None:
     assert "FATAL" in proc.stderr + proc.stdout and "Traceback" not in proc.stderr
 
 
+def test_preprocess_parameters_that_erase_a_thin_obstacle_stop_the_mapper_with_exit_2() -> None:
+    """Issue #3: parameters that pass every range check but filter a 5 cm bar away stop the
+    node at start-up with one FATAL line naming the bar, what is lost and the settings."""
+    from wheelgrid_common.ros_env import child_env
+
+    args = python_module(
+        "wheelgrid_mapping.mapper_node",
+        "--ros-args",
+        "-p",
+        "preprocess.pfc_min_offset:=0.0",
+        "-p",
+        "preprocess.pfc_threshold:=0.5",
+    )
+    proc = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
+    out = proc.stderr + proc.stdout
+    assert proc.returncode == 2, out
+    assert "Traceback" not in out and "FATAL" in out, out
+    assert (
+        "invalid parameters: preprocess settings erase thin obstacles: the 5 cm bar keeps 45 % "
+        "of its length (pfc_threshold 0.5, pfc_min_offset 0.0); the defaults keep all of it"
+    ) in out, out
+
+
 def test_an_empty_list_parameter_takes_a_real_value() -> None:
     """rclpy typed the mount transform's empty default as a byte array and refused every
     real value for it, from -p and from a params file alike."""
@@ -479,6 +502,30 @@ def in_process_mapper_node(ctx: Any, tmp_path: Path, prefix: str, **params: Any)
     }
     overrides = [Parameter(k, value=v) for k, v in values.items()]
     return MapperNode(context=ctx, parameter_overrides=overrides)
+
+
+def test_the_thin_obstacle_opt_out_starts_the_mapper_with_a_warning(tmp_path, capfd):
+    """``preprocess.accept_thin_obstacle_loss`` (for a sensor unlike the iPhone) runs settings
+    the start-up check refuses, and the log says at start what they lose."""
+    with rclpy_context() as ctx:
+        node = in_process_mapper_node(
+            ctx,
+            tmp_path,
+            "/opt_out",
+            **{
+                "preprocess.pfc_min_offset": 0.0,
+                "preprocess.pfc_threshold": 0.5,
+                "preprocess.accept_thin_obstacle_loss": True,
+            },
+        )
+        try:
+            assert node.mapper.pre.accept_thin_obstacle_loss
+        finally:
+            node.close()
+            node.destroy_node()
+    logged = "".join(capfd.readouterr())
+    assert "WARN" in logged and "preprocess.accept_thin_obstacle_loss" in logged, logged
+    assert "the 5 cm bar keeps 45 % of its length" in logged, logged
 
 
 def wait_settled(node: Any) -> None:

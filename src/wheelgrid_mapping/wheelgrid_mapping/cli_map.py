@@ -26,6 +26,7 @@ from wheelgrid_common.progress import Progress
 from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, load_configs
 from .prefetch import FramePipeline
 from .registration import PRIOR_SCALE_MIN_STEP
+from .thin_check import check_thin_obstacles
 
 Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None]
 
@@ -443,8 +444,11 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"--max-frames must be >= 0 (0: every frame), got {args.max_frames}")
     try:
         pre, reg, cfg, loop = load_configs(args.config)
+        thin_note = check_thin_obstacles(pre)  # a filter that erases a bar: refused here
     except (OSError, ValueError) as exc:
         raise InputError(f"config: {exc}") from exc
+    if thin_note:
+        print(f"WARNING {thin_note}", file=sys.stderr)
     if args.method:
         reg.method = args.method
     if args.prior_topic and args.prior != "arkit":

@@ -51,6 +51,7 @@ from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, MapperConfig
 from .prefetch import FramePipeline
 from .preprocess import PreprocessConfig
 from .registration import RegistrationConfig
+from .thin_check import check_thin_obstacles
 
 try:
     from rclpy.node import Node
@@ -127,10 +128,13 @@ class MapperNode(Node):  # type: ignore[misc]
             cfg = declare_dataclass(self, MapperConfig(), "mapper.")
             self.loop_cfg = declare_dataclass(self, LoopClosureConfig(), "loop_closure.")
             check_no_undeclared(self)
+            thin_note = check_thin_obstacles(pre)  # a filter that erases a bar: refused here
             self.mapper = Mapper(pre, reg, cfg, keep_frames=self.loop_cfg.enabled)
         except ValueError as exc:  # same as the other nodes: one FATAL line, exit 2
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
+        if thin_note:
+            self.get_logger().warning(thin_note)
         self.topic = node_cfg.topic
         self.prior_topic = node_cfg.pose_prior_topic
         self.output_dir = node_cfg.output_dir
