@@ -19,7 +19,9 @@ Safety: every removal step is tuned so thin real obstacles survive (a 5 cm bar, 
 table edge: they are dense along their own length, so their points have close neighbours and a
 PFC near 0.5); only isolated points and points floating off smooth surfaces are removed. The
 PFC additionally needs an absolute offset (``pfc_min_offset``) before it removes anything,
-because the paper notes it misfires around small features and folds.
+because the paper notes it misfires around small features and folds. Settings that undo this
+pass :meth:`PreprocessConfig.validate` (each number is sane alone), so :mod:`.thin_check` runs
+them on a thin-obstacle room where they enter, and refuses them there.
 """
 
 from __future__ import annotations
