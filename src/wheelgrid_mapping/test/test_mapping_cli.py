@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -884,3 +886,73 @@ def test_a_loop_closure_or_mapper_number_that_cannot_work_is_one_line(
         assert cli_map.main(argv) == 2 and not out.exists(), text
         err = capsys.readouterr().err
         assert "Traceback" not in err and says in err, (text, err)
+
+
+def _wall(x: float, n: int, rng: np.random.Generator, sigma: float = 0.003) -> np.ndarray:
+    """``n`` points of a surface at x over 0.4 x 0.6 m (y 0.3-0.7, z 0.1-0.7), ``sigma`` noise."""
+    yz = rng.random((n, 2)) * [0.4, 0.6] + [0.3, 0.1]
+    return np.column_stack([np.full(n, x) + rng.normal(0, sigma, n), yz])
+
+
+def test_measure_refuses_a_box_around_two_parallel_surfaces(tmp_path: Path, capsys) -> None:
+    """Box A is drawn 12 cm deep and holds two parallel surfaces 4 cm apart (a table's edge
+    and a leg's back face behind it; a wall and a picture on it): the fit took the one with
+    more points and the reading was 4 cm off the other without a word. It is refused, with
+    both surfaces and what each reads; box B, one surface and a little clutter, is not."""
+    rng = np.random.default_rng(7)
+    box_a = [0.92, 0.3, 0.0, 1.04, 0.7, 0.8]
+    box_b = [2.15, 0.3, 0.0, 2.25, 0.7, 0.8]
+    clutter = rng.random((40, 3)) * [0.1, 0.4, 0.8] + [2.15, 0.3, 0.0]
+    pts = np.vstack([_wall(1.0, 900, rng), _wall(0.96, 700, rng), _wall(2.2, 1000, rng), clutter])
+    m = cli_measure.measure(pts, box_a, box_b)
+    assert m.distance == pytest.approx(1.2, abs=0.002)  # the surface with more points
+    assert m.second_b is None and m.second_a is not None
+    assert m.second_a["offset"] == pytest.approx(-0.04, abs=0.003)  # away from box B
+    assert m.second_a["points"] >= 600 and m.second_a["distance"] == pytest.approx(1.24, abs=0.003)
+    ply = tmp_path / "two.ply"
+    write_ply(ply, pts)
+    argv = [str(ply), "--box-a", *map(str, box_a), "--box-b", *map(str, box_b)]
+    for extra in ([], ["--json"], ["--normal-radius", "0"]):
+        assert cli_measure.main([*argv, *extra]) == 2, extra
+        out = capsys.readouterr()
+        assert out.out == "" and "--box-a holds two parallel surfaces" in out.err, out.err
+        assert "4.0 cm farther from the other box" in out.err and "Shrink --box-a" in out.err
+        reads = re.search(r"reads ([\d.]+) cm to the first, ([\d.]+) cm", out.err)
+        assert reads is not None and "--box-b" not in out.err
+        assert [float(v) for v in reads.groups()] == pytest.approx([120.0, 124.0], abs=0.3)
+    # shrunk around either surface, it reads
+    near = [str(v) for v in (0.98, 0.3, 0.0, 1.04, 0.7, 0.8)]
+    assert cli_measure.main([*argv[:2], *near, *argv[8:], "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["distance"] == pytest.approx(1.2, abs=0.002)
+
+
+#: The reading and its +- of test_measure_of_one_surface_is_unchanged_by_the_second_surface_check
+#: as measured before the check existed (cli_measure of 1ccb36e).
+ONE_SURFACE_DISTANCE = 1.2000977388056144
+ONE_SURFACE_STDERR = 0.0001152119673150066
+
+
+def test_measure_of_one_surface_is_unchanged_by_the_second_surface_check(
+    tmp_path: Path, capsys
+) -> None:
+    """One surface in each box (with 3 mm noise, a thousand points, and in box B 40 stray
+    points of clutter): no second surface, and the reading, its +- and the JSON are what they
+    were (the numbers recorded before the check existed)."""
+    rng = np.random.default_rng(8)
+    box_a = [0.95, 0.3, 0.0, 1.05, 0.7, 0.8]
+    box_b = [2.1, 0.3, 0.0, 2.3, 0.7, 0.8]
+    clutter = rng.random((40, 3)) * [0.2, 0.4, 0.8] + [2.1, 0.3, 0.0]
+    pts = np.vstack([_wall(1.0, 1000, rng), _wall(2.2, 1000, rng), clutter])
+    for radius in (cli_measure.NORMAL_RADIUS, 0.0):
+        m = cli_measure.measure(pts, box_a, box_b, normal_radius=radius)
+        assert m.second_a is None and m.second_b is None, radius
+    m = cli_measure.measure(pts, box_a, box_b)
+    assert (m.distance, m.stderr) == (ONE_SURFACE_DISTANCE, ONE_SURFACE_STDERR)
+    ply = tmp_path / "one.ply"
+    write_ply(ply, pts)
+    argv = [str(ply), "--box-a", *map(str, box_a), "--box-b", *map(str, box_b), "--json"]
+    assert cli_measure.main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    expected = asdict(cli_measure.measure(read_ply(ply), box_a, box_b))  # the map's float32
+    del expected["second_a"], expected["second_b"]
+    assert out == json.loads(json.dumps(expected))  # the keys and numbers of before

@@ -32,6 +32,12 @@ perpendicular to a wall; a simulated scene's truth), ``--normal`` reads the same
 it and says how far it is from their own common normal, and ``--normal-box`` takes that
 direction from the map itself: the normal of a large surface in a third box (a wall the faces
 are parallel to), which thousands of points fix to a tenth of a degree or better.
+
+A box around two parallel surfaces a few centimetres apart (a table's edge and the back face
+of a leg behind it, a wall and a picture on it, a box drawn too deep) has no one reading: the
+fit takes the surface with more points, and the other is as much a face as it is. Such a box
+is refused (exit 2) with both surfaces' offsets, points and readings, and the advice to shrink
+it (:func:`second_surface` says what counts as a surface, not the spread of one).
 """
 
 from __future__ import annotations
@@ -73,6 +79,12 @@ MIN_PLANE_SPREAD = 1e-5
 #: A ``--normal-box`` surface needs this many points: it is there to fix a direction better
 #: than the faces do (0.04 m2 of a 2 cm map; a wall's box holds thousands).
 MIN_REFERENCE_POINTS = 100
+#: A second surface parallel to a box's face is a peak of the box's points along the face's
+#: normal, a band as thin as the face's own (its 2.5 robust sigmas), at least :data:`MIN_FACING`
+#: points, and apart from the face by a valley at least one band wide whose points lie this
+#: many times thinner than the peak's: one surface's noise thins out steadily away from it and
+#: has no valley, a second surface stands out of it.
+SECOND_SURFACE_VALLEY = 0.25
 
 
 @dataclass
@@ -86,6 +98,15 @@ class Plane:
     # with ``facing``: all of the fit's inliers, the facing ones among them (what the faces'
     # common direction stands on, see :func:`measure`)
     inliers: np.ndarray | None = None
+    second: Surface | None = None  # another surface parallel to it in the box (fit_face)
+
+
+@dataclass
+class Surface:
+    """A second surface parallel to a box's face (:func:`second_surface`)."""
+
+    offset: float  # m along the face's normal, from the face
+    points: int
 
 
 @dataclass
@@ -107,6 +128,10 @@ class Measurement:
     along_angle_deg: float = 0.0  # between it and the faces' fitted common normal
     normal_points: int = 0  # the points the faces' common normal stands on (both faces)
     normal: list[float] | None = None  # the faces' fitted common normal (map frame)
+    # a second surface parallel to the face in box A / B: {"offset": m, toward the other box
+    # positive; "points"; "distance": the reading to it}; None where the box holds one
+    second_a: dict[str, float] | None = None
+    second_b: dict[str, float] | None = None
 
 
 def box_mask(points: np.ndarray, box: list[float] | np.ndarray, pad: float = 0.0) -> np.ndarray:
@@ -223,13 +248,14 @@ def fit_face(
     pts = around[inside]
     plane = fit_plane(pts)
     if radius <= 0 or pts.shape[0] < MIN_FACING:
+        plane.second = second_surface(pts, plane)
         return plane
     normals = point_normals(around, radius)[inside]
     offset = (pts - plane.centroid) @ plane.normal
-    facing = (np.abs(normals @ plane.normal) >= math.cos(math.radians(max_angle_deg))) & (
-        np.abs(offset) <= INLIER
-    )
+    parallel = np.abs(normals @ plane.normal) >= math.cos(math.radians(max_angle_deg))
+    facing = parallel & (np.abs(offset) <= INLIER)
     if int(facing.sum()) < MIN_FACING:
+        plane.second = second_surface(pts[parallel], plane)
         return plane
     sel = pts[facing]
     # The normal stays the fit's on all inliers: as few as 20 points of one leg may face the
@@ -237,7 +263,44 @@ def fit_face(
     # faces were called not parallel); the distance takes both faces' normal together.
     c = sel.mean(axis=0)
     rms = float(np.sqrt(np.mean(((sel - c) @ plane.normal) ** 2)))
-    return Plane(plane.normal, c, int(sel.shape[0]), rms, sel, facing=True, inliers=plane.support)
+    face = Plane(plane.normal, c, int(sel.shape[0]), rms, sel, facing=True, inliers=plane.support)
+    face.second = second_surface(pts[parallel], face)
+    return face
+
+
+def second_surface(points: np.ndarray, face: Plane) -> Surface | None:
+    """Another surface parallel to ``face`` among ``points`` (a box's, those whose normals
+    face its way where known), or None.
+
+    The fit takes the surface with the most points; a second one a few centimetres behind it
+    is as much a face, and a reading to the wrong one is off by their distance with nothing
+    said. What counts as a surface comes from the face itself: a band of the points' offsets
+    along its normal as thin as the face's own (2.5 robust sigmas of its noise, as the fits
+    trim to), at least :data:`MIN_FACING` points in it, and between the two a valley at least
+    one band wide and :data:`SECOND_SURFACE_VALLEY` times thinner. One surface's noise and
+    the first centimetres of a leg's sides thin out or stay level away from the face, with no
+    valley; a few stray points fill no band. Of the surfaces found, the one with most points.
+    """
+    own = np.abs((face.support - face.centroid) @ face.normal)
+    band = _robust_band(own, INLIER)
+    d = np.sort((np.asarray(points, np.float64) - face.centroid) @ face.normal)
+    best: Surface | None = None
+    for side in (1.0, -1.0):
+        o = np.sort(side * d[side * d > band])  # beyond the face's band, on this side
+        if o.size < MIN_FACING:
+            continue
+        peak = np.searchsorted(o, o + band, "right") - np.searchsorted(o, o - band, "left")
+        valley = np.searchsorted(o, o - band, "left")  # points between the face and the peak
+        width = o - 2.0 * band
+        ok = (peak >= MIN_FACING) & (width >= band)
+        ok &= valley * 2.0 * band <= SECOND_SURFACE_VALLEY * peak * np.maximum(width, band)
+        if not ok.any():
+            continue
+        k = int(np.argmax(np.where(ok, peak, -1)))
+        sel = o[np.abs(o - o[k]) <= band]
+        if best is None or sel.size > best.points:
+            best = Surface(side * float(np.median(sel)), int(sel.size))
+    return best
 
 
 def _common_normal(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -394,7 +457,40 @@ def measure(
         None if given is None else given.tolist(),
         0.0 if given is None else angle_deg(given, fitted),
         int(ta[:, DIRECTION].sum() + tb[:, DIRECTION].sum()), fitted.tolist(),
+        second_reading(pa, cb - ca, n, reading), second_reading(pb, ca - cb, n, reading),
     )  # fmt: skip
+
+
+def second_reading(
+    face: Plane, toward: np.ndarray, n: np.ndarray, reading: float
+) -> dict[str, float] | None:
+    """What ``reading`` would be to ``face``'s second surface (:func:`second_surface`), the
+    other face ``toward`` away from it along the reading's normal ``n``: the surface's offset
+    (toward the other face positive), its points, and the distance to it."""
+    if face.second is None:
+        return None
+    along = float(face.normal @ toward)
+    offset = face.second.offset if along >= 0 else -face.second.offset
+    shift = offset * abs(float(face.normal @ n))
+    return {
+        "offset": offset,
+        "points": face.second.points,
+        "distance": reading - shift,
+    }
+
+
+def two_surfaces(flag: str, kept: int, second: dict[str, float], distance: float) -> str:
+    """The refusal of a box around two parallel surfaces: which box, both surfaces and what
+    each reads, and what to do. A refusal, not a choice of one: Table I has one distance per
+    pair of faces, and only the user knows which surface the box was drawn for."""
+    where = "nearer the other box" if second["offset"] > 0 else "farther from the other box"
+    return (
+        f"{flag} holds two parallel surfaces: the one measured ({kept} points) and another "
+        f"{abs(second['offset']) * 100:.1f} cm {where} along its normal "
+        f"({int(second['points'])} points); the distance reads {distance * 100:.2f} cm to the "
+        f"first, {second['distance'] * 100:.2f} cm to the second. Shrink {flag} around the "
+        "surface you mean"
+    )
 
 
 #: Columns of :func:`tag_face`'s rows after x, y, z: 1 where the faces' common direction
@@ -604,7 +700,21 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2
+    refusals = [
+        two_surfaces(flag, kept, second, m.distance)
+        for flag, kept, second in (
+            ("--box-a", m.points_a, m.second_a),
+            ("--box-b", m.points_b, m.second_b),
+        )
+        if second is not None
+    ]
+    if refusals:
+        for line in refusals:
+            print(f"wheelgrid measure: {line}", file=sys.stderr)
+        return 2
     out = asdict(m)
+    # one surface per box: the keys are there only to say otherwise (the output is unchanged)
+    del out["second_a"], out["second_b"]
     if ref is not None:
         out["normal_box"] = {"points": ref.points, "rms": ref.rms}
     if args.true is not None:
