@@ -33,11 +33,13 @@ it and says how far it is from their own common normal, and ``--normal-box`` tak
 direction from the map itself: the normal of a large surface in a third box (a wall the faces
 are parallel to), which thousands of points fix to a tenth of a degree or better.
 
-A box around two parallel surfaces a few centimetres apart (a table's edge and the back face
-of a leg behind it, a wall and a picture on it, a box drawn too deep) has no one reading: the
-fit takes the surface with more points, and the other is as much a face as it is. Such a box
-is refused (exit 2) with both surfaces' offsets, points and readings, and the advice to shrink
-it (:func:`second_surface` says what counts as a surface, not the spread of one).
+A box around two parallel surfaces a few centimetres apart (a wall and a picture on it, a box
+drawn too deep) has no one reading: the fit takes the surface with more points, and the other
+may be the face meant. Where the other lies nearer the other box the box is refused (exit 2)
+with both surfaces' offsets, points and readings, and the advice to shrink it; where it lies
+farther away, it is most often the back face of the thin object whose front was read (a table
+leg behind its row's edge), facing away, and the line names it (:func:`second_surfaces` says
+what counts as a surface, not the spread of one; :func:`second_reading` why the side decides).
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -98,12 +100,14 @@ class Plane:
     # with ``facing``: all of the fit's inliers, the facing ones among them (what the faces'
     # common direction stands on, see :func:`measure`)
     inliers: np.ndarray | None = None
-    second: Surface | None = None  # another surface parallel to it in the box (fit_face)
+    # other surfaces parallel to it in the box (fit_face), the most-supported on each side:
+    # ``+`` along ``normal``, ``-`` against it
+    seconds: dict[str, Surface] = field(default_factory=dict)
 
 
 @dataclass
 class Surface:
-    """A second surface parallel to a box's face (:func:`second_surface`)."""
+    """A second surface parallel to a box's face (:func:`second_surfaces`)."""
 
     offset: float  # m along the face's normal, from the face
     points: int
@@ -128,10 +132,14 @@ class Measurement:
     along_angle_deg: float = 0.0  # between it and the faces' fitted common normal
     normal_points: int = 0  # the points the faces' common normal stands on (both faces)
     normal: list[float] | None = None  # the faces' fitted common normal (map frame)
-    # a second surface parallel to the face in box A / B: {"offset": m, toward the other box
-    # positive; "points"; "distance": the reading to it}; None where the box holds one
+    # a second surface parallel to the face in box A / B, nearer the other box: {"offset": m,
+    # toward the other box positive; "points"; "distance": the reading to it}; None where the
+    # box holds none
     second_a: dict[str, float] | None = None
     second_b: dict[str, float] | None = None
+    # the same, farther from the other box (most often the back face of a thin object)
+    behind_a: dict[str, float] | None = None
+    behind_b: dict[str, float] | None = None
 
 
 def box_mask(points: np.ndarray, box: list[float] | np.ndarray, pad: float = 0.0) -> np.ndarray:
@@ -248,14 +256,14 @@ def fit_face(
     pts = around[inside]
     plane = fit_plane(pts)
     if radius <= 0 or pts.shape[0] < MIN_FACING:
-        plane.second = second_surface(pts, plane)
+        plane.seconds = second_surfaces(pts, plane)
         return plane
     normals = point_normals(around, radius)[inside]
     offset = (pts - plane.centroid) @ plane.normal
     parallel = np.abs(normals @ plane.normal) >= math.cos(math.radians(max_angle_deg))
     facing = parallel & (np.abs(offset) <= INLIER)
     if int(facing.sum()) < MIN_FACING:
-        plane.second = second_surface(pts[parallel], plane)
+        plane.seconds = second_surfaces(pts[parallel], plane)
         return plane
     sel = pts[facing]
     # The normal stays the fit's on all inliers: as few as 20 points of one leg may face the
@@ -264,13 +272,14 @@ def fit_face(
     c = sel.mean(axis=0)
     rms = float(np.sqrt(np.mean(((sel - c) @ plane.normal) ** 2)))
     face = Plane(plane.normal, c, int(sel.shape[0]), rms, sel, facing=True, inliers=plane.support)
-    face.second = second_surface(pts[parallel], face)
+    face.seconds = second_surfaces(pts[parallel], face)
     return face
 
 
-def second_surface(points: np.ndarray, face: Plane) -> Surface | None:
-    """Another surface parallel to ``face`` among ``points`` (a box's, those whose normals
-    face its way where known), or None.
+def second_surfaces(points: np.ndarray, face: Plane) -> dict[str, Surface]:
+    """Other surfaces parallel to ``face`` among ``points`` (a box's, those whose normals
+    face its way where known): the most-supported on each side of it, ``+`` along its normal
+    and ``-`` against it.
 
     The fit takes the surface with the most points; a second one a few centimetres behind it
     is as much a face, and a reading to the wrong one is off by their distance with nothing
@@ -279,12 +288,12 @@ def second_surface(points: np.ndarray, face: Plane) -> Surface | None:
     trim to), at least :data:`MIN_FACING` points in it, and between the two a valley at least
     one band wide and :data:`SECOND_SURFACE_VALLEY` times thinner. One surface's noise and
     the first centimetres of a leg's sides thin out or stay level away from the face, with no
-    valley; a few stray points fill no band. Of the surfaces found, the one with most points.
+    valley; a few stray points fill no band. Which side matters is :func:`measure`'s to say.
     """
     own = np.abs((face.support - face.centroid) @ face.normal)
     band = _robust_band(own, INLIER)
     d = np.sort((np.asarray(points, np.float64) - face.centroid) @ face.normal)
-    best: Surface | None = None
+    found: dict[str, Surface] = {}
     for side in (1.0, -1.0):
         o = np.sort(side * d[side * d > band])  # beyond the face's band, on this side
         if o.size < MIN_FACING:
@@ -298,9 +307,8 @@ def second_surface(points: np.ndarray, face: Plane) -> Surface | None:
             continue
         k = int(np.argmax(np.where(ok, peak, -1)))
         sel = o[np.abs(o - o[k]) <= band]
-        if best is None or sel.size > best.points:
-            best = Surface(side * float(np.median(sel)), int(sel.size))
-    return best
+        found["+" if side > 0 else "-"] = Surface(side * float(np.median(sel)), int(sel.size))
+    return found
 
 
 def _common_normal(sets: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -457,24 +465,35 @@ def measure(
         None if given is None else given.tolist(),
         0.0 if given is None else angle_deg(given, fitted),
         int(ta[:, DIRECTION].sum() + tb[:, DIRECTION].sum()), fitted.tolist(),
-        second_reading(pa, cb - ca, n, reading), second_reading(pb, ca - cb, n, reading),
+        second_reading(pa, cb - ca, n, reading, True),
+        second_reading(pb, ca - cb, n, reading, True),
+        second_reading(pa, cb - ca, n, reading, False),
+        second_reading(pb, ca - cb, n, reading, False),
     )  # fmt: skip
 
 
 def second_reading(
-    face: Plane, toward: np.ndarray, n: np.ndarray, reading: float
+    face: Plane, toward: np.ndarray, n: np.ndarray, reading: float, nearer: bool
 ) -> dict[str, float] | None:
-    """What ``reading`` would be to ``face``'s second surface (:func:`second_surface`), the
-    other face ``toward`` away from it along the reading's normal ``n``: the surface's offset
-    (toward the other face positive), its points, and the distance to it."""
-    if face.second is None:
+    """What ``reading`` would be to ``face``'s second surface (:func:`second_surfaces`) on the
+    side ``nearer`` the other face (``toward`` away from it) or farther from it, along the
+    reading's normal ``n``: the surface's offset (toward the other face positive), its points,
+    and the distance to it.
+
+    Nearer, it is a face the reading may have been meant for (a box drawn too deep, a picture
+    on the wall it was drawn for), or the measured one is a thin object's back face and this
+    its front: :func:`main` refuses the box. Farther, it is most often the back face of the
+    thin object whose front was measured (a table leg 5 cm deep, seen from behind too), which
+    faces away from the other box and is no candidate: :func:`main` names it and reads on."""
+    side = "+" if (float(face.normal @ toward) >= 0) == nearer else "-"
+    second = face.seconds.get(side)
+    if second is None:
         return None
-    along = float(face.normal @ toward)
-    offset = face.second.offset if along >= 0 else -face.second.offset
+    offset = second.offset if float(face.normal @ toward) >= 0 else -second.offset
     shift = offset * abs(float(face.normal @ n))
     return {
         "offset": offset,
-        "points": face.second.points,
+        "points": second.points,
         "distance": reading - shift,
     }
 
@@ -483,10 +502,9 @@ def two_surfaces(flag: str, kept: int, second: dict[str, float], distance: float
     """The refusal of a box around two parallel surfaces: which box, both surfaces and what
     each reads, and what to do. A refusal, not a choice of one: Table I has one distance per
     pair of faces, and only the user knows which surface the box was drawn for."""
-    where = "nearer the other box" if second["offset"] > 0 else "farther from the other box"
     return (
         f"{flag} holds two parallel surfaces: the one measured ({kept} points) and another "
-        f"{abs(second['offset']) * 100:.1f} cm {where} along its normal "
+        f"{abs(second['offset']) * 100:.1f} cm nearer the other box along its normal "
         f"({int(second['points'])} points); the distance reads {distance * 100:.2f} cm to the "
         f"first, {second['distance'] * 100:.2f} cm to the second. Shrink {flag} around the "
         "surface you mean"
@@ -714,7 +732,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = asdict(m)
     # one surface per box: the keys are there only to say otherwise (the output is unchanged)
-    del out["second_a"], out["second_b"]
+    del out["second_a"], out["second_b"], out["behind_a"], out["behind_b"]
     if ref is not None:
         out["normal_box"] = {"points": ref.points, "rms": ref.rms}
     if args.true is not None:
@@ -765,6 +783,13 @@ def main(argv: list[str] | None = None) -> int:
     if m.angle_deg > 10.0:
         reading = not_parallel_reading(m.along is not None, args.normal_radius)
         line += f"; WARNING: surfaces {m.angle_deg:.0f} deg from parallel, {reading}"
+    for box, behind in (("A", m.behind_a), ("B", m.behind_b)):
+        if behind is not None:
+            line += (
+                f"; box {box} also holds a parallel surface {abs(behind['offset']) * 100:.1f} cm "
+                f"farther from the other box ({int(behind['points'])} points: a back face? "
+                f"{behind['distance'] * 100:.2f} cm to it), not read"
+            )
     print(line)
     return 0
 
