@@ -121,7 +121,12 @@ class DriveConfig:
     port: str = field("", "serial device of the motor controller (or a simulator pty)")
     baud: int = field(115200, "serial baud rate", "baud")
     speed: float = field(3.0, "driving speed, hard-capped at 3 km/h", "km/h")
-    cell_size: float = field(1.2, "step length for /cmd_vel steps when no grid is known", "m")
+    cell_size: float = field(
+        1.2,
+        "not used: a /cmd_vel step needs the safe grid and drives to its next cell's centre, and "
+        "a plan's steps are the grid's cells (kept so that a params file that sets it loads)",
+        "m",
+    )
     reply_timeout: float = field(0.1, "wait for each controller reply before a retry", "s")
     retries: int = field(3, "resends of an unanswered frame before giving up (and STOP)")
     heartbeat_period: float = field(HEARTBEAT_PERIOD_S, "heartbeat (and pose report) period", "s")
