@@ -162,6 +162,21 @@ def test_a_drop_depth_that_reads_a_pit_as_floor_is_refused(drop_depth):
         build_grid(points, GridConfig(drop_depth=drop_depth))
 
 
+@pytest.mark.parametrize("safe_height", [0.5, 0.7, 0.89])
+def test_a_safe_height_below_a_seated_user_is_refused(safe_height):
+    """A counter top at 72-75 cm over cell (1, 1), held by the wall or by legs outside the cell
+    (a kitchen counter, a wide desk). ``safe_height`` is the top of the seated user in the
+    chair (the paper's δ): points below it count. Set to 0.5 or 0.7 m (any value above
+    ``floor_clearance`` passed), the top was removed and the cells under it came out free:
+    the chair was sent under a counter at its user's chest. No wheelchair user sits lower
+    than 0.9 m, and with 0.9 m the top stays."""
+    cloud = room_cloud([Box(1.2, 2.4, 1.2, 2.4, 0.72, 0.75)], size=(3.6, 3.6), spacing=SPACING)
+    assert build_grid(cloud).grid.data[1, 1] == OCCUPIED
+    assert build_grid(cloud, GridConfig(safe_height=0.9)).grid.data[1, 1] == OCCUPIED
+    with pytest.raises(ValueError, match=r"safe_height must be >= 0\.9 m"):
+        build_grid(cloud, GridConfig(safe_height=safe_height))
+
+
 # --- unknown is not free ------------------------------------------------------------------------
 
 

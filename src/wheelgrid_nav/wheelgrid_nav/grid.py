@@ -80,6 +80,7 @@ _MIN_ABOVE_FLOOR_FRACTION = 0.005
 # Indoor scans rise 2-4 m above their floor; higher, the map is probably not z-up.
 _TALL_MAP_M = 5.0
 MIN_PIXEL_SIZE = 0.01  # m
+MIN_SAFE_HEIGHT = 0.9  # m: no wheelchair user sits lower (a child's chair seat ~45 cm + torso)
 MAX_FLOOR_CLEARANCE = 0.15  # m: above it, a step is an obstacle to a wheelchair
 # m: the deepest step down that may be read as floor. drop_depth 0 ("disables") or 0.7 m made
 # the bottom of a 60 cm pit observed floor, and its cell free.
@@ -110,7 +111,7 @@ class GridConfig:
     safe_height: float = field(
         1.5,
         "safe height (the paper's height δ): points above it are removed so the chair may pass "
-        "under them; set it to at least the seated user's height",
+        f"under them; set it to at least the seated user's height (>= {MIN_SAFE_HEIGHT} m)",
         "m",
     )
     floor_clearance: float = field(
@@ -265,6 +266,12 @@ class GridConfig:
             )
         if not 0.0 <= self.fine_margin <= 5.0:
             raise ValueError("fine_margin must be in [0, 5] m")
+        if not self.safe_height >= MIN_SAFE_HEIGHT:
+            # 0.5 or 0.7 m removed a 75 cm counter top and freed the cells under it
+            raise ValueError(
+                f"safe_height must be >= {MIN_SAFE_HEIGHT} m (the top of the seated user in the "
+                f"chair: what is lower than that is in the way), not {self.safe_height}"
+            )
         if not self.safe_height > self.floor_clearance:
             raise ValueError("safe_height must be above floor_clearance")
         if not 0.0 <= self.floor_clearance <= MAX_FLOOR_CLEARANCE:
