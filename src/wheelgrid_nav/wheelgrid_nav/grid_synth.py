@@ -82,7 +82,12 @@ def table(x0: float, x1: float, y0: float, y1: float, top: float = 0.75) -> list
 
 
 def paper_like_boxes() -> list[Box]:
-    """The paper's room as the team's simulator describes it (room frame, 9.6 m square).
+    """A room laid out like the paper's (room frame, 9.6 m square): the grid tests' own
+    hand-made stand-in for it, close to but not the simulator's scene
+    (:func:`wheelgrid_sim.scene.paper_scene`, which the bundled bag is made from: there
+    Barrier 1's bar is 0.72-0.77 m and ends at x 5.55, the pillar stands in cell (0, 6), and
+    the second row's tables are split in four). Test against that scene where the bag's truth
+    matters; this one is for the grid's rules on a layout of the same kind.
 
     Row 3 (y in [4.8, 6.0]): table A, table B, Barrier 1 (bar at 0.77 m) -> cells (3,0)..(3,4)
     occupied, (3,5) free. Row 5 (y in [2.4, 3.6]): tables x in [0.1, 4.7] -> (5,0)..(5,3).
