@@ -1,6 +1,7 @@
 """`wheelgrid grid` and its files: map_server round trip, grid.png, exit codes and messages."""
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +120,13 @@ def test_cli_warns_of_a_grid_with_no_free_cell(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "0 free" in captured.out and " map points (" in captured.out, captured.out
     assert "wheelgrid grid: warning: no free cell: no route can be planned" in captured.err
+
+
+def test_cli_summary_gives_the_origin_in_metres(map_ply, tmp_path, capsys):
+    """The one-line summary gave the grid's origin as two bare numbers, its unit unsaid."""
+    assert main([map_ply, "--out", str(tmp_path / "out"), "--no-png"]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert re.search(r"origin -?\d+\.\d{3} -?\d+\.\d{3} m\)", line), line
 
 
 def _ply_points(tmp_path, name, points):

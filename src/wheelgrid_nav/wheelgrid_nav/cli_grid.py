@@ -63,7 +63,7 @@ def summary(result: GridResult) -> str:
     return (
         f"{st['map_points']} map points ({st['points']} up to the safe height) -> "
         f"{g.rows} x {g.cols} cells of {g.resolution:g} m "
-        f"(yaw {st['yaw_deg']:.2f} deg, origin {g.origin[0]:.3f} {g.origin[1]:.3f}): "
+        f"(yaw {st['yaw_deg']:.2f} deg, origin {g.origin[0]:.3f} {g.origin[1]:.3f} m): "
         f"{st['occupied']} occupied, {st['free']} free, {st['unknown']} unknown"
     )
 
