@@ -25,6 +25,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from wheelgrid_common.ros_env import child_env, configure_ros_env
 
@@ -173,6 +174,14 @@ def run(rate: float, count: int, profile: bool) -> dict[str, float]:
     }
 
 
+def row_line(r: dict[str, Any]) -> str:
+    """One result as a line: the value with its unit, the baseline (where there is one) in the
+    same unit, then the note."""
+    value = f"{r['value']} {r['unit']}".rstrip()
+    baseline = f" (baseline {r['baseline']} {r['unit']})" if r["baseline"] != "" else ""
+    return f"{r['figure']}: {value}{baseline}; {r['note']}"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames")
@@ -218,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
     for r in rows:
-        print(f"{r['figure']}: {r['value']} {r['unit']} (baseline {r['baseline']}) {r['note']}")
+        print(row_line(r))
     if args.json:
         args.json.write_text(json.dumps({"rows": rows}, indent=1))
     return 0

@@ -42,3 +42,15 @@ def test_near_surface_share_ignores_the_far_faces_of_walls_floor_and_ceiling() -
     assert near_surface_pct(behind, scene) == 0.0
     on = np.array([[-0.02, 5.0, 1.0], [5.0, 7.0, 0.01], [1.1, 5.4, 0.74]])
     assert near_surface_pct(on, scene) == 100.0
+
+
+def test_transport_lines_give_the_baseline_with_its_unit_and_no_empty_one() -> None:
+    """`python bench/bench_transport.py` printed "0 packets (baseline ) must be 0" for the
+    leak count, which has no baseline, and the delivered share's baseline without its %."""
+    row_line = bench_module("bench_transport").row_line
+    leak = dict(
+        figure="RTPS packets leaving", value=0, unit="packets", baseline="", note="must be 0"
+    )
+    assert row_line(leak) == "RTPS packets leaving: 0 packets; must be 0"
+    share = dict(figure="delivered at 10 Hz", value=100.0, unit="%", baseline=36.0, note="n=100")
+    assert row_line(share) == "delivered at 10 Hz: 100.0 % (baseline 36.0 %); n=100"
