@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -57,6 +58,19 @@ def test_import_stray_writes_bridge_topics(
     p = odoms[0][1].pose.pose.position
     np.testing.assert_allclose([p.x, p.y, p.z], arkit_pose_to_ros(f.pose)[:3, 3], atol=1e-9)  # type: ignore[arg-type]
     assert odoms[0][1].header.frame_id == "odom"
+
+
+def test_import_stray_summary_gives_the_bags_size_and_the_time(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """Its one-line summary gave counts only, where `wheelgrid simulate`'s gives the bag's size
+    and the seconds it took (the whole capture makes a 696 MB bag)."""
+    out = tmp_path / "bag"
+    assert import_main([str(stray_capture), "--out", str(out), "--frames", "3"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert re.match(
+        rf"wrote 3 frames to {re.escape(str(out))} \(sqlite3, \d+\.\d MB\) in \d+\.\d s: ", line
+    ), line
 
 
 def test_import_stray_not_an_export_exit_2(

@@ -279,6 +279,7 @@ def import_main(argv: list[str]) -> int:
         )
     counts: dict[str, int] = {}
     skipped = 0
+    t0 = time.monotonic()
     try:
         with BagWriter(args.out, args.storage) as bag, Progress(len(idx), "import-stray") as bar:
             for seq, i in enumerate(idx):
@@ -309,8 +310,10 @@ def import_main(argv: list[str]) -> int:
             f"{what}{detail}; the part of {args.out} written is removed, no bag was made",
         )
     listing = ", ".join(f"{t} {n}" for t, n in sorted(counts.items()))
+    size = sum(f.stat().st_size for f in Path(args.out).rglob("*") if f.is_file())
     print(
-        f"wrote {len(idx) - skipped} frames to {args.out} ({args.storage}): {listing}"
+        f"wrote {len(idx) - skipped} frames to {args.out} ({args.storage}, {size / 1e6:.1f} MB) "
+        f"in {time.monotonic() - t0:.1f} s: {listing}"
         + (f"; {skipped} unreadable frames skipped" if skipped else "")
     )
     return 0
