@@ -18,9 +18,13 @@ bench: setup
 lint: setup
 	@. scripts/env.sh && ruff check src test bench && ruff format --check src test bench
 
+# A fresh venv each time, removed after: a kept /tmp venv froze whatever an earlier run (or
+# another checkout) had installed into it into the lock.
 lock:
-	@python3 -m venv /tmp/wheelgrid-lock-venv && /tmp/wheelgrid-lock-venv/bin/pip install -q -r requirements.in \
-	  && /tmp/wheelgrid-lock-venv/bin/pip freeze | bash scripts/filter-lock.sh > requirements.lock
+	@set -o pipefail; tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT \
+	  && python3 -m venv "$$tmp/venv" && "$$tmp/venv/bin/pip" install -q -r requirements.in \
+	  && "$$tmp/venv/bin/pip" freeze | bash scripts/filter-lock.sh > "$$tmp/lock" \
+	  && cp "$$tmp/lock" requirements.lock
 
 clean:
 	rm -rf build install log out .stamps
