@@ -14,6 +14,8 @@ from wheelgrid_common.map_io import Grid
 
 CELL_PX = 64
 MARGIN = 28
+LABEL_RGB = (90, 90, 90)  # a cell's "r,c"
+OCCUPIED_LABEL_RGB = (200, 60, 60)
 
 
 def _to_px(grid: Grid, x: float, y: float) -> tuple[float, float]:
@@ -27,6 +29,34 @@ def _to_px(grid: Grid, x: float, y: float) -> tuple[float, float]:
     return MARGIN + col * CELL_PX, MARGIN + row * CELL_PX
 
 
+def caption(planned_cells: Sequence[tuple[int, int]]) -> str:
+    """What the colours are: the goal's red square beside the driven path's red line read as
+    one thing, so both are named, with the start, the goal and the number of moves."""
+    if not planned_cells:
+        return "no planned route; red line: path driven by the chair"
+    (sr, sc), (gr, gc) = planned_cells[0], planned_cells[-1]
+    return (
+        f"green square: start ({sr}, {sc}), red square: goal ({gr}, {gc}); blue: planned route, "
+        f"{len(planned_cells) - 1} moves (Q-learning); red line: path driven by the chair"
+    )
+
+
+def _wrap(text: str, width: float) -> list[str]:
+    """``text`` in lines no wider than ``width`` pixels, broken after its "; " (a small grid's
+    picture cut the caption off mid-word)."""
+    from PIL import ImageFont
+
+    font = ImageFont.load_default()
+    lines: list[str] = []
+    for part in text.split("; "):
+        joined = f"{lines[-1]}; {part}" if lines else part
+        if lines and font.getlength(joined) <= width:
+            lines[-1] = joined
+        else:
+            lines.append(part)
+    return lines
+
+
 def draw_route(
     grid: Grid,
     path: Path | str,
@@ -35,7 +65,8 @@ def draw_route(
     title: str = "",
 ) -> Path:
     w = MARGIN * 2 + grid.cols * CELL_PX
-    h = MARGIN * 2 + grid.rows * CELL_PX + 24
+    lines = _wrap(title or caption(planned_cells), w - 2 * MARGIN)
+    h = MARGIN * 2 + grid.rows * CELL_PX + 8 + 16 * len(lines)
     img = Image.new("RGB", (w, h), "white")
     d = ImageDraw.Draw(img)
     colours = {0: (255, 255, 255), 100: (20, 20, 20)}
@@ -45,12 +76,16 @@ def draw_route(
             fill = colours.get(v, (170, 170, 170))
             x0, y0 = MARGIN + c * CELL_PX, MARGIN + r * CELL_PX
             d.rectangle([x0, y0, x0 + CELL_PX, y0 + CELL_PX], fill=fill, outline=(120, 120, 120))
-            d.text((x0 + 3, y0 + 2), f"{r},{c}", fill=(200, 60, 60) if v == 100 else (90, 90, 90))
     if planned_cells:
         (sr, sc), (gr, gc) = planned_cells[0], planned_cells[-1]
         for (r, c), colour in (((sr, sc), (60, 180, 75)), ((gr, gc), (230, 60, 60))):
             x0, y0 = MARGIN + c * CELL_PX, MARGIN + r * CELL_PX
             d.rectangle([x0 + 4, y0 + 4, x0 + CELL_PX - 4, y0 + CELL_PX - 4], fill=colour)
+    for r in range(grid.rows):  # the labels last: the start's and goal's squares hid theirs
+        for c in range(grid.cols):
+            x0, y0 = MARGIN + c * CELL_PX, MARGIN + r * CELL_PX
+            occupied = int(grid.data[r, c]) == 100
+            d.text((x0 + 3, y0 + 2), f"{r},{c}", fill=OCCUPIED_LABEL_RGB if occupied else LABEL_RGB)
         centres = [
             (MARGIN + (c + 0.5) * CELL_PX, MARGIN + (r + 0.5) * CELL_PX) for r, c in planned_cells
         ]
@@ -66,11 +101,8 @@ def draw_route(
     if len(driven_xy) >= 2:
         pts = [_to_px(grid, x, y) for x, y in driven_xy]
         d.line(pts, fill=(220, 30, 30), width=3)
-    d.text(
-        (MARGIN, h - 22),
-        title or "blue: planned route (Q-learning), red: path driven by the chair",
-        fill=(0, 0, 0),
-    )
+    for k, line in enumerate(lines):
+        d.text((MARGIN, h - 6 - 16 * (len(lines) - k)), line, fill=(0, 0, 0))
     # scale bar: one cell
     d.line([MARGIN, MARGIN - 10, MARGIN + CELL_PX, MARGIN - 10], fill=(0, 0, 0), width=2)
     d.text((MARGIN + CELL_PX + 4, MARGIN - 18), f"{grid.resolution:.2f} m", fill=(0, 0, 0))
