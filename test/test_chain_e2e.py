@@ -143,6 +143,10 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
             "launch",
             "--bag",
             str(bag_dir / "scan"),
+            # twice real time: the test is the kill, not the map (the mapper maps the newest
+            # frame whenever it is free, so the grid still covers the route)
+            "--rate",
+            "2",
             "--params",
             str(tmp_path / "params.yaml"),
             "--motor-port",
