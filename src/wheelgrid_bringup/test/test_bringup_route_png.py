@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from wheelgrid_bringup.route_png import CELL_PX, LABEL_RGB, MARGIN, caption, draw_route
@@ -42,3 +44,57 @@ def test_start_and_goal_keep_their_cell_labels_and_the_caption_names_them(tmp_pa
     assert all(ImageFont.load_default().getlength(ln) <= 4 * CELL_PX for ln in lines)
     assert "green square: start (0, 0)" in said and "red square: goal (2, 3)" in said
     assert "blue: planned route, 5 moves" in said and "red line: path driven" in said
+
+
+def test_the_route_is_drawn_once_over_the_labels(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The route's line sat in the labels' row loop: drawn once per grid row (4 times here),
+    and the labels of the rows after each drawing went over it."""
+    from PIL import ImageDraw
+
+    calls: list[str] = []
+    line, text = ImageDraw.ImageDraw.line, ImageDraw.ImageDraw.text
+
+    def spy_line(
+        self: ImageDraw.ImageDraw, xy: Any, fill: Any = None, width: int = 0, *a: Any, **k: Any
+    ) -> None:
+        if fill == (40, 90, 220):  # the route's blue
+            calls.append("route")
+        return line(self, xy, fill, width, *a, **k)
+
+    def spy_text(self: ImageDraw.ImageDraw, xy: Any, s: str, *a: Any, **k: Any) -> None:
+        calls.append("label" if "," in s and len(s) <= 5 else "other")
+        return text(self, xy, s, *a, **k)
+
+    monkeypatch.setattr(ImageDraw.ImageDraw, "line", spy_line)
+    monkeypatch.setattr(ImageDraw.ImageDraw, "text", spy_text)
+    cells = [(0, 0), (0, 1), (0, 2), (0, 3), (1, 3), (2, 3)]
+    draw_route(_grid(), tmp_path / "route.png", cells, [])
+    assert calls.count("route") == len(cells) - 1
+    assert calls.index("route") > max(i for i, c in enumerate(calls) if c == "label")
+
+
+@pytest.mark.parametrize("cols", [1, 2, 3])
+def test_a_narrow_grid_s_caption_is_wrapped_to_its_width(tmp_path: Path, cols: int) -> None:
+    """A grid one to three cells wide: each "; "-part of the caption was one line, wider than
+    the picture, and cut off."""
+    from PIL import ImageFont
+
+    from wheelgrid_bringup.route_png import _wrap
+
+    grid = Grid(np.zeros((3, cols), np.int8), 1.2, (0.0, 0.0, 0.0), "map")
+    cells = [(0, 0), (1, 0), (2, 0)]
+    said = caption(cells)
+    width = cols * CELL_PX
+    lines = _wrap(said, width)
+    font = ImageFont.load_default()
+    assert all(font.getlength(ln) <= width for ln in lines), lines
+    assert " ".join(ln.replace("; ", " ") for ln in lines) == said.replace("; ", " ")
+    img = Image.open(draw_route(grid, tmp_path / "route.png", cells, []))
+    assert img.width >= 2 * MARGIN + max(font.getlength(ln) for ln in lines)
+
+
+def test_one_move_is_one_move() -> None:
+    assert "1 move (Q-learning)" in caption([(0, 0), (0, 1)])
+    assert "0 moves" in caption([(0, 0)]) and "2 moves" in caption([(0, 0), (0, 1), (0, 2)])

@@ -4,11 +4,12 @@ drove (red), like the paper's Fig. 14(c, d) in one picture."""
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from wheelgrid_common.map_io import Grid
 
@@ -16,6 +17,7 @@ CELL_PX = 64
 MARGIN = 28
 LABEL_RGB = (90, 90, 90)  # a cell's "r,c"
 OCCUPIED_LABEL_RGB = (200, 60, 60)
+ROUTE_RGB = (40, 90, 220)  # the planned route's line and arrows
 
 
 def _to_px(grid: Grid, x: float, y: float) -> tuple[float, float]:
@@ -35,25 +37,34 @@ def caption(planned_cells: Sequence[tuple[int, int]]) -> str:
     if not planned_cells:
         return "no planned route; red line: path driven by the chair"
     (sr, sc), (gr, gc) = planned_cells[0], planned_cells[-1]
+    moves = len(planned_cells) - 1
     return (
         f"green square: start ({sr}, {sc}), red square: goal ({gr}, {gc}); blue: planned route, "
-        f"{len(planned_cells) - 1} moves (Q-learning); red line: path driven by the chair"
+        f"{moves} move{'' if moves == 1 else 's'} (Q-learning); red line: path driven by the chair"
     )
 
 
 def _wrap(text: str, width: float) -> list[str]:
     """``text`` in lines no wider than ``width`` pixels, broken after its "; " (a small grid's
-    picture cut the caption off mid-word)."""
-    from PIL import ImageFont
-
+    picture cut the caption off mid-word); a part wider than ``width`` alone (a grid one to
+    three cells wide) is broken between its words. Only a single word wider than ``width``
+    stays wider (:func:`draw_route` widens the picture for it)."""
     font = ImageFont.load_default()
     lines: list[str] = []
     for part in text.split("; "):
         joined = f"{lines[-1]}; {part}" if lines else part
         if lines and font.getlength(joined) <= width:
             lines[-1] = joined
-        else:
-            lines.append(part)
+            continue
+        line = ""
+        for word in part.split(" "):
+            longer = f"{line} {word}" if line else word
+            if line and font.getlength(longer) > width:
+                lines.append(line)
+                line = word
+            else:
+                line = longer
+        lines.append(line)
     return lines
 
 
@@ -66,6 +77,8 @@ def draw_route(
 ) -> Path:
     w = MARGIN * 2 + grid.cols * CELL_PX
     lines = _wrap(title or caption(planned_cells), w - 2 * MARGIN)
+    font = ImageFont.load_default()
+    w = max(w, 2 * MARGIN + math.ceil(max(font.getlength(ln) for ln in lines)))
     h = MARGIN * 2 + grid.rows * CELL_PX + 8 + 16 * len(lines)
     img = Image.new("RGB", (w, h), "white")
     d = ImageDraw.Draw(img)
@@ -86,18 +99,20 @@ def draw_route(
             x0, y0 = MARGIN + c * CELL_PX, MARGIN + r * CELL_PX
             occupied = int(grid.data[r, c]) == 100
             d.text((x0 + 3, y0 + 2), f"{r},{c}", fill=OCCUPIED_LABEL_RGB if occupied else LABEL_RGB)
-        centres = [
-            (MARGIN + (c + 0.5) * CELL_PX, MARGIN + (r + 0.5) * CELL_PX) for r, c in planned_cells
-        ]
-        for (ax, ay), (bx, by) in itertools.pairwise(centres):
-            d.line([ax, ay, bx, by], fill=(40, 90, 220), width=5)
-            vx, vy = bx - ax, by - ay
-            n = max(np.hypot(vx, vy), 1e-9)
-            ux, uy = vx / n, vy / n
-            tip = (ax + 0.6 * vx, ay + 0.6 * vy)
-            left = (tip[0] - 10 * ux + 6 * uy, tip[1] - 10 * uy - 6 * ux)
-            right = (tip[0] - 10 * ux - 6 * uy, tip[1] - 10 * uy + 6 * ux)
-            d.polygon([tip, left, right], fill=(40, 90, 220))
+    # the route once, over the squares and labels (it sat in the labels' row loop: drawn once
+    # a row, and under the labels of the rows after each drawing)
+    centres = [
+        (MARGIN + (c + 0.5) * CELL_PX, MARGIN + (r + 0.5) * CELL_PX) for r, c in planned_cells
+    ]
+    for (ax, ay), (bx, by) in itertools.pairwise(centres):
+        d.line([ax, ay, bx, by], fill=ROUTE_RGB, width=5)
+        vx, vy = bx - ax, by - ay
+        n = max(np.hypot(vx, vy), 1e-9)
+        ux, uy = vx / n, vy / n
+        tip = (ax + 0.6 * vx, ay + 0.6 * vy)
+        left = (tip[0] - 10 * ux + 6 * uy, tip[1] - 10 * uy - 6 * ux)
+        right = (tip[0] - 10 * ux - 6 * uy, tip[1] - 10 * uy + 6 * ux)
+        d.polygon([tip, left, right], fill=ROUTE_RGB)
     if len(driven_xy) >= 2:
         pts = [_to_px(grid, x, y) for x, y in driven_xy]
         d.line(pts, fill=(220, 30, 30), width=3)
