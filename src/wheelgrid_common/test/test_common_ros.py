@@ -207,10 +207,7 @@ def test_the_shared_memory_a_killed_process_leaves_is_cleaned_and_a_live_ones_is
     from wheelgrid_common.ros_env import child_env
     from wheelgrid_common.testing import clean_dds_shared_memory, managed_process
 
-    # Each child in a domain of its own, which no other participant uses: a participant that
-    # discovers another maps its segment to send to it, and the tool rightly keeps a segment
-    # that a live process holds (in one CI run, the live child held the dead one's).
-    base = 150 + int(child_env().get("ROS_DOMAIN_ID", "0")) % 40
+    env = child_env()
     code = (
         "from wheelgrid_common.ros_env import configure_ros_env; configure_ros_env()\n"
         "import rclpy, sys; from rclpy.node import Node; from std_msgs.msg import Bool\n"
@@ -223,15 +220,13 @@ def test_the_shared_memory_a_killed_process_leaves_is_cleaned_and_a_live_ones_is
         names = {ln.split(maxsplit=5)[5] for ln in maps if len(ln.split(maxsplit=5)) == 6}
         return {Path(m) for m in names if m.startswith("/dev/shm/fastrtps_")}
 
-    run = {"stdin": subprocess.PIPE, "stdout": subprocess.PIPE, "text": True}
-    live_env = child_env(base)
-    dead_env = child_env(base + 40)
-    with managed_process([sys.executable, "-c", code], env=live_env, **run) as live:
+    run = {"env": env, "stdin": subprocess.PIPE, "stdout": subprocess.PIPE, "text": True}
+    with managed_process([sys.executable, "-c", code], **run) as live:
         assert live.stdout is not None and live.stdout.readline().strip() == "up"
         kept = segments(live.pid)
         if not kept:
             pytest.skip("no Fast DDS shared memory here (another RMW, or no /dev/shm)")
-        with managed_process([sys.executable, "-c", code], env=dead_env, **run) as dead:
+        with managed_process([sys.executable, "-c", code], **run) as dead:
             assert dead.stdout is not None and dead.stdout.readline().strip() == "up"
             left = segments(dead.pid)
             dead.send_signal(signal.SIGKILL)

@@ -321,10 +321,6 @@ def test_a_move_is_never_retried_on_a_reopened_port(make_sim, make_link, wait, t
     sim2 = sims[0]
     assert "error" in out, f"the FORWARD was retried on the reopened port: {moves(sim2)}"
     assert moves(sim1) == [] and moves(sim2) == []
-    # The reopened controller's first frame is a STOP. Where the move's own STOP found the port
-    # still closed, the link fell silent (an unacknowledged STOP) and sends it again 1 s later:
-    # the move can end before the reopened controller has heard anything (one CI run).
-    assert wait(lambda: any(e.what == "rx" for e in sim2.events), 5.0)
     rx = [e.detail for e in sim2.events if e.what == "rx"]
     assert rx[0] == "STOP" and not set(rx) & set(proto.MOVE_TYPES), rx
     assert not sim2.status().moving
