@@ -16,14 +16,6 @@ os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="wheelgrid-test-log
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
 
-def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    """The tests that kill processes outright leave their Fast DDS shared memory behind: the
-    run removes what no live process holds (see ``clean_dds_shared_memory``)."""
-    from wheelgrid_common.testing import clean_dds_shared_memory
-
-    clean_dds_shared_memory()
-
-
 @pytest.fixture
 def stray_capture() -> Path:
     """The real iPhone capture (../shared/data/stray-iphone-room); skips when it is absent."""

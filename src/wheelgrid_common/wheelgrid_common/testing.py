@@ -167,26 +167,6 @@ def managed_process(
         stop_process(proc)
 
 
-def clean_dds_shared_memory() -> str:
-    """Remove the Fast DDS shared-memory segments and ports no live process holds; its summary,
-    or why nothing was done.
-
-    A process killed outright (a node killed mid-run, a stop escalated to SIGKILL) cannot
-    remove its own segments from /dev/shm: 16 MB each with wheelgrid's profile, and a day of
-    test runs on one machine left 1.1 GB there. Fast DDS's own tool (``fastdds shm clean``, in
-    the venv beside this interpreter) tells the segments in use from the dead ones."""
-    tool = Path(sys.executable).with_name("fastdds")
-    if not tool.exists():
-        return "no fastdds tool beside this interpreter: shared memory left as it is"
-    try:
-        done = subprocess.run(
-            [str(tool), "shm", "clean"], capture_output=True, text=True, timeout=60, check=False
-        )
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"fastdds shm clean did not run: {exc}"
-    return " ".join(done.stdout.split()) or done.stderr.strip()
-
-
 def python_module(module: str, *args: str) -> list[str]:
     """argv that runs ``python -m module args`` with this interpreter (the venv's)."""
     return [sys.executable, "-m", module, *args]
