@@ -760,17 +760,14 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
     # doubled this check's time, a fifth of the whole grid's)
     if float(np.abs(pts[:, :2]).max()) > _MAX_COORDINATE:
         far = (np.abs(pts[:, :2]) > _MAX_COORDINATE).any(axis=1)
-        n_far = int(np.count_nonzero(far))
-    else:
-        far, n_far = None, 0
-    if far is not None and 2 * n_far > pts.shape[0]:
-        dist = float(np.median(np.abs(pts[far, :2]).max(axis=1)))
-        raise GridError(
-            "too_large",
-            f"points lie {dist / 1000:.0f} km from the map origin, where float32 keeps less than "
-            f"millimetres: re-centre the map (a wheelgrid map's origin is under the first pose)",
-        )
-    if far is not None and n_far:
+        if 2 * int(np.count_nonzero(far)) > pts.shape[0]:
+            dist = float(np.median(np.abs(pts[far, :2]).max(axis=1)))
+            raise GridError(
+                "too_large",
+                f"points lie {dist / 1000:.0f} km from the map origin, where float32 keeps less "
+                "than millimetres: re-centre the map (a wheelgrid map's origin is under the "
+                "first pose)",
+            )
         pts = pts[~far]
     cls = height_classes(pts[:, 2], cfg)
     class_counts = np.bincount(cls, minlength=4)
