@@ -485,11 +485,11 @@ def second_reading(
     its front: :func:`main` refuses the box. Farther, it is most often the back face of the
     thin object whose front was measured (a table leg 5 cm deep, seen from behind too), which
     faces away from the other box and is no candidate: :func:`main` names it and reads on."""
-    side = "+" if (float(face.normal @ toward) >= 0) == nearer else "-"
-    second = face.seconds.get(side)
+    along = float(face.normal @ toward) >= 0  # the face's normal points to the other face
+    second = face.seconds.get("+" if along == nearer else "-")
     if second is None:
         return None
-    offset = second.offset if float(face.normal @ toward) >= 0 else -second.offset
+    offset = second.offset if along else -second.offset
     shift = offset * abs(float(face.normal @ n))
     return {
         "offset": offset,
