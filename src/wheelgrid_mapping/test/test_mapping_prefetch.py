@@ -124,3 +124,27 @@ def test_close_ends_the_second_process() -> None:
     pipe.close()
     assert pipe.worker_peak_bytes() is None
     assert not proc.is_alive() and proc.exitcode is not None
+
+
+@pytest.mark.parametrize("ahead", [True, False])
+def test_a_frame_is_pending_until_its_outcome_is_counted(
+    ahead: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``flush`` cleared ``pending`` before it added the frame: a reader that saw nothing
+    pending (the mapper node's worker, a test waiting for the node to settle) read the counts
+    while the last frame was still being registered, and one CI run saw the outcomes add up to
+    3 of 4 frames received."""
+    m = mapper()
+    seen_pending: list[bool] = []
+    real = Mapper.add_prepared
+
+    with FramePipeline(m, ahead) as pipe:
+
+        def watched(self: Mapper, prep: object, prior: object = None) -> FrameOutcome:
+            seen_pending.append(pipe.pending)
+            return real(self, prep, prior)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(Mapper, "add_prepared", watched)
+        run(pipe, frames(3))
+        assert not pipe.pending  # and cleared once added
+    assert seen_pending and all(seen_pending), seen_pending

@@ -155,13 +155,15 @@ class FramePipeline:
         return done
 
     def flush(self) -> list[tuple[float, FrameOutcome]]:
-        """Add the frame still in preparation, if any."""
+        """Add the frame still in preparation, if any. It stays :attr:`pending` until added, so
+        a reader that sees nothing pending reads every frame's outcome in the counts."""
         previous = self._pending
         if previous is None:
             return []
-        prepared = self._collect(previous)
-        self._pending = None
-        return [self._add(previous, prepared)]
+        try:
+            return [self._add(previous, self._collect(previous))]
+        finally:
+            self._pending = None
 
     def _add(
         self, frame: _Pending, prepared: PreparedFrame | BaseException
