@@ -415,3 +415,26 @@ def test_a_move_whose_ack_was_lost_is_avoided_by_the_next_moves_seq(make_sim, ma
     seq, st = link.execute("FORWARD", 0.05, 3.0)
     assert seq != lost and st.result == proto.Result.DONE
     assert [d for _, d in moves(sim)] == ["FORWARD"] * 3
+
+
+def test_an_e_stop_before_the_move_reaches_the_wire_keeps_it_off_the_wire(make_sim, make_link):
+    """The runner checks its abort flag, then the link reads STATUS and writes the move. An
+    e-stop in between (its flag set, its STOP acknowledged) was followed by the move itself:
+    the chair set off for one round trip before the move's own abort check stopped it. The
+    move is now refused at the wire, under the lock the e-stop's STOP is written with."""
+    sim = make_sim(time_scale=1.0)
+    link = make_link(sim.slave_path, heartbeat=False)
+    abort = threading.Event()
+    real_status = link.status
+
+    def e_stop_meanwhile() -> proto.Status:
+        st = real_status()
+        abort.set()  # as the drive node's e-stop: the flag, then the STOP
+        assert link.stop()
+        return st
+
+    link.status = e_stop_meanwhile
+    with pytest.raises(LinkAbortedError, match="not sent"):
+        link.execute("FORWARD", 1.2, 3.0, abort=abort)
+    assert moves(sim) == []  # the controller never took it
+    assert sim.state == proto.State.IDLE

@@ -294,10 +294,12 @@ class MotorLink:
                 self._seq = (self._seq + 1) & 0xFF
             return self._seq
 
-    def _write(self, data: bytes, ser: Any = None) -> None:
+    def _write(self, data: bytes, ser: Any = None, abort: threading.Event | None = None) -> None:
         """Write on the current port, or only on ``ser`` when given: a write on a connection
         since lost fails (on the closed port object itself if it is lost meanwhile), never
-        reaching the port that replaced it."""
+        reaching the port that replaced it. With ``abort`` set by the time the write lock is
+        held, nothing is written: an e-stop sets its flag before it writes its STOP under the
+        same lock, so a move is either on the wire before that STOP or never."""
         current = self._ser
         if current is None:
             raise LinkError(f"port {self.port} is not connected")
@@ -307,8 +309,14 @@ class MotorLink:
             raise LinkError(f"port {self.port} was lost and reopened since this request began")
         try:
             with self._write_lock:
+                if abort is not None and abort.is_set():
+                    raise LinkAbortedError(
+                        f"not sent: aborted (e-stop or a newer job) before it reached {self.port}"
+                    )
                 ser.write(data)
                 ser.flush()
+        except LinkAbortedError:
+            raise  # nothing written: the port is fine
         except Exception as exc:
             self._drop_port(f"write failed: {exc}", lost=ser)
             raise LinkError(f"write to {self.port} failed: {exc}") from exc
@@ -340,6 +348,7 @@ class MotorLink:
         payload: bytes = b"",
         retries: int | None = None,
         avoid_seq: int | None = None,
+        abort: threading.Event | None = None,
     ) -> proto.Frame:
         """Send one request and return its valid reply (ACK, NAK or STATUS), retrying on failure.
 
@@ -347,7 +356,8 @@ class MotorLink:
         request other than STOP is never retried on a reopened port: a retried move would start
         the chair after the reconnection's STOP), and for anything but STOP while a STOP is
         owed (:attr:`stop_owed`): any valid frame feeds the controller's watchdog, which must
-        be left to stop the motors.
+        be left to stop the motors. LinkAbortedError, and nothing (more) written, once
+        ``abort`` is set (see :meth:`_write`).
         """
         is_stop = mtype == proto.MsgType.STOP
         if self._stop_first and not is_stop and self._stop_owed_at is None:
@@ -377,7 +387,7 @@ class MotorLink:
             with self._state_lock:
                 self._pending[seq] = waiter
             try:
-                self._write(data, None if is_stop else ser)
+                self._write(data, None if is_stop else ser, abort)
                 if not waiter.event.wait(self.reply_timeout):
                     self.stats.timeouts += 1
                     last = f"no reply within {self.reply_timeout * 1000:.0f} ms"
@@ -445,8 +455,15 @@ class MotorLink:
         if frame.type == proto.MsgType.NAK:
             raise LinkError(f"SET_POSE refused: {_nak_reason(frame)}")
 
-    def move(self, action: str, distance_m: float, speed_kmh: float) -> int:
-        """Start a move; returns its sequence number once ACKed. STOP + LinkError otherwise."""
+    def move(
+        self,
+        action: str,
+        distance_m: float,
+        speed_kmh: float,
+        abort: threading.Event | None = None,
+    ) -> int:
+        """Start a move; returns its sequence number once ACKed. STOP + LinkError otherwise
+        (LinkAbortedError where ``abort`` was set before the move reached the wire)."""
         if action not in proto.MOVE_TYPES:
             raise ValueError(f"unknown action {action!r}")
         payload = proto.pack_move(distance_m, min(speed_kmh, proto.MAX_SPEED_KMH))
@@ -459,7 +476,7 @@ class MotorLink:
                 # moving (protocol rule 4), and the host would plan on from the wrong cell.
                 # So the first move avoids the SEQ the controller reports.
                 self._last_move_seq = self.status().last_seq
-            frame = self.request(mtype, payload, avoid_seq=self._last_move_seq)
+            frame = self.request(mtype, payload, avoid_seq=self._last_move_seq, abort=abort)
         except LinkError:
             # The controller may have accepted this move (its ACKs lost) or not: which move
             # it remembers is unknown, so the next move reads it from STATUS again. Avoiding
@@ -524,7 +541,7 @@ class MotorLink:
         """Start a move and wait until it is done: ``(seq, final status)``."""
         if abort is not None and abort.is_set():
             raise LinkAbortedError(f"{action} not started: aborted")
-        seq = self.move(action, distance_m, speed_kmh)
+        seq = self.move(action, distance_m, speed_kmh, abort)
         if timeout is None:
             timeout = move_timeout(distance_m, speed_kmh)
         return seq, self.wait_done(seq, timeout, abort)
