@@ -869,6 +869,37 @@ def test_the_second_process_dying_is_said_and_the_node_maps_on(tmp_path, monkeyp
         assert len(said) == 1 and "this process" in said[0], lines
 
 
+def test_no_pose_of_the_old_map_goes_out_after_a_reset(tmp_path, monkeypatch):
+    """The worker adds a frame to the map, then publishes its pose: a ~/reset in between
+    cleared the map, and the old map's pose still went out on /wheelgrid/odometry, in a map
+    frame the next frames no longer share."""
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    real_report = MapperNode._report
+    placed: list[float] = []  # frames given a map pose, in the order they were reported
+    crossed: list[float] = []
+    published: list[float] = []
+
+    def reset_at_the_second(self: Any, done: Any, *args: Any, **kw: Any) -> Any:
+        placed.extend(stamp for stamp, out in done if out.pose_map is not None)
+        if len(placed) >= 2 and not crossed:
+            crossed.append(placed[1])  # added to the old map, then the reset
+            assert self._on_reset(Trigger.Request(), Trigger.Response()).success
+        return real_report(self, done, *args, **kw)
+
+    monkeypatch.setattr(MapperNode, "_report", reset_at_the_second)
+    monkeypatch.setattr(
+        MapperNode, "_publish_pose", lambda self, T, stamp, *a: published.append(stamp)
+    )
+    # the bag's floor is found at its 6th frame (level_min_frames 1: tried at 1, 6, 11 ...)
+    with mapper_in_process(tmp_path, 8, **{"mapper.level_min_frames": 1}) as node:
+        assert len(placed) >= 2, placed
+        assert node.counts["received"] <= 1  # counted anew after the reset
+    assert published == placed[:1], (placed, published)  # the frame before it went out
+
+
 def test_a_frame_in_hand_at_a_reset_is_not_counted_after_it(tmp_path, monkeypatch):
     """~/reset clears the counters, and a frame the worker had in hand (waiting for its pose
     prior) was then counted frames_skipped_busy in the cleared counters: the status after a

@@ -335,7 +335,7 @@ class MapperNode(Node):  # type: ignore[misc]
             if frame is None:  # nothing new came: the frame in preparation is added now
                 with self._lock:
                     done = self._pipe.flush() if generation == self._generation else []
-                self._report(done)
+                self._report(done, generation)
                 continue
             pts, stamp, frame_id, conf, header_stamp = frame
             if frame_id:
@@ -359,11 +359,15 @@ class MapperNode(Node):  # type: ignore[misc]
                 # this frame goes to the second process; the one before it to the map
                 self._frame_ids[stamp] = (frame_id or self._sensor_frame, header_stamp)
                 done = self._pipe.push(pts, stamp, frame_id, conf, prior)
-            self._report(done)
+            self._report(done, generation)
 
-    def _report(self, done: list[tuple[float, FrameOutcome]]) -> None:
+    def _report(
+        self, done: list[tuple[float, FrameOutcome]], generation: int | None = None
+    ) -> None:
         """Logs, the pose and the map's state for frames just added (never raises: a bad frame
-        must never kill the mapper)."""
+        must never kill the mapper). ``generation``: the map's when they were added; a pose
+        is published only if no ~/reset came since (it bumps the generation under ``_lock``
+        unless a loop closure holds the map, when the worker is not here)."""
         if self._pipe_note != self._pipe.note:
             # the second process died (killed, out of memory): nothing is lost, but frames are
             # filtered here from now on, slower; only the status key said so
@@ -390,9 +394,12 @@ class MapperNode(Node):  # type: ignore[misc]
             if out.relocalised:
                 self.get_logger().info(f"relocalised at {stamp:.3f} s; mapping resumed")
             if out.status == "used":
-                self._map_dirty = True
-                if out.pose_map is not None:
-                    self._publish_pose(out.pose_map, stamp, frame_id, header_stamp)
+                with self._lock:  # only _lock: _bound_kept_frames takes _slot_lock
+                    if generation is not None and generation != self._generation:
+                        continue  # the map it was added to is gone: its pose is of no frame
+                    self._map_dirty = True
+                    if out.pose_map is not None:
+                        self._publish_pose(out.pose_map, stamp, frame_id, header_stamp)
                 self._bound_kept_frames()
 
     def _bound_kept_frames(self) -> None:
