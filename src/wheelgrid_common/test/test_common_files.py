@@ -317,3 +317,97 @@ def test_folders_named_with_a_tilde_are_under_the_users_home(tmp_path, monkeypat
     assert user_folder("~/maps") == tmp_path / "maps"
     monkeypatch.chdir(tmp_path)
     assert user_folder("maps") == tmp_path / "maps"  # relative: to where it was started
+
+
+def _pcd(path, fields, rows, kind="ascii", sizes=None, types=None, declared=None):
+    """A PCD file written by hand, as PCL lays it out."""
+    sizes = sizes or [4] * len(fields)
+    types = types or ["F"] * len(fields)
+    n = len(rows) if declared is None else declared
+    head = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
+        f"FIELDS {' '.join(fields)}\nSIZE {' '.join(map(str, sizes))}\n"
+        f"TYPE {' '.join(types)}\nCOUNT {' '.join('1' for _ in fields)}\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {kind}\n"
+    )
+    if kind == "ascii":
+        body = "".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows).encode()
+    else:
+        dt = np.dtype([(f"f{k}", f"<{t.lower()}{z}") for k, (t, z) in enumerate(zip(types, sizes))])
+        body = np.array([tuple(r) for r in rows], dtype=dt).tobytes()
+    path.write_bytes(head.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary", "binary_compressed"])
+def test_pcd_files_read_as_open3d_writes_them(tmp_path, kind):
+    """The three PCD bodies PCL writes, from Open3D's own writer: the same points, NaN rows
+    (an organised cloud's pixels without a return) kept for the caller to drop."""
+    import open3d as o3d
+
+    from wheelgrid_common.fileio import read_cloud
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-5, 5, (500, 3)).astype(np.float32).astype(np.float64)
+    pts[7] = np.nan
+    path = tmp_path / f"{kind}.pcd"
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    assert o3d.io.write_point_cloud(
+        str(path), cloud, write_ascii=kind == "ascii", compressed=kind == "binary_compressed"
+    )
+    got = read_cloud(path)
+    assert got.shape == (500, 3)
+    np.testing.assert_allclose(got, pts, rtol=1e-6, equal_nan=True)
+
+
+def test_pcd_extra_fields_and_types_are_skipped_by_their_sizes(tmp_path):
+    """x y z among other fields of other sizes (intensity as a double, a ring as a uint16): the
+    binary body is read by the header's layout, not as 12-byte points."""
+    from wheelgrid_common.fileio import read_cloud
+
+    rows = [(7.5, 1.0, 2.0, 3, 3.0), (8.5, 4.0, 5.0, 9, 6.0)]
+    fields = ["intensity", "x", "y", "ring", "z"]
+    path = _pcd(
+        tmp_path / "b.pcd", fields, rows, "binary", [8, 4, 4, 2, 4], ["F", "F", "F", "U", "F"]
+    )
+    np.testing.assert_allclose(read_cloud(path), [[1, 2, 3], [4, 5, 6]])
+    path = _pcd(tmp_path / "a.pcd", fields, rows, "ascii")
+    np.testing.assert_allclose(read_cloud(path), [[1, 2, 3], [4, 5, 6]])
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary"])
+def test_a_cut_off_pcd_is_an_error_not_fewer_or_invented_points(tmp_path, kind):
+    """Open3D filled a cut-off ascii file's missing points with whatever its memory held
+    (values like 1e-312: points at the origin, on the floor of a map)."""
+    from wheelgrid_common.fileio import read_cloud
+
+    path = _pcd(tmp_path / "cut.pcd", ["x", "y", "z"], [(1, 2, 3), (4, 5, 6)], kind, declared=3)
+    with pytest.raises(
+        ValueError, match=r"cut\.pcd: (2 point lines, where its header lists 3|cut off)"
+    ):
+        read_cloud(path)
+
+
+def test_a_damaged_compressed_pcd_and_non_pcds_are_errors_that_name_the_file(tmp_path):
+    import open3d as o3d
+
+    from wheelgrid_common.fileio import read_cloud
+
+    good = tmp_path / "c.pcd"
+    pts = np.random.default_rng(2).uniform(-5, 5, (1000, 3))  # incompressible: 12 kB of body
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    assert o3d.io.write_point_cloud(str(good), cloud, compressed=True)
+    cut = tmp_path / "cut.pcd"
+    cut.write_bytes(good.read_bytes()[:-200])
+    with pytest.raises(ValueError, match="cut.pcd: 0 of the 1000 points"):
+        read_cloud(cut)
+    not_pcd = tmp_path / "notes.pcd"
+    not_pcd.write_text("hello\n")
+    with pytest.raises(ValueError, match="not a PCD file"):
+        read_cloud(not_pcd)
+    no_xyz = _pcd(tmp_path / "rgb.pcd", ["rgb", "label"], [(1, 2)])
+    with pytest.raises(ValueError, match="hold no x y z"):
+        read_cloud(no_xyz)
+    odd = _pcd(tmp_path / "odd.pcd", ["x", "y", "z"], [(1, 2, 3)], "binary", [2, 4, 4])
+    with pytest.raises(ValueError, match="bad PCD header"):
+        read_cloud(odd)  # a 2-byte float: no PCL type

@@ -133,6 +133,110 @@ def read_ply(path: str | Path) -> np.ndarray:
     return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
 
 
+def _pcd_header(raw: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
+    """A PCD file's header lines by keyword, and where its body starts; ValueError if none."""
+    head: dict[str, list[str]] = {}
+    pos = 0
+    while pos < len(raw) and len(head) < 20:
+        end = raw.find(b"\n", pos)
+        end = len(raw) if end < 0 else end
+        line = raw[pos:end].decode("ascii", "replace").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        head[key.upper()] = values
+        if key.upper() == "DATA":
+            break
+    if "DATA" not in head or "FIELDS" not in head:
+        raise ValueError(f"{path}: not a PCD file (no FIELDS and DATA header lines)")
+    return head, pos
+
+
+# PCD's TYPE and SIZE -> numpy's (PCL writes no 1- or 2-byte floats)
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
+    (t, z): f"{t.lower()}{z}" for t in "IU" for z in (1, 2, 4, 8)
+}
+
+
+def read_pcd(path: str | Path) -> np.ndarray:
+    """The x y z of a PCL ``.pcd`` file (ascii, binary or binary_compressed) as ``(N, 3)``
+    float64, NaN rows kept (an organised cloud marks its pixels without a return so).
+
+    ascii and binary bodies are read here and their length checked against the header: Open3D
+    filled the missing points of a cut-off ascii file with whatever its memory held. Only
+    binary_compressed goes to Open3D (its decompression checks the size), whose failure is a
+    warning on stderr and an empty cloud: the count read is checked against the header.
+    """
+    path = Path(path)
+    raw = path.read_bytes()
+    head, body = _pcd_header(raw, path)
+    fields = [f.lower() for f in head["FIELDS"]]
+    if not {"x", "y", "z"} <= set(fields):
+        raise ValueError(f"{path}: PCD fields {' '.join(fields)} hold no x y z")
+    kind = (head["DATA"] or ["?"])[0].lower()
+    try:
+        sizes = [int(v) for v in head.get("SIZE", ["4"] * len(fields))]
+        counts = [int(v) for v in head.get("COUNT", ["1"] * len(fields))]
+        types = [t.upper() for t in head.get("TYPE", ["F"] * len(fields))]
+        width = int((head.get("WIDTH") or ["0"])[0])
+        height = int((head.get("HEIGHT") or ["1"])[0])
+        n = int((head.get("POINTS") or [str(width * height)])[0])
+        if not len(sizes) == len(counts) == len(types) == len(fields) or n < 0:
+            raise ValueError("SIZE, TYPE and COUNT must name every field")
+        dtype = np.dtype(
+            [
+                (f"{k}_{f}", _PCD_TYPES[t, z], (c,))
+                for k, (f, z, t, c) in enumerate(zip(fields, sizes, types, counts, strict=True))
+            ]
+        )
+    except (ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: bad PCD header ({exc})") from exc
+    cols = [sum(counts[: fields.index(a)]) for a in "xyz"]
+    if kind == "binary":
+        if len(raw) - body < n * dtype.itemsize:
+            raise ValueError(
+                f"{path}: cut off ({len(raw) - body} B of the {n * dtype.itemsize} B of points "
+                "its header lists)"
+            )
+        table = np.frombuffer(raw, dtype=dtype, count=n, offset=body)
+        names = [f"{fields.index(a)}_{a}" for a in "xyz"]
+        return np.stack([table[name][:, 0] for name in names], axis=1).astype(np.float64)
+    if kind == "ascii":
+        rows = [ln.split() for ln in raw[body:].decode("ascii", "replace").splitlines()]
+        rows = [r for r in rows if r]
+        if len(rows) != n:
+            raise ValueError(f"{path}: {len(rows)} point lines, where its header lists {n}")
+        try:
+            table = np.array(rows, dtype=np.float64)
+        except ValueError as exc:
+            raise ValueError(f"{path}: bad point line ({exc})") from exc
+        if table.shape[1:] != (sum(counts),):
+            raise ValueError(f"{path}: point lines of {table.shape[1:]} values, not {sum(counts)}")
+        return table[:, cols]
+    if kind != "binary_compressed":
+        raise ValueError(f"{path}: unknown PCD data kind {kind!r}")
+    import open3d as o3d
+
+    cloud = o3d.io.read_point_cloud(str(path), format="pcd", remove_nan_points=False)
+    pts = np.asarray(cloud.points, dtype=np.float64).reshape(-1, 3)
+    if pts.shape[0] != n:
+        raise ValueError(
+            f"{path}: {pts.shape[0]} of the {n} points its header lists could be read "
+            "(a damaged or cut-off binary_compressed body?)"
+        )
+    return pts
+
+
+def read_cloud(path: str | Path) -> np.ndarray:
+    """A map's points from a PLY (``wheelgrid map``'s, or any with x y z vertices) or a PCD
+    file (PCL's, as laser scanners and other mappers export them), by its suffix."""
+    path = Path(path)
+    if path.suffix.lower() == ".pcd":
+        return read_pcd(path)
+    return read_ply(path)
+
+
 def pose_or_nan(position: Any, orientation: Any) -> np.ndarray:
     """4x4 pose from a geometry_msgs Pose's ``position`` and ``orientation``; all NaN when the
     quaternion is zero. An ARKit bridge or a bag can carry a zero quaternion before tracking
