@@ -77,6 +77,9 @@ _MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pix
 # A room scan shows walls or furniture: with fewer of its points above the floor band than
 # this, the map was flattened (z = 0) or is not levelled, and every cell would read free.
 _MIN_ABOVE_FLOOR_FRACTION = 0.005
+# A levelled scan has few points under its floor (noise, a step down); more than this share
+# of the map there, and its floor is probably not at z = 0.
+_MANY_DROPS = 0.1
 # Indoor scans rise 2-4 m above their floor; higher, the map is probably not z-up.
 _TALL_MAP_M = 5.0
 MIN_PIXEL_SIZE = 0.01  # m
@@ -796,9 +799,18 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
     return pts, cls, class_counts
 
 
-def map_warnings(z: np.ndarray) -> list[str]:
-    """Doubts about a map that still gives a grid, for the log and the summary."""
+def map_warnings(z: np.ndarray, drops: int = 0, drop_depth: float = 0.1) -> list[str]:
+    """Doubts about a map that still gives a grid, for the log and the summary. ``drops``: how
+    many of the points lie more than ``drop_depth`` under z = 0."""
     out = []
+    if drops > _MANY_DROPS * z.size:
+        # PCL's room scan, its floor at z = -1.27 m, gave a grid of 48 occupied cells and no
+        # word of why: its whole floor read as a drop (safe, but useless)
+        out.append(
+            f"{100 * drops / z.size:.0f} % of the map lies more than {drop_depth:g} m under "
+            "z = 0 and reads as drops (obstacles): is its floor at z = 0? (`wheelgrid grid "
+            "--level` finds the floor of a map made elsewhere)"
+        )
     high = float(np.quantile(z[:: max(1, z.size // _EXTENT_MAX_POINTS)], 0.99))
     if high > _TALL_MAP_M:
         out.append(
@@ -822,7 +834,7 @@ def build_grid(
     cfg = cfg or GridConfig()
     cfg.validate()
     pts, cls, class_counts = _check_input(points, cfg)
-    warnings = map_warnings(pts[:, 2])
+    warnings = map_warnings(pts[:, 2], int(class_counts[2]), cfg.drop_depth)
     k = cfg.cell_pixels()
     ps = cfg.pixel_size
 

@@ -115,7 +115,16 @@ def render(result: GridResult) -> Image.Image:
     return canvas
 
 
-def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> dict[str, Path]:
+# Files that `wheelgrid grid` writes beside the grid only for some maps.
+EXTRA_FILES = ("levelling.yaml",)
+
+
+def write_outputs(
+    result: GridResult,
+    out_dir: str | Path,
+    png: bool = True,
+    extra: dict[str, str] | None = None,
+) -> dict[str, Path]:
     """Write DIR/grid.yaml + grid.pgm (cells), DIR/fine.yaml + fine.pgm (fine safe obstacle map)
     and DIR/grid.png; returns name -> path. The YAML/PGM pairs are what Nav2's map_server loads
     (trinary, unknown stays unknown on reload: see wheelgrid_common.map_io).
@@ -124,7 +133,9 @@ def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> 
     pair by pair, with grid.png in place, a full disk while writing fine.pgm (the largest)
     left the new grid.yaml beside the old fine.yaml (Nav2's /map of another scan), and one
     while writing grid.png a cut-off picture beside the new grid. Without ``png``, an older
-    grid.png in DIR is removed once the new maps are in place."""
+    grid.png in DIR is removed once the new maps are in place. ``extra``: text files (name ->
+    text) written with them, such as ``levelling.yaml``; one of those names from an earlier run
+    that is not given now is removed, as it described another grid."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     writers = {
@@ -134,13 +145,18 @@ def write_outputs(result: GridResult, out_dir: str | Path, png: bool = True) -> 
     if png:
         picture = render(result)
         writers[out / "grid.png"] = lambda p: picture.save(p, format="PNG")
+    extra = extra or {}
+    for name, text in extra.items():
+        writers[out / name] = lambda p, text=text: p.write_text(text)
     write_together(writers)
-    stale = out / "grid.png"
-    if not png and (stale.is_file() or stale.is_symlink()):
-        # an earlier run's picture beside the new grid shows another grid's cells to the
-        # person who checks it before the chair moves
-        stale.unlink()
+    # an earlier run's picture (or levelling) beside the new grid shows another grid's cells
+    # to the person who checks it before the chair moves
+    for name, written in (("grid.png", png), *((n, n in extra) for n in EXTRA_FILES)):
+        stale = out / name
+        if not written and (stale.is_file() or stale.is_symlink()):
+            stale.unlink()
     files = {name: out / name for name in ("grid.yaml", "fine.yaml", "grid.pgm", "fine.pgm")}
     if png:
         files["grid.png"] = out / "grid.png"
+    files.update({name: out / name for name in extra})
     return files
