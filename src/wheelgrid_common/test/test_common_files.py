@@ -333,7 +333,12 @@ def _pcd(path, fields, rows, kind="ascii", sizes=None, types=None, declared=None
     if kind == "ascii":
         body = "".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows).encode()
     else:
-        dt = np.dtype([(f"f{k}", f"<{t.lower()}{z}") for k, (t, z) in enumerate(zip(types, sizes))])
+        dt = np.dtype(
+            [
+                (f"f{k}", f"<{t.lower()}{z}")
+                for k, (t, z) in enumerate(zip(types, sizes, strict=True))
+            ]
+        )
         body = np.array([tuple(r) for r in rows], dtype=dt).tobytes()
     path.write_bytes(head.encode() + body)
     return path
@@ -399,7 +404,7 @@ def test_a_damaged_compressed_pcd_and_non_pcds_are_errors_that_name_the_file(tmp
     assert o3d.io.write_point_cloud(str(good), cloud, compressed=True)
     cut = tmp_path / "cut.pcd"
     cut.write_bytes(good.read_bytes()[:-200])
-    with pytest.raises(ValueError, match="cut.pcd: 0 of the 1000 points"):
+    with pytest.raises(ValueError, match=r"cut\.pcd: 0 of the 1000 points"):
         read_cloud(cut)
     not_pcd = tmp_path / "notes.pcd"
     not_pcd.write_text("hello\n")
