@@ -374,6 +374,18 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
     out = json.loads(capsys.readouterr().out)
     assert out["distance"] == pytest.approx(1.2, abs=0.005)
     assert out["deviation_pct"] < 0.5 and out["angle_deg"] < 2.0
+    # the same points as a PCL .pcd file, with the NaN rows of an organised cloud: the same
+    import open3d as o3d
+
+    pcd = tmp_path / "m.pcd"
+    holes = np.vstack([pts, np.full((50, 3), np.nan)])
+    assert o3d.io.write_point_cloud(
+        str(pcd), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(holes))
+    )
+    assert cli_measure.main([str(pcd), *argv[1:]]) == 0
+    assert json.loads(capsys.readouterr().out)["distance"] == pytest.approx(
+        out["distance"], abs=1e-6
+    )
     empty = ["5", "5", "5", "6", "6", "6"]
     assert cli_measure.main([str(ply), "--box-a", *box_a, "--box-b", *empty]) == 2
     capsys.readouterr()

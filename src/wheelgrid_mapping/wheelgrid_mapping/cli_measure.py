@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wheelgrid_common.fileio import read_ply
+from wheelgrid_common.fileio import read_cloud
 
 #: Normals from neighbours within this radius (m): 1.5 voxels of a 2 cm map, so the 3x3
 #: neighbourhood of a point on a face, diagonals included.
@@ -649,7 +649,9 @@ def main(argv: list[str] | None = None) -> int:
         description="Distance between two surfaces of a map, each selected by a box "
         "(x0 y0 z0 x1 y1 z1, map frame, metres), after the paper's Table I.",
     )
-    p.add_argument("map", type=Path, help="map.ply from `wheelgrid map`")
+    p.add_argument(
+        "map", type=Path, help="map.ply from `wheelgrid map`, or another PLY or a PCL .pcd file"
+    )
     p.add_argument("--box-a", nargs=6, type=float, required=True, metavar="V")
     p.add_argument("--box-b", nargs=6, type=float, required=True, metavar="V")
     how = p.add_mutually_exclusive_group()
@@ -702,7 +704,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
     try:
-        pts = read_ply(args.map)
+        pts = read_cloud(args.map)
     except (OSError, ValueError) as exc:
         print(f"wheelgrid measure: {exc}", file=sys.stderr)
         return 2
