@@ -435,3 +435,23 @@ def test_a_new_connection_does_not_change_the_clients_a_reader_is_counting() -> 
             assert srv.clients == 0  # not said HELLO yet
             s.sendall(bp.encode_hello())
             assert wait_for(lambda: srv.clients == 1)
+
+
+def test_a_phone_that_leaves_mid_frame_is_said_to_have_lost_it() -> None:
+    """A phone whose connection dropped half-way through a frame (Wi-Fi gone, the app
+    killed) lost that frame with no word but "disconnected", as if it had left between
+    frames: the log now names the unfinished message and its size."""
+    with server() as (srv, rec):
+        whole, half = frame(0), frame(1)
+        with bp.connect("127.0.0.1", srv.port, name="phone") as sock:
+            sock.sendall(whole + half[: len(half) // 2])
+            assert wait_for(lambda: len(rec.frames) == 1)
+        assert wait_for(lambda: rec.logged("disconnected"))
+        said = [(lv, t) for lv, t in rec.logs if "disconnected" in t]
+        assert said[0][0] == "warn", said
+        assert f"{len(half) // 2} B of an unfinished message" in said[0][1], said
+        with bp.connect("127.0.0.1", srv.port, name="tidy") as sock:  # between frames: info
+            sock.sendall(frame(2))
+            assert wait_for(lambda: len(rec.frames) == 2)
+        assert wait_for(lambda: rec.logged("(tidy) disconnected"))
+        assert [lv for lv, t in rec.logs if "(tidy) disconnected" in t] == ["info"]

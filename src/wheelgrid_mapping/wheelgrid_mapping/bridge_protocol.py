@@ -792,7 +792,15 @@ class BridgeServer:
             self._close(c, None)
             return
         if not data:
-            self._log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected")
+            partial = c.decoder.buffered
+            if partial:  # Wi-Fi gone or the app killed half-way: the frame is lost, and said
+                self._log(
+                    "warn",
+                    f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected mid-message: "
+                    f"{partial} B of an unfinished message (a frame) dropped",
+                )
+            else:
+                self._log("info", f"bridge: {c.addr} ({c.name or 'unnamed'}) disconnected")
             self._close(c, None)
             return
         try:
