@@ -104,7 +104,8 @@ def _coarse_up(pts: np.ndarray, need_share: float, max_tilt_deg: float) -> np.nd
     over a metre of z across a 10 m room, and a fit to the strip of it in the lowest bin
     turned it only part of the way back."""
     rng = np.random.default_rng(0)
-    sub = pts[rng.choice(pts.shape[0], 30000, replace=False)] if pts.shape[0] > 30000 else pts
+    # (drawn with replacement: without, numpy permutes all N indices of a 10 M-point map)
+    sub = pts[rng.integers(0, pts.shape[0], 30000)] if pts.shape[0] > 30000 else pts
     need = need_share * sub.shape[0]
     step = math.radians(1.0)
     dirs = [np.array([0.0, 0.0, 1.0])]
