@@ -106,6 +106,8 @@ def test_the_cli_levels_writes_the_transform_and_drops_a_stale_one(tmp_path, cap
     write_ply(src, room @ rotation((0.3, 1.0, 0.0), 2.0).T + [0.0, 0.0, 0.9])
     out = tmp_path / "g"
     assert main([str(src), "--out", str(out), "--level", "-q"]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 1  # -q: the summary line only
+    assert main([str(src), "--out", str(out), "--level"]) == 0
     said = capsys.readouterr()
     assert re.search(r"levelled: floor found at z = 0\.\d+ m, leaning 2\.00 deg", said.out)
     doc = yaml.safe_load((out / "levelling.yaml").read_text())

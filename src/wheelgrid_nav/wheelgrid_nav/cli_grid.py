@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"cannot write {args.out}: {exc}", 1)
     for doubt in result.stats["warnings"]:
         print(f"wheelgrid grid: warning: {doubt}", file=sys.stderr)
-    if levelling is not None:
+    if levelling is not None and not args.quiet:  # -q: the summary line only (the YAML has it)
         print(levelling.line())
     print(summary(result))
     if not args.quiet:
