@@ -341,16 +341,26 @@ def main(argv: list[str] | None = None) -> int:
             params,
             {"port": str(pty_link), "initial_heading": heading, "set_pose_on_plan": True},
         )
+
         # The drive reads plans volatile (a plan made before it listens is never driven, so a
         # restarted drive cannot take the plan of before): the goal goes out once the drive is
         # up and its plan reader is seen, not after a guessed delay (1.5 s was too short for
         # a drive starting on a loaded machine; its route went out before it listened).
-        if not chain.wait(
-            lambda: bool(monitor.state.drive_message) and monitor.plan_readers() >= 2,
-            60.0,
-            "drive",
-        ):
-            raise RuntimeError("the drive node did not come up (no state or no plan reader)")
+        # ... and the drive's reader has matched the planner's writer, as the drive itself
+        # reports: the monitor seeing the reader came first on a loaded machine, the planner
+        # matched it later, and the route it published in between never reached the drive.
+        def drive_listens() -> bool:
+            try:
+                matched = int(monitor.state.drive.get("plan_publishers", "0"))
+            except ValueError:
+                matched = 0
+            return bool(monitor.state.drive_message) and monitor.plan_readers() >= 2 and matched
+
+        if not chain.wait(drive_listens, 60.0, "drive"):
+            raise RuntimeError(
+                "the drive node did not come up (no state, no plan reader, or its plan reader "
+                "matched no planner)"
+            )
         time.sleep(0.5)
         monitor.send_initial_pose(sx, sy, yaw, grid.frame_id)
         time.sleep(0.5)

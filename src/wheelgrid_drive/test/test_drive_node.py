@@ -149,6 +149,16 @@ def test_node_drives_the_table_ii_route(make_sim):
         Harness(ctx, sim.slave_path, set_pose_on_plan=True) as h,
     ):
         assert h.matched()
+        # the drive says when its plan reader has matched a planner (the harness's writer):
+        # what the demo waits for before it sends the goal
+        assert h.spin(
+            lambda: any(
+                kv.key == "plan_publishers" and kv.value == "1"
+                for st in h.states[-1:]
+                for kv in st.values
+            ),
+            5.0,
+        )
         h.give_grid(grid)
         # initial_heading "auto": the first pose's orientation gives the start heading (down).
         h.publish_plan(grid, CELLS, heading_yaw=-math.pi / 2)

@@ -231,7 +231,7 @@ class DriveNode(Node):
         # node, its e-stop latch gone with it, drove it where the chair still stood at its
         # start. The publication-time check in _on_plan alone failed when the wall clock had
         # stepped back since (NTP): a volatile reader is never sent a plan of before.
-        self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, PLAN_QOS)
+        self._plan_sub = self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, PLAN_QOS)
         self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
 
         try:
@@ -347,6 +347,11 @@ class DriveNode(Node):
             "unexpected": str(s.unexpected),
             "disconnects": str(s.disconnects),
             "reconnects": str(s.reconnects),
+            # planners this node's plan reader has matched: read volatile, a plan published
+            # before the match is never received, so whoever sends the goal (the demo) waits
+            # for this rather than for the reader to appear in its own graph (a loaded machine
+            # matched the planner later than that, and the demo's route was never driven)
+            "plan_publishers": str(self._plan_sub.get_publisher_count()),
         }
         if st is not None:
             values.update(
