@@ -23,6 +23,7 @@ import numpy as np
 MAX_TILT_DEG = 15.0
 _BIN_M = 0.02  # height bins of the floor search
 _BAND_M = 0.05  # floor candidates: within this of the lowest peak
+_EDGE_BINS = 5  # a floor's edge: the bins just under it that must be nearly empty
 _WINDOW_BINS = 10  # the floor's peak: within this many bins over the lowest that holds enough
 _GATE_M = 0.03  # plane refits: within this of the previous fit (feet and skirting drop out)
 # A floor is at least about a metre wide: its points' spread across, as a standard deviation
@@ -117,23 +118,43 @@ def _coarse_up(pts: np.ndarray, need_share: float, max_tilt_deg: float) -> np.nd
                     [math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), math.cos(tilt)]
                 )
             )
-    best, best_score = dirs[0], -1.0
+    # (points under the floor, points in the 10 cm just under it, score, direction)
+    found: list[tuple[float, float, float, np.ndarray]] = []
     for up in dirs:
         h = sub @ up
         counts = np.bincount(((h - h.min()) / _BIN_M).astype(np.int64))
         smooth = np.convolve(counts, np.ones(3), "same")
         enough = np.flatnonzero(smooth >= need)
-        # The floor is the bottom of the map: along its normal its points all fall in the
-        # lowest bins that hold enough, and few lie under them. Along a wrong direction the
-        # floor smears out under whatever surface it meets square (PCL's second room scan
-        # has a large one 12 deg off level), so that surface has most of the floor under it.
-        if enough.size and counts[: max(enough[0] - 1, 0)].sum() <= need:
+        if enough.size:
+            under = max(int(enough[0]) - 1, 0)
             # the highest bin within 20 cm over the lowest that holds enough (not further up:
             # the scanner's own height, where a laser's returns crowd, is no floor)
             score = float(smooth[enough[0] : enough[0] + _WINDOW_BINS].max())
-            if score > best_score:
-                best, best_score = up, score
-    return best
+            just_under = float(counts[max(under - _EDGE_BINS, 0) : under].sum())
+            found.append((float(counts[:under].sum()), just_under, score, up))
+    if not found:
+        return dirs[0]
+    # The floor is the bottom of the map: along its normal its points all fall in the lowest
+    # bins that hold enough, and few lie under them. Along a wrong direction the floor smears
+    # out under whatever surface it meets square (PCL's second room scan has a large one
+    # 12 deg off level), so that surface has most of the floor under it. Returns under the
+    # floor (a glossy floor's reflections, a mirror's) lie under it along every direction:
+    # with more of them than ``need``, no direction was taken and a tilted floor was left
+    # leaning. So more are let through over the fewest any direction has, where the floor
+    # starts sharply (a smeared one thins out over many bins under where it holds enough).
+    fewest = min(f[0] for f in found)
+    ok = [f for f in found if f[0] <= need or (f[0] <= fewest + need and f[1] <= need / 5)]
+    return max(ok, key=lambda f: f[2])[3] if ok else dirs[0]
+
+
+def _bulk(pts: np.ndarray) -> np.ndarray:
+    """The points within the map's bulk: no further outside the box of its 0.5 to 99.5
+    percentiles, on any axis, than that box is wide (plus a metre)."""
+    if pts.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    lo, hi = np.percentile(pts[:: max(1, pts.shape[0] // 100_000)], [0.5, 99.5], axis=0)
+    span = hi - lo + 1.0
+    return np.all((pts >= lo - span) & (pts <= hi + span), axis=1)
 
 
 def find_floor_plane(
@@ -145,7 +166,11 @@ def find_floor_plane(
     fitted to the points within 5 cm of it, then twice to those within 3 cm of the fit. Done
     again along the fitted normal, as a tilted floor spreads over many bins of z.
     """
-    pts = np.asarray(points, dtype=np.float64)
+    every = np.asarray(points, dtype=np.float64)
+    # searched in the map's bulk only: the height histograms span the points searched, and
+    # one stray point 1e9 m away (a tool's FLT_MAX for "no return") asked for 373 GiB
+    bulk = _bulk(every)
+    pts = every[bulk]
     need = max(200.0, min_fraction * pts.shape[0])
     if pts.shape[0] < need:
         raise LevelError(f"only {pts.shape[0]} points: too few to find a floor in")
@@ -183,7 +208,9 @@ def find_floor_plane(
             f"the lowest large level surface leans {tilt:.1f} deg from z (more than "
             f"{max_tilt_deg:g}): is the map z-up? (its floor cannot be told from a wall)"
         )
-    return n, d, mask
+    found = np.zeros(every.shape[0], dtype=bool)
+    found[bulk] = mask
+    return n, d, found
 
 
 def level_map(
@@ -199,7 +226,7 @@ def level_map(
     floor = pts[mask]
     rms = float(np.sqrt(np.mean((floor @ n - d) ** 2)))
     t = np.array([0.0, 0.0, -d])  # R n = z, so R p . z = n . p: the floor goes to z = d
-    centre = pts[:, :2].mean(axis=0)
+    centre = np.median(pts[:, :2], axis=0)  # (a stray far point moves a mean)
     floor_z = float((d - n[0] * centre[0] - n[1] * centre[1]) / n[2])
     info = Levelling(
         rotation=R,
