@@ -184,6 +184,8 @@ def read_pcd(path: str | Path) -> np.ndarray:
         n = int((head.get("POINTS") or [str(width * height)])[0])
         if not len(sizes) == len(counts) == len(types) == len(fields) or n < 0:
             raise ValueError("SIZE, TYPE and COUNT must name every field")
+        if min(counts) < 1:
+            raise ValueError(f"COUNT {' '.join(map(str, counts))}: a field of no values")
         dtype = np.dtype(
             [
                 (f"{k}_{f}", _PCD_TYPES[t, z], (c,))
@@ -207,6 +209,8 @@ def read_pcd(path: str | Path) -> np.ndarray:
         rows = [r for r in rows if r]
         if len(rows) != n:
             raise ValueError(f"{path}: {len(rows)} point lines, where its header lists {n}")
+        if n == 0:
+            return np.empty((0, 3))
         try:
             table = np.array(rows, dtype=np.float64)
         except ValueError as exc:
@@ -216,6 +220,22 @@ def read_pcd(path: str | Path) -> np.ndarray:
         return table[:, cols]
     if kind != "binary_compressed":
         raise ValueError(f"{path}: unknown PCD data kind {kind!r}")
+    if n == 0:
+        return np.empty((0, 3))
+    # The body's own sizes checked first: Open3D sizes its cloud from POINTS before reading,
+    # so a header's POINTS 10^12 over a few bytes was std::bad_alloc (or, where the memory was
+    # promised, a machine swapping). PCL's body unpacks to exactly POINTS x the point's size,
+    # and LZF packs at most 264 bytes into 3.
+    if len(raw) - body < 8:
+        raise ValueError(f"{path}: cut off (no binary_compressed body)")
+    packed, unpacked = (int(v) for v in np.frombuffer(raw, "<u4", 2, body))
+    if unpacked != n * dtype.itemsize or unpacked > 88 * packed:
+        raise ValueError(
+            f"{path}: its header lists {n} points ({n * dtype.itemsize} B), its "
+            f"binary_compressed body {unpacked} B packed into {packed} B (damaged?)"
+        )
+    if packed > len(raw) - body - 8:
+        raise ValueError(f"{path}: cut off ({len(raw) - body - 8} B of its {packed} B body)")
     import open3d as o3d
 
     cloud = o3d.io.read_point_cloud(str(path), format="pcd", remove_nan_points=False)
