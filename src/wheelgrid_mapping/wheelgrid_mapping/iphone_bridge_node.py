@@ -10,7 +10,9 @@ Published (sensor-data QoS): /iphone/depth/image, /iphone/depth/camera_info,
 /iphone/confidence/image, /iphone/points (organised unless ``organized`` is false),
 /iphone/odometry (ARKit pose in ROS conventions: ``odom`` z-up <- optical camera). Also
 /iphone/bridge_status (DiagnosticArray, 1 Hz, reliable): frames received / published /
-rejected, clients, so a user can see that a phone is connected and streaming.
+rejected, clients, so a user can see that a phone is connected and streaming, and
+``readers:TOPIC``, the subscriptions each frame topic's writer has matched (what a test or a
+launcher waits for before a phone streams: a frame sent before is lost).
 """
 
 from __future__ import annotations
@@ -327,6 +329,13 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
                 ),
                 "clients_refused": s.clients_refused,
                 "clients_timed_out": s.clients_timed_out,
+                # the readers each frame topic's writer has matched: best-effort and volatile,
+                # a frame published before the mapper's reader is matched here is lost, and a
+                # reader seen in another node's graph may not be matched here yet
+                **{
+                    f"readers:{topic}": pub.get_subscription_count()
+                    for topic, pub in self._pubs.items()
+                },
             }
             st = DiagnosticStatus(
                 level=DiagnosticStatus.OK if s.clients else DiagnosticStatus.WARN,
