@@ -354,7 +354,17 @@ def main(argv: list[str] | None = None) -> int:
                 matched = int(monitor.state.drive.get("plan_publishers", "0"))
             except ValueError:
                 matched = 0
-            return bool(monitor.state.drive_message) and monitor.plan_readers() >= 2 and matched
+            # and the start pose and goal (volatile) have the planner matched to send to
+            senders = (
+                monitor.initial_pub.get_subscription_count() >= 1
+                and monitor.goal_pub.get_subscription_count() >= 1
+            )
+            return (
+                bool(monitor.state.drive_message)
+                and monitor.plan_readers() >= 2
+                and bool(matched)
+                and senders
+            )
 
         if not chain.wait(drive_listens, 60.0, "drive"):
             raise RuntimeError(
