@@ -139,7 +139,7 @@ def _ply_points(tmp_path, name, points):
     ("case", "message"),
     [
         ("missing", "no such map file"),
-        ("folder", "a folder, not a PLY map file; `wheelgrid map --out` wrote"),
+        ("folder", "a folder, not a PLY or PCD map file; `wheelgrid map --out` wrote"),
         ("garbage", "not a readable PLY"),
         ("truncated", "not a readable PLY"),
         ("empty", "no (finite) points"),

@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.map.is_dir():
         inside = args.map / "map.ply"
         hint = f"; `wheelgrid map --out` wrote {inside}" if inside.is_file() else ""
-        return _fail(f"{args.map}: a folder, not a PLY map file{hint}")
+        return _fail(f"{args.map}: a folder, not a PLY or PCD map file{hint}")
     if not args.map.is_file():
         return _fail(f"{args.map}: no such map file")
     kind = "PCD" if args.map.suffix.lower() == ".pcd" else "PLY"
