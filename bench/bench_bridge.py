@@ -27,6 +27,7 @@ import numpy as np
 
 from wheelgrid_common.ros_env import child_env, configure_ros_env
 from wheelgrid_common.testing import (
+    diagnostics_log,
     free_port,
     managed_process,
     python_module,
@@ -54,12 +55,11 @@ def _cpu_s(pid: int) -> float:
 
 
 def run(indices: range, profile: bool) -> dict[str, float]:
-    from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-    from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_common.qos import SENSOR_QOS
     from wheelgrid_mapping.cli_stray import stream_export
     from wheelgrid_mapping.stray import StrayExport
 
@@ -95,13 +95,7 @@ def run(indices: range, profile: bool) -> dict[str, float]:
 
         for topic, typ in zip(TOPICS, types, strict=True):
             node.create_subscription(typ, topic, lambda m, t=topic: on_msg(t, m), SENSOR_QOS)
-        status: list[dict[str, str]] = []
-        node.create_subscription(
-            DiagnosticArray,
-            "/iphone/bridge_status",
-            lambda m: status.append({kv.key: kv.value for kv in m.status[0].values}),
-            RELIABLE_QOS,
-        )
+        status = diagnostics_log(node, "/iphone/bridge_status")
         if not spin_until(
             ex, lambda: all(node.count_publishers(t) == 1 for t in TOPICS) and bool(status), 30
         ):

@@ -124,6 +124,23 @@ def spin_until(
     return bool(predicate())
 
 
+def diagnostics_log(node: Any, topic: str) -> list[dict[str, str]]:
+    """A list that ``node`` fills with the key/values of the first status of every
+    DiagnosticArray on ``topic`` (a bridge's or a drive's state, as a test waits on it)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from wheelgrid_common.qos import RELIABLE_QOS
+
+    log: list[dict[str, str]] = []
+    node.create_subscription(
+        DiagnosticArray,
+        topic,
+        lambda m: log.append({kv.key: kv.value for kv in m.status[0].values}),
+        RELIABLE_QOS,
+    )
+    return log
+
+
 def call_service(
     executor: Any,
     client: Any,

@@ -16,6 +16,7 @@ import pytest
 
 from wheelgrid_common.pointcloud2 import read_fields
 from wheelgrid_common.testing import (
+    diagnostics_log,
     free_port,
     managed_process,
     python_module,
@@ -77,11 +78,10 @@ def bridge_and_listener(name: str, *params: str) -> Iterator[tuple[int, Any, Any
 
 def test_stream_stray_through_bridge_loses_no_frame(stray_capture: Path) -> None:
     """90 real frames (1.5 s) at 1x real time: sent == published == received on every topic."""
-    from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-    from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_common.qos import SENSOR_QOS
     from wheelgrid_mapping.cli_stray import stream_export
     from wheelgrid_mapping.depth import arkit_pose_to_ros, depth_to_points
     from wheelgrid_mapping.stray import StrayExport
@@ -97,13 +97,7 @@ def test_stream_stray_through_bridge_loses_no_frame(stray_capture: Path) -> None
             "/iphone/confidence/image": Image,
         }
         counter = Counter(node, topics, SENSOR_QOS)
-        status: list[dict[str, str]] = []
-        node.create_subscription(
-            DiagnosticArray,
-            "/iphone/bridge_status",
-            lambda m: status.append({kv.key: kv.value for kv in m.status[0].values}),
-            RELIABLE_QOS,
-        )
+        status = diagnostics_log(node, "/iphone/bridge_status")
         wait_listening(port, proc)
         # the bridge's own writers have matched this node's readers (its status says so): a
         # best-effort frame sent before that is lost, whatever this node's graph shows
@@ -240,10 +234,9 @@ def test_bad_parameters_are_one_fatal_line_and_exit_2(module: str, param: str) -
 def test_offset_stamps_are_per_client() -> None:
     """Two phones at once, stamp_mode offset: each keeps its own clock offset, so each
     stream's published spacing is its phone's (0.1 s), not the arrival spacing (0.2 s)."""
-    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CameraInfo
 
-    from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_common.qos import SENSOR_QOS
     from wheelgrid_mapping import bridge_protocol as bp
 
     with bridge_and_listener("bridge_offset_sub", "max_clients:=2") as (port, proc, node, ex):
@@ -254,13 +247,7 @@ def test_offset_stamps_are_per_client() -> None:
             lambda m: got[m.width].append(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec),
             SENSOR_QOS,
         )
-        status: list[dict[str, str]] = []
-        node.create_subscription(
-            DiagnosticArray,
-            "/iphone/bridge_status",
-            lambda m: status.append({kv.key: kv.value for kv in m.status[0].values}),
-            RELIABLE_QOS,
-        )
+        status = diagnostics_log(node, "/iphone/bridge_status")
         wait_listening(port, proc)
         # the bridge's camera_info writer has matched this reader (best effort: sent before,
         # a frame is lost; this node's graph showing the writer is not that)
