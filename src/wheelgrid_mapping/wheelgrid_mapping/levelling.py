@@ -24,6 +24,8 @@ import math
 
 import numpy as np
 
+from wheelgrid_common.geometry import fit_plane
+
 # Direction of gravity ("down") in the sensor frame when the sensor is upright and level.
 DOWN_HINT = {"optical": np.array([0.0, 1.0, 0.0]), "body": np.array([0.0, 0.0, -1.0])}
 VIEW_AXIS = {"optical": np.array([0.0, 0.0, 1.0]), "body": np.array([1.0, 0.0, 0.0])}
@@ -107,7 +109,7 @@ def find_floor(
                 if vertical:
                     n, d = _height_along(remaining, plane_pts, -down, distance)
                 else:
-                    n, d = _refine_plane(plane_pts, n)
+                    n, d = fit_plane(plane_pts, n)
                 below = float(n @ origin + d)
                 if best is None or below > best[0]:
                     best = (below, n, d)
@@ -145,16 +147,6 @@ def lean_within(n: np.ndarray, up: np.ndarray, max_deg: float) -> np.ndarray:
     side = n - cos * up  # the way n leans, orthogonal to up
     side /= np.linalg.norm(side)
     return math.cos(limit) * up + math.sin(limit) * side
-
-
-def _refine_plane(pts: np.ndarray, n_up: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares plane through RANSAC inliers, normal kept pointing up."""
-    c = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-    n = vt[2]
-    if n @ n_up < 0:
-        n = -n
-    return n, float(-n @ c)
 
 
 def map_from_floor(
@@ -308,7 +300,7 @@ def floor_of_map(
     for _ in range(3):
         if sel.sum() < 3:
             raise FloorNotFoundError("the floor peak holds too few points to fit a plane")
-        n, d = _refine_plane(flat[sel], u)
+        n, d = fit_plane(flat[sel], u)
         sel = np.abs(flat @ n + d) < gate
     if max_lean_deg is not None:
         g = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)

@@ -2,7 +2,7 @@
 
 `wheelgrid map` writes its maps levelled, but a map from another tool (a laser scanner's PCD, an
 RTAB-Map or octomap export) is z-up with its origin anywhere: PCL's room scans have their floor
-at z = -1.31 m, and the grid found no floor at z = 0. ``wheelgrid grid --level`` finds the floor
+at z = -1.27 m, and the grid found no floor at z = 0. ``wheelgrid grid --level`` finds the floor
 as the lowest large level surface, as the mapper does, and moves the map so that it lies at
 z = 0. Numpy only: the grid must not need the mapping stack.
 
@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wheelgrid_common.geometry import angle_deg, fit_plane
+
 # A map whose floor leans more than this from its z axis is not z-up (a y-up mesh export, a
 # scan with its scanner's axes): turned flat anyway, its walls would become its floor.
 MAX_TILT_DEG = 15.0
@@ -29,6 +31,7 @@ _GATE_M = 0.03  # plane refits: within this of the previous fit (feet and skirti
 # A floor is at least about a metre wide: its points' spread across, as a standard deviation
 # (a uniform 1 m strip: 0.29 m; the slab a 25 deg tilted room cut in its surfaces: 3 cm).
 _MIN_WIDTH_STD_M = 0.25
+_Z = np.array([0.0, 0.0, 1.0])
 
 
 class LevelError(ValueError):
@@ -62,9 +65,8 @@ class Levelling:
 
 def _rotation_onto_z(n: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit ``n`` (within 90 deg of +z) onto +z (Rodrigues)."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(n, z)
-    s, c = float(np.linalg.norm(axis)), float(n @ z)
+    axis = np.cross(n, _Z)
+    s, c = float(np.linalg.norm(axis)), float(n @ _Z)
     if s < 1e-12:
         return np.eye(3)
     k = axis / s
@@ -91,14 +93,6 @@ def _lowest_peak(h: np.ndarray, need: float) -> float | None:
     return None
 
 
-def _fit(pts: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares plane ``n . p = d`` with ``n`` on ``up``'s side."""
-    c = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-    n = vt[2] if vt[2] @ up >= 0 else -vt[2]
-    return n, float(n @ c)
-
-
 def _coarse_up(pts: np.ndarray, need_share: float, max_tilt_deg: float) -> np.ndarray:
     """The direction within ``max_tilt_deg`` of +z (1 deg apart) along which the lowest
     height peak holding ``need_share`` of the points is sharpest: a floor tilted 6 deg spreads
@@ -109,7 +103,7 @@ def _coarse_up(pts: np.ndarray, need_share: float, max_tilt_deg: float) -> np.nd
     sub = pts[rng.integers(0, pts.shape[0], 30000)] if pts.shape[0] > 30000 else pts
     need = need_share * sub.shape[0]
     step = math.radians(1.0)
-    dirs = [np.array([0.0, 0.0, 1.0])]
+    dirs = [_Z]
     for tilt in np.arange(step, math.radians(max_tilt_deg) + 1e-9, step):
         n_az = max(6, math.ceil(2 * math.pi * math.sin(tilt) / step))
         for az in np.arange(n_az) * (2 * math.pi / n_az):
@@ -160,7 +154,7 @@ def _bulk(pts: np.ndarray) -> np.ndarray:
 def find_floor_plane(
     points: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG, min_fraction: float = 0.02
 ) -> tuple[np.ndarray, float, np.ndarray]:
-    """The floor ``n . p = d`` (``n`` up) of a roughly z-up map and its points' mask.
+    """The floor ``n . p + d = 0`` (``n`` up) of a roughly z-up map and its points' mask.
 
     The lowest height peak holding ``min_fraction`` of the points is the floor; the plane is
     fitted to the points within 5 cm of it, then twice to those within 3 cm of the fit. Done
@@ -184,13 +178,13 @@ def find_floor_plane(
                 f"no level surface holds {int(need)} points (the floor): is the map z-up?"
             )
         mask = np.abs(h - peak) < _BAND_M
-        n, d = _fit(pts[mask], up)
+        n, d = fit_plane(pts[mask], up)
         for _ in range(2):
-            mask = np.abs(pts @ n - d) < _GATE_M
+            mask = np.abs(pts @ n + d) < _GATE_M
             if mask.sum() < 3:
                 break
-            n, d = _fit(pts[mask], n)
-        if math.degrees(math.acos(float(np.clip(n @ up, -1.0, 1.0)))) < 0.01:
+            n, d = fit_plane(pts[mask], n)
+        if angle_deg(n, up) < 0.01:
             break
         up = n
     floor = pts[mask]
@@ -202,7 +196,7 @@ def find_floor_plane(
             f"the lowest level surface found is a strip ({100 * narrow:.0f} cm standard "
             "deviation across), not a floor: is the map z-up?"
         )
-    tilt = math.degrees(math.acos(float(np.clip(n[2], -1.0, 1.0))))
+    tilt = angle_deg(n, _Z)
     if tilt > max_tilt_deg:
         raise LevelError(
             f"the lowest large level surface leans {tilt:.1f} deg from z (more than "
@@ -224,14 +218,14 @@ def level_map(
     n, d, mask = find_floor_plane(pts, max_tilt_deg)
     R = _rotation_onto_z(n)
     floor = pts[mask]
-    rms = float(np.sqrt(np.mean((floor @ n - d) ** 2)))
-    t = np.array([0.0, 0.0, -d])  # R n = z, so R p . z = n . p: the floor goes to z = d
+    rms = float(np.sqrt(np.mean((floor @ n + d) ** 2)))
+    t = np.array([0.0, 0.0, d])  # R n = z, so R p . z = n . p: the floor goes to z = -d
     centre = np.median(pts[:, :2], axis=0)  # (a stray far point moves a mean)
-    floor_z = float((d - n[0] * centre[0] - n[1] * centre[1]) / n[2])
+    floor_z = float((-d - n[0] * centre[0] - n[1] * centre[1]) / n[2])
     info = Levelling(
         rotation=R,
         translation=t,
-        tilt_deg=math.degrees(math.acos(float(np.clip(n[2], -1.0, 1.0)))),
+        tilt_deg=angle_deg(n, _Z),
         floor_z=floor_z,
         floor_points=int(mask.sum()),
         rms_m=rms,
