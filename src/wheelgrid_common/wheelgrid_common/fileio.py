@@ -194,7 +194,6 @@ def read_pcd(path: str | Path) -> np.ndarray:
         )
     except (ValueError, KeyError) as exc:
         raise ValueError(f"{path}: bad PCD header ({exc})") from exc
-    cols = [sum(counts[: fields.index(a)]) for a in "xyz"]
     if kind == "binary":
         if len(raw) - body < n * dtype.itemsize:
             raise ValueError(
@@ -217,7 +216,7 @@ def read_pcd(path: str | Path) -> np.ndarray:
             raise ValueError(f"{path}: bad point line ({exc})") from exc
         if table.shape[1:] != (sum(counts),):
             raise ValueError(f"{path}: point lines of {table.shape[1:]} values, not {sum(counts)}")
-        return table[:, cols]
+        return table[:, [sum(counts[: fields.index(a)]) for a in "xyz"]]
     if kind != "binary_compressed":
         raise ValueError(f"{path}: unknown PCD data kind {kind!r}")
     if n == 0:

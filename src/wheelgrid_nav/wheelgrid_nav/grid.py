@@ -799,7 +799,7 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
     return pts, cls, class_counts
 
 
-def map_warnings(z: np.ndarray, drops: int = 0, drop_depth: float = 0.1) -> list[str]:
+def map_warnings(z: np.ndarray, drops: int, drop_depth: float) -> list[str]:
     """Doubts about a map that still gives a grid, for the log and the summary. ``drops``: how
     many of the points lie more than ``drop_depth`` under z = 0."""
     out = []
