@@ -25,3 +25,12 @@ def stray_capture() -> Path:
     if not (path / "depth").is_dir():
         pytest.skip(f"{path}: the real Stray capture is not present")
     return path
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Tests that kill a node outright (the chain's node-killed test, the launcher's SIGKILL
+    tests) leave its Fast DDS segments in /dev/shm, 16 MB each, and a test must stop what it
+    started: the segments of dead processes go here (never one a live process holds)."""
+    from wheelgrid_common.shm import clean_dead_segments
+
+    clean_dead_segments()

@@ -21,6 +21,7 @@ import numpy as np
 
 from wheelgrid_common.ros_env import child_env, configure_ros_env
 from wheelgrid_common.services import call_with_retry
+from wheelgrid_common.shm import clean_dead_segments
 
 
 def box_surface(lo: Sequence[float], hi: Sequence[float], spacing: float, rng: Any) -> np.ndarray:
@@ -155,7 +156,17 @@ def call_service(
 
 
 def stop_process(proc: subprocess.Popen[Any], grace: float = 5.0) -> int | None:
-    """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL the whole process group."""
+    """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL the whole process group.
+
+    A process that did not exit cleanly (killed, crashed, or ended by a signal before this was
+    called) leaves its Fast DDS segments in /dev/shm, 16 MB each: they are removed here."""
+    rc = _stop(proc, grace)
+    if rc is not None and rc != 0:
+        clean_dead_segments()
+    return rc
+
+
+def _stop(proc: subprocess.Popen[Any], grace: float) -> int | None:
     if proc.poll() is not None:
         return proc.returncode
     for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
