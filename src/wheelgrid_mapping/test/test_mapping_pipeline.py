@@ -40,6 +40,8 @@ def test_the_report_says_how_many_failures_it_does_not_list() -> None:
     assert len(rep["failures"]) == MAX_LISTED_FAILURES
     assert rep["failures_not_listed"] == 5
     assert rep["frames"]["empty"] == MAX_LISTED_FAILURES + 5
+    # counted by reason too, as registration's failures are: the cut list's 5 were nowhere
+    assert rep["failure_reasons"] == {"no valid points": MAX_LISTED_FAILURES + 5}
 
 
 def test_body_convention_levelled_saved_and_reset(tmp_path: Path) -> None:

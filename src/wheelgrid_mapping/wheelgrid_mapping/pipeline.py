@@ -160,6 +160,8 @@ FLOOR_CHECK_GAIN = 1.1
 # A frame stamped at most this long before the last keyframe (or at its very stamp) is a repeat
 # or a late frame, skipped; one stamped farther back is a clock jump, and mapping goes on (s).
 LATE_FRAME_WINDOW = 1.0
+# report.json's reason for a frame with no valid point (all NaN, out of range, filtered away)
+EMPTY_REASON = "no valid points"
 # report.json lists this many registration failures one by one (all are counted): a
 # lost scan fails on hundreds of frames, and the list would bury the rest of the report
 MAX_LISTED_FAILURES = 200
@@ -481,7 +483,7 @@ class Mapper:
         t1 = time.perf_counter()
         if st.valid == 0:
             self.frames_empty += 1
-            self.failures.append({"frame": index, "stamp": stamp, "reason": "no valid points"})
+            self.failures.append({"frame": index, "stamp": stamp, "reason": EMPTY_REASON})
             return FrameOutcome("empty", "no valid points (all NaN or out of range)")
         res = self.registrar.register(pts, stamp, prior, prep.inputs)
         self.timings["registration_s"] += time.perf_counter() - t1
@@ -913,7 +915,12 @@ class Mapper:
                 "state": self.registrar.state,
                 "failed_since_used": self.failed_since_used,
             },
-            "failure_reasons": dict(c.failure_reasons),
+            # every failure by reason, as `failures` names them: registration's and the frames
+            # with no valid point left (all NaN, out of range), which never reach it
+            "failure_reasons": dict(
+                c.failure_reasons,
+                **({EMPTY_REASON: self.frames_empty} if self.frames_empty else {}),
+            ),
             "failures": self.failures[:MAX_LISTED_FAILURES],
             # the list stops at MAX_LISTED_FAILURES; the count says it was cut, and by how much
             "failures_not_listed": max(0, len(self.failures) - MAX_LISTED_FAILURES),
