@@ -142,6 +142,10 @@ def _ply_points(tmp_path, name, points):
         ("folder", "a folder, not a PLY or PCD map file; `wheelgrid map --out` wrote"),
         ("garbage", "not a readable PLY"),
         ("truncated", "not a readable PLY"),
+        (
+            "cutpcd",
+            "c.pcd: not a readable PCD point cloud: 1 point lines, where its header lists 2",
+        ),
         ("empty", "no (finite) points"),
         ("above", "above the safe height"),
         ("nofloor", "no floor found"),
@@ -165,6 +169,10 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
         path = _ply_points(tmp_path, "t.ply", np.zeros((100, 3)))
         raw = (tmp_path / "t.ply").read_bytes()
         (tmp_path / "t.ply").write_bytes(raw[:-50])
+    elif case == "cutpcd":
+        path = str(tmp_path / "c.pcd")
+        head = "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 2\nDATA ascii\n"
+        (tmp_path / "c.pcd").write_text(head + "1 2 3\n")
     elif case == "empty":
         path = _ply_points(tmp_path, "e.ply", np.empty((0, 3)))
     elif case == "above":
@@ -188,6 +196,8 @@ def test_cli_bad_input_exits_2_with_one_line(tmp_path, capsys, case, message):
     err = capsys.readouterr().err
     assert message in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    if case in ("garbage", "truncated", "cutpcd"):
+        assert err.count(path) == 1, err  # named once (the reader's message named it too)
     assert not (tmp_path / "out" / "grid.yaml").exists()
 
 

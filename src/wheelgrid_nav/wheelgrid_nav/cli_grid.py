@@ -134,7 +134,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         points = read_cloud(args.map)
     except Exception as exc:  # the readers raise several types for corrupt files
-        return _fail(f"{args.map}: not a readable {kind} point cloud ({type(exc).__name__}: {exc})")
+        # the readers' own errors name the file and say what is wrong; others get their type
+        detail = str(exc).removeprefix(f"{args.map}: ")
+        detail = detail if isinstance(exc, ValueError) else f"{type(exc).__name__}: {detail}"
+        return _fail(f"{args.map}: not a readable {kind} point cloud: {detail}")
     levelling = None
     if args.level:
         try:
