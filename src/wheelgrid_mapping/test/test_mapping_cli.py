@@ -8,6 +8,7 @@ import re
 import shutil
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -48,17 +49,13 @@ def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
 
 
-def test_a_zero_quaternion_in_the_odometry_costs_its_frames_prior_only(
-    sim_dir: Path, tmp_path: Path, capsys
-) -> None:
-    """A bridge or bag can carry a zero quaternion (before ARKit tracks): it used to end
-    `wheelgrid map --prior arkit` with a traceback from quat_to_matrix. Now that frame goes
-    without a prior, the mapper counts it, and the run says so."""
+def _edit_odometry(sim_dir: Path, bag: Path, edit: Any) -> None:
+    """A copy of the bundled bag at ``bag`` with ``edit(k, msg)`` applied to its k-th (from 1)
+    /iphone/odometry message, in place."""
     from rosbags.rosbag2 import Reader, Writer
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
-    bag = tmp_path / "zero_q"
     with Reader(sim_dir / "scan") as reader:
         writer = Writer(bag, version=8)
         writer.open()
@@ -68,13 +65,27 @@ def test_a_zero_quaternion_in_the_odometry_costs_its_frames_prior_only(
         for conn, t, raw in reader.messages():
             if conn.topic == "/iphone/odometry":
                 odometry += 1
-                if odometry == 4:
-                    msg = store.deserialize_cdr(raw, conn.msgtype)
-                    q = msg.pose.pose.orientation
-                    q.x = q.y = q.z = q.w = 0.0
-                    raw = store.serialize_cdr(msg, conn.msgtype)
+                msg = store.deserialize_cdr(raw, conn.msgtype)
+                edit(odometry, msg)
+                raw = store.serialize_cdr(msg, conn.msgtype)
             writer.write(conns[conn.id], t, raw)
         writer.close()
+
+
+def test_a_zero_quaternion_in_the_odometry_costs_its_frames_prior_only(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """A bridge or bag can carry a zero quaternion (before ARKit tracks): it used to end
+    `wheelgrid map --prior arkit` with a traceback from quat_to_matrix. Now that frame goes
+    without a prior, the mapper counts it, and the run says so."""
+
+    def zero_fourth(k: int, msg: Any) -> None:
+        if k == 4:
+            q = msg.pose.pose.orientation
+            q.x = q.y = q.z = q.w = 0.0
+
+    bag = tmp_path / "zero_q"
+    _edit_odometry(sim_dir, bag, zero_fourth)
     out = tmp_path / "map"
     argv = [str(bag), "--out", str(out), "--prior", "arkit", "--max-frames", "8"]
     assert cli_map.main(argv) == 0
@@ -82,6 +93,46 @@ def test_a_zero_quaternion_in_the_odometry_costs_its_frames_prior_only(
     assert "Traceback" not in err and "1 pose priors were no rigid transform" in err, err
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["priors_refused"] == 1 and rep["frames"]["read"] == 8
+
+
+def test_a_pose_prior_that_stands_still_while_the_chair_drives_fails_loudly(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """ARKit's tracking lost while the chair drives at 0.8 m/s: the odometry goes on with one
+    pose for 1.6 s. Followed, every frame was accepted on the spot where the prior stood,
+    silently, and the rest of the run lay 1.45 m off: the map doubled. Where ICP alone cannot place
+    them (this view leaves a direction free), the frames fail, and the prior's catch-up is
+    taken from where it froze."""
+    from wheelgrid_common.fileio import read_tum
+
+    held = {}
+
+    def freeze(k: int, msg: Any) -> None:
+        if k == 27:
+            held["pose"] = msg.pose.pose
+        elif 27 < k <= 35:
+            msg.pose.pose = held["pose"]
+
+    bag = tmp_path / "frozen"
+    _edit_odometry(sim_dir, bag, freeze)
+    out = tmp_path / "map"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--max-frames", "45"]
+    assert cli_map.main([*argv, "--no-loop-closure"]) == 0
+    err = capsys.readouterr().err
+    rep = json.loads((out / "report.json").read_text())
+    fr = rep["frames"]
+    # odometry messages 28-35 repeat the 27th's pose; the first repeat, only 0.2 s on, is what
+    # a pose topic slower than the clouds gives, and is followed
+    assert (fr["prior_frozen"], fr["failed"], fr["relocalised"]) == (7, 7, 1), fr
+    assert rep["failure_reasons"] == {"pose prior stands still": 7}, rep["failure_reasons"]
+    assert "the pose prior stood still to the bit on 7 frames" in err, err
+    # after the catch-up the chair is where it is (before: 1.6 m behind, for good)
+    stamps, poses = read_tum(out / "trajectory.tum")
+    t_true, true = read_tum(sim_dir / "poses_map.tum")
+    first, last = (true[np.argmin(np.abs(t_true - t))] for t in (stamps[0], stamps[-1]))
+    moved_true = np.linalg.inv(first) @ last
+    moved = np.linalg.inv(poses[0]) @ poses[-1]
+    assert np.linalg.norm(moved[:3, 3] - moved_true[:3, 3]) < 0.1
 
 
 def test_loop_closure_runs_and_is_reported(sim_dir: Path, tmp_path: Path, capsys) -> None:

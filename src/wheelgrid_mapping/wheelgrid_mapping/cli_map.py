@@ -639,6 +639,13 @@ def _run(args: argparse.Namespace) -> int:
             "(NaN, a zero quaternion); those frames registered without one",
             file=sys.stderr,
         )
+    if fr.get("prior_frozen"):
+        print(
+            f"wheelgrid map: warning: the pose prior stood still to the bit on "
+            f"{fr['prior_frozen']} frames (its tracking lost?); ICP alone registered them where "
+            "it could place them, the others failed",
+            file=sys.stderr,
+        )
     lost = lost_at_end(rep.get("registration", {}))
     if lost:
         print(f"wheelgrid map: warning: {lost}", file=sys.stderr)

@@ -559,6 +559,7 @@ class MapperNode(Node):  # type: ignore[misc]
             # up to frames_received, and such a frame vanished from the status
             "frames_errored": self.mapper.frames_errored,
             "priors_refused": self.mapper.priors_refused,
+            "priors_frozen": c.prior_frozen,  # repeated to the bit: ICP alone where it could
             "levelled": self.mapper.T_map_odom is not None,
             # where the first floor fit's vertical came from, and the map frame's angle to the
             # pose prior's gravity (the one check of the frame a user can read live)

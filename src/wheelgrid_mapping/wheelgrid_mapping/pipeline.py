@@ -906,6 +906,7 @@ class Mapper:
                 "out_of_order": self.out_of_order,
                 "other_frame": self.other_frame,
                 "relocalised": c.relocalised,
+                "prior_frozen": c.prior_frozen,
                 "priors_refused": self.priors_refused,
                 "errors": self.frames_errored,
             },

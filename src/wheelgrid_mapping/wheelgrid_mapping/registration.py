@@ -374,12 +374,36 @@ class _Attempt:
     prior: np.ndarray | None  # the prior as used (continuous world)
 
 
+# A pose prior that repeats itself to the bit for longer than this has stopped estimating
+# (:meth:`Registrar._repeat`); a repeat within it is one pose message serving the frames either
+# side of it, each within the 0.1 s the frames take their prior from (s).
+PRIOR_FROZEN_AFTER_S = 0.25
+
+
+# ICP alone's step that says the sensor moved while its frozen prior stood still (m, deg)
+STILL_M, STILL_DEG = 0.02, 1.0
+
+
+def _motion(step: np.ndarray | None) -> str:
+    """What motion ``step`` is, for a failure reason; empty where it is none (within
+    :data:`STILL_M` and :data:`STILL_DEG`)."""
+    if step is None:
+        return ""
+    dist, turn = float(np.linalg.norm(step[:3, 3])), rotation_angle_deg(step)
+    if dist <= STILL_M and turn <= STILL_DEG:
+        return ""
+    return f"the view moved {100 * dist:.0f} cm, {turn:.0f} deg"
+
+
 @dataclass
 class RegCounters:
     frames: int = 0
     accepted: int = 0
     failed: int = 0
     relocalised: int = 0
+    # frames whose pose prior had repeated itself to the bit for longer than
+    # PRIOR_FROZEN_AFTER_S (tracking lost, a pose source that stalled)
+    prior_frozen: int = 0
     failure_reasons: dict[str, int] = dc_field(default_factory=dict)
 
 
@@ -416,6 +440,10 @@ class Registrar:
         self.last_delta = np.eye(4)
         self.last_stamp: float | None = None
         self.last_prior: np.ndarray | None = None  # the last accepted frame's, continuous
+        # the pose of the frame last_prior came with: the last accepted one, but where the
+        # frames since were registered by ICP alone while the prior stood still (frozen); the
+        # prior's step when it moves again is taken from there, across the whole freeze
+        self._prior_pose = np.eye(4)
         # The prior's world re-anchored at its jumps (:meth:`_continuous_prior`): the fix
         # applied to every raw prior now, the one as of the last accepted frame, and the
         # previous frame's continuous prior and stamp, which a jump is measured against.
@@ -423,6 +451,9 @@ class Registrar:
         self._fix_at_accept = np.eye(4)
         self._prev_prior: np.ndarray | None = None
         self._prev_prior_stamp: float | None = None
+        # the previous frame's prior as given, and the stamp of the first frame it came with
+        self._raw_prior: np.ndarray | None = None
+        self._raw_since = 0.0
         self.counters = RegCounters()
         self.prior_scale_fit = PriorScaleEstimate()
         # the steps joined so far into one scale measurement: the chain of the prior's steps
@@ -512,7 +543,21 @@ class Registrar:
         # its raw step would put the frame metres off) or the prior catching up after it froze
         # (its raw step is right). Only the map can tell: while relocalising, both are tried.
         raw_fix = self._fix_at_accept
-        virtual, jumped = (None, "") if prior is None else self._continuous_prior(prior, stamp)
+        # A prior that repeats the previous frame's says nothing of the motion since (a pose
+        # topic slower than the clouds), and one that has repeated itself for longer has stopped
+        # estimating (ARKit's tracking lost, a pose source stalled). Followed, its zero steps
+        # were corrected by half ICP's turn each frame and the lag went into the map: after a
+        # 2 s freeze the map ran 4.8 deg off for good; a chair driving at 0.8 m/s stayed on the
+        # spot, 1.45 m off after 1.6 s, and the map doubled. ICP alone first; the prior where ICP
+        # alone cannot place the frame, but not once it is frozen and ICP saw the view move.
+        # A frozen prior's continuity is not updated: its catch-up is measured from where it
+        # froze, and its step is taken from the pose of the last frame that followed it.
+        repeat, frozen = self._repeat(prior, stamp)
+        if frozen:
+            self.counters.prior_frozen += 1
+            virtual, jumped = self._prior_fix @ np.asarray(prior, dtype=np.float64), ""
+        else:
+            virtual, jumped = (None, "") if prior is None else self._continuous_prior(prior, stamp)
         if self.last_stamp is None:  # the first frame: the map begins with it
             self._integrate(frame_down, np.eye(4))
             self._accepted_prior(stamp, virtual)
@@ -522,13 +567,39 @@ class Registrar:
             )
         if jumped:
             return self._fail(jumped, t0)
-        hypotheses = [virtual]
-        if relocalising and prior is not None and not np.array_equal(raw_fix, self._prior_fix):
+        hypotheses = [None, virtual] if repeat else [virtual]
+        raw = None
+        if (
+            relocalising
+            and not repeat
+            and prior is not None
+            and not np.array_equal(raw_fix, self._prior_fix)
+        ):
+            raw = len(hypotheses)
             hypotheses.append(raw_fix @ np.asarray(prior, dtype=np.float64))
-        tries = [self._attempt(inputs, stamp, h, relocalising) for h in hypotheses]
+        # a repeated prior as the guess starts from the last pose, as it did before
+        tries = [
+            self._attempt(inputs, stamp, h, relocalising, self.last_pose if repeat else None)
+            for h in hypotheses
+        ]
         passed = [t for t in tries if not t.reason]
-        best = max(passed or tries, key=lambda t: t.fitness)
-        if passed and best is not tries[0]:
+        if repeat:
+            alone, followed = tries
+            moved = _motion(alone.step)
+            if not alone.reason:
+                best = alone
+            elif frozen and (moved or followed.reason):
+                # ICP alone cannot place the frame (a view that leaves a direction free), and
+                # the view moved where the prior stood, or the prior's guess fails too
+                why = moved or alone.reason
+                return self._fail(
+                    f"pose prior stands still ({why}); its tracking lost?", t0, alone.fitness
+                )
+            else:
+                best = followed  # at rest, as ICP alone saw too, or not frozen: as before
+        else:
+            best = max(passed or tries, key=lambda t: t.fitness)
+        if passed and raw is not None and best is tries[raw]:
             # the map agrees with the prior's raw step since the last accepted frame (it froze
             # and caught up): its world is the one from before the discontinuity
             self._prior_fix = raw_fix
@@ -546,7 +617,13 @@ class Registrar:
         self._integrate(frame_down, pose)
         self.last_delta = best.step if not relocalising else np.eye(4)
         self.last_pose = pose
-        self._accepted_prior(stamp, best.prior)
+        icp_alone = repeat and best.prior is None
+        self._accepted_prior(stamp, best.prior, pose, icp_alone=icp_alone)
+        # The prior the frame is said to have had (gravity, the loop closure's prior drift): a
+        # repeat ICP alone registered is still the prior's word for the frame, one message late
+        # (a slow pose topic), or right (a frozen prior at rest); a frozen one the view moved
+        # away from is no word at all, and the loop closure then does without the prior.
+        said = virtual if icp_alone and not (frozen and _motion(best.step)) else best.prior
         self.counters.accepted += 1
         if relocalising:
             self.counters.relocalised += 1
@@ -557,16 +634,43 @@ class Registrar:
             fitness=fitness,
             relocalised=relocalising,
             seconds=time.perf_counter() - t0,
-            prior=best.prior,
+            prior=said,
         )
 
-    def _accepted_prior(self, stamp: float, prior: np.ndarray | None) -> None:
+    def _repeat(self, prior: np.ndarray | None, stamp: float) -> tuple[bool, bool]:
+        """Whether ``prior`` repeats the previous frame's to the bit, and whether it has done so
+        for longer than :data:`PRIOR_FROZEN_AFTER_S` (frozen). No estimator of a pose in motion
+        or at rest repeats itself (its noise moves the last digits): one that has stopped
+        estimating does. A shorter repeat is one pose message given to the frames either side
+        of it (a pose topic slower than the clouds: the mapper and ``wheelgrid map`` take the
+        nearest within 0.1 s)."""
+        if prior is None:
+            self._raw_prior = None
+            return False, False
+        if self._raw_prior is None or not np.array_equal(self._raw_prior, prior):
+            self._raw_prior, self._raw_since = np.array(prior), float(stamp)
+            return False, False
+        if self.last_stamp is None:
+            return False, False
+        return True, float(stamp) - self._raw_since > PRIOR_FROZEN_AFTER_S
+
+    def _accepted_prior(
+        self,
+        stamp: float,
+        prior: np.ndarray | None,
+        pose: np.ndarray | None = None,
+        icp_alone: bool = False,
+    ) -> None:
         """Remember an accepted frame's stamp and (continuous) prior: the next guess starts
         from them, and the prior's world as of now is the "raw" hypothesis of a later
-        relocalisation."""
+        relocalisation. A frame ICP alone registered while the prior was frozen leaves the
+        prior and its pose as they were: its catch-up is a step from there."""
         self.last_stamp = stamp
-        self.last_prior = prior
         self._fix_at_accept = self._prior_fix.copy()
+        if icp_alone:
+            return
+        self.last_prior = prior
+        self._prior_pose = np.eye(4) if pose is None else pose
 
     def _continuous_prior(self, prior: np.ndarray, stamp: float) -> tuple[np.ndarray, str]:
         """``prior`` in a world continuous from frame to frame, and a failure reason where the
@@ -606,10 +710,16 @@ class Registrar:
         return virtual, reason
 
     def _attempt(
-        self, inputs: FrameInputs, stamp: float, prior: np.ndarray | None, relocalising: bool
+        self,
+        inputs: FrameInputs,
+        stamp: float,
+        prior: np.ndarray | None,
+        relocalising: bool,
+        base: np.ndarray | None = None,
     ) -> _Attempt:
         """Align one frame from the guess ``prior`` (continuous, or None) gives and run every
-        check on the result; changes nothing, so that two guesses can be tried."""
+        check on the result; changes nothing, so that two guesses can be tried. The prior's
+        step is applied to ``base``, by default the pose of the frame ``last_prior`` came with."""
         cfg = self.cfg
         assert self.last_stamp is not None
         frame_down = inputs.down
@@ -629,7 +739,7 @@ class Registrar:
                     + (prior[:2, 3] - self.last_prior[:2, 3]) / cfg.prior_scale
                 )
             prior_step = np.linalg.inv(self.last_prior) @ target
-            guess = self.last_pose @ prior_step
+            guess = (self._prior_pose if base is None else base) @ prior_step
         else:
             guess = self.last_pose @ self.last_delta
         source = inputs.source
