@@ -21,6 +21,7 @@ import os
 import random
 import select
 import signal
+import stat
 import sys
 import threading
 import time
@@ -77,6 +78,16 @@ class _Pending:
     data: bytes
 
 
+def _absent_or_symlink(path: Path) -> bool:
+    """One lstat: asked as "exists?" then "a symlink?", an old link removed in between (the
+    simulator it belonged to stopping as a new one starts) read as a file, and the new one
+    refused to start."""
+    try:
+        return stat.S_ISLNK(os.lstat(path).st_mode)
+    except FileNotFoundError:
+        return True
+
+
 class MotorSim:
     """The simulated controller. ``start()`` opens the pty and the thread; ``stop()`` ends both."""
 
@@ -120,7 +131,7 @@ class MotorSim:
         ``link`` names something that is not a symlink: only an old link is replaced, never a
         file that happens to have the name (it used to be deleted)."""
         link = Path(self.cfg.link) if self.cfg.link else None
-        if link is not None and os.path.lexists(link) and not link.is_symlink():
+        if link is not None and not _absent_or_symlink(link):
             raise ValueError(f"--link {link}: exists and is not a symlink; not replaced")
         if self.cfg.pose_log:  # before the pty and the link: nothing to undo if it fails
             self._log = open(self.cfg.pose_log, "w", encoding="utf-8")  # noqa: SIM115
@@ -165,16 +176,20 @@ class MotorSim:
         self.stop()
 
     def _close_pty(self) -> None:
+        # The link first, while this pty still holds its number: closed first, the number was
+        # free for the next simulator's pty (one started as this one vanished), whose link to
+        # the same /dev/pts/N then read as this one's and was removed, and the host never
+        # found the controller again.
+        if self.cfg.link and self._slave >= 0:  # (held: not closed before)
+            link = Path(self.cfg.link)
+            with contextlib.suppress(OSError):
+                if link.is_symlink() and os.readlink(link) == self.slave_path:
+                    link.unlink()
         for fd in (self._master, self._slave):
             if fd >= 0:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self._master = self._slave = -1
-        if self.cfg.link:
-            link = Path(self.cfg.link)
-            with contextlib.suppress(OSError):
-                if link.is_symlink() and os.readlink(link) == self.slave_path:
-                    link.unlink()
 
     # ---- main loop ----------------------------------------------------------------------------
 
