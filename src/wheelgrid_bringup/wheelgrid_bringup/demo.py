@@ -246,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         if player.error:
             raise RuntimeError(f"replay failed: {player.error}")
 
-        last = {"snap": None, "since": time.monotonic()}
+        last: dict[str, Any] = {"snap": None, "since": time.monotonic()}
 
         def mapper_done() -> bool:
             """All frames received and the mapper's counters unchanged for 4 s (worker idle)."""
@@ -413,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
             commands = list(monitor.state.commands)
             track = list(monitor.state.chair_track)
         driven = [(x, y) for _, x, y, _ in track]
-        visited = []
+        visited: list[tuple[int, int]] = []
         for x, y in driven:
             cell = grid.cell_of(x, y)
             if not visited or visited[-1] != cell:

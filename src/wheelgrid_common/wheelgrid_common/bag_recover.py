@@ -159,8 +159,10 @@ def _reader(path: Path, extent: Extent) -> Any:
         def _open(self) -> None:
             self.data_start, self.data_end = extent.data_start, extent.data_end
             self.meta_scan()
-            counts = self.statistics.channel_message_counts
-            self.connections = [c._replace(msgcount=counts.get(c.id, 0)) for c in self.connections]
+            # (meta_scan counts the records it read; no counts is no messages)
+            counts = self.statistics.channel_message_counts if self.statistics else {}
+            conns: list[Any] = self.connections  # type: ignore[has-type]  # (untyped base)
+            self.connections = [c._replace(msgcount=counts.get(c.id, 0)) for c in conns]
 
         def messages(self, connections: Any, start: Any = None, stop: Any = None) -> Any:
             # In file order: rosbags' unindexed path refuses messages out of stamp order, and a

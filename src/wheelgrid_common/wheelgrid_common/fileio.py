@@ -131,8 +131,8 @@ def read_ply(path: str | Path) -> np.ndarray:
         raise ValueError(
             f"{path}: truncated ({max(len(raw) - offset, 0)} B of {need} B of vertices)"
         )
-    table = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
-    return np.stack([table["x"], table["y"], table["z"]], axis=1).astype(np.float64)
+    vertices: Any = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)  # structured
+    return np.stack([vertices[a] for a in "xyz"], axis=1).astype(np.float64)
 
 
 def _pcd_header(raw: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
@@ -221,7 +221,7 @@ def read_pcd(path: str | Path) -> np.ndarray:
                 f"{path}: cut off ({len(raw) - body} B of the {n * dtype.itemsize} B of points "
                 "its header lists)"
             )
-        table = np.frombuffer(raw, dtype=dtype, count=n, offset=body)
+        table: Any = np.frombuffer(raw, dtype=dtype, count=n, offset=body)  # structured
         names = [f"{fields.index(a)}_{a}" for a in "xyz"]
         return np.stack([table[name][:, 0] for name in names], axis=1).astype(np.float64)
     if kind == "ascii":
@@ -266,7 +266,7 @@ def read_pcd(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: cut off ({len(raw) - body - 8} B of its {packed} B body)")
     import open3d as o3d
 
-    cloud = o3d.io.read_point_cloud(str(path), format="pcd", remove_nan_points=False)
+    cloud = o3d.io.read_point_cloud(path, format="pcd", remove_nan_points=False)
     pts = np.asarray(cloud.points, dtype=np.float64).reshape(-1, 3)
     if pts.shape[0] != n:
         raise ValueError(

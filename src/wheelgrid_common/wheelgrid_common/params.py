@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import collections.abc
+import copy
 import dataclasses
+import functools
 import math
 import typing
 from pathlib import Path
@@ -23,8 +25,10 @@ T = TypeVar("T")
 def field(default: Any, doc: str, unit: str = "") -> Any:
     """A dataclass field with a description (and unit) that becomes the ROS parameter's."""
     if isinstance(default, list | dict):
+        # a copy per instance: a default list shared by every config was changed through one
         return dataclasses.field(
-            default_factory=lambda d=default: type(d)(d), metadata={"doc": doc, "unit": unit}
+            default_factory=functools.partial(copy.copy, default),
+            metadata={"doc": doc, "unit": unit},
         )
     return dataclasses.field(default=default, metadata={"doc": doc, "unit": unit})
 
@@ -130,7 +134,7 @@ def from_mapping(cls: type[T], values: dict[str, Any], *, strict: bool = True) -
     if not isinstance(values, dict):
         raise ValueError(f"{cls.__name__}: expected a mapping of parameter: value, got {values!r}")
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
+    names = {f.name for f in dataclasses.fields(typing.cast(Any, cls))}
     unknown = sorted(set(values) - names)
     if unknown and strict:
         raise ValueError(f"unknown {cls.__name__} parameter(s): {', '.join(unknown)}")
@@ -204,7 +208,7 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
 
     docs = describe(type(cfg))
     values = {}
-    for f in dataclasses.fields(cfg):
+    for f in dataclasses.fields(typing.cast(Any, cfg)):
         name = prefix + f.name
         default = getattr(cfg, f.name)
         if isinstance(default, tuple):

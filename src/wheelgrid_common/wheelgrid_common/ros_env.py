@@ -14,7 +14,7 @@ import tempfile
 from collections.abc import Callable, Mapping, MutableMapping
 from importlib.util import find_spec
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 
 def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMapping[str, str]:
@@ -76,6 +76,12 @@ def child_env(domain_id: int | None = None, **extra: str) -> dict[str, str]:
         env["ROS_DOMAIN_ID"] = str(domain_id)
     env.update(extra)
     return env
+
+
+def with_message_info(callback: Callable[[Any, Any], None]) -> Callable[[Any], None]:
+    """``callback`` as rclpy's type hints take it. rclpy hands a callback of two parameters
+    the message's info as well (its source and receive stamps); its hints know of one."""
+    return cast(Callable[[Any], None], callback)
 
 
 def tf2_available() -> bool:

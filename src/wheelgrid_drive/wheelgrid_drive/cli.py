@@ -287,11 +287,11 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
-    s = link.stats
+    ls = link.stats
     print(
-        f"wheelgrid drive: {result.done}/{result.total} steps done; link: {s.sent} frames sent, "
-        f"{s.replies} replies, {s.retries} retries, {s.timeouts} timeouts, {s.garbled} garbled, "
-        f"{s.naks} NAKs"
+        f"wheelgrid drive: {result.done}/{result.total} steps done; link: {ls.sent} frames sent, "
+        f"{ls.replies} replies, {ls.retries} retries, {ls.timeouts} timeouts, {ls.garbled} "
+        f"garbled, {ls.naks} NAKs"
     )
     return 0
 

@@ -40,7 +40,7 @@ from std_msgs.msg import Bool, String
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
-from wheelgrid_common.ros_env import exit_logger, spin_node, steady_timer
+from wheelgrid_common.ros_env import exit_logger, spin_node, steady_timer, with_message_info
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkError, MotorLink
@@ -231,8 +231,10 @@ class DriveNode(Node):
         # node, its e-stop latch gone with it, drove it where the chair still stood at its
         # start. The publication-time check in _on_plan alone failed when the wall clock had
         # stepped back since (NTP): a volatile reader is never sent a plan of before.
-        self._plan_sub = self.create_subscription(Path, "/wheelgrid/plan", self._on_plan, PLAN_QOS)
-        self.create_subscription(Twist, "/cmd_vel", self._on_twist, RELIABLE_QOS)
+        self._plan_sub = self.create_subscription(
+            Path, "/wheelgrid/plan", with_message_info(self._on_plan), PLAN_QOS
+        )
+        self.create_subscription(Twist, "/cmd_vel", with_message_info(self._on_twist), RELIABLE_QOS)
 
         try:
             check_no_undeclared(self)
@@ -270,26 +272,27 @@ class DriveNode(Node):
         # rcl shares and drops with it. A node-local rename wins over a global one, and the
         # global topic remaps (a remapped e-stop topic) still apply to this node.
         estop_name = f"{self.get_name()}_estop"
-        self._estop_node = Node(
+        estop = Node(
             estop_name,
             namespace=self.get_namespace(),
             context=self.context,
             cli_args=["--ros-args", "-r", f"__node:={estop_name}"],
             start_parameter_services=False,
         )
-        self._estop_node.create_subscription(
-            Bool, "/wheelgrid/estop", self._on_estop_message, RELIABLE_QOS
+        self._estop_node: Node | None = estop
+        estop.create_subscription(
+            Bool, "/wheelgrid/estop", with_message_info(self._on_estop_message), RELIABLE_QOS
         )
         # A best-effort e-stop publisher (a joystick, a safety bridge on sensor-data QoS)
         # matches no reliable subscription: it was never heard. This one hears it, and may
         # only latch: a clear must come reliably (a lost clear keeps the chair stopped, a lost
         # e-stop would not). A reliable publisher reaches both; the second copy is a no-op.
-        self._estop_node.create_subscription(
-            Bool, "/wheelgrid/estop", self._on_estop_best_effort, SENSOR_QOS
+        estop.create_subscription(
+            Bool, "/wheelgrid/estop", with_message_info(self._on_estop_best_effort), SENSOR_QOS
         )
-        steady_timer(self._estop_node, 0.05, self._cmd_vel_guard)
+        steady_timer(estop, 0.05, self._cmd_vel_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
-        self._estop_executor.add_node(self._estop_node)
+        self._estop_executor.add_node(estop)
         self._estop_thread = threading.Thread(
             target=self._spin_estop, name="drive-estop", daemon=True
         )

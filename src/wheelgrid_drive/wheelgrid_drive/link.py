@@ -416,10 +416,10 @@ class MotorLink:
         try:
             frame = self.request(proto.MsgType.STOP)
         except LinkError as exc:
-            frame, why = None, str(exc)
+            why = str(exc) or "no reply"  # never empty: empty is acknowledged
         else:
             why = "" if frame.type == proto.MsgType.ACK else f"answered type {frame.type:#04x}"
-        if frame is not None and not why:
+        if not why:
             if self._stop_owed_at is not None:
                 self._emit("stop", "STOP acknowledged: the link speaks again", logging.WARNING)
             self._stop_owed_at = None

@@ -426,13 +426,13 @@ def measure(
         if a.shape[0] < 3 or b.shape[0] < 3:
             raise ValueError(f"boxes hold {a.shape[0]} and {b.shape[0]} points, need >= 3 each")
 
-        def along(a: np.ndarray, b: np.ndarray) -> float:
+        def on_axis(a: np.ndarray, b: np.ndarray) -> float:
             return abs(float(np.median(b[:, axis]) - np.median(a[:, axis])))
 
         spread_a, spread_b = float(a[:, axis].std()), float(b[:, axis].std())
-        se, unstable = bootstrap_stderr(a, b, along)
+        se, unstable = bootstrap_stderr(a, b, on_axis)
         return Measurement(
-            along(a, b), 0.0, a.shape[0], b.shape[0], spread_a, spread_b,
+            on_axis(a, b), 0.0, a.shape[0], b.shape[0], spread_a, spread_b,
             stderr=se, unstable_pct=unstable,
         )  # fmt: skip
     faces = []

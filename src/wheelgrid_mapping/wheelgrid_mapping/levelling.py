@@ -97,7 +97,7 @@ def find_floor(
             break
         n = np.asarray(model[:3], dtype=float)
         d = float(model[3])
-        norm = np.linalg.norm(n)
+        norm = float(np.linalg.norm(n))
         n, d = n / norm, d / norm
         if n @ down > 0:  # make n point up
             n, d = -n, -d

@@ -61,7 +61,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from dataclasses import field as dc_field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -638,15 +638,15 @@ def close_loops(
             if progress is not None:  # a cancel point
                 progress(i, len(groups))
             T = loop_icp(subs[i], subs[j], init)
-            g = anchors[i][:3, :3].T @ g_up if g_up is not None else None
-            H, fitness = _point_to_plane_information(subs[i], subs[j], T, 0.03, g)
+            g_i = anchors[i][:3, :3].T @ g_up if g_up is not None else None
+            H, fitness = _point_to_plane_information(subs[i], subs[j], T, 0.03, g_i)
             if H is None or fitness < cfg.min_overlap:
                 refused["low overlap"] = refused.get("low overlap", 0) + 1
                 continue
             S = None
-            if g_up is not None:
+            if g_i is not None:
                 # the graph then keeps the online height, roll and pitch
-                S = _yaw_and_horizontal(g)
+                S = _yaw_and_horizontal(g_i)
                 H = S @ H @ S
             xo, _, _ = _edge_measurement(init, T, H, S, radii[i], cfg.observable_ratio)
             shift = float(np.linalg.norm(xo[3:]))
@@ -665,8 +665,8 @@ def close_loops(
     # Every submap's walls, read about its node at its online pose, once there are loop edges
     # to solve with (the walls join the last solve only, after the passes below).
     walls = None
-    if right is not None and cfg.walls:
-        planes = []
+    if right is not None and cfg.walls and g_up is not None:  # (right needs g_up: for mypy)
+        planes: list[list[WallPlane]] = []
         for k, g in enumerate(groups):
             r = right.readings[k]
             if r is None:
@@ -880,6 +880,15 @@ def right_angle_reading(normals: np.ndarray, up: np.ndarray) -> tuple[float, flo
     return float(_fold(m)), mad / math.sqrt(dev.shape[0] / _NORMALS_PER_READING)
 
 
+_T = TypeVar("_T")
+
+
+def _known(value: _T | None) -> _T:
+    """``value``, where the caller has already kept only the submaps that have one."""
+    assert value is not None
+    return value
+
+
 @dataclass
 class RightAngles:
     """Each submap's right-angle reading (:func:`right_angle_reading`, in its node frame), and
@@ -919,7 +928,7 @@ class RightAngles:
             self.note = f"{len(idx)} submaps read their vertical surfaces' heading, < 3"
             return 0.0, []
         a = np.array([angles[k] for k in idx])
-        w = np.array([1.0 / (self.readings[k][1] ** 2 + self.floor) for k in idx])
+        w = np.array([1.0 / (_known(self.readings[k])[1] ** 2 + self.floor) for k in idx])
         # start from the heading most readings lie near (a coarse vote), then refine on those
         votes = [int((np.abs(_fold(a - c)) < self.gate).sum()) for c in a]
         psi = float(a[int(np.argmax(votes))])
@@ -961,11 +970,11 @@ class RightAngles:
         out.append((0, np.linalg.inv(frame) @ anchors[0], pin))
         for k in agree:
             rel = np.linalg.inv(frame) @ anchors[k]
-            turn = -float(_fold(angles[k] - psi))  # the frame's own axes are e1, e2 too
+            turn = -float(_fold(_known(angles[k]) - psi))  # the frame's axes are e1, e2 too
             target = exp_se3(np.r_[0.0, 0.0, 0.0, turn * up]) @ rel
             g = anchors[k][:3, :3].T @ up
             info = np.zeros((6, 6))
-            info[:3, :3] = np.outer(g, g) / (self.readings[k][1] ** 2 + self.floor)
+            info[:3, :3] = np.outer(g, g) / (_known(self.readings[k])[1] ** 2 + self.floor)
             out.append((k, target, info))
         return frame, out
 

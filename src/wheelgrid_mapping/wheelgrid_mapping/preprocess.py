@@ -501,7 +501,7 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
             # The candidate of a kept pair, looked up again from its column rather than
             # carried through the sort (an argsort costs twice a sort).
             keys_m = lin[qm] + np.asarray(col_off, dtype=np.int64)[cm]
-            if direct:
+            if direct and dense is not None:  # (direct says dense is there; for mypy)
                 cand = dense[keys_m]
             else:
                 cand = table[np.asarray(col_slot, dtype=np.intp)[cm], cell_rows(keys_m)]
@@ -515,7 +515,7 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     # once over the whole 5x5x5 block instead of twice.
     inner = offsets(0, 1)
     found = np.zeros(n, dtype=np.int32)
-    if direct:
+    if direct and dense is not None:
         for off in inner:
             if off != 0:
                 found += dense[lin + off] >= 0

@@ -553,6 +553,7 @@ class Registrar:
         # A frozen prior's continuity is not updated: its catch-up is measured from where it
         # froze, and its step is taken from the pose of the last frame that followed it.
         repeat, frozen = self._repeat(prior, stamp)
+        virtual: np.ndarray | None
         if frozen:
             self.counters.prior_frozen += 1
             virtual, jumped = self._prior_fix @ np.asarray(prior, dtype=np.float64), ""
@@ -763,6 +764,7 @@ class Registrar:
             if with_prior:
                 corr = observed
         if with_prior:
+            assert prior is not None  # (with_prior says so; for mypy)
             pose = guess @ blend_correction(
                 corr,
                 cfg.prior_translation_gain,

@@ -150,6 +150,8 @@ def result_json(res: PlanResult, heading: str | None) -> dict[str, Any]:
 def format_table(res: PlanResult, heading: str | None) -> str:
     """A readable table; with a heading it has the paper's Table II columns."""
     lines = []
+    head: tuple[str, ...]
+    rows: list[tuple[str, ...]]
     if heading is not None:
         head = ("State of wheelchair", "Current direction (d)", "Predicted action (a)")
         head += ("New direction (d')", "Actual action")

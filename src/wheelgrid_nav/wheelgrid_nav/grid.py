@@ -555,7 +555,7 @@ def thin_obstacle_guard(
             support=support,
         )
     h, w = solid.shape
-    return solid.reshape(h // m, m, w // n, n).any(axis=(1, 3))
+    return np.asarray(solid.reshape(h // m, m, w // n, n).any(axis=(1, 3)))
 
 
 def boundary_ring(shape: tuple[int, int], rows_width: int, cols_width: int) -> np.ndarray:

@@ -9,6 +9,7 @@ orange frame on cells that only the thin-obstacle guard made occupied (eq 10 alo
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +120,10 @@ def render(result: GridResult) -> Image.Image:
 EXTRA_FILES = ("levelling.yaml",)
 
 
+def _write_text(path: Path, text: str) -> None:
+    path.write_text(text)
+
+
 def write_outputs(
     result: GridResult,
     out_dir: str | Path,
@@ -147,7 +152,7 @@ def write_outputs(
         writers[out / "grid.png"] = lambda p: picture.save(p, format="PNG")
     extra = extra or {}
     for name, text in extra.items():
-        writers[out / name] = lambda p, text=text: p.write_text(text)
+        writers[out / name] = functools.partial(_write_text, text=text)
     write_together(writers)
     # an earlier run's picture (or levelling) beside the new grid shows another grid's cells
     # to the person who checks it before the chair moves

@@ -170,7 +170,7 @@ def raycast(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
         tb = np.multiply.outer(inv32[:, k], (hi[:, k] - o[k]).astype(np.float32))
         lo_t = np.minimum(ta, tb)
         hi_t = np.maximum(ta, tb, out=ta)
-        if tnear is None:
+        if tnear is None or tfar is None:  # (the first axis: both None together)
             tnear, tfar = lo_t, hi_t
         else:
             np.maximum(tnear, lo_t, out=tnear)
