@@ -16,7 +16,7 @@ bench: setup
 	@. scripts/env.sh && python bench/run_all.py $(ARGS)
 
 lint: setup
-	@. scripts/env.sh && ruff check src test bench conftest.py && ruff format --check src test bench conftest.py
+	@. scripts/env.sh && ruff check src test bench conftest.py && ruff format --check src test bench conftest.py && mypy
 
 # A fresh venv each time, removed after: a kept /tmp venv froze whatever an earlier run (or
 # another checkout) had installed into it into the lock.

@@ -10,4 +10,5 @@ export ROS_DOMAIN_ID=$(( (RANDOM % 100) + 1 ))
 echo "test: ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE ROS_LOG_DIR=$ROS_LOG_DIR"
 ruff check src test bench conftest.py
 ruff format --check src test bench conftest.py
+mypy  # the packages' type hints (pyproject.toml's [tool.mypy])
 python -m pytest -p no:dash -p no:cacheprovider --durations=15 "$@"  # the slowest, to keep the suite short
