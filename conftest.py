@@ -29,7 +29,7 @@ def stray_capture() -> Path:
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """Tests that kill a node outright (the chain's node-killed test, the launcher's SIGKILL
-    tests) leave its Fast DDS segments in /dev/shm, 16 MB each, and a test must stop what it
+    tests) leave its Fast DDS segments in /dev/shm, about 17 MB a node, and a test must stop what it
     started: the segments of dead processes go here (never one a live process holds)."""
     from wheelgrid_common.shm import clean_dead_segments
 

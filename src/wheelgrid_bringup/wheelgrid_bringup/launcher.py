@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
 
     env = child_env()
     # a chain killed outright before this one (kill -9, the OOM killer, a power cut of the
-    # process, not of the machine) left its nodes' shared memory behind: 16 MB a node in RAM
+    # process, not of the machine) left its nodes' shared memory behind: about 17 MB a node
     freed = clean_dead_segments()
     if freed.removed:
         print(

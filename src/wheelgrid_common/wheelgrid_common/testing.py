@@ -159,7 +159,7 @@ def stop_process(proc: subprocess.Popen[Any], grace: float = 5.0) -> int | None:
     """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL the whole process group.
 
     A process that did not exit cleanly (killed, crashed, or ended by a signal before this was
-    called) leaves its Fast DDS segments in /dev/shm, 16 MB each: they are removed here."""
+    called) leaves its Fast DDS segments in /dev/shm, about 17 MB a node: removed here."""
     rc = _stop(proc, grace)
     if rc is not None and rc != 0:
         clean_dead_segments()
