@@ -428,7 +428,8 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     if n_cells <= 64_000_000:
         dense = np.full(n_cells, -1, dtype=np.int32)
         dense[ucells] = table[0, :-1] if cap == 1 else np.arange(ucells.shape[0], dtype=np.int32)
-    direct = dense is not None and cap == 1
+    # the dense table where it maps a cell straight to its one point (None elsewhere)
+    direct = dense if cap == 1 else None
 
     def cell_rows(keys: np.ndarray) -> np.ndarray:
         if dense is not None:
@@ -463,7 +464,7 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
             col_slot: list[int] = []
             for off in offs:
                 rows = cell_rows(qkey + off)
-                if direct:
+                if direct is not None:
                     slots = [(0, rows)] if off != 0 else []  # own cell: only the query itself
                 else:
                     slots = [(r, table[r, rows]) for r in range(cap)]
@@ -501,8 +502,8 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
             # The candidate of a kept pair, looked up again from its column rather than
             # carried through the sort (an argsort costs twice a sort).
             keys_m = lin[qm] + np.asarray(col_off, dtype=np.int64)[cm]
-            if direct and dense is not None:  # (direct says dense is there; for mypy)
-                cand = dense[keys_m]
+            if direct is not None:
+                cand = direct[keys_m]
             else:
                 cand = table[np.asarray(col_slot, dtype=np.intp)[cm], cell_rows(keys_m)]
             dist_out[qm, rank[m]] = np.sqrt(
@@ -515,10 +516,10 @@ def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.nd
     # once over the whole 5x5x5 block instead of twice.
     inner = offsets(0, 1)
     found = np.zeros(n, dtype=np.int32)
-    if direct and dense is not None:
+    if direct is not None:
         for off in inner:
             if off != 0:
-                found += dense[lin + off] >= 0
+                found += direct[lin + off] >= 0
     else:
         per_row = np.r_[np.minimum(counts, cap), 0].astype(np.int32)
         for off in inner:
