@@ -584,6 +584,7 @@ class Registrar:
             for h in hypotheses
         ]
         passed = [t for t in tries if not t.reason]
+        moved = ""  # what ICP alone saw of the motion, where the prior repeated itself
         if repeat:
             alone, followed = tries
             moved = _motion(alone.step)
@@ -624,7 +625,7 @@ class Registrar:
         # repeat ICP alone registered is still the prior's word for the frame, one message late
         # (a slow pose topic), or right (a frozen prior at rest); a frozen one the view moved
         # away from is no word at all, and the loop closure then does without the prior.
-        said = virtual if icp_alone and not (frozen and _motion(best.step)) else best.prior
+        said = virtual if icp_alone and not (frozen and moved) else best.prior
         self.counters.accepted += 1
         if relocalising:
             self.counters.relocalised += 1
