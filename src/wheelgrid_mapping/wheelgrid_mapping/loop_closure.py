@@ -596,6 +596,7 @@ def close_loops(
         world = transform(pts, a) if pts.size else np.zeros((1, 3))
         boxes.append((world.min(axis=0), world.max(axis=0)))
     right = None
+    tilt_sigma_deg = None  # the odometry's roll and pitch sigma where it is not cfg's
     if g_up is not None and cfg.manhattan:
         readings = []
         for g, a in zip(groups, anchors, strict=True):
@@ -615,7 +616,11 @@ def close_loops(
         if right.frame(anchors, g_up)[1]:
             # The right angles hold every submap's heading: the online turns between them
             # need not be held as tightly as alone (every solve below, and the share of the
-            # prior's drift ICP kept, read the odometry's rotation sigma from ``cfg``).
+            # prior's drift ICP kept, read the odometry's rotation sigma from ``cfg``). Their
+            # heading only: nothing else in the graph holds roll and pitch (loop edges move x,
+            # y and yaw), and loosened with the heading they tilted a 74 s simulated run by
+            # 2 deg and its map by 28 cm (docs/mapping-fidelity.md).
+            tilt_sigma_deg = cfg.odometry_sigma_deg
             cfg = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
         else:
             out.manhattan_note, right = right.note, None
@@ -686,7 +691,9 @@ def close_loops(
     prior_yaw: PriorYaw | None = None
     for k in range(cfg.drift_passes):
         anchors = [current[g[0]] for g in groups]
-        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg, prior_yaw, g_up, right)
+        nodes, kept, rejected = solve_rejecting(
+            anchors, edges, radii, cfg, prior_yaw, g_up, right, tilt_sigma_deg=tilt_sigma_deg
+        )
         out.rejected += rejected
         out.pruned = len(edges) - len(kept)
         out.passes = k + 1
@@ -723,7 +730,7 @@ def close_loops(
         # and the map went wrong by 4 cm (docs/mapping-fidelity.md).
         walls.associate(nodes)
         nodes, kept, rejected = solve_rejecting(
-            anchors, edges, radii, cfg, prior_yaw, g_up, right, walls
+            anchors, edges, radii, cfg, prior_yaw, g_up, right, walls, tilt_sigma_deg
         )
         out.rejected += rejected
         out.pruned = len(edges) - len(kept)
@@ -1324,11 +1331,15 @@ def _solve(
     up: np.ndarray | None = None,
     right: RightAngles | None = None,
     walls: Walls | None = None,
+    tilt_sigma_deg: float | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]]]:
     """Optimised node poses of the graph with odometry edges from ``anchors`` and the loop
     edges; and the ``(i, j)`` of the loop edges the line process kept. With ``prior_yaw`` (and
     ``up``) every step it is used on (:meth:`PriorYaw.used`) also gets the prior's corrected
-    turn, and the odometry's turn there is trusted less by the drift ICP kept."""
+    turn, and the odometry's turn there is trusted less by the drift ICP kept. With ``up``
+    and ``tilt_sigma_deg``, the odometry's roll and pitch (and the right-angle frame's pin to
+    node 0) are trusted to that instead of ``cfg.odometry_sigma_deg``, which then holds the
+    turn about ``up`` only."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -1336,17 +1347,23 @@ def _solve(
     for a in anchors:
         graph.nodes.append(reg.PoseGraphNode(a))
     rot_var = math.radians(cfg.odometry_sigma_deg) ** 2
+    tilt_var = rot_var
+    if up is not None and tilt_sigma_deg is not None:
+        tilt_var = math.radians(tilt_sigma_deg) ** 2
     odo_info = np.diag([1.0 / rot_var] * 3 + [1.0 / cfg.odometry_sigma**2] * 3)
     prior_edges = []
     for i in range(len(anchors) - 1):
         rel = np.linalg.inv(anchors[i + 1]) @ anchors[i]
         info = odo_info
-        if prior_yaw is not None and up is not None and prior_yaw.used(i):
+        prior_used = prior_yaw is not None and up is not None and prior_yaw.used(i)
+        if up is not None and (prior_used or tilt_var != rot_var):
             g = anchors[i][:3, :3].T @ up
+            yaw_var = rot_var
+            if prior_yaw is not None and prior_used:
+                yaw_var += prior_yaw.odometry_bias(i) ** 2
+                prior_edges.append((i, *prior_yaw.edge(i, anchors, up)))
             info = odo_info.copy()
-            yaw_var = rot_var + prior_yaw.odometry_bias(i) ** 2
-            info[:3, :3] = (np.eye(3) - np.outer(g, g)) / rot_var + np.outer(g, g) / yaw_var
-            prior_edges.append((i, *prior_yaw.edge(i, anchors, up)))
+            info[:3, :3] = (np.eye(3) - np.outer(g, g)) / tilt_var + np.outer(g, g) / yaw_var
         graph.edges.append(reg.PoseGraphEdge(i, i + 1, rel, info, uncertain=False))
     weight = 3.0 / cfg.loop_sigma**2
     for i, j, T, H, S in edges:
@@ -1365,7 +1382,7 @@ def _solve(
         graph.edges.append(reg.PoseGraphEdge(i, i + 1, T, info, uncertain=False))
     frame_edges = None
     if right is not None and up is not None:
-        frame_edges = right.edges(anchors, up, rot_var, cfg.odometry_sigma**2)
+        frame_edges = right.edges(anchors, up, tilt_var, cfg.odometry_sigma**2)
     if frame_edges is not None:  # certain too: each reading is gated and weighted by its error
         frame, to_frame = frame_edges
         graph.nodes.append(reg.PoseGraphNode(frame))
@@ -1403,6 +1420,7 @@ def solve_rejecting(
     up: np.ndarray | None = None,
     right: RightAngles | None = None,
     walls: Walls | None = None,
+    tilt_sigma_deg: float | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]], int]:
     """Node poses of the graph solved without the loop edges it cannot agree with; the
     ``(i, j)`` of the loop edges kept, and how many were rejected (removed from ``edges``).
@@ -1413,7 +1431,7 @@ def solve_rejecting(
     by more than ``cfg.max_loop_residual`` goes, the worst first, and the graph is solved again
     (one at a time: the worst edge's pull is often what makes a good neighbour disagree).
     """
-    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right, walls)
+    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right, walls, tilt_sigma_deg)
     rejected = 0
     while cfg.max_loop_residual > 0 and edges:
         worst, residual = _worst_loop_edge(anchors, nodes, edges, kept, radii, cfg)
@@ -1421,7 +1439,9 @@ def solve_rejecting(
             break
         del edges[worst]
         rejected += 1
-        nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right, walls)
+        nodes, kept = _solve(
+            anchors, edges, radii, cfg, prior_yaw, up, right, walls, tilt_sigma_deg
+        )
     return nodes, kept, rejected
 
 
