@@ -176,9 +176,10 @@ class LoopClosureConfig:
     )
     manhattan_odometry_sigma_deg: float = field(
         0.3,
-        "with the right angles in the graph, the online turn between consecutive submaps is "
-        "trusted to this instead of odometry_sigma_deg: the right angles hold the heading, and "
-        "online ICP's turn over a 2 s step was 0.2-0.6 deg off on the simulated runs",
+        "with the right angles in the graph, the online turn between consecutive submaps about "
+        "up is trusted to this instead of odometry_sigma_deg (roll and pitch keep that): the "
+        "right angles hold the heading, and online ICP's turn over a 2 s step was 0.2-0.6 deg "
+        "off on the simulated runs",
         "deg",
     )
     manhattan_min_share: float = field(
