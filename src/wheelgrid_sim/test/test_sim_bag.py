@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -173,6 +174,14 @@ def test_cli_drives_the_path_at_the_chairs_speed_unless_told_otherwise(
     err = capsys.readouterr().err
     assert "drive the path at 2.30 m/s, faster than a chair's 3 km/h" in err, err
     assert "--frames 84 drives it at 0.8 m/s" in err
+    # --back-to-start: the way back too, at the same speed, ending where it began
+    assert cli_main([*argv, str(tmp_path / "c"), "--back-to-start"]) == 0
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "wrote 149 frames (2 Hz" in summary and "driving 0.80 m/s" in summary, summary
+    truth = json.loads((tmp_path / "c" / "truth.json").read_text())
+    assert truth["back_to_start"] is True
+    _, poses = read_tum(tmp_path / "c" / "poses.tum")
+    np.testing.assert_allclose(poses[-1][:2, 3], poses[0][:2, 3], atol=1e-6)
 
 
 def test_odometry_is_arkit_like(sim_clean: Path) -> None:

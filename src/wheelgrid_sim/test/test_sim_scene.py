@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from collections import deque
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from wheelgrid_common.map_io import FREE, OCCUPIED
 from wheelgrid_sim import Scene, make_trajectory, paper_scene, random_scene
+from wheelgrid_sim.trajectory import _knots, nominal_duration, scene_path
 
 PAPER_LAYOUT = [
     "......#.",
@@ -166,6 +168,28 @@ def test_paper_trajectory_is_wheelchair_like() -> None:
     for rot in poses[:, :3, :3]:
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(rot) == pytest.approx(1.0)
+
+
+def test_a_path_back_to_the_start_ends_where_it_began() -> None:
+    """``back_to_start`` (a scan that closes its loop): the paper route and a random room's lap
+    go on to their start, facing as they began, as clear of obstacles and as slow as the
+    route before, which they follow unchanged up to its end."""
+    for s in (paper_scene(), random_scene(3)):
+        plain = nominal_duration(s)
+        total = nominal_duration(s, back_to_start=True)
+        assert total > plain
+        n = round(total * 5.0) + 1
+        _, poses = make_trajectory(s, n, 5.0, 7, back_to_start=True)
+        np.testing.assert_allclose(poses[-1, :2, 3], poses[0, :2, 3], atol=1e-9)
+        start, segs = scene_path(s, back_to_start=True)
+        end = _knots(start, segs)[-1]  # the chair's heading (the phone sweeps about it)
+        assert math.remainder(end.heading - start[2], math.tau) == pytest.approx(0.0, abs=1e-12)
+        before = _knots(*scene_path(s))
+        assert _knots(start, segs)[: len(before)] == before  # the same route up to its old end
+        speed = np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1) * 5.0
+        assert speed.max() < 0.85
+        for p in poses:
+            assert s.is_free_at(p[0, 3], p[1, 3], 0.35 if s.name == "paper" else 0.3, 1.3)
 
 
 def test_distance_to_surfaces_counts_only_faces_seen_from_inside_the_room() -> None:

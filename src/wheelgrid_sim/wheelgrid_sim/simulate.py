@@ -158,12 +158,14 @@ def simulate(
     noise: bool = True,
     odometry: bool = True,
     on_frame: Callable[[int], None] | None = None,
+    back_to_start: bool = False,
 ) -> SimResult:
     """Render ``frames`` depth frames and write the bag plus ground truth under ``out_dir``.
 
     Raises ``ValueError`` for bad arguments and ``BagError`` when ``out_dir/scan`` exists
     (never overwrite a recording). ``on_frame(i)`` is called after each frame (progress bars).
     ``odometry`` adds ``/iphone/odometry``: the ARKit-like pose with drift, as a phone gives it.
+    ``back_to_start``: the path goes on to where it began (:func:`make_trajectory`).
     """
     t0 = time.monotonic()
     if frames < 1:
@@ -180,7 +182,7 @@ def simulate(
         raise BagError(f"{bag}: already exists; choose a new --out or remove it")
     out.mkdir(parents=True, exist_ok=True)
 
-    _, poses = make_trajectory(sc, frames, rate, seed)
+    _, poses = make_trajectory(sc, frames, rate, seed, back_to_start)
     stamps_ns = [frame_stamp_ns(i, rate) for i in range(frames)]
     stamps_s = np.array([ns / 1e9 for ns in stamps_ns])
     m_from_r = map_from_room(poses[0])
@@ -192,6 +194,7 @@ def simulate(
     truth = json.loads(files["truth"].read_text())
     truth["odometry_topic"] = ODOM_TOPIC if odometry else None
     truth["odom_from_room"] = o_from_r.tolist()
+    truth["back_to_start"] = bool(back_to_start)
     files["truth"].write_text(json.dumps(truth, indent=1) + "\n")
 
     from builtin_interfaces.msg import Time

@@ -37,13 +37,15 @@ class Segment:
     heading: float = 0.0  # rad, for "turn": the heading to turn to
 
 
-def paper_path() -> tuple[tuple[float, float, float], list[Segment]]:
+def paper_path(back_to_start: bool = False) -> tuple[tuple[float, float, float], list[Segment]]:
     """Start (x, y, heading) and segments for the paper scene (see ``paper_scene``).
 
     Start at the centre of cell (2,0) looking +x; glance north-west (the corner the eastward
     drive never sees); drive east along row 2; down column 5; into the aisle between the two
     rows of tables (north of Barrier 2's post) and reverse out; down column 5 again, under
     Barrier 2; then west along row 6. Every segment keeps >= 0.35 m from obstacles below 1.3 m.
+    ``back_to_start``: then the way back, east along row 6, up column 5 and west along row 2,
+    ending where it began, facing as it began (a scan that closes its loop: 74 s, not 42).
     """
     d = math.radians
     segs = [
@@ -62,11 +64,24 @@ def paper_path() -> tuple[tuple[float, float, float], list[Segment]]:
         Segment("turn", heading=d(-180)),
         Segment("drive", 1.2, 1.8),
     ]
+    if back_to_start:
+        segs += [
+            Segment("turn", heading=d(0)),
+            Segment("drive", 6.6, 1.8),
+            Segment("turn", heading=d(90)),
+            Segment("drive", 6.6, 6.6),
+            Segment("turn", heading=d(180)),
+            Segment("drive", 0.6, 6.6),
+            Segment("turn", heading=d(360)),
+        ]
     return (0.6, 6.6, 0.0), segs
 
 
-def ring_path(scene: Scene, inset: float = 0.6) -> tuple[tuple[float, float, float], list[Segment]]:
-    """Counter-clockwise lap ``inset`` from the walls (random scenes keep that ring free)."""
+def ring_path(
+    scene: Scene, inset: float = 0.6, back_to_start: bool = False
+) -> tuple[tuple[float, float, float], list[Segment]]:
+    """Counter-clockwise lap ``inset`` from the walls (random scenes keep that ring free);
+    ``back_to_start``: on to the start, facing as it began."""
     x0, y0, x1, y1 = scene.room
     a, b, c, e = x0 + inset, y0 + inset, x1 - inset, y1 - inset
     h = math.pi / 2
@@ -79,7 +94,18 @@ def ring_path(scene: Scene, inset: float = 0.6) -> tuple[tuple[float, float, flo
         Segment("turn", heading=3 * h),
         Segment("drive", a, b + inset),
     ]
+    if back_to_start:
+        segs += [Segment("drive", a, b), Segment("turn", heading=4 * h)]
     return (a, b, 0.0), segs
+
+
+def scene_path(
+    scene: Scene, back_to_start: bool = False
+) -> tuple[tuple[float, float, float], list[Segment]]:
+    """The paper scene's :func:`paper_path`, any other scene's :func:`ring_path`."""
+    if scene.name == "paper":
+        return paper_path(back_to_start)
+    return ring_path(scene, back_to_start=back_to_start)
 
 
 @dataclass
@@ -136,11 +162,12 @@ def camera_pose(
 
 
 def make_trajectory(
-    scene: Scene, frames: int, rate: float, seed: int = 0
+    scene: Scene, frames: int, rate: float, seed: int = 0, back_to_start: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(stamps (N,) s, poses (N, 4, 4) room_from_optical)`` covering the scene's whole path.
 
-    The paper scene uses :func:`paper_path`, any other scene :func:`ring_path`. Camera height
+    The paper scene uses :func:`paper_path`, any other scene :func:`ring_path` (either with
+    ``back_to_start``). Camera height
     wanders in 0.9-1.2 m and pitch in 15-25 deg down (so bars above the camera come into view);
     the seed sets those phases and a +-1 deg hand tremor in roll.
     """
@@ -148,8 +175,7 @@ def make_trajectory(
         raise ValueError("frames must be >= 1")
     if rate <= 0:
         raise ValueError("rate must be > 0")
-    start, segs = paper_path() if scene.name == "paper" else ring_path(scene)
-    knots = _knots(start, segs)
+    knots = _knots(*scene_path(scene, back_to_start))
     ts = np.array([k.t for k in knots])
     total = ts[-1]
     rng = np.random.default_rng(seed)
@@ -171,10 +197,9 @@ def make_trajectory(
     return stamps, poses
 
 
-def nominal_duration(scene: Scene) -> float:
+def nominal_duration(scene: Scene, back_to_start: bool = False) -> float:
     """Seconds the scene's path takes at the nominal speed (frames = duration * rate + 1)."""
-    start, segs = paper_path() if scene.name == "paper" else ring_path(scene)
-    return _knots(start, segs)[-1].t
+    return _knots(*scene_path(scene, back_to_start))[-1].t
 
 
 def stamp_ns(stamps: np.ndarray) -> np.ndarray:
