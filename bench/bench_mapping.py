@@ -918,17 +918,29 @@ def peak_memory() -> None:
     row("peak memory of the frame-preparing second process (RSS)", CHILD_PEAK[0] / 2**20, "MiB")
 
 
-def fresh_sim(out: Path, seed: int) -> Path:
+def fresh_sim(out: Path, seed: int, back_to_start: bool = False) -> Path:
     """``out``: a fresh simulated run of the paper room as the bundled bag was made (210 frames
-    at 5 Hz, every 3rd pixel), for the runs that are not the one the defaults were tuned on."""
-    from wheelgrid_sim import simulate
+    at 5 Hz, every 3rd pixel), for the runs that are not the one the defaults were tuned on;
+    ``back_to_start``: the route that goes on to where it began (371 frames)."""
+    from wheelgrid_sim import paper_scene, simulate
+    from wheelgrid_sim.trajectory import nominal_duration
 
-    simulate(out, seed=seed, frames=210, rate=5.0, stride=3)
+    frames = round(nominal_duration(paper_scene(), back_to_start) * 5.0) + 1
+    simulate(out, seed=seed, frames=frames, rate=5.0, stride=3, back_to_start=back_to_start)
     return out
 
 
-def simulated_runs(bundled: Path, seeds: list[int], tmp: Path) -> list[tuple[str, Path]]:
-    """``(label, run)`` of the bundled bag and a fresh simulation per seed (under ``tmp``)."""
+def simulated_runs(
+    bundled: Path, seeds: list[int], tmp: Path, back_to_start: bool = False
+) -> list[tuple[str, Path]]:
+    """``(label, run)`` of the bundled bag and a fresh simulation per seed (under ``tmp``);
+    ``back_to_start``: every run on the route back to its start, the bundled bag's too
+    (simulated again with its seed, 7)."""
+    if back_to_start:
+        return [
+            (f"sim seed {seed} back to start", fresh_sim(tmp / str(seed), seed, True))
+            for seed in [7, *seeds]
+        ]
     sims = [("sim paper room (bundled bag)", bundled)]
     for seed in seeds:
         sims.append((f"sim seed {seed}", fresh_sim(tmp / str(seed), seed)))
@@ -1127,6 +1139,13 @@ def main(argv: list[str] | None = None) -> int:
         "run's figures and the share of draws that meet the targets (4 draws: about 35 min)",
     )
     ap.add_argument(
+        "--back-to-start",
+        action="store_true",
+        help="with --draws, --face-frames or --loop-edges: every run on the route that goes on "
+        "to where it began (wheelgrid simulate --back-to-start, 371 frames), the bundled bag "
+        "simulated again that way with its seed (7)",
+    )
+    ap.add_argument(
         "--face-frames",
         action="store_true",
         help="only the simulated runs with the prior (the bundled bag and --fresh-seed), once "
@@ -1141,6 +1160,8 @@ def main(argv: list[str] | None = None) -> int:
         "and measured on submaps built from the true poses (about a minute a run)",
     )
     args = ap.parse_args(argv)
+    if args.back_to_start and not (args.draws or args.face_frames or args.loop_edges):
+        ap.error("--back-to-start goes with --draws, --face-frames or --loop-edges")
     # the graph and map settings apply to every mode below
     if args.no_prior_drift:
         LOOP_OVERRIDES["prior_drift"] = False
@@ -1162,13 +1183,13 @@ def main(argv: list[str] | None = None) -> int:
         args.fresh_seed = [] if args.quick else list(range(11, 20))
     if args.face_frames:
         with tempfile.TemporaryDirectory() as tmp:
-            face_frames(simulated_runs(args.sim, args.fresh_seed, Path(tmp)))
+            face_frames(simulated_runs(args.sim, args.fresh_seed, Path(tmp), args.back_to_start))
         if args.json:
             args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
         return 0
     if args.loop_edges:
         with tempfile.TemporaryDirectory() as tmp:
-            loop_edges(simulated_runs(args.sim, args.fresh_seed, Path(tmp)))
+            loop_edges(simulated_runs(args.sim, args.fresh_seed, Path(tmp), args.back_to_start))
         if args.json:
             args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
         return 0
@@ -1176,7 +1197,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.draws < 1:
             ap.error("--draws needs at least 1")
         with tempfile.TemporaryDirectory() as tmp:
-            draws(simulated_runs(args.sim, args.fresh_seed, Path(tmp)), args.draws)
+            sims = simulated_runs(args.sim, args.fresh_seed, Path(tmp), args.back_to_start)
+            draws(sims, args.draws)
         if args.json:
             args.json.write_text(json.dumps({"rows": ROWS}, indent=2))
         return 0
