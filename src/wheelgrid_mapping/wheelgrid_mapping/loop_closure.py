@@ -619,8 +619,8 @@ def close_loops(
             # need not be held as tightly as alone (every solve below, and the share of the
             # prior's drift ICP kept, read the odometry's rotation sigma from ``cfg``). Their
             # heading only: nothing else in the graph holds roll and pitch (loop edges move x,
-            # y and yaw), and loosened with the heading they tilted a 74 s simulated run by
-            # 2 deg and its map by 28 cm (docs/mapping-fidelity.md).
+            # y and yaw), and loosened with the heading they let a 74 s simulated run lean
+            # 2 deg and end 28 cm off (docs/mapping-fidelity.md).
             tilt_sigma_deg = cfg.odometry_sigma_deg
             cfg = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
         else:
