@@ -579,24 +579,26 @@ def test_the_right_angles_loosen_the_heading_only() -> None:
     """The right angles hold every submap's heading, so the online turns between submaps are
     trusted less (``manhattan_odometry_sigma_deg``); their roll and pitch are not: nothing else
     in the graph holds those. Loosened with the heading, a 74 s simulated run came out tilted
-    by up to 2 deg and 28 cm off at its end (docs/mapping-fidelity.md). Here: the lap seen
-    through an upright phone (optical frame: z forward, y down), odometry turning 0.08 deg and
-    sliding 8 mm too far a frame. The graph turns it back about up and leaves its tilt as it
-    was to 0.005 deg; with roll and pitch loosened too, as before, it tilted by 0.019."""
+    by up to 2 deg and 28 cm off at its end (docs/mapping-fidelity.md). Here: 20 views of the
+    lap (every 0.4 s) seen through an upright phone (optical frame: z forward, y down),
+    odometry turning 0.16 deg and sliding 16 mm too far a view. The graph turns it back about
+    up and leaves its tilt as it was to 0.003 deg; with roll and pitch loosened too, as
+    before, it tilted by 0.031."""
     body_from_optical = np.eye(4)
     body_from_optical[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
     world = room_world(5)
     rng = np.random.default_rng(6)
     truth = []
-    for k in range(40):
-        a = 2 * math.pi * k / 40
+    for k in range(20):
+        a = 2 * math.pi * k / 20
         truth.append(pose(3.0 + 1.2 * math.cos(a), 2.5 + 1.2 * math.sin(a), a) @ body_from_optical)
     frames = [sensor_view(world, T, rng) for T in truth]
+    stamps = [0.4 * k for k in range(20)]
     up = np.array([0.0, 0.0, 1.0])
     odo = [truth[0]]
     for k in range(1, len(truth)):
         g = truth[k][:3, :3].T @ up  # the turn is about up, the slide forward (optical z)
-        err = exp_se3(np.r_[0.0, 0.0, 0.008, *(math.radians(0.08) * g)])
+        err = exp_se3(np.r_[0.0, 0.0, 0.016, *(math.radians(0.16) * g)])
         odo.append(odo[-1] @ np.linalg.inv(truth[k - 1]) @ truth[k] @ err)
 
     def tilt_deg(poses: list[np.ndarray]) -> float:
@@ -607,13 +609,13 @@ def test_the_right_angles_loosen_the_heading_only() -> None:
 
     assert tilt_deg(odo) < 1e-5
     cfg = LoopClosureConfig(submap_seconds=1.0)
-    res = close_loops(frames, odo, STAMPS, cfg, up=up)
+    res = close_loops(frames, odo, stamps, cfg, up=up)
     assert res.manhattan_nodes == res.nodes  # the right angles are in
     assert worst(res.poses, truth)[1] < 0.1 < worst(odo, truth)[1]
-    assert tilt_deg(res.poses) < 0.005
+    assert tilt_deg(res.poses) < 0.008
     # roll and pitch loosened as far as the heading: what close_loops did before
-    both = close_loops(frames, odo, STAMPS, replace(cfg, odometry_sigma_deg=0.3), up=up)
-    assert tilt_deg(both.poses) > 0.01
+    both = close_loops(frames, odo, stamps, replace(cfg, odometry_sigma_deg=0.3), up=up)
+    assert tilt_deg(both.poses) > 0.015
 
 
 def test_a_room_without_right_angles_gets_no_right_angle_edges(lap) -> None:
