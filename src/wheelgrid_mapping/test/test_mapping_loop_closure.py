@@ -537,21 +537,16 @@ def test_the_right_angles_turn_back_a_stretch_no_loop_reaches(lap) -> None:
         cfg.manhattan_min_share,
         math.radians(cfg.manhattan_sigma_deg) ** 2,
     )
-    # as close_loops does once the right angles are in: the online turns trusted less, their
-    # roll and pitch as before
-    loose = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
-    tilt = cfg.odometry_sigma_deg
+    # with the right angles in, the online turns are trusted less (as close_loops does)
     fixed, _, rejected = solve_rejecting(
-        prior, second_half_loops(truth), radii, loose, None, up, right, tilt_sigma_deg=tilt
+        prior, second_half_loops(truth), radii, cfg, None, up, right
     )
     assert abs(heading_error_deg(plain, truth)[20]) > 1.0
     assert rejected == 0 and right.used >= 35
     assert np.abs(heading_error_deg(fixed, truth)).max() < 0.15
     assert worst(fixed, truth)[0] < 0.3 * worst(plain, truth)[0]
     np.testing.assert_allclose(fixed[0], prior[0], atol=1e-9)  # the reference stays
-    kept, _, _ = solve_rejecting(
-        truth, second_half_loops(truth), radii, loose, None, up, right, tilt_sigma_deg=tilt
-    )
+    kept, _, _ = solve_rejecting(truth, second_half_loops(truth), radii, cfg, None, up, right)
     assert worst(kept, truth)[0] < 0.005 and worst(kept, truth)[1] < 0.1
 
 
@@ -698,7 +693,6 @@ def test_walls_hold_a_stretch_no_loop_reaches(lap) -> None:
             [] if r is None else wall_planes(pc, g, r[0], cfg.wall_min_points, cfg.wall_sigma)
         )
     right = RightAngles(readings, math.radians(5.0), 0.5, math.radians(0.3) ** 2)
-    loose = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
     radii = [2.0] * len(truth)
 
     def error(poses: list[np.ndarray]) -> float:
@@ -706,10 +700,10 @@ def test_walls_hold_a_stretch_no_loop_reaches(lap) -> None:
             float(np.linalg.norm(p[:3, 3] - t[:3, 3])) for p, t in zip(poses, truth, strict=True)
         )
 
-    plain, _, _ = solve_rejecting(prior, second_half_loops(truth), radii, loose, None, up, right)
+    plain, _, _ = solve_rejecting(prior, second_half_loops(truth), radii, cfg, None, up, right)
     walls = Walls(planes, cfg.wall_gate, cfg.manhattan_gate_deg)
     held, _, rejected = solve_rejecting(
-        prior, second_half_loops(truth), radii, loose, None, up, right, walls
+        prior, second_half_loops(truth), radii, cfg, None, up, right, walls
     )
     assert error(plain) > 0.05
     assert rejected == 0 and walls.used == 4 and walls.edges_used >= 40
@@ -717,7 +711,7 @@ def test_walls_hold_a_stretch_no_loop_reaches(lap) -> None:
     np.testing.assert_allclose(held[0], prior[0], atol=1e-9)  # the reference stays
     walls.associate(truth)
     kept, _, _ = solve_rejecting(
-        truth, second_half_loops(truth), radii, loose, None, up, right, walls
+        truth, second_half_loops(truth), radii, cfg, None, up, right, walls
     )
     assert error(kept) < 0.005
 

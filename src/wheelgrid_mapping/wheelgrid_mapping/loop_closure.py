@@ -59,7 +59,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from dataclasses import field as dc_field
 from typing import Any, TypeVar
 
@@ -597,7 +597,6 @@ def close_loops(
         world = transform(pts, a) if pts.size else np.zeros((1, 3))
         boxes.append((world.min(axis=0), world.max(axis=0)))
     right = None
-    tilt_sigma_deg = None  # the odometry's roll and pitch sigma where it is not cfg's
     if g_up is not None and cfg.manhattan:
         readings = []
         for g, a in zip(groups, anchors, strict=True):
@@ -614,16 +613,7 @@ def close_loops(
             cfg.manhattan_min_share,
             math.radians(cfg.manhattan_sigma_deg) ** 2,
         )
-        if right.frame(anchors, g_up)[1]:
-            # The right angles hold every submap's heading: the online turns between them
-            # need not be held as tightly as alone (every solve below, and the share of the
-            # prior's drift ICP kept, read the odometry's rotation sigma from ``cfg``). Their
-            # heading only: nothing else in the graph holds roll and pitch (loop edges move x,
-            # y and yaw), and loosened with the heading they let a 74 s simulated run lean
-            # 2 deg and end 28 cm off (docs/mapping-fidelity.md).
-            tilt_sigma_deg = cfg.odometry_sigma_deg
-            cfg = replace(cfg, odometry_sigma_deg=cfg.manhattan_odometry_sigma_deg)
-        else:
+        if not right.frame(anchors, g_up)[1]:
             out.manhattan_note, right = right.note, None
     # Loop edges: ICP between overlapping submaps, once. ``T`` is the ICP result, ``H`` its
     # information (source frame, horizontal part only when ``up`` is known), ``S`` that
@@ -692,9 +682,7 @@ def close_loops(
     prior_yaw: PriorYaw | None = None
     for k in range(cfg.drift_passes):
         anchors = [current[g[0]] for g in groups]
-        nodes, kept, rejected = solve_rejecting(
-            anchors, edges, radii, cfg, prior_yaw, g_up, right, tilt_sigma_deg=tilt_sigma_deg
-        )
+        nodes, kept, rejected = solve_rejecting(anchors, edges, radii, cfg, prior_yaw, g_up, right)
         out.rejected += rejected
         out.pruned = len(edges) - len(kept)
         out.passes = k + 1
@@ -703,7 +691,9 @@ def close_loops(
             break
         if k == 0 and priors is not None and cfg.prior_drift:
             measured = [(i, j, T) for i, j, T, _, _ in edges if (i, j) in kept]
-            prior_yaw = _prior_yaw(out, cfg, groups, measured, priors, current, stamps, g_up)
+            prior_yaw = _prior_yaw(
+                out, cfg, groups, measured, priors, current, stamps, g_up, right is not None
+            )
             if prior_yaw is not None:
                 continue  # solve again with the prior's turns beside the odometry's
         if len(kept) < cfg.drift_min_edges:
@@ -731,7 +721,7 @@ def close_loops(
         # and the map went wrong by 4 cm (docs/mapping-fidelity.md).
         walls.associate(nodes)
         nodes, kept, rejected = solve_rejecting(
-            anchors, edges, radii, cfg, prior_yaw, g_up, right, walls, tilt_sigma_deg
+            anchors, edges, radii, cfg, prior_yaw, g_up, right, walls
         )
         out.rejected += rejected
         out.pruned = len(edges) - len(kept)
@@ -1163,6 +1153,17 @@ _MIN_TURN_VARIANCE = math.radians(0.01) ** 2  # no step of any prior is trusted 
 PriorEdge = tuple[np.ndarray, np.ndarray]
 
 
+def _odometry_turn_variance(cfg: LoopClosureConfig, right_angles: bool) -> float:
+    """rad^2: how far the online turn about up between consecutive nodes is trusted. With the
+    right angles in the graph (``right_angles``) they hold every submap's heading, so the turn
+    need not be held as tightly as alone (``manhattan_odometry_sigma_deg``). The turn only:
+    nothing else in the graph holds roll and pitch (loop edges move x, y and yaw), and
+    loosened with the heading they let a 74 s simulated run lean 2 deg and end 28 cm off
+    (docs/mapping-fidelity.md); they keep ``odometry_sigma_deg``."""
+    sigma = cfg.manhattan_odometry_sigma_deg if right_angles else cfg.odometry_sigma_deg
+    return math.radians(sigma) ** 2
+
+
 def _prior_yaw(
     out: LoopClosureResult,
     cfg: LoopClosureConfig,
@@ -1172,9 +1173,11 @@ def _prior_yaw(
     poses: Sequence[np.ndarray],
     stamps: Sequence[float],
     up: np.ndarray,
+    right_angles: bool = False,
 ) -> PriorYaw | None:
     """The prior's turns as :class:`PriorYaw`, once the loops (``measured``: kept edges' ICP
-    results) have measured its drift; or None, with a note saying why not.
+    results) have measured its drift; or None, with a note saying why not. ``right_angles``:
+    they are in the graph (:func:`_odometry_turn_variance`).
 
     The drift ``r`` is believed only when ``drift_min_edges`` loops measured it, it is within
     ``max_drift_deg_per_m`` and at least twice its standard error (a rate fitted to loops
@@ -1203,7 +1206,7 @@ def _prior_yaw(
     walk = float(residual**2 @ dt) / max(float(dt @ dt), 1e-12)
     out.prior_walk_deg_per_sqrt_s = math.degrees(math.sqrt(walk))
     yaw = PriorYaw(prior_nodes, travelled, times, rate, stderr, walk)
-    yaw.kept = kept_drift(yaw, anchors, up, math.radians(cfg.odometry_sigma_deg) ** 2)
+    yaw.kept = kept_drift(yaw, anchors, up, _odometry_turn_variance(cfg, right_angles))
     out.prior_steps = int((yaw.kept > 0.0).sum())
     if out.prior_steps == 0:
         out.prior_drift_note = "online ICP kept none of the prior's drift on any stretch"
@@ -1332,15 +1335,13 @@ def _solve(
     up: np.ndarray | None = None,
     right: RightAngles | None = None,
     walls: Walls | None = None,
-    tilt_sigma_deg: float | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]]]:
     """Optimised node poses of the graph with odometry edges from ``anchors`` and the loop
     edges; and the ``(i, j)`` of the loop edges the line process kept. With ``prior_yaw`` (and
     ``up``) every step it is used on (:meth:`PriorYaw.used`) also gets the prior's corrected
-    turn, and the odometry's turn there is trusted less by the drift ICP kept. With ``up``
-    and ``tilt_sigma_deg``, the odometry's roll and pitch (and the right-angle frame's pin to
-    node 0) are trusted to that instead of ``cfg.odometry_sigma_deg``, which then holds the
-    turn about ``up`` only."""
+    turn, and the odometry's turn there is trusted less by the drift ICP kept. With ``right``
+    (and ``up``) the odometry's turn about up is trusted less (:func:`_odometry_turn_variance`),
+    its roll and pitch (and the right-angle frame's pin to node 0) as without."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -1348,23 +1349,23 @@ def _solve(
     for a in anchors:
         graph.nodes.append(reg.PoseGraphNode(a))
     rot_var = math.radians(cfg.odometry_sigma_deg) ** 2
-    tilt_var = rot_var
-    if up is not None and tilt_sigma_deg is not None:
-        tilt_var = math.radians(tilt_sigma_deg) ** 2
+    turn_var = rot_var
+    if up is not None:
+        turn_var = _odometry_turn_variance(cfg, right is not None)
     odo_info = np.diag([1.0 / rot_var] * 3 + [1.0 / cfg.odometry_sigma**2] * 3)
     prior_edges = []
     for i in range(len(anchors) - 1):
         rel = np.linalg.inv(anchors[i + 1]) @ anchors[i]
         info = odo_info
         prior_used = prior_yaw is not None and up is not None and prior_yaw.used(i)
-        if up is not None and (prior_used or tilt_var != rot_var):
+        if up is not None and (prior_used or turn_var != rot_var):
             g = anchors[i][:3, :3].T @ up
-            yaw_var = rot_var
+            yaw_var = turn_var
             if prior_yaw is not None and prior_used:
                 yaw_var += prior_yaw.odometry_bias(i) ** 2
                 prior_edges.append((i, *prior_yaw.edge(i, anchors, up)))
             info = odo_info.copy()
-            info[:3, :3] = (np.eye(3) - np.outer(g, g)) / tilt_var + np.outer(g, g) / yaw_var
+            info[:3, :3] = (np.eye(3) - np.outer(g, g)) / rot_var + np.outer(g, g) / yaw_var
         graph.edges.append(reg.PoseGraphEdge(i, i + 1, rel, info, uncertain=False))
     weight = 3.0 / cfg.loop_sigma**2
     for i, j, T, H, S in edges:
@@ -1383,7 +1384,7 @@ def _solve(
         graph.edges.append(reg.PoseGraphEdge(i, i + 1, T, info, uncertain=False))
     frame_edges = None
     if right is not None and up is not None:
-        frame_edges = right.edges(anchors, up, tilt_var, cfg.odometry_sigma**2)
+        frame_edges = right.edges(anchors, up, rot_var, cfg.odometry_sigma**2)
     if frame_edges is not None:  # certain too: each reading is gated and weighted by its error
         frame, to_frame = frame_edges
         graph.nodes.append(reg.PoseGraphNode(frame))
@@ -1421,7 +1422,6 @@ def solve_rejecting(
     up: np.ndarray | None = None,
     right: RightAngles | None = None,
     walls: Walls | None = None,
-    tilt_sigma_deg: float | None = None,
 ) -> tuple[list[np.ndarray], set[tuple[int, int]], int]:
     """Node poses of the graph solved without the loop edges it cannot agree with; the
     ``(i, j)`` of the loop edges kept, and how many were rejected (removed from ``edges``).
@@ -1432,7 +1432,7 @@ def solve_rejecting(
     by more than ``cfg.max_loop_residual`` goes, the worst first, and the graph is solved again
     (one at a time: the worst edge's pull is often what makes a good neighbour disagree).
     """
-    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right, walls, tilt_sigma_deg)
+    nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right, walls)
     rejected = 0
     while cfg.max_loop_residual > 0 and edges:
         worst, residual = _worst_loop_edge(anchors, nodes, edges, kept, radii, cfg)
@@ -1440,9 +1440,7 @@ def solve_rejecting(
             break
         del edges[worst]
         rejected += 1
-        nodes, kept = _solve(
-            anchors, edges, radii, cfg, prior_yaw, up, right, walls, tilt_sigma_deg
-        )
+        nodes, kept = _solve(anchors, edges, radii, cfg, prior_yaw, up, right, walls)
     return nodes, kept, rejected
 
 
