@@ -923,9 +923,9 @@ def fresh_sim(out: Path, seed: int, back_to_start: bool = False) -> Path:
     at 5 Hz, every 3rd pixel), for the runs that are not the one the defaults were tuned on;
     ``back_to_start``: the route that goes on to where it began (371 frames)."""
     from wheelgrid_sim import paper_scene, simulate
-    from wheelgrid_sim.trajectory import nominal_duration
+    from wheelgrid_sim.trajectory import nominal_duration, nominal_frames
 
-    frames = round(nominal_duration(paper_scene(), back_to_start) * 5.0) + 1
+    frames = nominal_frames(nominal_duration(paper_scene(), back_to_start), 5.0)
     simulate(out, seed=seed, frames=frames, rate=5.0, stride=3, back_to_start=back_to_start)
     return out
 

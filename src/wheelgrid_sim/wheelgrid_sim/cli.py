@@ -9,7 +9,7 @@ from wheelgrid_common.bagio import BagError
 from wheelgrid_common.fileio import out_folder
 from wheelgrid_common.progress import Progress
 from wheelgrid_sim.simulate import make_scene, simulate
-from wheelgrid_sim.trajectory import SPEED, nominal_duration
+from wheelgrid_sim.trajectory import SPEED, nominal_duration, nominal_frames
 
 CHAIR_SPEED = 3.0 / 3.6  # m/s: the paper's chair drives at <= 3 km/h
 
@@ -82,8 +82,9 @@ def main(argv: list[str] | None = None) -> int:
         print("wheelgrid simulate: --rate must be > 0 Hz", file=sys.stderr)
         return 2
     nominal = nominal_duration(make_scene(args.scene, args.seed), args.back_to_start)  # s
+    at_speed = nominal_frames(nominal, args.rate)
     if args.frames is None:
-        args.frames = round(nominal * args.rate) + 1
+        args.frames = at_speed
     # one frame stands at the start: it drives nothing
     speed = SPEED * nominal * args.rate / (args.frames - 1) if args.frames > 1 else 0.0
     if not 1 <= args.stride <= 32:
@@ -115,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             f"wheelgrid simulate: warning: {res.frames} frames at {args.rate:g} Hz drive the path "
             f"at {speed:.2f} m/s, faster than a chair's 3 km/h ({CHAIR_SPEED:.2f} m/s); the "
             f"mapper refuses steps over registration.max_speed. --frames "
-            f"{round(nominal * args.rate) + 1} drives it at {SPEED:g} m/s",
+            f"{at_speed} drives it at {SPEED:g} m/s",
             file=sys.stderr,
         )
     print(

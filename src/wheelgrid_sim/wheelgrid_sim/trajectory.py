@@ -202,6 +202,12 @@ def nominal_duration(scene: Scene, back_to_start: bool = False) -> float:
     return _knots(*scene_path(scene, back_to_start))[-1].t
 
 
+def nominal_frames(duration: float, rate: float) -> int:
+    """Frames at ``rate`` Hz that drive a path of ``duration`` s (:func:`nominal_duration`) at
+    the nominal speed: one frame stands at the start."""
+    return round(duration * rate) + 1
+
+
 def stamp_ns(stamps: np.ndarray) -> np.ndarray:
     """Stamps (s) as integer nanoseconds, exact for the epoch + i / rate form."""
     return np.round(np.asarray(stamps, dtype=np.float64) * 1e9).astype(np.int64)
