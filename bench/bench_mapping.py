@@ -94,11 +94,11 @@ def run_mapper(
     m = Mapper(pre or PreprocessConfig(**PRE_OVERRIDES), reg, cfg, keep_frames=keep)
     pipe = FramePipeline(m, cfg.prepare_ahead)
     try:
-        for n, (pts, stamp, frame_id, conf, prior) in enumerate(frames):
+        for n, (pts, stamp, frame_id, conf, prior, received) in enumerate(frames):
             if n >= total:
                 break
             if pts.shape[0]:
-                pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior)
+                pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior, received)
         pipe.flush()
     finally:
         close_pipe(pipe)
@@ -621,7 +621,7 @@ def true_pose_ceiling(sim: Path, frames_limit: int, label: str) -> None:
     poses: list[np.ndarray] = []
     stamps: list[float] = []
     priors: list[np.ndarray | None] = []
-    for n, (pts, stamp, _, conf, prior) in enumerate(frames):
+    for n, (pts, stamp, _, conf, prior, _) in enumerate(frames):
         if n >= min(total, frames_limit):
             break
         pose = gt[int(np.argmin(np.abs(gt_stamps - stamp)))]
@@ -704,7 +704,7 @@ def real_data(limit: int, interval: float) -> None:
     from wheelgrid_mapping.preprocess import preprocess
 
     T0 = None
-    for n, (pts, stamp, _, conf, pose) in enumerate(frames):
+    for n, (pts, stamp, _, conf, pose, _) in enumerate(frames):
         if n >= total:
             break
         if last is not None and stamp - last < interval:
@@ -784,7 +784,7 @@ def speed(limit: int, big: int) -> None:
     total, frames = stray_frames(stray, True)
     chunks, count = [], 0
     T0 = None
-    for grid, _, _, _, pose in frames:
+    for grid, _, _, _, pose, _ in frames:
         pts = grid.reshape(-1, 3)  # the frames come organised (H, W, 3), for the mixed pixels
         ok = np.isfinite(pts).all(axis=1)
         T0 = pose if T0 is None else T0
@@ -865,7 +865,7 @@ def stream(limit: int, rate: float = 30.0) -> None:
                     time.sleep(max(0.0, offsets[taken + 1] - now))
                     continue
                 taken = arrived if interval == 0 else taken + 1
-                pts, stamp, frame_id, conf, prior = loaded[taken]
+                pts, stamp, frame_id, conf, prior, _ = loaded[taken]
                 t1 = time.perf_counter()
                 done = pipe.push(pts, stamp, frame_id, conf, prior)
                 busy += time.perf_counter() - t1

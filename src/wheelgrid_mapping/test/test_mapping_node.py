@@ -815,6 +815,22 @@ def test_a_cloud_in_a_frame_of_the_other_convention_is_skipped_said_once_and_cou
         assert "other_frame" in node._logged
 
 
+def test_a_cloud_stamped_far_ahead_of_its_arrival_is_skipped_said_once_and_counted(tmp_path):
+    """One cloud stamped 11.6 days ahead (a driver's bad stamp): its dt let any pose through
+    the jump check. The node's clock says when it came, so it is skipped, said once and
+    counted in the status; the clouds after it map on as before."""
+
+    def ahead(k: int, cloud: Any) -> None:
+        if k == 3:
+            cloud.header.stamp.sec += 1_000_000
+
+    with mapper_in_process(tmp_path, 6, ahead) as node:
+        assert node.mapper.stamped_ahead == 1 and node.mapper.clock_jumps == 0
+        assert node.mapper.registrar.counters.accepted == 5
+        assert "stamped_ahead" in node._logged
+        assert list(np.diff(node.mapper.stamps)) == pytest.approx([0.2, 0.2, 0.4, 0.2])
+
+
 def test_the_status_counts_a_frame_that_raised_and_the_counts_add_up(tmp_path, monkeypatch):
     """A frame whose preparation or registration raised was logged and counted in report.json
     (``frames.errors``) but in no key of /wheelgrid/mapper_status: its frames_received no

@@ -560,6 +560,23 @@ def test_a_frame_stamped_in_the_future_does_not_stop_the_keyframes() -> None:
     assert admitted == [0.0, 0.2, 1e6, 0.4, 0.6, 0.8]  # 0.65 is between keyframes
     assert m.clock_jumps == 1 and m.frames_skipped == 1
     assert m.report()["frames"]["clock_jumps"] == 1
+    # with stamps alone the future one cannot be told from a pause: taken, and the mapping
+    # time (trajectory.tum's) goes on from it by the usual interval, never back
+    times = [t for _, _, t in m._admitted]
+    assert times == pytest.approx([0.0, 0.2, 1e6, 1e6 + 0.2, 1e6 + 0.4, 1e6 + 0.6])
+    assert [j["frame"] for j in m.report()["mapping_time"]["jumps"]] == [3]
+
+
+def test_a_frame_stamped_far_ahead_of_its_arrival_is_skipped_and_counted() -> None:
+    """With arrival times (a bag's log time, the node's clock) the same frame is a bad
+    stamp: skipped and counted, and no clock jump follows it (:mod:`.frame_clock`)."""
+    m = Mapper(cfg=MapperConfig(min_frame_interval=0.1))
+    stamps = [0.0, 0.2, 1e6, 0.4, 0.6, 0.65, 0.8]
+    outcomes = [m.admit(t, "base_link", 50.0 + t if t < 1e5 else 50.3) for t in stamps]
+    assert [o.cause if o else "" for o in outcomes] == ["", "", "stamped_ahead"] + [""] * 4
+    assert m.stamped_ahead == 1 and m.clock_jumps == 0 and m.frames_skipped == 2
+    assert [t for _, _, t in m._admitted] == [0.0, 0.2, 0.4, 0.6, 0.8]
+    assert m.report()["frames"]["stamped_ahead"] == 1
 
 
 def test_a_repeated_or_late_frame_is_skipped_and_the_trajectory_stays_monotone(

@@ -28,7 +28,9 @@ from .prefetch import FramePipeline
 from .registration import PRIOR_SCALE_MIN_STEP
 from .thin_check import check_thin_obstacles
 
-Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None]
+# points, stamp, frame_id, confidence, pose prior, and when it arrived (a bag's log time: none
+# in a Stray export), which tells a stamp far ahead from a pause (:mod:`.frame_clock`)
+Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None, float | None]
 
 
 class InputError(Exception):
@@ -99,7 +101,7 @@ def stray_frames(
             if fr is None:
                 if bad is not None:
                     bad.append("unreadable image")
-                yield np.empty((0, 3)), export.stamp(i), DEFAULT_FRAME_ID, None, None
+                yield np.empty((0, 3)), export.stamp(i), DEFAULT_FRAME_ID, None, None, None
                 continue
             # organised (H, W, 3): the pixel grid, for the mixed-pixel test
             pts = depth_to_points(fr.depth, fr.K).reshape(*fr.depth.shape, 3)
@@ -110,6 +112,7 @@ def stray_frames(
                 DEFAULT_FRAME_ID,
                 conf,
                 (arkit_pose_to_ros(fr.pose) if use_prior and fr.pose is not None else None),
+                None,
             )
 
     return len(export), gen()
@@ -258,7 +261,7 @@ def bag_frames(
             for _, t_ns, msg in reader.messages([name], damaged_as_none=True):
                 if msg is None:
                     bad.append("undeserialisable")
-                    yield np.empty((0, 3)), t_ns * 1e-9, "", None, None
+                    yield np.empty((0, 3)), t_ns * 1e-9, "", None, None, None
                     continue
                 try:
                     pts = read_fields(msg)
@@ -270,7 +273,7 @@ def bag_frames(
                     )
                 except CloudError as exc:
                     bad.append(exc.cause)
-                    yield np.empty((0, 3)), t_ns * 1e-9, "", None, None
+                    yield np.empty((0, 3)), t_ns * 1e-9, "", None, None, None
                     continue
                 st = msg.header.stamp
                 stamp = st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9
@@ -279,7 +282,7 @@ def bag_frames(
                     # optical frame, a body-frame bag levelled its map on a wall (the mapper
                     # node skips such clouds too)
                     bad.append(NO_FRAME_ID)
-                    yield np.empty((0, 3)), stamp, "", None, None
+                    yield np.empty((0, 3)), stamp, "", None, None, None
                     continue
                 pose = prior_for(stamp)
                 if prior and match is not None:
@@ -287,7 +290,7 @@ def bag_frames(
                     if pose is None:
                         match.missing.append(stamp)
                 # the pixel grid, for the mixed-pixel test
-                yield organised(pts, msg), stamp, msg.header.frame_id, conf, pose
+                yield organised(pts, msg), stamp, msg.header.frame_id, conf, pose, t_ns * 1e-9
         except BagError as exc:
             if damage is None:
                 raise InputError(str(exc)) from exc
@@ -512,13 +515,13 @@ def _run(args: argparse.Namespace) -> int:
         # no stop at ``total`` here: a bag's count is its metadata.yaml's, which can list fewer
         # messages than its storage holds, and stopping there dropped the rest of the
         # recording without a word (--max-frames is the islice above)
-        for pts, stamp, frame_id, conf, prior in frames:
+        for pts, stamp, frame_id, conf, prior, received in frames:
             n += 1
             if pts.shape[0] == 0:
                 bar.update(1)
                 continue
             index.push(stamp, n - 1)
-            report(pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior))
+            report(pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior, received))
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
         report(pipe.flush())
         bar.finish(f"used {mapper.registrar.counters.accepted}")

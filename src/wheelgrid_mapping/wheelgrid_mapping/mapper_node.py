@@ -151,7 +151,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._pipe_note = self._pipe.note  # a change is said once, in _report
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()
-        self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None, Any]] = deque()
+        self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None, Any, float]] = deque()
         self._stop = False
         self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
@@ -271,7 +271,10 @@ class MapperNode(Node):  # type: ignore[misc]
             return
         if msg.is_bigendian:
             self._log_once("bigendian", "big-endian PointCloud2 converted to host order", False)
-        frame = (pts, _stamp_seconds(msg.header.stamp), msg.header.frame_id, conf, msg.header.stamp)
+        # when it arrived (the node's clock), for a stamp far ahead of it (:mod:`.frame_clock`)
+        received = self.get_clock().now().nanoseconds * 1e-9
+        stamp = _stamp_seconds(msg.header.stamp)
+        frame = (pts, stamp, msg.header.frame_id, conf, msg.header.stamp, received)
         with self._slot_lock:
             if len(self._queue) >= self.max_queue:
                 self._queue.popleft()
@@ -337,7 +340,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     done = self._pipe.flush() if generation == self._generation else []
                 self._report(done, generation)
                 continue
-            pts, stamp, frame_id, conf, header_stamp = frame
+            pts, stamp, frame_id, conf, header_stamp, received = frame
             if frame_id:
                 self._sensor_frame = frame_id
             prior = self._prior_for(stamp)
@@ -358,7 +361,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     continue
                 # this frame goes to the second process; the one before it to the map
                 self._frame_ids[stamp] = (frame_id or self._sensor_frame, header_stamp)
-                done = self._pipe.push(pts, stamp, frame_id, conf, prior)
+                done = self._pipe.push(pts, stamp, frame_id, conf, prior, received)
             self._report(done, generation)
 
     def _report(
@@ -552,6 +555,8 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_between_keyframes": self.mapper.frames_skipped,
             "clock_jumps": self.mapper.clock_jumps,
             "frames_out_of_order": self.mapper.out_of_order,  # repeats, late: skipped
+            # stamped far ahead of their arrival: skipped (:mod:`.frame_clock`)
+            "frames_stamped_ahead": self.mapper.stamped_ahead,
             "frames_other_frame": self.mapper.other_frame,  # the other axis convention: skipped
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,

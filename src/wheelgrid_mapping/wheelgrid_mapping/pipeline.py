@@ -24,6 +24,7 @@ from wheelgrid_common.fileio import write_ply, write_together, write_tum
 from wheelgrid_common.params import check_finite, field, from_mapping, read_yaml
 
 from .evidence import EvidenceMap
+from .frame_clock import AHEAD_CONFIRM, FrameClock
 from .levelling import (
     DOWN_HINT,
     FloorNotFoundError,
@@ -345,7 +346,10 @@ class Mapper:
         self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
         self.frames_read = 0
         self.frames_skipped = 0
-        self.clock_jumps = 0  # frames stamped before the last keyframe (the clock went back)
+        # frames on a new time base: stamped before the last keyframe (the clock went back) or
+        # confirmed ahead (:mod:`.frame_clock`); the mapping time goes on across them
+        self.clock_jumps = 0
+        self.stamped_ahead = 0  # of frames_skipped: stamped ahead of their arrival
         self.out_of_order = 0  # of frames_skipped: repeats and late frames (LATE_FRAME_WINDOW)
         self.other_frame = 0  # of frames_skipped: a frame_id of another axis convention
         self.frames_errored = 0  # raised while prepared or registered (FrameOutcome "error")
@@ -368,7 +372,9 @@ class Mapper:
             "levelling_s": 0.0,
         }
         self._last_processed: float | None = None
-        self._admitted: list[tuple[int, float]] = []  # (index, stamp) admitted, not yet added
+        # (index, stamp, mapping time) admitted, not yet added
+        self._admitted: list[tuple[int, float, float]] = []
+        self.clock = FrameClock()
 
     def release_frames(self) -> None:
         """Stop keeping frames and free those kept: the map goes on, :meth:`close_loops` cannot.
@@ -389,9 +395,12 @@ class Mapper:
         frame_id: str = DEFAULT_FRAME_ID,
         confidence: np.ndarray | None = None,
         prior: np.ndarray | None = None,
+        received: float | None = None,
     ) -> FrameOutcome:
-        """Process one sensor-frame cloud (``(N, 3)``, NaN allowed) taken at ``stamp`` seconds."""
-        skipped = self.admit(stamp, frame_id)
+        """Process one sensor-frame cloud (``(N, 3)``, NaN allowed) taken at ``stamp`` seconds;
+        ``received``: when it arrived, on any clock that runs at the stamps' rate (a bag's log
+        time, the node's clock), which lets a stamp far ahead be told from a pause."""
+        skipped = self.admit(stamp, frame_id, received)
         if skipped is not None:
             return skipped
         try:
@@ -407,7 +416,9 @@ class Mapper:
             self._admitted.pop(0)
             self.frames_errored += 1
 
-    def admit(self, stamp: float, frame_id: str = DEFAULT_FRAME_ID) -> FrameOutcome | None:
+    def admit(
+        self, stamp: float, frame_id: str = DEFAULT_FRAME_ID, received: float | None = None
+    ) -> FrameOutcome | None:
         """The first half of :meth:`add_frame`, before any work on the points: counts the frame,
         and returns its outcome where it is not to be processed (between keyframes), else None,
         and the caller goes on with :meth:`add_prepared` for exactly this frame. Split out so
@@ -435,6 +446,23 @@ class Mapper:
                 "read wrong (set sensor_convention to override)",
                 cause="other_frame",
             )
+        verdict = self.clock.check(stamp, received)
+        if verdict.ahead_s > 0.0:
+            # Mapped, its dt of hours would let any pose through the jump check, and the
+            # trajectory would go back at the next frame (:mod:`.frame_clock`).
+            self.frames_skipped += 1
+            self.stamped_ahead += 1
+            return FrameOutcome(
+                "skipped",
+                f"stamped {verdict.ahead_s:.2f} s ahead of the time its arrival says passed "
+                "since the frames before (a bad stamp; a clock that jumped forward is taken "
+                f"after {AHEAD_CONFIRM} such frames in a row)",
+                cause="stamped_ahead",
+            )
+        jumped = verdict.jumped_forward
+        if jumped:
+            self.clock_jumps += 1
+            self._last_processed = None
         if (
             self._last_processed is not None
             and 0.0 <= self._last_processed - stamp < LATE_FRAME_WINDOW
@@ -453,6 +481,7 @@ class Mapper:
             # and the map would stop without a word.
             self.clock_jumps += 1
             self._last_processed = None
+            jumped = True
         if (
             self.cfg.min_frame_interval > 0
             and self._last_processed is not None
@@ -461,7 +490,9 @@ class Mapper:
             self.frames_skipped += 1
             return FrameOutcome("skipped", "keyframe interval")
         self._last_processed = stamp
-        self._admitted.append((self.frames_read - 1, float(stamp)))
+        index = self.frames_read - 1
+        t_map = self.clock.admit(index, stamp, received, jumped, self.cfg.min_frame_interval)
+        self._admitted.append((index, float(stamp), t_map))
         return None
 
     def add_prepared(self, prep: PreparedFrame, prior: np.ndarray | None = None) -> FrameOutcome:
@@ -469,7 +500,7 @@ class Mapper:
         ``prep`` its :func:`prepare_frame`."""
         if not self._admitted:
             raise RuntimeError("Mapper.add_prepared without a frame admitted before it")
-        index, stamp = self._admitted.pop(0)
+        index, stamp, t_map = self._admitted.pop(0)
         if prior is not None and not is_rigid(prior):
             # A NaN pose from a bridge or bag would abort KISS-ICP (Sophus) and poison the loop
             # closure's prior drift: the frame is registered without it, and it is counted.
@@ -485,14 +516,14 @@ class Mapper:
             self.frames_empty += 1
             self.failures.append({"frame": index, "stamp": stamp, "reason": EMPTY_REASON})
             return FrameOutcome("empty", "no valid points (all NaN or out of range)")
-        res = self.registrar.register(pts, stamp, prior, prep.inputs)
+        res = self.registrar.register(pts, t_map, prior, prep.inputs)
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
             self.failures.append({"frame": index, "stamp": stamp, "reason": res.reason})
             self.failed_since_used += 1
             return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
         self.failed_since_used = 0
-        self.stamps.append(float(stamp))
+        self.stamps.append(t_map)  # the mapping time: the stamp, continuous across clock jumps
         self.poses_odom.append(res.pose)
         # the prior as registration used it (None where the frame had none), its world
         # re-anchored at any jump (ARKit relocalising): gravity and the loop closure's prior
@@ -903,6 +934,7 @@ class Mapper:
                 "empty": self.frames_empty,
                 "skipped": self.frames_skipped,
                 "clock_jumps": self.clock_jumps,
+                "stamped_ahead": self.stamped_ahead,
                 "out_of_order": self.out_of_order,
                 "other_frame": self.other_frame,
                 "relocalised": c.relocalised,
@@ -915,6 +947,12 @@ class Mapper:
             "registration": {
                 "state": self.registrar.state,
                 "failed_since_used": self.failed_since_used,
+            },
+            # trajectory.tum's stamps are the frames' own plus offset_s, which changes only at
+            # a clock jump (a publisher restarted): each listed with the offset from then on
+            "mapping_time": {
+                "offset_s": round(self.clock.offset, 6),
+                "jumps": self.clock.jumps[:MAX_LISTED_FAILURES],
             },
             # every failure by reason, as `failures` names them: registration's and the frames
             # with no valid point left (all NaN, out of range), which never reach it

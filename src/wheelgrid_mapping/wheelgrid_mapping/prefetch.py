@@ -133,11 +133,12 @@ class FramePipeline:
         frame_id: str = DEFAULT_FRAME_ID,
         confidence: np.ndarray | None = None,
         prior: np.ndarray | None = None,
+        received: float | None = None,
     ) -> list[tuple[float, FrameOutcome]]:
         """Admit this frame and add the one before it: the ``(stamp, outcome)`` of every frame
         finished by this call. A frame skipped between keyframes is finished at once, so its
         outcome can come before that of the frame still in preparation."""
-        skipped = self.mapper.admit(stamp, frame_id)
+        skipped = self.mapper.admit(stamp, frame_id, received)
         if skipped is not None:
             return [(stamp, skipped)]
         previous = self._pending
