@@ -379,15 +379,29 @@ def main(argv: list[str] | None = None) -> int:
         monitor.send_goal(gx, gy, 0.0, grid.frame_id)
         t_plan = time.monotonic()
         print(f"demo: goal {goal} sent, start {start} heading {heading}", flush=True)
-        chain.wait(
-            lambda: monitor.state.plan_updates > plans_before and bool(monitor.state.plan),
-            20.0,
-            "plan",
-        )
+
+        def planned_from_start() -> bool:
+            # The start pose and the goal go out on two topics 0.5 s apart, and DDS orders
+            # nothing across topics: a planner that took the goal first planned from the
+            # mapper's last pose, and that route was taken as the demo's without a word.
+            # Its replan from the start pose, which follows, is the route to drive.
+            plan = list(monitor.state.plan)
+            return (
+                monitor.state.plan_updates > plans_before
+                and bool(plan)
+                and grid.cell_of(*plan[0]) == tuple(start)
+            )
+
+        chain.wait(planned_from_start, 20.0, "plan")
         plan_xy = list(monitor.state.plan)
         if not plan_xy:
             raise RuntimeError("the planner published no route")
         planned = [grid.cell_of(x, y) for x, y in plan_xy]
+        if planned[0] != tuple(start):
+            raise RuntimeError(
+                f"the planner's route starts in cell {planned[0]}, not on the start cell "
+                f"{tuple(start)}: it did not take the start pose sent on /initialpose"
+            )
         n_moves = len(planned) - 1
 
         def arrived() -> bool:
