@@ -133,8 +133,11 @@ def test_the_mapper_is_given_time_to_save_its_map_as_the_chain_stops(tmp_path):
     from wheelgrid_bringup.supervisor import Supervisor
 
     saved = tmp_path / "saved"
+    # SIGINT taken whatever the child inherited, as rclpy's handler takes it: a pytest-xdist
+    # worker, or a script's background job, hands its children SIGINT ignored
     code = (
         "import signal, sys, time\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
         "try:\n"
         "    time.sleep(60)\n"
