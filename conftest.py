@@ -12,6 +12,13 @@ import pytest
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+if os.environ.get("PYTEST_XDIST_WORKER", "").startswith("gw"):
+    # pytest -n: every worker inherits the run's domain, and two workers' nodes of one name
+    # (/mapper, /planner) would hear each other. Each worker takes its own, spread over 1-100.
+    _worker = int(os.environ["PYTEST_XDIST_WORKER"][2:])
+    _workers = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)
+    _base = int(os.environ["ROS_DOMAIN_ID"])
+    os.environ["ROS_DOMAIN_ID"] = str((_base - 1 + _worker * (100 // _workers)) % 100 + 1)
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="wheelgrid-test-log."))
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 

@@ -11,4 +11,7 @@ echo "test: ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTO
 ruff check src test bench conftest.py
 ruff format --check src test bench conftest.py
 mypy  # the packages' type hints (pyproject.toml's [tool.mypy])
-python -m pytest -p no:dash -p no:cacheprovider --durations=15 "$@"  # the slowest, to keep the suite short
+# Two workers (pytest-xdist), one per core, each with its own ROS domain (conftest.py); a test
+# file runs whole in one worker (--dist loadfile), so a module's nodes and fixtures stay together
+# and the live demo runs once. `make test ARGS="-n 0"` runs them in one process, as before.
+python -m pytest -p no:dash -p no:cacheprovider -n 2 --dist loadfile --durations=15 "$@"  # the slowest, to keep the suite short
