@@ -64,16 +64,24 @@ class FrameClock:
         self._intervals: deque[float] = deque(maxlen=9)  # between admitted frames (s)
         self.jumps: list[dict[str, Any]] = []
 
+    def _pace(self) -> tuple[float, float, float] | None:
+        """``(pace, stamp, receipt)``: stamp seconds per receipt second over the recent admitted
+        frames, and the last one's stamp and receipt; None before two frames moved both."""
+        if len(self._recent) < 2:
+            return None
+        (s0, r0), (s1, r1) = self._recent[0], self._recent[-1]
+        if r1 <= r0 or s1 <= s0:
+            return None
+        return (s1 - s0) / (r1 - r0), s1, r1
+
     def check(self, stamp: float, received: float | None) -> Verdict:
         """Whether ``stamp`` is further on than the stream's pace since the last admitted frame
         predicts for the time its receipt says passed (never without receipt times, nor
         before two frames have set the pace)."""
-        if received is None or len(self._recent) < 2:
+        read = self._pace()
+        if received is None or read is None:
             return Verdict()
-        (s0, r0), (s1, r1) = self._recent[0], self._recent[-1]
-        if r1 - r0 <= 0.0 or s1 - s0 <= 0.0:
-            return Verdict()
-        pace = (s1 - s0) / (r1 - r0)
+        pace, s1, r1 = read
         window = AHEAD_WINDOW * max(pace, 1.0)
         ahead = float(stamp) - (s1 + pace * max(float(received) - r1, 0.0))
         if ahead <= window:
@@ -98,10 +106,10 @@ class FrameClock:
         stamp = float(stamp)
         if jumped and self._last_time is not None:
             gap = 0.0
-            if received is not None and len(self._recent) >= 2:
-                (s0, r0), (s1, r1) = self._recent[0], self._recent[-1]
-                if r1 > r0:
-                    gap = (s1 - s0) / (r1 - r0) * (float(received) - r1)
+            read = self._pace()
+            if received is not None and read is not None:
+                pace, _, r1 = read
+                gap = pace * (float(received) - r1)
             if gap <= 0.0:
                 # the lower median: one pause (or one stamp far ahead, without arrival times to
                 # tell it) among few intervals must not become the step

@@ -11,7 +11,7 @@ import pytest
 
 from wheelgrid_common.map_io import FREE, OCCUPIED
 from wheelgrid_sim import Scene, make_trajectory, paper_scene, random_scene
-from wheelgrid_sim.trajectory import _knots, nominal_duration, scene_path
+from wheelgrid_sim.trajectory import _knots, nominal_duration, nominal_frames, scene_path
 
 PAPER_LAYOUT = [
     "......#.",
@@ -178,7 +178,7 @@ def test_a_path_back_to_the_start_ends_where_it_began() -> None:
         plain = nominal_duration(s)
         total = nominal_duration(s, back_to_start=True)
         assert total > plain
-        n = round(total * 5.0) + 1
+        n = nominal_frames(total, 5.0)
         _, poses = make_trajectory(s, n, 5.0, 7, back_to_start=True)
         np.testing.assert_allclose(poses[-1, :2, 3], poses[0, :2, 3], atol=1e-9)
         start, segs = scene_path(s, back_to_start=True)
