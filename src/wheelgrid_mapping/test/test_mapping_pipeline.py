@@ -231,8 +231,11 @@ def test_the_first_floor_fit_is_checked_on_the_whole_map(first_fit: str, monkeyp
         assert "floor_refound" not in m.level_info
         check = m.level_info["floor_check"]
         assert check["points_on_floor_found"] <= 1.1 * check["points_on_z0"]
-        # the same frame as with no check (to rounding: two runs differ by 1e-19 m)
-        assert np.allclose(m.T_map_odom, run(False).T_map_odom, rtol=0.0, atol=1e-12)
+        # the same frame as with no check, to a micrometre: KISS-ICP's threads sum in varying
+        # order (poses 1e-16 apart), and a point that crosses a voxel or inlier boundary moves
+        # the floor fit by up to 1e-8 (seen in CI with two test workers on two cores); a
+        # replaced floor would move it by centimetres
+        assert np.allclose(m.T_map_odom, run(False).T_map_odom, rtol=0.0, atol=1e-6)
     else:
         check = m.level_info["floor_check"]
         assert check["points_on_floor_found"] > 2 * check["points_on_z0"]
