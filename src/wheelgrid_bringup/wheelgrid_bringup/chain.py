@@ -83,19 +83,19 @@ class Monitor:
         self.state = ChainState()
         self.node = Node(name, context=context)
         n = self.node
-        n.create_subscription(DiagnosticArray, "/wheelgrid/mapper_status", self._on_mapper, 10)
-        n.create_subscription(PointCloud2, "/wheelgrid/map_cloud", self._on_cloud, MAP_QOS)
-        n.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
-        n.create_subscription(PathMsg, "/wheelgrid/plan", self._on_plan, MAP_QOS)
-        n.create_subscription(DiagnosticArray, "/wheelgrid/drive_state", self._on_drive, 10)
-        n.create_subscription(DiagnosticArray, "/iphone/bridge_status", self._on_bridge, 10)
-        n.create_subscription(String, "/wheelgrid/drive_commands", self._on_command, 50)
-        n.create_subscription(PoseStamped, "/wheelgrid/chair_pose", self._on_chair, 50)
-        self.goal_pub = n.create_publisher(PoseStamped, "/goal_pose", RELIABLE_QOS)
+        n.create_subscription(DiagnosticArray, "wheelgrid/mapper_status", self._on_mapper, 10)
+        n.create_subscription(PointCloud2, "wheelgrid/map_cloud", self._on_cloud, MAP_QOS)
+        n.create_subscription(OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS)
+        n.create_subscription(PathMsg, "wheelgrid/plan", self._on_plan, MAP_QOS)
+        n.create_subscription(DiagnosticArray, "wheelgrid/drive_state", self._on_drive, 10)
+        n.create_subscription(DiagnosticArray, "iphone/bridge_status", self._on_bridge, 10)
+        n.create_subscription(String, "wheelgrid/drive_commands", self._on_command, 50)
+        n.create_subscription(PoseStamped, "wheelgrid/chair_pose", self._on_chair, 50)
+        self.goal_pub = n.create_publisher(PoseStamped, "goal_pose", RELIABLE_QOS)
         self.initial_pub = n.create_publisher(
-            PoseWithCovarianceStamped, "/initialpose", RELIABLE_QOS
+            PoseWithCovarianceStamped, "initialpose", RELIABLE_QOS
         )
-        self.estop_pub = n.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+        self.estop_pub = n.create_publisher(Bool, "wheelgrid/estop", RELIABLE_QOS)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(n)
         self._stop = threading.Event()
@@ -171,7 +171,7 @@ class Monitor:
 
     def plan_readers(self) -> int:
         """Subscriptions to the plan topic this node's graph knows of (its own included)."""
-        return int(self.node.count_subscribers("/wheelgrid/plan"))
+        return int(self.node.count_subscribers("wheelgrid/plan"))
 
     # -- actions -----------------------------------------------------------------------------
     def send_initial_pose(self, x: float, y: float, yaw: float, frame: str = "map") -> None:

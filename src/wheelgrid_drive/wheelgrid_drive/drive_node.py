@@ -222,19 +222,19 @@ class DriveNode(Node):
         self._started_mono = time.monotonic()
 
         pub = self.create_publisher
-        self.pub_state = pub(DiagnosticArray, "/wheelgrid/drive_state", RELIABLE_QOS)
-        self.pub_cmds = pub(String, "/wheelgrid/drive_commands", RELIABLE_QOS)
-        self.pub_pose = pub(PoseStamped, "/wheelgrid/chair_pose", RELIABLE_QOS)
-        self.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
+        self.pub_state = pub(DiagnosticArray, "wheelgrid/drive_state", RELIABLE_QOS)
+        self.pub_cmds = pub(String, "wheelgrid/drive_commands", RELIABLE_QOS)
+        self.pub_pose = pub(PoseStamped, "wheelgrid/chair_pose", RELIABLE_QOS)
+        self.create_subscription(OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS)
         # Volatile, not the topic's transient-local: the plan the topic keeps for late joiners
         # (RViz, the monitor) is one made before this node started, and a restarted drive
         # node, its e-stop latch gone with it, drove it where the chair still stood at its
         # start. The publication-time check in _on_plan alone failed when the wall clock had
         # stepped back since (NTP): a volatile reader is never sent a plan of before.
         self._plan_sub = self.create_subscription(
-            Path, "/wheelgrid/plan", with_message_info(self._on_plan), PLAN_QOS
+            Path, "wheelgrid/plan", with_message_info(self._on_plan), PLAN_QOS
         )
-        self.create_subscription(Twist, "/cmd_vel", with_message_info(self._on_twist), RELIABLE_QOS)
+        self.create_subscription(Twist, "cmd_vel", with_message_info(self._on_twist), RELIABLE_QOS)
 
         try:
             check_no_undeclared(self)
@@ -281,14 +281,14 @@ class DriveNode(Node):
         )
         self._estop_node: Node | None = estop
         estop.create_subscription(
-            Bool, "/wheelgrid/estop", with_message_info(self._on_estop_message), RELIABLE_QOS
+            Bool, "wheelgrid/estop", with_message_info(self._on_estop_message), RELIABLE_QOS
         )
         # A best-effort e-stop publisher (a joystick, a safety bridge on sensor-data QoS)
         # matches no reliable subscription: it was never heard. This one hears it, and may
         # only latch: a clear must come reliably (a lost clear keeps the chair stopped, a lost
         # e-stop would not). A reliable publisher reaches both; the second copy is a no-op.
         estop.create_subscription(
-            Bool, "/wheelgrid/estop", with_message_info(self._on_estop_best_effort), SENSOR_QOS
+            Bool, "wheelgrid/estop", with_message_info(self._on_estop_best_effort), SENSOR_QOS
         )
         steady_timer(estop, 0.05, self._cmd_vel_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)

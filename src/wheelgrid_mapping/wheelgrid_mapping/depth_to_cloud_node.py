@@ -11,6 +11,7 @@ bridges).
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from dataclasses import dataclass
@@ -31,12 +32,12 @@ from wheelgrid_mapping.depth import (
 
 @dataclass
 class DepthToCloudConfig:
-    depth_topic: str = field("/iphone/depth/image", "depth Image (32FC1 m or 16UC1 mm)")
-    info_topic: str = field("/iphone/depth/camera_info", "CameraInfo of the depth image")
+    depth_topic: str = field("iphone/depth/image", "depth Image (32FC1 m or 16UC1 mm)")
+    info_topic: str = field("iphone/depth/camera_info", "CameraInfo of the depth image")
     confidence_topic: str = field(
-        "/iphone/confidence/image", "confidence Image (mono8/8UC1); empty = do not use one"
+        "iphone/confidence/image", "confidence Image (mono8/8UC1); empty = do not use one"
     )
-    points_topic: str = field("/iphone/points", "PointCloud2 output, in the depth image's frame")
+    points_topic: str = field("iphone/points", "PointCloud2 output, in the depth image's frame")
     min_confidence: int = field(
         1, "pixels with confidence below this become NaN (ARKit: 0 low, 1 medium, 2 high)"
     )
@@ -97,24 +98,23 @@ def _make_node() -> Any:
             streams = ["depth", "info"] + (["conf"] if use_conf else [])
             self.sync = StampSync(streams, self.cfg.sync_tolerance_s, self.cfg.queue_size)
             self.pub = self.create_publisher(PointCloud2, self.cfg.points_topic, SENSOR_QOS)
-            self.create_subscription(
-                Image, self.cfg.depth_topic, lambda m: self._add("depth", m), SENSOR_QOS
-            )
-            self.create_subscription(
-                CameraInfo, self.cfg.info_topic, lambda m: self._add("info", m), SENSOR_QOS
-            )
+            inputs = [
+                ("depth", Image, self.cfg.depth_topic),
+                ("info", CameraInfo, self.cfg.info_topic),
+            ]
             if use_conf:
-                self.create_subscription(
-                    Image, self.cfg.confidence_topic, lambda m: self._add("conf", m), SENSOR_QOS
-                )
+                inputs.append(("conf", Image, self.cfg.confidence_topic))
+            # stream -> its topic as resolved in this node's namespace, for what the node says
+            self._topics = {
+                stream: self.create_subscription(
+                    kind, topic, functools.partial(self._add, stream), SENSOR_QOS
+                ).topic_name
+                for stream, kind, topic in inputs
+            }
             self.published = 0
             self._warned: set[str] = set()
             self._seen: set[str] = set()  # streams that have had a message
-            self.get_logger().info(
-                f"{self.cfg.depth_topic} + {self.cfg.info_topic}"
-                + (f" + {self.cfg.confidence_topic}" if use_conf else "")
-                + f" -> {self.cfg.points_topic}"
-            )
+            self.get_logger().info(" + ".join(self._topics.values()) + f" -> {self.pub.topic_name}")
 
         def _warn_once(self, key: str, text: str) -> None:
             if key not in self._warned:
@@ -138,12 +138,11 @@ def _make_node() -> Any:
             the same stamp is dropped, never projected with guesses, and a camera that
             publishes no confidence image (with the default confidence_topic) had every frame
             dropped while the node said nothing."""
-            topics = {"info": self.cfg.info_topic, "conf": self.cfg.confidence_topic}
-            silent = [topics[s] for s in self.sync.streams if s not in self._seen]
+            silent = [self._topics[s] for s in self.sync.streams if s not in self._seen]
             if silent:
                 hint = (
                     " (a camera without confidence images needs confidence_topic:='')"
-                    if self.cfg.confidence_topic in silent
+                    if "conf" in self._topics and self._topics["conf"] in silent
                     else ""
                 )
                 self._warn_once(

@@ -36,6 +36,8 @@ from wheelgrid_mapping.bridge_protocol import (
 )
 from wheelgrid_mapping.depth import arkit_pose_to_ros, check_min_confidence, depth_to_points
 
+# The topics as a bag records them (`wheelgrid import-stray`) and in the root namespace; the
+# node publishes them relative to its own (`--ros-args -r __ns:=/chair1` -> /chair1/iphone/...).
 TOPIC_DEPTH = "/iphone/depth/image"
 TOPIC_INFO = "/iphone/depth/camera_info"
 TOPIC_CONF = "/iphone/confidence/image"
@@ -241,14 +243,20 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
             except (ValueError, OverflowError) as exc:  # as the other nodes: one FATAL, exit 2
                 log.fatal(f"invalid parameters: {exc}")
                 raise SystemExit(2) from exc
+            kinds = (
+                (TOPIC_DEPTH, Image),
+                (TOPIC_INFO, CameraInfo),
+                (TOPIC_CONF, Image),
+                (TOPIC_POINTS, PointCloud2),
+                (TOPIC_ODOM, Odometry),
+            )
             self._pubs = {
-                TOPIC_DEPTH: self.create_publisher(Image, TOPIC_DEPTH, SENSOR_QOS),
-                TOPIC_INFO: self.create_publisher(CameraInfo, TOPIC_INFO, SENSOR_QOS),
-                TOPIC_CONF: self.create_publisher(Image, TOPIC_CONF, SENSOR_QOS),
-                TOPIC_POINTS: self.create_publisher(PointCloud2, TOPIC_POINTS, SENSOR_QOS),
-                TOPIC_ODOM: self.create_publisher(Odometry, TOPIC_ODOM, SENSOR_QOS),
+                topic: self.create_publisher(kind, topic.lstrip("/"), SENSOR_QOS)
+                for topic, kind in kinds
             }
-            self._status_pub = self.create_publisher(DiagnosticArray, TOPIC_STATUS, RELIABLE_QOS)
+            self._status_pub = self.create_publisher(
+                DiagnosticArray, TOPIC_STATUS.lstrip("/"), RELIABLE_QOS
+            )
             self._lock = threading.Lock()
             self._offsets: dict[int, float] = {}  # client -> ROS time - phone time
             self.frames_published = 0
@@ -333,8 +341,8 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
                 # a frame published before the mapper's reader is matched here is lost, and a
                 # reader seen in another node's graph may not be matched here yet
                 **{
-                    f"readers:{topic}": pub.get_subscription_count()
-                    for topic, pub in self._pubs.items()
+                    f"readers:{pub.topic_name}": pub.get_subscription_count()
+                    for pub in self._pubs.values()
                 },
             }
             st = DiagnosticStatus(

@@ -64,7 +64,7 @@ class MapperNodeConfig:
     """The node's own parameters (the pipeline's are ``preprocess.*``, ``registration.*``,
     ``mapper.*``)."""
 
-    topic: str = field("/iphone/points", "sensor_msgs/PointCloud2 input (sensor-data QoS)")
+    topic: str = field("iphone/points", "sensor_msgs/PointCloud2 input (sensor-data QoS)")
     pose_prior_topic: str = field(
         "", "nav_msgs/Odometry pose prior (ARKit: /iphone/odometry); empty = register without"
     )
@@ -173,10 +173,10 @@ class MapperNode(Node):  # type: ignore[misc]
         # next. The stamp goes out as received: a float of epoch seconds is ~100 ns off.
         self._frame_ids: dict[float, tuple[str, Any]] = {}
 
-        self.map_pub = self.create_publisher(PointCloud2, "/wheelgrid/map_cloud", MAP_QOS)
-        self.odom_pub = self.create_publisher(Odometry, "/wheelgrid/odometry", SENSOR_QOS)
+        self.map_pub = self.create_publisher(PointCloud2, "wheelgrid/map_cloud", MAP_QOS)
+        self.odom_pub = self.create_publisher(Odometry, "wheelgrid/odometry", SENSOR_QOS)
         self.status_pub = self.create_publisher(
-            DiagnosticArray, "/wheelgrid/mapper_status", RELIABLE_QOS
+            DiagnosticArray, "wheelgrid/mapper_status", RELIABLE_QOS
         )
         self.tf_pub = None
         if tf2_available():
@@ -191,7 +191,10 @@ class MapperNode(Node):  # type: ignore[misc]
             reliability=SENSOR_QOS.reliability,
             durability=SENSOR_QOS.durability,
         )
-        self.create_subscription(PointCloud2, self.topic, self._on_cloud, cloud_qos)
+        self._cloud_sub = self.create_subscription(
+            PointCloud2, self.topic, self._on_cloud, cloud_qos
+        )
+        self._prior_sub = None
         if self.prior_topic:
             # deep history too: a pose lost while the worker holds the GIL costs a whole frame
             prior_qos = QoSProfile(
@@ -200,7 +203,9 @@ class MapperNode(Node):  # type: ignore[misc]
                 reliability=SENSOR_QOS.reliability,
                 durability=SENSOR_QOS.durability,
             )
-            self.create_subscription(Odometry, self.prior_topic, self._on_prior, prior_qos)
+            self._prior_sub = self.create_subscription(
+                Odometry, self.prior_topic, self._on_prior, prior_qos
+            )
         self.create_service(Trigger, "~/save_map", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(Trigger, "~/close_loops", self._on_close_loops)
@@ -208,7 +213,8 @@ class MapperNode(Node):  # type: ignore[misc]
         self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"mapper: {self.topic} -> /wheelgrid/map_cloud (prior: {self.prior_topic or 'none'}, "
+            f"mapper: {self._cloud_sub.topic_name} -> {self.map_pub.topic_name} (prior: "
+            f"{self._prior_sub.topic_name if self._prior_sub is not None else 'none'}, "
             f"registration {reg.method} voxel {reg.voxel_size} m, loop closure "
             f"{'on ~/close_loops' if self.loop_cfg.enabled else 'off'}, frames filtered in "
             f"{'a second process' if self._pipe.ahead else 'this process'})"

@@ -39,9 +39,11 @@ from wheelgrid_common.qos import MAP_QOS
 from wheelgrid_common.ros_env import spin_node, steady_timer
 from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
 
-MAP_CLOUD_TOPIC = "/wheelgrid/map_cloud"
-SAFE_GRID_TOPIC = "/wheelgrid/safe_grid"
-FINE_MAP_TOPIC = "/map"
+# Relative names: in the root namespace they are /wheelgrid/..., and a node started
+# in a namespace (`--ros-args -r __ns:=/chair1`, a launch file's namespace) keeps to it.
+MAP_CLOUD_TOPIC = "wheelgrid/map_cloud"
+SAFE_GRID_TOPIC = "wheelgrid/safe_grid"
+FINE_MAP_TOPIC = "map"
 
 
 def check_rate(hz: float) -> None:
@@ -76,15 +78,15 @@ class GridNode(Node):
         self._last_compute = -float("inf")
         # why there is no grid, for ~/save's answer: "nothing received" was said too after
         # the map was cleared (~/reset) or when every map so far was refused
-        self._no_grid = f"nothing received on {MAP_CLOUD_TOPIC}"
         self.grid_pub = self.create_publisher(OccupancyGrid, SAFE_GRID_TOPIC, MAP_QOS)
         self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
-        self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
+        cloud = self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
+        self._no_grid = f"nothing received on {cloud.topic_name}"
         self.create_service(Trigger, "~/save", self._on_save)
         self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
-            f"waiting for {MAP_CLOUD_TOPIC}; safe_height {self.cfg.safe_height} m, cell "
+            f"waiting for {cloud.topic_name}; safe_height {self.cfg.safe_height} m, cell "
             f"{self.cfg.cell_size} m, density_threshold {self.cfg.density_threshold}"
         )
 

@@ -186,16 +186,16 @@ def _make_node_class() -> type:
             self.goal_frame = ""
             self.route: list[tuple[int, int]] = []
             self.plans = 0  # planning attempts (for tests and diagnostics)
-            self.path_pub = self.create_publisher(Path, "/wheelgrid/plan", MAP_QOS)
-            self.marker_pub = self.create_publisher(MarkerArray, "/wheelgrid/plan_markers", MAP_QOS)
-            self.create_subscription(OccupancyGrid, "/wheelgrid/safe_grid", self._on_grid, MAP_QOS)
-            self.create_subscription(PoseStamped, "/goal_pose", self._on_goal, RELIABLE_QOS)
-            self.create_subscription(Odometry, "/wheelgrid/odometry", self._on_odom, SENSOR_QOS)
+            self.path_pub = self.create_publisher(Path, "wheelgrid/plan", MAP_QOS)
+            self.marker_pub = self.create_publisher(MarkerArray, "wheelgrid/plan_markers", MAP_QOS)
+            self.create_subscription(OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS)
+            self.create_subscription(PoseStamped, "goal_pose", self._on_goal, RELIABLE_QOS)
+            self.create_subscription(Odometry, "wheelgrid/odometry", self._on_odom, SENSOR_QOS)
             self.create_subscription(
-                PoseWithCovarianceStamped, "/initialpose", self._on_initialpose, RELIABLE_QOS
+                PoseWithCovarianceStamped, "initialpose", self._on_initialpose, RELIABLE_QOS
             )
             self.create_subscription(
-                PoseStamped, "/wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS
+                PoseStamped, "wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS
             )
             self._last_chair: tuple[float, float, float] | None = None
             # An e-stop ends the goal: cleared, the chair drove on to it at the next grid change
@@ -203,7 +203,7 @@ def _make_node_class() -> type:
             self._estop = False
             self._estop_presses = 0  # e-stops (true) received: a route learned across one is void
             self._estop_sub = self.create_subscription(
-                Bool, "/wheelgrid/estop", self._on_estop, RELIABLE_QOS
+                Bool, "wheelgrid/estop", self._on_estop, RELIABLE_QOS
             )
             steady_timer(self, 0.5, self._drop_goal_waited_too_long)
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")

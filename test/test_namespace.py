@@ -1,0 +1,170 @@
+"""The chain in a ROS namespace: every node's topics and services follow ``__ns``.
+
+Two chairs on one network, or wheelgrid beside a Nav2 stack that runs under a robot
+namespace, need every name to move with the node's namespace. Topic names were absolute
+(``/wheelgrid/safe_grid``), so ``-r __ns:=/chair1`` moved only the services, and two chains
+crossed each other's maps, plans and e-stops. Here mapper, grid, planner and drive run as
+processes in ``/chair1`` with a parameter file written for that namespace; the safe grid,
+the route and the drive's commands all pass under ``/chair1`` and nothing is left in ``/``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+NS = "/chair1"
+
+
+def test_the_chain_runs_in_a_namespace_and_leaves_the_root_alone(tmp_path: Path) -> None:
+    import yaml
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from nav_msgs.msg import OccupancyGrid
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_bringup.supervisor import Supervisor, node_argv
+    from wheelgrid_common.map_io import from_occupancy_grid
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+    from wheelgrid_common.ros_env import child_env
+    from wheelgrid_common.testing import call_service, rclpy_context, spin_until
+    from wheelgrid_drive.motor_sim import MotorSim, MotorSimConfig
+    from wheelgrid_nav.grid_synth import paper_like_boxes, room_cloud
+
+    sim = MotorSim(MotorSimConfig(time_scale=20.0)).start()
+    saved = tmp_path / "grid_saved"
+    # a ROS 2 parameter file for nodes in a namespace nests them under it: a plain
+    # `grid:` key matches /grid only, and would leave these nodes on their defaults
+    params = tmp_path / "chair1.yaml"
+    params.write_text(
+        yaml.safe_dump(
+            {
+                NS.strip("/"): {
+                    "mapper": {"ros__parameters": {"output_dir": str(tmp_path / "map")}},
+                    "grid": {"ros__parameters": {"output_dir": str(saved), "max_rate_hz": 10.0}},
+                    "planner": {"ros__parameters": {"method": "qlearning"}},
+                    "drive": {
+                        "ros__parameters": {
+                            "port": sim.slave_path,
+                            "set_pose_on_plan": True,
+                            "state_rate": 20.0,
+                        }
+                    },
+                }
+            }
+        )
+    )
+    sup = Supervisor(tmp_path / "logs", child_env())
+    try:
+        for name in ("mapper", "grid", "planner", "drive"):
+            sup.start(name, [*node_argv(name, params, {}), "-r", f"__ns:={NS}"])
+        with rclpy_context() as ctx:
+            node = Node("namespace_test", context=ctx)  # in the root namespace
+            ex = SingleThreadedExecutor(context=ctx)
+            ex.add_node(node)
+            grids: list = []
+            plans: list = []
+            commands: list = []
+            statuses: list = []
+            node.create_subscription(
+                OccupancyGrid, f"{NS}/wheelgrid/safe_grid", grids.append, MAP_QOS
+            )
+            node.create_subscription(
+                PathMsg, f"{NS}/wheelgrid/plan", lambda m: m.poses and plans.append(m), MAP_QOS
+            )
+            node.create_subscription(
+                String,
+                f"{NS}/wheelgrid/drive_commands",
+                lambda m: commands.append(json.loads(m.data)),
+                RELIABLE_QOS,
+            )
+            node.create_subscription(
+                DiagnosticArray, f"{NS}/wheelgrid/mapper_status", statuses.append, RELIABLE_QOS
+            )
+            cloud_pub = node.create_publisher(PointCloud2, f"{NS}/wheelgrid/map_cloud", MAP_QOS)
+            start_pub = node.create_publisher(
+                PoseWithCovarianceStamped, f"{NS}/initialpose", RELIABLE_QOS
+            )
+            goal_pub = node.create_publisher(PoseStamped, f"{NS}/goal_pose", RELIABLE_QOS)
+
+            def logs() -> str:
+                return "\n".join(f"--- {n}\n{sup.tail(n, 10)}" for n in sup.procs)
+
+            def graph_ready() -> bool:
+                return (
+                    cloud_pub.get_subscription_count() >= 1  # the grid node
+                    and start_pub.get_subscription_count() >= 1  # the planner
+                    and node.count_subscribers(f"{NS}/iphone/points") == 1  # the mapper
+                    and node.count_subscribers(f"{NS}/wheelgrid/plan") >= 2  # drive + this
+                )
+
+            assert spin_until(ex, graph_ready, 60.0), logs()
+            assert spin_until(ex, lambda: bool(statuses), 20.0), logs()
+            # nothing of the chain in the root namespace
+            for topic in (
+                "/wheelgrid/safe_grid",
+                "/wheelgrid/map_cloud",
+                "/wheelgrid/plan",
+                "/wheelgrid/drive_state",
+                "/wheelgrid/mapper_status",
+                "/map",
+            ):
+                assert node.count_publishers(topic) == 0, topic
+            for topic in ("/iphone/points", "/goal_pose", "/initialpose", "/wheelgrid/estop"):
+                assert node.count_subscribers(topic) == 0, topic
+            for info in node.get_publishers_info_by_topic(f"{NS}/wheelgrid/drive_state"):
+                assert (info.node_name, info.node_namespace) == ("drive", NS)
+
+            room = room_cloud(paper_like_boxes(), spacing=0.05)
+            cloud_pub.publish(to_pointcloud2(room, "map"))
+            assert spin_until(ex, lambda: bool(grids), 30.0), logs()
+            grid = from_occupancy_grid(grids[-1])
+            assert (grid.rows, grid.cols) == (8, 8)
+
+            def pose_at(cell: tuple[int, int]) -> tuple[float, float]:
+                x, y = grid.cell_center(*cell)
+                return float(x), float(y)
+
+            start = PoseWithCovarianceStamped()
+            start.header.frame_id = "map"
+            start.pose.pose.position.x, start.pose.pose.position.y = pose_at((2, 0))
+            start.pose.pose.orientation.w = 1.0
+            goal = PoseStamped()
+            goal.header.frame_id = "map"
+            goal.pose.position.x, goal.pose.position.y = pose_at((2, 2))
+            goal.pose.orientation.w = 1.0
+            start_pub.publish(start)
+            time.sleep(0.3)
+            goal_pub.publish(goal)
+            assert spin_until(ex, lambda: bool(plans), 30.0), logs()
+            cells = [grid.cell_of(p.pose.position.x, p.pose.position.y) for p in plans[-1].poses]
+            assert cells[0] == (2, 0) and cells[-1] == (2, 2)
+            # the drive in /chair1 takes that route and sends it to the controller
+            assert spin_until(ex, lambda: any("from" in c for c in commands), 30.0), logs()
+            moved = [c for c in commands if "from" in c]
+            assert (moved[0]["from"], moved[0]["to"]) == ([2, 0], [2, 1]), moved
+
+            save = node.create_client(Trigger, f"{NS}/grid/save")
+            assert spin_until(ex, save.service_is_ready, 20.0), logs()
+            answer = call_service(ex, save, Trigger.Request)
+            assert answer is not None and answer.success, answer
+            assert any(saved.glob("*.yaml")), answer.message
+            node.destroy_node()
+    finally:
+        sup.stop_all()
+        sim.stop()
+    grid_log = (tmp_path / "logs" / "grid.log").read_text(errors="replace")
+    assert f"waiting for {NS}/wheelgrid/map_cloud" in grid_log
+    mapper_log = (tmp_path / "logs" / "mapper.log").read_text(errors="replace")
+    assert f"{NS}/iphone/points -> {NS}/wheelgrid/map_cloud" in mapper_log
