@@ -226,7 +226,7 @@ def test_estop_is_served_while_a_long_plan_is_read_and_that_plan_never_drives(ma
             ps.pose.position.x, ps.pose.position.y = float(x), float(y)
             ps.pose.orientation.w = 1.0
             path.poses.append(ps)
-        n_states, n_moves = len(h.states), len(sim_moves(sim))
+        n_states = len(h.states)
         read = []  # when the node had read the plan (its callback runs only then)
         arrived = h.drive._plan_arrived
         h.drive._plan_arrived = lambda *a: (read.append(time.monotonic()), arrived(*a))[1]
@@ -243,7 +243,9 @@ def test_estop_is_served_while_a_long_plan_is_read_and_that_plan_never_drives(ma
         assert read and stop.t < read[0]  # the e-stop was served before the plan was read
         texts = [s.message for s in h.states[n_states:]]
         assert not any("9998 step" in t for t in texts), texts
-        assert len(sim_moves(sim)) == n_moves  # nothing driven after the e-stop
+        # nothing driven after the e-stop's STOP (the route's next cell may start before it:
+        # under load the 9,999 poses take the first cell's whole drive to build)
+        assert not [e for e in sim.events if e.what == "move" and e.t > stop.t], sim.events
         assert sim.state == proto.State.IDLE
 
 
