@@ -70,7 +70,9 @@ def _diag_values(msg: Any) -> tuple[dict[str, str], int, str]:
 class Monitor:
     """An rclpy node that watches the chain's outputs (and can send goals / poses)."""
 
-    def __init__(self, context: Any, name: str = "wheelgrid_monitor") -> None:
+    def __init__(
+        self, context: Any, name: str = "wheelgrid_monitor", namespace: str | None = None
+    ) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
         from nav_msgs.msg import OccupancyGrid
@@ -81,7 +83,8 @@ class Monitor:
         from std_msgs.msg import Bool, String
 
         self.state = ChainState()
-        self.node = Node(name, context=context)
+        # in the chain's namespace: its topic names are relative, as the nodes' are
+        self.node = Node(name, context=context, namespace=namespace)
         n = self.node
         n.create_subscription(DiagnosticArray, "wheelgrid/mapper_status", self._on_mapper, 10)
         n.create_subscription(PointCloud2, "wheelgrid/map_cloud", self._on_cloud, MAP_QOS)

@@ -51,7 +51,50 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-drive", action="store_true", help="do not start the drive node")
     p.add_argument("--log-dir", type=Path, default=Path("log/launch"), help="node logs")
     p.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0: never)")
+    p.add_argument(
+        "--namespace",
+        default="",
+        metavar="NS",
+        help="run the chain in ROS namespace NS (topics /NS/wheelgrid/..., services "
+        "/NS/mapper/save_map; a bag's topics are replayed under it too); the params file's "
+        "plain node keys (mapper:) are applied to the nodes in NS",
+    )
     return p
+
+
+def check_namespace(text: str) -> str:
+    """``NS``, ``/NS`` or ``/a/b`` as rcl's absolute namespace (``""`` for the root), or a
+    ``ValueError`` with rcl's reason: a node refused it only in its own log, after start."""
+    if not text.strip("/"):
+        return ""
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+
+    ns = "/" + text.strip("/")
+    try:
+        validate_namespace(ns)
+    except InvalidNamespaceException as exc:
+        why = str(exc).splitlines()[0].split(", at /")[0].rstrip(": ")
+        raise ValueError(f"--namespace {text!r}: {why}") from None
+    return ns
+
+
+def namespaced_params_file(path: Path, namespace: str, out_dir: Path) -> Path:
+    """A copy of the params file whose plain node keys (``mapper:``) name the nodes in
+    ``namespace`` (``/chair1/mapper:``): rcl matches a plain key to ``/mapper`` only, and the
+    chain's nodes would have run on their defaults. Keys already absolute (``/**``,
+    ``/chair1/grid``) and namespace sections (``chair1: {grid: ...}``) are kept as written."""
+    import yaml
+
+    data = read_yaml(path)
+    out = {}
+    for key, body in data.items():
+        plain = isinstance(body, dict) and "ros__parameters" in body
+        out[f"{namespace}/{key}" if plain and not str(key).startswith("/") else key] = body
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copy = out_dir / f"params{namespace.replace('/', '_')}.yaml"
+    copy.write_text(yaml.safe_dump(out, sort_keys=False))
+    return copy
 
 
 def node_overrides(name: str, args: argparse.Namespace) -> dict[str, object]:
@@ -106,6 +149,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.clock is not None and not (math.isfinite(args.clock) and args.clock > 0):
         print(f"wheelgrid launch: --clock must be > 0 Hz, not {args.clock}", file=sys.stderr)
         return 2
+    try:
+        namespace = check_namespace(args.namespace)
+    except ValueError as exc:
+        print(f"wheelgrid launch: {exc}", file=sys.stderr)
+        return 2
     configure_ros_env()
     try:
         params = args.params or default_params_file()
@@ -117,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         check_params_file(params)
+        if namespace:
+            params = namespaced_params_file(params, namespace, args.log_dir)
     except (OSError, ValueError) as exc:
         print(f"wheelgrid launch: {exc}", file=sys.stderr)
         return 2
@@ -156,13 +206,14 @@ def main(argv: list[str] | None = None) -> int:
     # a second terminal (`wheelgrid call`, RViz) reaches these nodes only on this domain
     print(
         f"launch: ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')} "
-        f"ROS_AUTOMATIC_DISCOVERY_RANGE={env['ROS_AUTOMATIC_DISCOVERY_RANGE']}",
+        f"ROS_AUTOMATIC_DISCOVERY_RANGE={env['ROS_AUTOMATIC_DISCOVERY_RANGE']}"
+        + (f" namespace {namespace}" if namespace else ""),
         flush=True,
     )
     sup = Supervisor(args.log_dir, env)
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    monitor = Monitor(ctx, "wheelgrid_launch")
+    monitor = Monitor(ctx, "wheelgrid_launch", namespace or None)
     chain = Chain(sup, monitor)
     player = None
     code = 0
@@ -176,12 +227,13 @@ def main(argv: list[str] | None = None) -> int:
                     args.rate,
                     clock_hz=args.clock or 0.0,
                     clock_readers=len(names),
+                    namespace=namespace,
                 )
             except BagError as exc:
                 print(f"wheelgrid launch: {exc}", file=sys.stderr)
                 return 2
         for name in names:
-            sup.start_node(name, params, node_overrides(name, args))
+            sup.start_node(name, params, node_overrides(name, args), namespace)
             print(
                 f"launch: started {name} (pid {sup.procs[name].proc.pid}, log "
                 f"{sup.procs[name].log_path})",

@@ -54,7 +54,10 @@ class BagPlayer:
         rate: float = 1.0,
         clock_hz: float = 0.0,
         clock_readers: int = 0,
+        namespace: str = "",
     ) -> None:
+        """``namespace`` (absolute, e.g. ``/chair1``) puts the bag's topics under it, for a
+        chain started there: ``/iphone/points`` goes out on ``/chair1/iphone/points``."""
         if rate <= 0:
             raise ValueError("rate must be > 0")
         if not clock_hz >= 0:
@@ -89,8 +92,11 @@ class BagPlayer:
                 )
             self.topics = [t for t in infos if t.name in wanted]
             self.total = sum(t.count for t in self.topics)
+        ns = namespace.rstrip("/")
         self._pubs = {
-            t.name: node.create_publisher(message_class(t.msgtype), t.name, REPLAY_QOS)
+            t.name: node.create_publisher(
+                message_class(t.msgtype), ns + "/" + t.name.lstrip("/"), REPLAY_QOS
+            )
             for t in self.topics
         }
         self._clock_period = 1.0 / clock_hz if clock_hz > 0 else 0.0
@@ -107,7 +113,7 @@ class BagPlayer:
         """Replayed topics nobody subscribes to yet (a frame sent now would be lost), and
         ``/clock`` while fewer than ``clock_readers`` nodes follow it (a node that matched it
         late stamped its first map or grid with time 0)."""
-        topics = [t for t, pub in self._pubs.items() if pub.get_subscription_count() == 0]
+        topics = [p.topic_name for p in self._pubs.values() if p.get_subscription_count() == 0]
         clock = self._clock_pub
         if clock is not None and clock.get_subscription_count() < self.clock_readers:
             topics.append("/clock")

@@ -62,11 +62,16 @@ def child_code(module: str, func: str) -> str:
     )
 
 
-def node_argv(name: str, params_file: Path | None, overrides: dict[str, object]) -> list[str]:
-    """argv that runs node ``name`` with a params file and ``-p`` overrides."""
+def node_argv(
+    name: str, params_file: Path | None, overrides: dict[str, object], namespace: str = ""
+) -> list[str]:
+    """argv that runs node ``name`` with a params file and ``-p`` overrides, in ``namespace``
+    (absolute, e.g. ``/chair1``) where one is given."""
     module, func = NODES[name].split(":")
     code = child_code(module, func)
     ros_args = ["--ros-args", "-r", f"__node:={name}"]
+    if namespace:
+        ros_args += ["-r", f"__ns:={namespace}"]
     if params_file is not None:
         ros_args += ["--params-file", str(params_file)]
     for key, value in overrides.items():
@@ -106,9 +111,13 @@ class Supervisor:
         return managed
 
     def start_node(
-        self, name: str, params_file: Path | None, overrides: dict[str, object] | None = None
+        self,
+        name: str,
+        params_file: Path | None,
+        overrides: dict[str, object] | None = None,
+        namespace: str = "",
     ) -> Managed:
-        return self.start(name, node_argv(name, params_file, overrides or {}))
+        return self.start(name, node_argv(name, params_file, overrides or {}, namespace))
 
     def dead(self) -> list[tuple[str, int]]:
         """Processes that exited, with their exit codes."""
