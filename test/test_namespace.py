@@ -31,7 +31,7 @@ def test_the_chain_runs_in_a_namespace_and_leaves_the_root_alone(tmp_path: Path)
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from sensor_msgs.msg import PointCloud2
-    from std_msgs.msg import String
+    from std_msgs.msg import Bool, String
     from std_srvs.srv import Trigger
 
     from wheelgrid_bringup.supervisor import Supervisor, node_argv
@@ -160,6 +160,23 @@ def test_the_chain_runs_in_a_namespace_and_leaves_the_root_alone(tmp_path: Path)
             assert spin_until(ex, lambda: any("from" in c for c in commands), 30.0), logs()
             moved = [c for c in commands if "from" in c]
             assert (moved[0]["from"], moved[0]["to"]) == ([2, 0], [2, 1]), moved
+            # and an e-stop sent to /chair1 stops it, the drive naming where to clear it
+            states: list = []
+            node.create_subscription(
+                DiagnosticArray,
+                f"{NS}/wheelgrid/drive_state",
+                lambda m: states.extend(s.message for s in m.status),
+                RELIABLE_QOS,
+            )
+            estop_pub = node.create_publisher(Bool, f"{NS}/wheelgrid/estop", RELIABLE_QOS)
+            assert spin_until(ex, lambda: estop_pub.get_subscription_count() >= 1, 10.0)
+            t_estop = time.monotonic()
+            estop_pub.publish(Bool(data=True))
+            latched = f"e-stop latched (publish false on {NS}/wheelgrid/estop to clear)"
+            assert spin_until(ex, lambda: latched in states, 10.0), states[-5:]
+            assert spin_until(
+                ex, lambda: any(e.what == "stop" and e.t > t_estop for e in sim.events), 5.0
+            )
 
             save = node.create_client(Trigger, f"{NS}/grid/save")
             assert spin_until(ex, save.service_is_ready, 20.0), logs()
