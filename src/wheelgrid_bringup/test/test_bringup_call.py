@@ -41,9 +41,11 @@ def test_a_service_of_another_type_is_named_as_such() -> None:
         spinner = threading.Thread(target=ex.spin, daemon=True)
         spinner.start()
         try:
+            # the call's new participant must discover this one within its timeout: 3 s
+            # was too short once in a loaded two-worker run ("no service")
             proc = subprocess.run(
                 [sys.executable, "-m", "wheelgrid_bringup.cli", "call", "/wg_test/set_flag",
-                 "--timeout", "3"],
+                 "--timeout", "10"],
                 env=child_env(), capture_output=True, text=True, timeout=60,
             )  # fmt: skip
         finally:
