@@ -280,9 +280,9 @@ class DriveNode(Node):
             start_parameter_services=False,
         )
         self._estop_node: Node | None = estop
-        self._estop_topic = estop.create_subscription(
+        estop.create_subscription(
             Bool, "wheelgrid/estop", with_message_info(self._on_estop_message), RELIABLE_QOS
-        ).topic_name
+        )
         # A best-effort e-stop publisher (a joystick, a safety bridge on sensor-data QoS)
         # matches no reliable subscription: it was never heard. This one hears it, and may
         # only latch: a clear must come reliably (a lost clear keeps the chair stopped, a lost
@@ -377,7 +377,8 @@ class DriveNode(Node):
         elif self._estop:
             level, message = (
                 ERROR,
-                f"e-stop latched (publish false on {self._estop_topic} to clear)",
+                f"e-stop latched (publish false on {self.resolve_topic_name('wheelgrid/estop')} to "
+                "clear)",
             )
         status = DiagnosticStatus(
             level=level,

@@ -11,7 +11,6 @@ bridges).
 
 from __future__ import annotations
 
-import functools
 import math
 import sys
 from dataclasses import dataclass
@@ -98,18 +97,25 @@ def _make_node() -> Any:
             streams = ["depth", "info"] + (["conf"] if use_conf else [])
             self.sync = StampSync(streams, self.cfg.sync_tolerance_s, self.cfg.queue_size)
             self.pub = self.create_publisher(PointCloud2, self.cfg.points_topic, SENSOR_QOS)
-            inputs = [
-                ("depth", Image, self.cfg.depth_topic),
-                ("info", CameraInfo, self.cfg.info_topic),
-            ]
+            self.create_subscription(
+                Image, self.cfg.depth_topic, lambda m: self._add("depth", m), SENSOR_QOS
+            )
+            self.create_subscription(
+                CameraInfo, self.cfg.info_topic, lambda m: self._add("info", m), SENSOR_QOS
+            )
             if use_conf:
-                inputs.append(("conf", Image, self.cfg.confidence_topic))
+                self.create_subscription(
+                    Image, self.cfg.confidence_topic, lambda m: self._add("conf", m), SENSOR_QOS
+                )
             # stream -> its topic as resolved in this node's namespace, for what the node says
             self._topics = {
-                stream: self.create_subscription(
-                    kind, topic, functools.partial(self._add, stream), SENSOR_QOS
-                ).topic_name
-                for stream, kind, topic in inputs
+                stream: self.resolve_topic_name(topic)
+                for stream, topic in (
+                    ("depth", self.cfg.depth_topic),
+                    ("info", self.cfg.info_topic),
+                    ("conf", self.cfg.confidence_topic),
+                )
+                if topic
             }
             self.published = 0
             self._warned: set[str] = set()
@@ -142,7 +148,7 @@ def _make_node() -> Any:
             if silent:
                 hint = (
                     " (a camera without confidence images needs confidence_topic:='')"
-                    if "conf" in self._topics and self._topics["conf"] in silent
+                    if self._topics.get("conf") in silent
                     else ""
                 )
                 self._warn_once(

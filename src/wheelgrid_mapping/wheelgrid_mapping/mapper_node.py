@@ -191,10 +191,7 @@ class MapperNode(Node):  # type: ignore[misc]
             reliability=SENSOR_QOS.reliability,
             durability=SENSOR_QOS.durability,
         )
-        self._cloud_sub = self.create_subscription(
-            PointCloud2, self.topic, self._on_cloud, cloud_qos
-        )
-        self._prior_sub = None
+        self.create_subscription(PointCloud2, self.topic, self._on_cloud, cloud_qos)
         if self.prior_topic:
             # deep history too: a pose lost while the worker holds the GIL costs a whole frame
             prior_qos = QoSProfile(
@@ -203,9 +200,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 reliability=SENSOR_QOS.reliability,
                 durability=SENSOR_QOS.durability,
             )
-            self._prior_sub = self.create_subscription(
-                Odometry, self.prior_topic, self._on_prior, prior_qos
-            )
+            self.create_subscription(Odometry, self.prior_topic, self._on_prior, prior_qos)
         self.create_service(Trigger, "~/save_map", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(Trigger, "~/close_loops", self._on_close_loops)
@@ -213,8 +208,8 @@ class MapperNode(Node):  # type: ignore[misc]
         self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
-            f"mapper: {self._cloud_sub.topic_name} -> {self.map_pub.topic_name} (prior: "
-            f"{self._prior_sub.topic_name if self._prior_sub is not None else 'none'}, "
+            f"mapper: {self.resolve_topic_name(self.topic)} -> {self.map_pub.topic_name} "
+            f"(prior: {self.resolve_topic_name(self.prior_topic) if self.prior_topic else 'none'}, "
             f"registration {reg.method} voxel {reg.voxel_size} m, loop closure "
             f"{'on ~/close_loops' if self.loop_cfg.enabled else 'off'}, frames filtered in "
             f"{'a second process' if self._pipe.ahead else 'this process'})"

@@ -80,14 +80,15 @@ class GridNode(Node):
         # the map was cleared (~/reset) or when every map so far was refused
         self.grid_pub = self.create_publisher(OccupancyGrid, SAFE_GRID_TOPIC, MAP_QOS)
         self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
-        cloud = self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
-        self._no_grid = f"nothing received on {cloud.topic_name}"
+        self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
+        self._no_grid = f"nothing received on {self.resolve_topic_name(MAP_CLOUD_TOPIC)}"
         self.create_service(Trigger, "~/save", self._on_save)
         self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
-            f"waiting for {cloud.topic_name}; safe_height {self.cfg.safe_height} m, cell "
-            f"{self.cfg.cell_size} m, density_threshold {self.cfg.density_threshold}"
+            f"waiting for {self.resolve_topic_name(MAP_CLOUD_TOPIC)}; safe_height "
+            f"{self.cfg.safe_height} m, cell {self.cfg.cell_size} m, density_threshold "
+            f"{self.cfg.density_threshold}"
         )
 
     def _on_cloud(self, msg: PointCloud2) -> None:

@@ -188,17 +188,15 @@ def _make_node_class() -> type:
             self.plans = 0  # planning attempts (for tests and diagnostics)
             self.path_pub = self.create_publisher(Path, "wheelgrid/plan", MAP_QOS)
             self.marker_pub = self.create_publisher(MarkerArray, "wheelgrid/plan_markers", MAP_QOS)
-            # input -> its topic as resolved in this node's namespace, for what the node says
-            self._inputs = {
-                name: self.create_subscription(kind, name, callback, qos).topic_name
-                for kind, name, callback, qos in (
-                    (OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS),
-                    (PoseStamped, "goal_pose", self._on_goal, RELIABLE_QOS),
-                    (Odometry, "wheelgrid/odometry", self._on_odom, SENSOR_QOS),
-                    (PoseWithCovarianceStamped, "initialpose", self._on_initialpose, RELIABLE_QOS),
-                    (PoseStamped, "wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS),
-                )
-            }
+            self.create_subscription(OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS)
+            self.create_subscription(PoseStamped, "goal_pose", self._on_goal, RELIABLE_QOS)
+            self.create_subscription(Odometry, "wheelgrid/odometry", self._on_odom, SENSOR_QOS)
+            self.create_subscription(
+                PoseWithCovarianceStamped, "initialpose", self._on_initialpose, RELIABLE_QOS
+            )
+            self.create_subscription(
+                PoseStamped, "wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS
+            )
             self._last_chair: tuple[float, float, float] | None = None
             # An e-stop ends the goal: cleared, the chair drove on to it at the next grid change
             # (the map grows during a scan) with no new command. A goal during one is refused.
@@ -295,12 +293,14 @@ def _make_node_class() -> type:
         def _missing_for_a_goal(self) -> list[str]:
             missing = []
             if self.grid is None:
-                missing.append(f"a safe grid on {self._inputs['wheelgrid/safe_grid']}")
+                missing.append(f"a safe grid on {self.resolve_topic_name('wheelgrid/safe_grid')}")
             if self.start is None:
-                i = self._inputs
+                starts = [
+                    self.resolve_topic_name(t)
+                    for t in ("initialpose", "wheelgrid/odometry", "wheelgrid/chair_pose")
+                ]
                 missing.append(
-                    f"a start pose ({i['initialpose']}, {i['wheelgrid/odometry']}, or "
-                    f"{i['wheelgrid/chair_pose']} once the chair moves)"
+                    f"a start pose ({starts[0]}, {starts[1]}, or {starts[2]} once the chair moves)"
                 )
             return missing
 
