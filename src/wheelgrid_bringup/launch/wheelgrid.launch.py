@@ -1,5 +1,5 @@
 """ros2 launch wheelgrid_bringup wheelgrid.launch.py [params:=FILE] [bag:=BAG] [rate:=R]
-[clock:=true] [iphone:=true] [drive:=false] [motor_port:=/dev/ttyUSB0]
+[clock:=true] [iphone:=true] [drive:=false] [motor_port:=/dev/ttyUSB0] [namespace:=NS]
 
 For machines with a full ROS 2 Jazzy install: the same nodes and the same parameter file as
 `wheelgrid launch` (which needs neither launch nor ros2). A rosbag2 bag is replayed with
@@ -9,11 +9,18 @@ overrides the parameter file's drive ``port``; left out, the file's port stands.
 ``iphone:=true`` and ``bag:=`` are refused together, as `wheelgrid launch` refuses them.
 ``clock:=true`` (with ``bag:=``, as `wheelgrid launch --bag --clock`) plays the bag with
 ``--clock`` and runs every node with ``use_sim_time``, on the bag's time.
+``namespace:=NS`` runs the chain in NS, as `wheelgrid launch --namespace NS` does: the nodes
+are pushed into it, the parameter file's plain node keys (``mapper:``) are applied to them
+through a copy of the file (rcl matches a plain key to ``/mapper`` only), and a bag's topics
+are replayed under it (``/clock`` and ``/tf`` stay global). NS is absolute: an including
+launch file's own ``PushRosNamespace`` does not nest it.
 A node that exits ends the launch, as `wheelgrid launch` stops the chain when any node dies:
 a drive node went on driving its plan with its grid node or planner dead.
 """
 
 import os
+import tempfile
+from pathlib import Path
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
@@ -21,6 +28,7 @@ from launch.actions import (
     DeclareLaunchArgument,
     ExecuteProcess,
     OpaqueFunction,
+    SetLaunchConfiguration,
     Shutdown,
     TimerAction,
 )
@@ -30,9 +38,8 @@ from launch.substitutions import (
     EqualsSubstitution,
     LaunchConfiguration,
     NotEqualsSubstitution,
-    NotSubstitution,
 )
-from launch_ros.actions import Node, SetParameter
+from launch_ros.actions import Node, PushRosNamespace, SetParameter
 
 # (package, executable, node name) -- keep in step with wheelgrid_bringup.supervisor.NODES.
 CHAIN = [
@@ -63,6 +70,49 @@ def _check_arguments(context, *_args, **_kwargs):
     return []
 
 
+def _namespace(context, *_args, **_kwargs):
+    """``namespace:=NS``: the nodes after it in NS, and the parameter file's plain node keys
+    applied to them (the file is read and copied by `wheelgrid launch`'s own functions, so
+    both launchers apply a file alike). A namespace rcl refuses stops the launch here, before
+    any node starts; a node would have refused it only in its own log."""
+    from wheelgrid_bringup.launcher import check_namespace, namespaced_params_file
+
+    ns = check_namespace(context.launch_configurations.get("namespace", ""))
+    if not ns:
+        return []
+    params = Path(context.launch_configurations["params"])
+    copy = namespaced_params_file(params, ns, Path(tempfile.mkdtemp(prefix="wheelgrid_launch_")))
+    return [SetLaunchConfiguration("params", str(copy)), PushRosNamespace(ns)]
+
+
+def _play_command(conf):
+    """The ``ros2 bag play`` argv for the launch configurations ``conf`` (``[]`` without a
+    bag): at ``rate:=``, with ``--clock`` for ``clock:=true``, the bag's topics remapped into
+    ``namespace:=`` as `wheelgrid launch --namespace` replays them (``ros2 bag play`` has no
+    namespace option, and its ``__ns`` leaves a bag's absolute names where they are)."""
+    bag = conf.get("bag", "")
+    if not bag:
+        return []
+    cmd = ["ros2", "bag", "play", bag, "--rate", conf.get("rate", "1.0")]
+    if conf.get("clock", "false").lower() in ("true", "1"):
+        cmd.append("--clock")
+    if conf.get("namespace", "").strip("/"):
+        from wheelgrid_bringup.launcher import check_namespace
+        from wheelgrid_bringup.replay import play_remaps
+
+        cmd += play_remaps(bag, check_namespace(conf["namespace"]))
+    return cmd
+
+
+def _replay(context, *_args, **_kwargs):
+    """The bag's replay, a few seconds after the nodes start (their subscriptions match
+    first). Read before the nodes start: a bag that cannot be opened starts none of them."""
+    cmd = _play_command(context.launch_configurations)
+    if not cmd:
+        return []
+    return [TimerAction(period=REPLAY_DELAY_S, actions=[ExecuteProcess(cmd=cmd, output="screen")])]
+
+
 def generate_launch_description():
     default_params = os.path.join(
         get_package_share_directory("wheelgrid_bringup"), "wheelgrid.yaml"
@@ -76,7 +126,10 @@ def generate_launch_description():
         DeclareLaunchArgument("iphone", default_value="false"),
         DeclareLaunchArgument("drive", default_value="true"),
         DeclareLaunchArgument("motor_port", default_value=""),
+        DeclareLaunchArgument("namespace", default_value=""),
         OpaqueFunction(function=_check_arguments),
+        OpaqueFunction(function=_namespace),
+        OpaqueFunction(function=_replay),
         # before the nodes: it reaches every node started after it
         SetParameter(
             name="use_sim_time", value=True, condition=IfCondition(LaunchConfiguration("clock"))
@@ -141,26 +194,4 @@ def generate_launch_description():
             on_exit=Shutdown(reason="iphone_bridge exited"),
         )
     )
-    clock = LaunchConfiguration("clock")
-    for extra, when in (([], NotSubstitution(clock)), (["--clock"], clock)):
-        actions.append(
-            TimerAction(
-                period=REPLAY_DELAY_S,
-                actions=[
-                    ExecuteProcess(
-                        cmd=[
-                            "ros2",
-                            "bag",
-                            "play",
-                            bag,
-                            "--rate",
-                            LaunchConfiguration("rate"),
-                            *extra,
-                        ],
-                        output="screen",
-                    )
-                ],
-                condition=IfCondition(AndSubstitution(with_bag, when)),
-            )
-        )
     return LaunchDescription(actions)

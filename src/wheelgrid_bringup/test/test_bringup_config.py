@@ -108,12 +108,8 @@ def test_launch_file_refuses_two_sources_and_leaves_the_files_port_alone():
         for n in ast.walk(tree)
         if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "TimerAction"
     )
-    assert "ros2" in ast.unparse(timer) and "bag" in ast.unparse(timer)
-    check = next(
-        n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "_check_arguments"
-    )
-    scope: dict = {}
-    exec(compile(ast.Module([check], []), "launch", "exec"), scope)
+    assert "REPLAY_DELAY_S" in ast.unparse(timer) and "ExecuteProcess" in ast.unparse(timer)
+    scope = _launch_functions(tree)
 
     def run(**conf):
         return scope["_check_arguments"](type("Ctx", (), {"launch_configurations": conf})())
@@ -131,12 +127,92 @@ def test_launch_file_refuses_two_sources_and_leaves_the_files_port_alone():
     assert defaults["clock"] == "false"
     calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
     plays = [ast.unparse(n) for n in calls if getattr(n.func, "id", "") == "TimerAction"]
-    assert len(plays) == 1 and "*extra" in plays[0] and "(['--clock'], clock)" in ast.unparse(tree)
+    assert len(plays) == 1
+    play = scope["_play_command"]
+    assert play({}) == [] and play({"bag": ""}) == []
+    assert play({"bag": "/b", "rate": "2.0"}) == ["ros2", "bag", "play", "/b", "--rate", "2.0"]
+    assert play({"bag": "/b", "clock": "True"})[-1] == "--clock"
     # SetParameter reaches only the nodes started after it
     sim_time = [n for n in calls if getattr(n.func, "id", "") == "SetParameter"]
     nodes = [n for n in calls if getattr(n.func, "id", "") == "Node"]
     assert len(sim_time) == 1 and "use_sim_time" in ast.unparse(sim_time[0])
     assert all(sim_time[0].lineno < n.lineno for n in nodes)
+
+
+def _launch_functions(tree: ast.Module, **names: object) -> dict:
+    """The launch file's module-level constants and functions, run without `launch` (not on
+    PyPI): the launch actions they return are stood in for by ``names``."""
+    body = [
+        n
+        for n in tree.body
+        if (isinstance(n, ast.FunctionDef) and n.name.startswith("_")) or isinstance(n, ast.Assign)
+    ]
+    scope: dict = {"Path": Path, "tempfile": __import__("tempfile"), **names}
+    exec(compile(ast.Module(body, []), "launch", "exec"), scope)
+    return scope
+
+
+def test_launch_file_runs_the_chain_in_a_namespace(tmp_path, monkeypatch):
+    """`wheelgrid launch --namespace` had no counterpart under ros2 launch: the nodes could be
+    pushed into a namespace by an including file, but the parameter file's plain node keys
+    then reached none of them (rcl matches ``mapper:`` to ``/mapper`` only), and ``ros2 bag
+    play`` sent the bag's frames to ``/iphone/points``, where no namespaced node listens."""
+    import pytest
+    import yaml
+
+    tree = ast.parse((PKG / "launch" / "wheelgrid.launch.py").read_text())
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
+    defaults = {
+        n.args[0].value: getattr(n.keywords[0].value, "value", None)
+        for n in calls
+        if getattr(n.func, "id", "") == "DeclareLaunchArgument"
+    }
+    assert defaults["namespace"] == ""
+    # the namespace is pushed, and the replay's bag read, before any node is declared
+    opaque = {
+        ast.unparse(n.keywords[0].value): n.lineno
+        for n in calls
+        if getattr(n.func, "id", "") == "OpaqueFunction"
+    }
+    first_node = min(n.lineno for n in calls if getattr(n.func, "id", "") == "Node")
+    assert opaque.keys() == {"_check_arguments", "_namespace", "_replay"}
+    assert max(opaque.values()) < first_node
+
+    monkeypatch.setattr("tempfile.mkdtemp", lambda prefix="": str(tmp_path))
+    scope = _launch_functions(
+        tree,
+        SetLaunchConfiguration=lambda name, value: ("set", name, value),
+        PushRosNamespace=lambda ns: ("push", ns),
+    )
+
+    def namespace(ns: str) -> list:
+        conf = {"namespace": ns, "params": str(default_params_file())}
+        return scope["_namespace"](type("Ctx", (), {"launch_configurations": conf})())
+
+    assert namespace("") == [] and namespace("/") == []
+    (_, key, copy), push = namespace("chair1")
+    assert key == "params" and push == ("push", "/chair1")
+    nodes = yaml.safe_load(Path(copy).read_text())
+    assert {"/chair1/mapper", "/chair1/grid", "/chair1/planner", "/chair1/drive"} <= set(nodes)
+    with pytest.raises(ValueError, match="--namespace '9chair'"):
+        namespace("9chair")
+
+    bag = PKG.parents[1] / "bags" / "paper_room" / "scan"
+    cmd = scope["_play_command"]({"bag": str(bag), "namespace": "/chair1", "clock": "true"})
+    rules = cmd[cmd.index("--remap") + 1 :]
+    assert "/iphone/points:=/chair1/iphone/points" in rules
+    assert all(not r.startswith(("/clock:", "/tf:")) for r in rules)
+    assert "--clock" in cmd[: cmd.index("--remap")]
+
+
+def test_replayed_names_follow_the_namespace_but_the_clock_and_tf_stay_global():
+    from wheelgrid_bringup.replay import play_remaps, replayed_name
+
+    assert replayed_name("/iphone/points", "/chair1") == "/chair1/iphone/points"
+    assert replayed_name("/iphone/points", "") == "/iphone/points"
+    assert replayed_name("/clock", "/a/b") == "/clock" and replayed_name("/tf", "/a") == "/tf"
+    bag = PKG.parents[1] / "bags" / "paper_room" / "scan"
+    assert play_remaps(bag, "") == []
 
 
 def test_launch_file_ends_the_launch_when_any_node_exits():

@@ -37,6 +37,32 @@ CLOCK_QOS = QoSProfile(
 )
 
 
+# Topics a chain in a namespace still shares with the rest of the system, as its nodes do:
+# the bag's time and the transform tree (the nodes publish /tf under its absolute name too).
+GLOBAL_TOPICS = ("/clock", "/tf", "/tf_static")
+
+
+def replayed_name(topic: str, namespace: str) -> str:
+    """The name a bag's ``topic`` goes out on for a chain in ``namespace`` (absolute, e.g.
+    ``/chair1``; ``""`` for the root): ``/iphone/points`` -> ``/chair1/iphone/points``. The
+    nodes name their topics relative to their namespace, so a bag replayed under its recorded
+    names would reach none of them."""
+    if not namespace.strip("/") or topic in GLOBAL_TOPICS:
+        return topic
+    return namespace.rstrip("/") + "/" + topic.lstrip("/")
+
+
+def play_remaps(bag: Path, namespace: str) -> list[str]:
+    """``ros2 bag play`` arguments that replay ``bag`` as :class:`BagPlayer` does for a chain
+    in ``namespace`` (``["--remap", "/a:=/ns/a", ...]``, or ``[]`` when nothing moves):
+    ``ros2 bag play`` has no namespace of its own, and its ``__ns`` leaves absolute names."""
+    with BagReader(Path(bag)) as reader:
+        names = sorted({t.name for t in reader.topics()})
+    moved = ((name, replayed_name(name, namespace)) for name in names)
+    rules = [f"{old}:={new}" for old, new in moved if old != new]
+    return ["--remap", *rules] if rules else []
+
+
 def message_class(msgtype: str) -> Any:
     """'sensor_msgs/msg/PointCloud2' -> the rclpy class (ImportError if not installed)."""
     pkg, kind, name = msgtype.split("/")
@@ -92,10 +118,9 @@ class BagPlayer:
                 )
             self.topics = [t for t in infos if t.name in wanted]
             self.total = sum(t.count for t in self.topics)
-        ns = namespace.rstrip("/")
         self._pubs = {
             t.name: node.create_publisher(
-                message_class(t.msgtype), ns + "/" + t.name.lstrip("/"), REPLAY_QOS
+                message_class(t.msgtype), replayed_name(t.name, namespace), REPLAY_QOS
             )
             for t in self.topics
         }
