@@ -22,7 +22,7 @@ if [ ${#missing[@]} -gt 0 ]; then
   fi
 fi
 
-mkdir -p .stamps
+mkdir -p .stamps log
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
@@ -30,6 +30,26 @@ if [ ! -f .stamps/lock ] || ! cmp -s requirements.lock .stamps/lock; then
   echo "setup: installing pinned dependencies into .venv (about a minute the first time)" >&2
   .venv/bin/pip install -q --disable-pip-version-check -r requirements.lock
   cp requirements.lock .stamps/lock
+fi
+
+# tf2_msgs (the /tf message), which the ROS wheels lack, from vendor/tf2_msgs into .venv: only
+# where it is not importable (a full ROS install has its own) and once. Without CMake or a
+# compiler the set-up goes on and says so: the mapper then publishes no /tf, as before.
+if ! .venv/bin/python -c "import tf2_msgs" 2>/dev/null; then
+  echo "setup: building tf2_msgs (the /tf message) from vendor/tf2_msgs into .venv" >&2
+  if (
+    export PATH="$ROOT/.venv/bin:$PATH" AMENT_PREFIX_PATH="$ROOT/.venv"
+    rm -rf build/vendor_tf2_msgs
+    cmake -S vendor/tf2_msgs -B build/vendor_tf2_msgs -DCMAKE_BUILD_TYPE=Release \
+      -DBUILD_TESTING=OFF -DCMAKE_PREFIX_PATH="$ROOT/.venv" -DCMAKE_INSTALL_PREFIX="$ROOT/.venv" \
+      -DPython3_EXECUTABLE="$ROOT/.venv/bin/python" \
+      && cmake --build build/vendor_tf2_msgs -j 2 && cmake --install build/vendor_tf2_msgs
+  ) >log/tf2_msgs-build.log 2>&1 && .venv/bin/python -c "import tf2_msgs.msg" 2>/dev/null; then
+    echo "setup: tf2_msgs built: the mapper publishes /tf" >&2
+  else
+    echo "setup: WARNING: tf2_msgs could not be built (see log/tf2_msgs-build.log; it needs" \
+      "cmake and a C/C++ compiler): the mapper runs without /tf" >&2
+  fi
 fi
 
 # colcon from the venv, never a system ROS: build every package of src/ (ament_python).
