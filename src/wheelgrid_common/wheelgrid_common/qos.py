@@ -31,3 +31,13 @@ RELIABLE_QOS: QoSProfile = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+
+# /tf as tf2_ros's TransformBroadcaster sends it (DynamicBroadcasterQoS): a tf2 listener
+# subscribes with the same profile and keeps up to 100 transforms in flight, so a burst of
+# poses after a pause is not cut to the last ten.
+TF_QOS: QoSProfile = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)

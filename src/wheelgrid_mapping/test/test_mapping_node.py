@@ -726,6 +726,76 @@ def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
             assert p.child_frame_id == sent[stamp], (stamp, p.child_frame_id, sent[stamp])
 
 
+@pytest.mark.ros
+def test_each_pose_goes_out_on_tf_as_map_to_its_clouds_frame(tmp_path: Path) -> None:
+    """The mapper's /tf had never run: tf2_msgs is not among the ROS wheels, and the node
+    published /tf only where it is importable. Set-up now builds it (vendor/tf2_msgs); over
+    DDS each pose must come out on /tf as map -> the cloud's own frame, at the cloud's stamp,
+    with the pose of /wheelgrid/odometry, on tf2_ros's broadcaster QoS (so a tf2 listener,
+    which asks for reliable delivery, matches it)."""
+    from wheelgrid_common.ros_env import tf2_available
+
+    if not tf2_available():
+        pytest.skip("tf2_msgs not importable: scripts/setup.sh could not build vendor/tf2_msgs")
+    if not BAG.exists():
+        pytest.skip("bags/paper_room: not present")
+    from nav_msgs.msg import Odometry
+    from tf2_msgs.msg import TFMessage
+
+    from wheelgrid_common.qos import SENSOR_QOS, TF_QOS
+
+    pairs = bag_clouds(6)
+    with running_mapper(tmp_path, "tf_test", "max_queue:=100", "save_on_exit:=false") as t:
+        poses: list = []
+        transforms: list = []
+        t.node.create_subscription(Odometry, "/wheelgrid/odometry", poses.append, SENSOR_QOS)
+        t.node.create_subscription(
+            TFMessage, "/tf", lambda m: transforms.extend(m.transforms), TF_QOS
+        )
+        assert spin_until(t.ex, lambda: t.node.count_publishers("/tf") == 1, 10.0)
+        spin_until(t.ex, lambda: False, 0.5)
+        for cloud, odom in pairs:
+            t.odom_pub.publish(odom)
+            t.pub.publish(cloud)
+            wait_taken(t, pairs.index((cloud, odom)) + 1)
+        # the first frames have no pose in the map frame yet (the floor is still being found)
+        assert spin_until(t.ex, lambda: len(transforms) >= 2, 10.0), (len(poses), t.values())
+        spin_until(t.ex, lambda: False, 1.0)
+    sent = {(c.header.stamp.sec, c.header.stamp.nanosec): c.header.frame_id for c, _ in pairs}
+    by_stamp = {(p.header.stamp.sec, p.header.stamp.nanosec): p for p in poses}
+    tf_stamps = [(tf.header.stamp.sec, tf.header.stamp.nanosec) for tf in transforms]
+    # one transform a pose (the poses are best effort: one may be lost, a transform not)
+    assert len(set(tf_stamps)) == len(tf_stamps) and set(by_stamp) <= set(tf_stamps)
+    for tf, stamp in zip(transforms, tf_stamps, strict=True):
+        assert stamp in sent, (stamp, sorted(sent))
+        assert tf.header.frame_id == "map" and tf.child_frame_id == sent[stamp]
+        if stamp not in by_stamp:
+            continue
+        pose = by_stamp[stamp].pose.pose
+        got = [tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z]
+        assert got == [pose.position.x, pose.position.y, pose.position.z]
+        q = tf.transform.rotation
+        assert [q.x, q.y, q.z, q.w] == [
+            pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w
+        ]  # fmt: skip
+        assert abs(q.x**2 + q.y**2 + q.z**2 + q.w**2 - 1.0) < 1e-9
+
+
+def test_publish_tf_off_leaves_tf_to_the_robots_own_tree(tmp_path: Path, capfd) -> None:
+    """A robot whose URDF gives the camera frame a parent (base_link -> camera) gets a second
+    parent for it from the mapper's map -> camera, which tf refuses: ``publish_tf:=false``
+    creates no /tf publisher at all, and says so at start."""
+    with rclpy_context() as ctx:
+        node = in_process_mapper_node(ctx, tmp_path, "/no_tf_test", publish_tf=False)
+        try:
+            assert node.tf_pub is None
+            assert node.count_publishers("/tf") == 0
+        finally:
+            node.close()
+            node.destroy_node()
+    assert "/tf off" in capfd.readouterr().err
+
+
 def test_each_pose_carries_its_clouds_exact_stamp(tmp_path: Path) -> None:
     """The pose (and its /tf) went out stamped with the cloud's stamp after a round trip
     through a float: at epoch times (1.7e9 s) that is some 100 ns off, so the map -> sensor

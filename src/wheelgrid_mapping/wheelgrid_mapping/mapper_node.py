@@ -79,6 +79,12 @@ class MapperNodeConfig:
         "if that cannot be written): a scan is not lost to a closed terminal",
     )
     map_frame: str = field("map", "frame id of the levelled map")
+    publish_tf: bool = field(
+        True,
+        "publish each pose as /tf map_frame -> the cloud's frame (needs tf2_msgs, which "
+        "scripts/setup.sh builds where the ROS install lacks it); off where that frame already "
+        "has a parent (a URDF's base_link -> camera): tf allows a frame one parent only",
+    )
     publish_period: float = field(2.0, "period of /wheelgrid/map_cloud and status updates", "s")
     max_queue: int = field(
         1,
@@ -118,7 +124,7 @@ class MapperNode(Node):  # type: ignore[misc]
         from sensor_msgs.msg import PointCloud2
         from std_srvs.srv import Trigger
 
-        from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+        from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS
 
         try:
             node_cfg = declare_dataclass(self, MapperNodeConfig())
@@ -179,10 +185,16 @@ class MapperNode(Node):  # type: ignore[misc]
             DiagnosticArray, "wheelgrid/mapper_status", RELIABLE_QOS
         )
         self.tf_pub = None
-        if tf2_available():
+        if node_cfg.publish_tf and tf2_available():
             from tf2_msgs.msg import TFMessage
 
-            self.tf_pub = self.create_publisher(TFMessage, "/tf", 10)
+            self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS)
+        elif node_cfg.publish_tf:
+            self.get_logger().warning(
+                "publish_tf: tf2_msgs is not importable, so no /tf (scripts/setup.sh builds it "
+                "into the venv where CMake and a compiler exist; log/tf2_msgs-build.log says why "
+                "it did not); the poses are on /wheelgrid/odometry"
+            )
         # Sensor-data QoS (best effort, volatile); its history grows with max_queue so that a
         # replay or a 60 Hz phone stream is not dropped by DDS while the worker holds the GIL.
         cloud_qos = QoSProfile(
@@ -210,6 +222,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self.get_logger().info(
             f"mapper: {self.resolve_topic_name(self.topic)} -> {self.map_pub.topic_name} "
             f"(prior: {self.resolve_topic_name(self.prior_topic) if self.prior_topic else 'none'}, "
+            f"/tf {'on' if self.tf_pub is not None else 'off'}, "
             f"registration {reg.method} voxel {reg.voxel_size} m, loop closure "
             f"{'on ~/close_loops' if self.loop_cfg.enabled else 'off'}, frames filtered in "
             f"{'a second process' if self._pipe.ahead else 'this process'})"
