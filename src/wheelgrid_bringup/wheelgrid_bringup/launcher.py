@@ -19,7 +19,7 @@ from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
 from wheelgrid_common.bagio import BagError
 from wheelgrid_common.params import read_yaml
-from wheelgrid_common.ros_env import child_env, configure_ros_env
+from wheelgrid_common.ros_env import child_env, configure_ros_env, rcl_reason
 from wheelgrid_common.shm import clean_dead_segments
 
 
@@ -74,8 +74,7 @@ def check_namespace(text: str) -> str:
     try:
         validate_namespace(ns)
     except InvalidNamespaceException as exc:
-        why = str(exc).splitlines()[0].split(", at /")[0].rstrip(": ")
-        raise ValueError(f"--namespace {text!r}: {why}") from None
+        raise ValueError(f"--namespace {text!r}: {rcl_reason(exc)}") from None
     return ns
 
 

@@ -169,6 +169,12 @@ def check_topic_params(node: Any, topics: dict[str, str], optional: tuple[str, .
             raise ValueError(f"{what} {name!r}: {why}")
 
 
+def rcl_reason(exc: Exception) -> str:
+    """rcl's refusal of a name as one line: its first line, without the source location and
+    the caret line that follow it, which mean nothing to a user of a command or a node."""
+    return str(exc).splitlines()[0].split(", at /")[0].rstrip(": ")
+
+
 def name_problem(
     name: str, node: str, namespace: str = "/", *, service: bool = False
 ) -> str | None:
@@ -183,7 +189,7 @@ def name_problem(
     try:
         validate_full_topic_name(expand_topic_name(name, node, namespace), is_service=service)
     except (InvalidTopicNameException, InvalidServiceNameException, ValueError) as exc:
-        why = str(exc).splitlines()[0].split(", at /")[0]
+        why = rcl_reason(exc)
         # rcl expands both kinds by the topic rules and says "topic" either way
         return why.replace("topic name", "service name") if service else why
     return None
