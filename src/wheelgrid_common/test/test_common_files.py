@@ -41,6 +41,24 @@ def test_occupancy_grid_message_rows_start_at_the_bottom():
     assert list(msg.data) == [0, -1, 100, 0]
     back = from_occupancy_grid(msg)
     assert back.data.tolist() == data.tolist() and back.origin[2] == pytest.approx(math.pi / 2)
+    # an origin quaternion off unit length is the same yaw (a third of unit length read 5.6
+    # deg for 90, and put start and goal in other cells)
+    q = msg.info.origin.orientation
+    q.z, q.w = 0.3 * q.z, 0.3 * q.w
+    assert from_occupancy_grid(msg).origin[2] == pytest.approx(math.pi / 2)
+
+
+def test_a_huge_quaternion_is_the_rotation_it_points_to_not_the_identity():
+    """A quaternion of 1e200 (a corrupt bag's exponent) overflowed the norm to infinity and
+    divided to zeros: an identity, which every rigidity check passes, where it was a half turn."""
+    np.testing.assert_allclose(quat_to_matrix(1e200, 0, 0, 0), np.diag([1.0, -1.0, -1.0]))
+    half = np.sqrt(0.5)
+    np.testing.assert_allclose(
+        quat_to_matrix(0, 0, 1e160, 1e160), quat_to_matrix(0, 0, half, half), atol=1e-12
+    )
+    assert np.isnan(quat_to_matrix(np.nan, 0, 0, 1)).all()
+    with pytest.raises(ValueError, match="zero quaternion"):
+        quat_to_matrix(0, 0, 0, 0)
 
 
 def test_cell_centres_and_lookup_agree_with_rotation():

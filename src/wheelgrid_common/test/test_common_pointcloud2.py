@@ -77,7 +77,12 @@ def test_big_endian_and_row_padding_are_honoured():
         (lambda m: setattr(m, "fields", m.fields[:2]), "missing_fields"),
         (lambda m: setattr(m, "point_step", 8), "bad_point_step"),
         (lambda m: setattr(m, "data", bytes(m.data)[:-5]), "truncated_data"),
-        (lambda m: (setattr(m, "width", 0), setattr(m, "height", 0)), "empty"),
+        (
+            lambda m: (setattr(m, "width", 0), setattr(m, "height", 0), setattr(m, "data", b"")),
+            "empty",
+        ),
+        # no points over bytes of data: not the mapper's empty map (which withdraws a grid)
+        (lambda m: setattr(m, "width", 0), "excess_data"),
         (lambda m: setattr(m, "row_step", 3), "bad_row_step"),
         # a second x over the y bytes: which one is x is anyone's guess
         (lambda m: setattr(m, "fields", [*m.fields, _field("x", 4)]), "duplicate_fields"),

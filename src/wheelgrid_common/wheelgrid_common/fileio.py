@@ -302,12 +302,17 @@ def pose_or_nan(position: Any, orientation: Any) -> np.ndarray:
 
 
 def quat_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix (normalises first)."""
+    """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix (normalises first; NaN in, NaN
+    out). Scaled by its largest component before the norm: a quaternion of 1e200 (a corrupt
+    bag's exponent) overflowed the norm to infinity, divided to zeros, and read as the identity,
+    which every rigidity check passes."""
     q = np.array([qw, qx, qy, qz], dtype=np.float64)
-    n = np.linalg.norm(q)
-    if n == 0:
+    largest = np.max(np.abs(q))
+    if largest == 0:
         raise ValueError("zero quaternion")
-    w, x, y, z = q / n
+    if np.isfinite(largest):
+        q = q / largest
+    w, x, y, z = q / np.linalg.norm(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

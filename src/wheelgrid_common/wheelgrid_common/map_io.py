@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .fileio import write_together
+from .fileio import quat_to_matrix, write_together
 from .params import read_yaml
 
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
@@ -310,7 +310,10 @@ def from_occupancy_grid(msg: Any) -> Grid:
         raise ValueError(f"OccupancyGrid resolution {res} is not a finite size > 0")
     if not all(math.isfinite(v) for v in (*position, *quat)) or math.hypot(*quat) < 1e-6:
         raise ValueError(f"OccupancyGrid origin {position}, orientation {quat} is not a pose")
-    yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    # normalised first: the unit formula read a 90 deg origin at a third of unit length as
+    # 5.6 deg, and put start and goal in other cells
+    rot = quat_to_matrix(*quat)
+    yaw = math.atan2(float(rot[1, 0]), float(rot[0, 0]))
     return Grid(
         data=np.flipud(flat.reshape(rows, cols)).copy(),
         resolution=float(msg.info.resolution),

@@ -72,6 +72,13 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     if height * width == 0:
+        if len(msg.data):
+            # A header of no points over bytes of data does not describe its data: taken as
+            # "empty", the grid node read it as the mapper's ~/reset and withdrew a good grid.
+            raise CloudError(
+                "excess_data",
+                f"cloud has {height}x{width} points but {len(msg.data)} B of data",
+            )
         raise CloudError("empty", f"cloud has {height}x{width} points")
     fields = _field_specs(msg)
     # A name given twice leaves which field holds the values to the decoder's whim (the last

@@ -580,9 +580,31 @@ def test_a_frame_without_a_prior_says_how_far_the_nearest_pose_is(tmp_path):
     with mapper_in_process(tmp_path, 1) as node:
         node._priors.clear()
         assert "none received yet" in node._no_prior_note(10.0)
-        node._priors.extend([(60.0, np.eye(4)), (60.1, np.eye(4))])
+        node._priors.extend([(60.0, np.eye(4), ""), (60.1, np.eye(4), "")])
         note = node._no_prior_note(10.0)
         assert "the nearest is +50.000 s from the frame's stamp" in note, note
+
+
+def test_a_prior_of_another_frame_than_the_clouds_is_not_used(tmp_path, capfd):
+    """The prior's ``child_frame_id`` was never read: a pose of base_link (or of another
+    camera) was taken as the sensor's own, an initial guess off by the mount, and with
+    ``prior_gravity`` its vertical levelled the map. With no tf to chain the two, a prior of
+    another named frame is not used, and the log says so once."""
+    other = "other_depth_optical_frame"
+
+    def rename(_k: int, msg: Any) -> None:
+        msg.header.frame_id = other
+
+    with mapper_in_process(tmp_path, 3, rename) as node:
+        stamp, _, child = node._priors[-1]
+        assert child and child != other
+        assert node._prior_for(stamp, other) is False
+        assert isinstance(node._prior_for(stamp, child), np.ndarray)
+        assert isinstance(node._prior_for(stamp, ""), np.ndarray)  # a cloud of no named frame
+    err = capfd.readouterr().err
+    assert err.count("the prior is not used") == 1, err
+    # registered as frames without a prior are (the bag's first frames then fail as degenerate)
+    assert "no prior" in err and "within 0.1 s" not in err, err
 
 
 def test_kept_frames_are_not_released_under_a_close_loops_already_answered(tmp_path):

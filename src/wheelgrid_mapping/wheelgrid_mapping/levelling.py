@@ -24,24 +24,12 @@ import math
 
 import numpy as np
 
+from wheelgrid_common.frames import convention_for_frame as convention_for_frame
 from wheelgrid_common.geometry import fit_plane
 
 # Direction of gravity ("down") in the sensor frame when the sensor is upright and level.
 DOWN_HINT = {"optical": np.array([0.0, 1.0, 0.0]), "body": np.array([0.0, 0.0, -1.0])}
 VIEW_AXIS = {"optical": np.array([0.0, 0.0, 1.0]), "body": np.array([1.0, 0.0, 0.0])}
-
-
-def convention_for_frame(frame_id: str, setting: str = "auto") -> str:
-    """``optical`` or ``body``: an explicit setting wins; ``auto`` follows REP-103 naming."""
-    if setting in ("optical", "body"):
-        return setting
-    if setting != "auto":
-        raise ValueError(f"sensor_convention must be auto, optical or body, not {setting!r}")
-    return (
-        "optical"
-        if frame_id.endswith("optical_frame") or frame_id.endswith("optical")
-        else ("body")
-    )
 
 
 class FloorNotFoundError(RuntimeError):

@@ -159,7 +159,8 @@ class MapperNode(Node):  # type: ignore[misc]
         self._slot_lock = threading.Condition()
         self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None, Any, float]] = deque()
         self._stop = False
-        self._priors: deque[tuple[float, np.ndarray]] = deque(maxlen=2000)
+        # (stamp, pose, child frame) of each prior received
+        self._priors: deque[tuple[float, np.ndarray, str]] = deque(maxlen=2000)
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
         self._logged: set[str] = set()
         self._map_dirty = False
@@ -299,7 +300,7 @@ class MapperNode(Node):  # type: ignore[misc]
     def _on_prior(self, msg: Any) -> None:
         p = msg.pose.pose
         T = pose_or_nan(p.position, p.orientation)  # a NaN pose is refused and counted later
-        self._priors.append((_stamp_seconds(msg.header.stamp), T))
+        self._priors.append((_stamp_seconds(msg.header.stamp), T, str(msg.child_frame_id)))
 
     def _no_prior_note(self, stamp: float) -> str:
         """Why a frame has no prior, with how far the nearest pose's stamp is: a pose topic on
@@ -307,17 +308,32 @@ class MapperNode(Node):  # type: ignore[misc]
         note = f"no pose on {self.prior_topic} within 0.1 s of a frame"
         if not self._priors:
             return note + " (none received yet); frames register without a prior"
-        gap = min((s - stamp for s, _ in list(self._priors)), key=abs)
+        gap = min((s - stamp for s, _, _ in list(self._priors)), key=abs)
         return (
             f"{note}: the nearest is {gap:+.3f} s from the frame's stamp (a pose topic on "
             "another clock?); frames register without a prior"
         )
 
-    def _prior_for(self, stamp: float) -> np.ndarray | None:
+    def _prior_for(self, stamp: float, frame_id: str) -> np.ndarray | bool | None:
+        """The prior pose for a frame stamped ``stamp`` (within 0.1 s), None when there is
+        none yet, or False when the nearest is the pose of another frame than the cloud's
+        (``child_frame_id`` not the cloud's ``frame_id``, both named): a base_link pose read
+        as the camera's was an initial guess off by the mount, and its vertical levelled the
+        map by a wrong gravity. There is no tf here to chain them: it is not used."""
         if not self._priors:
             return None
         best = min(list(self._priors), key=lambda sp: abs(sp[0] - stamp))
-        return best[1] if abs(best[0] - stamp) <= 0.1 else None
+        if abs(best[0] - stamp) > 0.1:
+            return None
+        if best[2] and frame_id and best[2] != frame_id:
+            self._log_once(
+                "priorframe",
+                f"the poses on {self.resolve_topic_name(self.prior_topic)} are of frame "
+                f"{best[2]!r}, the clouds of {frame_id!r}: the prior is not used (frames "
+                "register without it); publish the sensor's own pose as the prior",
+            )
+            return False
+        return best[1]
 
     # -- worker ------------------------------------------------------------------------------
     def _work(self) -> None:
@@ -357,16 +373,17 @@ class MapperNode(Node):  # type: ignore[misc]
             pts, stamp, frame_id, conf, header_stamp, received = frame
             if frame_id:
                 self._sensor_frame = frame_id
-            prior = self._prior_for(stamp)
-            if self.prior_topic and prior is None:
+            found = self._prior_for(stamp, frame_id)
+            if self.prior_topic and found is None:
                 # The pose may arrive just after its cloud: wait a moment rather than register
                 # without it (a frame without its prior is judged by the stricter rules).
                 deadline = time.monotonic() + 0.25
-                while prior is None and time.monotonic() < deadline and not self._stop:
+                while found is None and time.monotonic() < deadline and not self._stop:
                     time.sleep(0.01)
-                    prior = self._prior_for(stamp)
-                if prior is None:
+                    found = self._prior_for(stamp, frame_id)
+                if found is None:
                     self._log_once("noprior", self._no_prior_note(stamp))
+            prior = found if isinstance(found, np.ndarray) else None
             with self._lock:
                 if generation != self._generation:
                     # ~/reset came while it was in hand: dropped with the map, and not counted,

@@ -282,6 +282,27 @@ def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_
         assert len(grids) == n, "a parameter change republished the cleared map's grid"
 
 
+def test_a_cloud_of_no_points_over_bytes_of_data_keeps_the_grid():
+    """A map cloud whose header says 0 points but which carries data does not describe its
+    data: it was taken for the mapper's ~/reset (an empty map) and withdrew a good grid (every
+    cell unknown, the last good map forgotten). It is malformed, as the same data with a bad
+    row_step is: the grid is kept."""
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with in_process_grid(max_rate_hz=100.0) as t:
+        t.pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(t.ex, lambda: t.grids, 20.0)
+        rejected: list[str] = []
+        reject = t.grid_node._reject
+        t.grid_node._reject = lambda why: (rejected.append(why), reject(why))
+        bad = to_pointcloud2(cloud[:1000], "map")
+        bad.width = 0
+        t.pub.publish(bad)
+        assert spin_until(t.ex, lambda: rejected, 10.0)
+        assert "excess_data" in rejected[0] or "0 points but" in rejected[0], rejected
+        spin_until(t.ex, lambda: False, 0.5)
+        assert len(t.grids) == 1 and t.grid_node.result is not None
+
+
 def test_a_map_held_back_by_the_rate_limit_is_computed_under_use_sim_time_with_no_clock():
     """A map cloud that comes within ``1 / max_rate_hz`` of the last grid waits for the node's
     timer. Under ``use_sim_time`` that timer ran on ROS time: with no ``/clock`` (or a replayed

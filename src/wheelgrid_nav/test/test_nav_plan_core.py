@@ -266,6 +266,14 @@ def test_node_helpers_headings_and_path_poses():
     assert forward_yaw(Q(0, 0, s, s)) == pytest.approx(math.pi / 2)  # body x -> map +y
     # optical frame looking along map +x: z_opt = x_map, x_opt = -y_map, y_opt = -z_map
     assert forward_yaw(Q(-0.5, 0.5, -0.5, 0.5), "iphone_depth_optical_frame") == pytest.approx(0.0)
+    # the mapper's rule: "*_optical" is optical too (it read 90 deg off, as a body frame), and
+    # a set convention (the mapper's sensor_convention) wins over the name
+    assert forward_yaw(Q(-0.5, 0.5, -0.5, 0.5), "camera_optical") == pytest.approx(0.0)
+    assert forward_yaw(Q(-0.5, 0.5, -0.5, 0.5), "camera", "optical") == pytest.approx(0.0)
+    assert forward_yaw(Q(-0.5, 0.5, -0.5, 0.5), "camera") == pytest.approx(-math.pi / 2)
+    # a quaternion off unit length is the same rotation: a third of a 90 deg yaw read 5.6 deg
+    assert forward_yaw(Q(0, 0, 0.3 * s, 0.3 * s)) == pytest.approx(math.pi / 2)
+    assert forward_yaw(Q(0, 0, 1e200, 0)) == pytest.approx(math.pi)
 
     grid = Grid(paper_grid(), 0.5, (1.0, 2.0, 0.0))
     poses = path_poses(grid, PAPER_ROUTE, "down")

@@ -218,17 +218,26 @@ def test_planner_node_plans_replans_and_stops(tmp_path):
             h.close()
 
 
-def test_odometry_start_and_console_entry(tmp_path):
+@pytest.mark.parametrize(
+    ("child", "params"),
+    [
+        ("iphone_depth_optical_frame", ()),
+        # a camera frame not named optical, which the mapper was told is (sensor_convention):
+        # read as a body frame, the start heading came out 90 deg off, "down"
+        ("camera", ("odometry_convention:=optical",)),
+    ],
+)
+def test_odometry_start_and_console_entry(tmp_path, child, params):
     """The real entry point as a child process; the start comes from /wheelgrid/odometry in the
     iPhone's optical frame (looking along the grid's "right")."""
     from nav_msgs.msg import Odometry
 
     grid = Grid(paper_grid(), RES, ORIGIN)
-    with planner_process(tmp_path, "method:=qlearning") as (h, log):
+    with planner_process(tmp_path, "method:=qlearning", *params) as (h, log):
         h.grid_pub.publish(to_occupancy_grid(grid))
         odom = Odometry()
         odom.header.frame_id = "map"
-        odom.child_frame_id = "iphone_depth_optical_frame"
+        odom.child_frame_id = child
         x, y = grid.cell_center(6, 0)
         odom.pose.pose.position.x, odom.pose.pose.position.y = float(x), float(y)
         q = odom.pose.pose.orientation
@@ -240,6 +249,8 @@ def test_odometry_start_and_console_entry(tmp_path):
                 break
         path = h.next_path(0)
         assert cells_of(path, grid) == [(6, c) for c in range(5)], log.read_text()
+        q = path.poses[0].pose.orientation  # the start heading: the grid's "right", map +x
+        assert math.atan2(2 * q.w * q.z, 1 - 2 * q.z * q.z) == pytest.approx(0.0, abs=1e-6)
 
 
 def chair_msg(grid, cell, yaw):
@@ -384,7 +395,13 @@ def test_a_smaller_grid_a_grid_in_another_frame_and_a_refused_goal(tmp_path):
 
 @pytest.mark.parametrize(
     "param",
-    ["method:=dijkstra", "reward_step:=1.0", "learning_rate:=1", "reward_goal:=.inf"],
+    [
+        "method:=dijkstra",
+        "reward_step:=1.0",
+        "learning_rate:=1",
+        "reward_goal:=.inf",
+        "odometry_convention:=sideways",
+    ],
 )
 def test_bad_parameters_stop_the_node_with_exit_2(param):
     from wheelgrid_common.ros_env import child_env

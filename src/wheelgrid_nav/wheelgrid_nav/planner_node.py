@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from wheelgrid_common.fileio import quat_to_matrix
+from wheelgrid_common.frames import CONVENTIONS, convention_for_frame
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass
 from wheelgrid_common.params import field as pfield
@@ -80,6 +82,12 @@ class PlannerNodeConfig:
         "the chair set off with no command)",
         "s",
     )
+    odometry_convention: str = pfield(
+        "auto",
+        "axes of the odometry start pose's child frame: auto (REP-103: a frame named "
+        "*_optical or *_optical_frame looks along +z, any other along +x, as the mapper reads "
+        "it), optical or body; set it as the mapper's mapper.sensor_convention where that is set",
+    )
 
 
 def heading_from_yaw(yaw: float, grid_yaw: float) -> str:
@@ -101,18 +109,18 @@ def pose_problem(pose: Any) -> str | None:
     return None
 
 
-def forward_yaw(q: Any, child_frame: str = "") -> float:
-    """Map-frame yaw of a pose's forward axis.
+def forward_yaw(q: Any, child_frame: str = "", convention: str = "auto") -> float:
+    """Map-frame yaw of a pose's forward axis, projected onto the floor.
 
-    Optical frames (``*_optical_frame``, e.g. the iPhone odometry's child frame) look along +z;
-    body frames (RViz poses) along +x. The forward axis is projected onto the floor.
+    Optical frames (the iPhone odometry's child frame) look along +z, body frames (RViz poses)
+    along +x, by the mapper's own rule (:func:`convention_for_frame`): the planner read only
+    ``*_optical_frame`` as optical, and a mapper's ``camera_optical`` poses as 90 deg off. The
+    quaternion is normalised first: the unit formula read a 90 deg yaw at a third of unit
+    length as 5.6 deg.
     """
-    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
-    if child_frame.endswith("optical_frame"):
-        fx, fy = 2 * (x * z + w * y), 2 * (y * z - w * x)  # third column of R
-    else:
-        fx, fy = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z)  # first column of R
-    return math.atan2(fy, fx)
+    rot = quat_to_matrix(float(q.x), float(q.y), float(q.z), float(q.w))
+    axis = 2 if convention_for_frame(child_frame, convention) == "optical" else 0
+    return math.atan2(float(rot[1, axis]), float(rot[0, axis]))
 
 
 def _quat_from_yaw(yaw: float) -> tuple[float, float]:
@@ -169,6 +177,12 @@ def _make_node_class() -> type:
             wait = self.node_cfg.goal_wait_s
             if not (math.isfinite(wait) and wait > 0):
                 self.get_logger().fatal(f"goal_wait_s must be > 0 s, not {wait}")
+                raise SystemExit(2)
+            if self.node_cfg.odometry_convention not in CONVENTIONS:
+                self.get_logger().fatal(
+                    f"odometry_convention must be one of {', '.join(CONVENTIONS)}, not "
+                    f"{self.node_cfg.odometry_convention!r}"
+                )
                 raise SystemExit(2)
             if self.node_cfg.method not in METHODS:
                 self.get_logger().fatal(
@@ -335,7 +349,7 @@ def _make_node_class() -> type:
                 f"still no {' and no '.join(missing) or 'grid or start'}",
             )
 
-        def _set_start(self, pose: Any, frame: str, child: str) -> bool:
+        def _set_start(self, pose: Any, frame: str, child: str, convention: str = "auto") -> bool:
             if not self._frame_ok(frame, "start pose"):
                 return False
             problem = pose_problem(pose)
@@ -347,7 +361,7 @@ def _make_node_class() -> type:
             self.start = (
                 float(pose.position.x),
                 float(pose.position.y),
-                forward_yaw(pose.orientation, child),
+                forward_yaw(pose.orientation, child, convention),
             )
             self.start_frame = frame
             self._drop_if_reached()
@@ -366,16 +380,24 @@ def _make_node_class() -> type:
                 self.get_logger().info(f"goal {here} reached: goal done")
                 self.goal = None
 
-        def _follow_start(self, pose: Any, frame: str, child: str) -> None:
+        def _follow_start(
+            self, pose: Any, frame: str, child: str, convention: str = "auto"
+        ) -> None:
             """A start from a stream (odometry, the chair's pose): planned from at once only
             when it is the first start and a goal waits; later ones move the start that the
             next goal or grid change plans from."""
             had_start = self.start is not None
-            if self._set_start(pose, frame, child) and not had_start and self.goal is not None:
+            started = self._set_start(pose, frame, child, convention)
+            if started and not had_start and self.goal is not None:
                 self._plan()
 
         def _on_odom(self, msg: Any) -> None:
-            self._follow_start(msg.pose.pose, msg.header.frame_id, msg.child_frame_id)
+            self._follow_start(
+                msg.pose.pose,
+                msg.header.frame_id,
+                msg.child_frame_id,
+                self.node_cfg.odometry_convention,
+            )
 
         def _on_chair_pose(self, msg: Any) -> None:
             pose = msg.pose
