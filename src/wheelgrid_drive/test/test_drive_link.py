@@ -213,6 +213,28 @@ def test_a_second_host_process_is_not_taken_for_a_retry_of_the_first(make_sim, m
     assert sim.status().x == pytest.approx(0.15, abs=0.01)
 
 
+def test_a_reopened_port_is_not_taken_for_a_retry_of_a_move_another_host_sent(make_sim, make_link):
+    """The link re-read the controller's last accepted SEQ only for its first move. Another
+    host that drove the controller while the port was away left its own SEQ there, and the
+    reopened link's next identical move, when its counter came to that SEQ (1 time in 255),
+    was ACKed as a retry and reported DONE without the chair moving."""
+    sim = make_sim(time_scale=50.0)
+    a = make_link(sim.slave_path, heartbeat=False)
+    a.execute("FORWARD", 0.05, 3.0)
+    a._drop_port("unplugged")  # as a USB adapter pulled out
+    b = make_link(sim.slave_path, heartbeat=False)  # a second host takes the port meanwhile
+    b._seq = (a._seq + 1) & 0xFF
+    seq_b, _ = b.execute("FORWARD", 0.05, 3.0)
+    b.close(stop=False)
+    assert a.reconnect()
+    a._seq = (seq_b - 1) & 0xFF  # A's counter comes round to B's SEQ
+    x0 = sim.status().x
+    _, st = a.execute("FORWARD", 0.05, 3.0)
+    assert st.result == proto.Result.DONE
+    assert sim.status().x - x0 == pytest.approx(0.05, abs=0.01), "ACKed as a retry, unmoved"
+    assert [e.detail for e in sim.events if e.what == "move"] == ["FORWARD"] * 3
+
+
 def test_link_settings_it_cannot_run_with_are_refused():
     from wheelgrid_drive.link import check_link_settings
 

@@ -181,6 +181,10 @@ class MotorLink:
             self._stop_first = stop_first
             self._ser = ser
             self.connection += 1
+            # Whoever drove the controller while the port was away (a second host, a
+            # `wheelgrid drive` run) moved its last accepted SEQ: the next move reads it from
+            # STATUS again, else one with that SEQ was taken for a retry and ACKed unmoved.
+            self._last_move_seq = None
         self._reader = threading.Thread(
             target=self._read_loop, args=(ser,), name="motor-link-reader", daemon=True
         )
