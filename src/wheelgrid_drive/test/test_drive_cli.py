@@ -1,5 +1,6 @@
 """`wheelgrid drive PLAN.json --port DEV` against the simulated controller on a pty."""
 
+import csv
 import itertools
 import json
 
@@ -92,6 +93,7 @@ def test_speed_is_capped_and_heading_flag_works(make_sim, tmp_path, capsys):
             "9",
             "--cell-size",
             "0.6",
+            "--set-pose",
         ]
     )
     captured = capsys.readouterr()
@@ -267,10 +269,65 @@ def test_a_plan_from_the_chairs_own_unknown_cell_is_driven_and_an_occupied_start
     data[2, 0] = -1  # the start
     sim = make_sim()
     grid = write_map(tmp_path / "own_unknown.yaml", Grid(data, 1.2))
-    rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--grid", str(grid)])
+    argv = [write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--grid", str(grid)]
+    rc = main([*argv, "--set-pose"])
     assert rc == 0, capsys.readouterr().err
     assert len(sim_moves(sim)) == 9
     data[2, 0] = 100
     grid = write_map(tmp_path / "own_occupied.yaml", Grid(data, 1.2))
     rc = main([write(tmp_path, table_ii_plan()), "--dry-run", "--grid", str(grid)])
     assert rc == 2 and "start cell (2, 0) is occupied" in capsys.readouterr().err
+
+
+def _corridor(tmp_path):
+    """A free corridor along row 3 between occupied rows, the start cell below it, and a plan
+    along it: ``(grid, grid.yaml, plan.json)``."""
+    data = np.full((7, 9), 100, np.int8)
+    data[3, :] = 0
+    data[4, 0] = 0
+    grid = Grid(data, 1.2)
+    cells = [[4, 0]] + [[3, c] for c in range(9)]
+    return grid, write_map(tmp_path / "grid.yaml", grid), write(tmp_path, {"cells": cells})
+
+
+def test_a_chair_drifting_off_its_route_is_stopped_before_it_leaves_the_free_cells(
+    make_sim, tmp_path, capsys
+):
+    """Each step drives one cell's length from where the chair really stands. The command
+    checked only the plan's cells: with a real chair's turn error (the simulator's 3 deg) it
+    drove the whole free corridor's plan, exit 0, through three occupied cells beside it. It
+    now reads the controller's pose before each step, as the drive node does, and stops."""
+    grid, grid_yaml, plan = _corridor(tmp_path)
+    log = tmp_path / "pose.csv"
+    sim = make_sim(noise_deg=3.0, seed=0, pose_log=str(log))
+    argv = [plan, "--port", sim.slave_path, "--grid", str(grid_yaml), "--set-pose"]
+    rc = main([*argv, "--heading", "right"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "refused" in err and "more than 0.25 cell" in err, err
+    assert "chair stopped" in err
+    sim.stop()
+    rows = list(csv.DictReader(log.open()))[1:]  # the first: the power-on pose, before --set-pose
+    assert rows
+    for row in rows:
+        r, c = grid.cell_of(float(row["x"]), float(row["y"]))
+        assert grid.inside(r, c) and grid.data[r, c] == 0, row
+
+
+def test_a_controller_elsewhere_than_the_plans_start_is_refused_before_any_move(
+    make_sim, tmp_path, capsys
+):
+    """Without --set-pose the command took the chair to stand on the plan's first cell and
+    never read where the controller said it was: from a cell the grid calls occupied it drove
+    the plan's moves through occupied cells, exit 0. ``--no-pose-check`` is the opt-out for a
+    controller whose pose is not in the plan's frame."""
+    grid, grid_yaml, plan = _corridor(tmp_path)
+    x, y = grid.cell_center(6, 0)  # occupied, two cells below the start
+    sim = make_sim(pose=(float(x), float(y), 0.0))
+    rc = main([plan, "--port", sim.slave_path, "--grid", str(grid_yaml), "--heading", "up"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "step 1/9" in err and "--set-pose" in err, err
+    assert sim_moves(sim) == []
+    rc = main(
+        [plan, "--port", sim.slave_path, "--cell-size", "1.2", "--heading", "up", "--no-pose-check"]
+    )
+    assert rc == 0 and len(sim_moves(sim)) == 9, capsys.readouterr().err

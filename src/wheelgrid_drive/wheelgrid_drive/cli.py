@@ -20,7 +20,7 @@ from wheelgrid_common.params import DefaultsHelpFormatter
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
-from wheelgrid_drive.runner import CellCheck, grid_cell_check, run_steps
+from wheelgrid_drive.runner import CellCheck, grid_cell_check, run_steps, step_pose_problem
 
 MIN_SPEED_KMH = 0.1  # slower, a cell's move cannot end within the link's move timeout
 
@@ -129,6 +129,13 @@ def _parser() -> argparse.ArgumentParser:
         "--set-pose",
         action="store_true",
         help="first tell the controller it stands on the start cell centre (simulator/demo)",
+    )
+    p.add_argument(
+        "--no-pose-check",
+        action="store_true",
+        help="drive without checking the controller's reported pose before each step (for a "
+        "controller whose pose is not in the plan's frame); each step then drives one cell "
+        "from wherever the chair stands",
     )
     p.add_argument("--reply-timeout", type=float, default=0.1, help="seconds per attempt")
     p.add_argument("--retries", type=int, default=3, help="resends of an unanswered frame")
@@ -268,7 +275,13 @@ def main(argv: list[str] | None = None) -> int:
         if start_pose is not None:
             link.set_pose(*start_pose)
         result = run_steps(
-            link, steps, distance_m=cell_size, speed_kmh=speed, cell_check=check, on_step=on_step
+            link,
+            steps,
+            distance_m=cell_size,
+            speed_kmh=speed,
+            cell_check=check,
+            on_step=on_step,
+            pose_check=None if args.no_pose_check else pose_check(link, _Cells(cell_size, grid)),
         )
         # the runner sent STOP already; once more, to learn whether the controller heard it
         stop_note = "" if result.ok else _stopped(link)
@@ -281,9 +294,15 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         link.close()
     if not result.ok:
+        hint = ""
+        if result.refused and result.done == 0 and "centre of cell" in result.error:
+            hint = (
+                " (the controller's pose is not on the plan's start cell: --set-pose tells it "
+                "the chair stands there; --no-pose-check drives without the check)"
+            )
         print(
-            f"wheelgrid drive: step {result.done + 1}/{result.total} failed: {result.error}; "
-            f"{stop_note}",
+            f"wheelgrid drive: step {result.done + 1}/{result.total} failed: {result.error}"
+            f"{hint}; {stop_note}",
             file=sys.stderr,
         )
         return 1
@@ -313,6 +332,35 @@ def _describe(s: actions.Step) -> str:
         f"{s.src} -> {s.dst} heading {s.heading} move {s.move} => "
         f"{actions.PAPER_NAME[s.action]} (new heading {s.new_heading})"
     )
+
+
+class _Cells:
+    """Where the plan's cells lie, as :func:`step_pose_problem` asks: the grid's cells, or
+    without one those of :func:`_cell_xy`."""
+
+    def __init__(self, cell_size: float, grid: Any) -> None:
+        self.resolution = grid.resolution if grid is not None else cell_size
+        self._grid = grid
+
+    def cell_center(self, r: int, c: int) -> tuple[float, float]:
+        return _cell_xy((r, c), self.resolution, self._grid)
+
+
+def pose_check(link: MotorLink, cells: _Cells) -> Any:
+    """Before each step, the controller's pose must be where the step can be driven from, as
+    the drive node checks it: each step drives one cell's length from where the chair really
+    stands, and the command checked only the plan's cells, so a chair turned a few degrees
+    per turn, or standing elsewhere than the plan's start, drove through occupied cells of a
+    free-checked route and exited 0."""
+
+    def check(step: actions.Step) -> str | None:
+        try:
+            st = link.status()
+        except LinkError as exc:
+            return f"no controller pose: {exc}"
+        return step_pose_problem(cells, st.x, st.y, st.yaw, step)
+
+    return check
 
 
 def _cell_xy(cell: tuple[int, int], cell_size: float, grid: Any) -> tuple[float, float]:
