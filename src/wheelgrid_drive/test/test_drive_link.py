@@ -6,6 +6,7 @@ import signal
 import sys
 import textwrap
 import threading
+import time
 
 import pytest
 
@@ -222,7 +223,17 @@ def test_a_reopened_port_is_not_taken_for_a_retry_of_a_move_another_host_sent(ma
     a = make_link(sim.slave_path, heartbeat=False)
     a.execute("FORWARD", 0.05, 3.0)
     a._drop_port("unplugged")  # as a USB adapter pulled out
-    b = make_link(sim.slave_path, heartbeat=False)  # a second host takes the port meanwhile
+    # a second host takes the port meanwhile, once A's reader has let go of its lock (a
+    # closed descriptor holds it until a read in progress on it returns)
+    deadline = time.monotonic() + 5.0
+    while True:
+        try:
+            b = make_link(sim.slave_path, heartbeat=False)
+            break
+        except LinkError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
     b._seq = (a._seq + 1) & 0xFF
     seq_b, _ = b.execute("FORWARD", 0.05, 3.0)
     b.close(stop=False)

@@ -364,7 +364,12 @@ class MotorLink:
         ``abort`` is set (see :meth:`_write`).
         """
         is_stop = mtype == proto.MsgType.STOP
-        if self._stop_first and not is_stop and self._stop_owed_at is None:
+        with self._state_lock:
+            # one look at both: read apart, a port reopened between them (its STOP still to
+            # go first) was taken as this request's connection, and a move went out before
+            # that STOP
+            stop_first, ser = self._stop_first, self._ser
+        if stop_first and not is_stop and self._stop_owed_at is None:
             raise LinkError(
                 f"{mtype.name} not sent: port {self.port} was just reopened, and its first frame "
                 "is the STOP, not yet acknowledged"
@@ -374,7 +379,7 @@ class MotorLink:
                 f"{mtype.name} not sent: a STOP went unacknowledged, and the link stays silent "
                 "until one is, so that the controller's watchdog stops the motors"
             )
-        ser = self._ser  # the connection this request belongs to (STOP: any)
+        # ``ser``: the connection this request belongs to (STOP: any)
         if ser is None and not is_stop:
             raise LinkError(f"{mtype.name} not sent: port {self.port} is not connected")
         seq = self._next_seq(avoid_seq)
