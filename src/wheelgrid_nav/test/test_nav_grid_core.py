@@ -242,6 +242,35 @@ def test_walls_stay_boundary_when_the_grid_overflows_the_floor():
     assert res.boundary[:, :2].any() and res.boundary[:, -2:].any()
 
 
+def test_floor_unseen_under_a_bench_does_not_widen_the_strip_past_20_cm_on_any_side():
+    """A bench 25 cm deep along the west wall hides the floor under it. The grid's overrun of
+    the floor, halved onto both sides, widened the strip to 25 cm on both: the bench and a
+    22 cm cabinet standing on seen floor against the east wall read free. The strip is now
+    taken side by side and never over MAX_BOUNDARY_MARGIN (20 cm), the chair's side clearance."""
+    for depth in (0.22, 0.27):
+        bench = Box(0.0, 0.25, 0.0, 3.6, 0.0, 0.45)
+        cabinet = Box(4.8 - depth, 4.8, 1.6, 2.1, 0.0, 1.0)
+        cloud = room_cloud([bench, cabinet], size=(4.8, 3.6), spacing=0.03)
+        cloud = cloud[~((cloud[:, 2] <= 0.05) & (cloud[:, 0] < 0.25))]  # no floor under it
+        res = build_grid(cloud)
+        assert res.grid.data.shape == (3, 4)
+        assert (res.grid.data[:, 0] == OCCUPIED).all(), (depth, res.grid.data)  # the bench
+        assert res.grid.data[1, 3] == OCCUPIED, (depth, res.grid.data)  # the cabinet
+        mid = res.boundary.shape[0] // 2
+        inner = np.flatnonzero(~res.boundary[mid])
+        assert inner.min() * 0.05 <= 0.2 and (res.boundary.shape[1] - 1 - inner.max()) * 0.05 <= 0.2
+
+
+def test_a_grid_short_of_its_walls_has_no_wall_strip_at_that_edge():
+    """A 3.3 m room snaps down to two cells, 45 cm inside each wall: the 15 cm strip at the
+    grid's edge lay on open floor, and a post standing there, on seen floor, was taken for a
+    wall."""
+    post = Box(0.50, 0.55, 1.6, 1.65, 0.0, 1.0)
+    res = build_grid(room_cloud([post], size=(3.3, 3.6), spacing=0.03))
+    assert res.grid.data.shape == (3, 2) and res.grid.origin[0] == pytest.approx(0.45, abs=0.01)
+    assert res.grid.data[1, 0] == OCCUPIED, res.grid.data
+
+
 def test_grid_phase_survives_a_missing_floor_strip():
     # Floor points stop 12 cm short of the east wall (e.g. never scanned there).
     cloud = room_cloud([Box(0.1, 1.1, 0.1, 1.1, 0.0, 0.75)], size=(3.6, 3.6), spacing=SPACING)
@@ -527,3 +556,15 @@ def test_line_rule_on_hand_made_image():
     guard = thin_obstacle_guard(obs, counts, 6, 6, 12, 5, 6)
     assert guard.tolist() == [[True, True], [True, False]]
     assert not thin_obstacle_guard(obs, counts, 6, 6, 12).any()  # the point rule alone
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_rod_fixed_to_a_wall_is_measured_from_the_wall(seed):
+    """A 40 cm rod out of the east wall (a towel rail, a bracket) lost its first 15 cm to the
+    wall strip, measured 25 cm, under guard_line_length, and its cell read free. The line is
+    measured through the strip; only what lies beyond the strip marks its cell, so the walls'
+    own sparse stretches occupy nothing (the bare room stays free)."""
+    res = build_grid(np.vstack([ROOM_3x3, rope((3.6, 1.8, 0.8), (3.2, 1.8, 0.8), seed)]))
+    assert res.grid.data[1, 2] == OCCUPIED and res.guard[1, 2], res.grid.data
+    assert np.count_nonzero(res.grid.data == OCCUPIED) == 1
+    assert (build_grid(ROOM_3x3).grid.data == FREE).all()

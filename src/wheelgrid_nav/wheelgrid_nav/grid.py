@@ -34,16 +34,19 @@ What the paper leaves out and a wheelchair needs (a person's body rides on this 
   points, snapped to whole cells and centred on it, so cells coincide with the room interior.
 - **Boundary rule.** Obstacle pixels within ``boundary_margin`` of the grid's outer edge are the
   room's walls (the boundary), not content of the border cells: the walls lie outside the cells,
-  and a phase error of a pixel or two must not turn the whole border ring into obstacles. Where
-  the grid reaches past the observed floor (the extent snapped up to whole cells, at most
-  ``extent_tolerance / 2`` a side) that strip is added to the margin, since the walls stand where
-  the floor ends. Only obstacles lying *entirely* inside that strip are affected; anything
-  reaching further in still occupies its cell. The cost: an obstacle no deeper than the strip
-  standing against a wall (a radiator, a shelf) is not seen. The chair (100 x 80 cm) in its safe
-  cell (120 x 120 cm) clears it by 10 cm along its length and 20 cm along its width; the default
-  margin, 15 cm (measured on the mapped bundled bag: a scanned wall's thickness plus the grid's
-  phase error), is above the first, and more than ``MAX_BOUNDARY_MARGIN`` (the second) is
-  refused. The README says so too.
+  and a phase error of a pixel or two must not turn the whole border ring into obstacles. Side
+  by side, where the grid reaches past the observed floor's end that strip is added to the
+  margin, since the walls stand where the floor ends, and where the floor goes on past the
+  grid's edge (the extent snapped down, no wall there) the strip shrinks by as much; no side's
+  strip is ever deeper than ``MAX_BOUNDARY_MARGIN`` (:func:`boundary_widths`). Only obstacles
+  lying *entirely* inside the strip are affected; anything reaching further in still occupies
+  its cell, and a rod or rope reaching in from a wall is measured from the wall. The cost: an
+  obstacle no deeper than the strip standing against a wall (a radiator, a shelf) is not seen.
+  The chair (100 x 80 cm) in its safe cell (120 x 120 cm) clears it by 10 cm along its length
+  and 20 cm along its width; the default margin, 15 cm (measured on the mapped bundled bag: a
+  scanned wall's thickness plus the grid's phase error), is above the first, and no strip
+  deeper than ``MAX_BOUNDARY_MARGIN`` (the second) is used, nor a margin over it accepted. The
+  README says so too.
 
 Everything is vectorised numpy (bincount rasterisation, reshaped cell sums) so a 1.3 M point
 map becomes a grid in well under 0.2 s on two cores.
@@ -477,6 +480,7 @@ def linear_obstacles(
     min_length_px: float,
     solid_points: int | None = None,
     support: np.ndarray | None = None,
+    boundary: np.ndarray | None = None,
 ) -> np.ndarray:
     """Black pixels that belong to a linear obstacle: a rod, a rope, a cable (the guard's
     second kind of evidence).
@@ -499,8 +503,18 @@ def linear_obstacles(
     component and occupied the neighbouring cell: on ``make demo``'s map that made truth-free
     cell (4, 3) occupied. A rope tied to a post still counts, from where the post's points end.
     ``support``: :func:`obstacle_support`, where the caller has it already.
+
+    ``boundary``: the black pixels of the boundary strip (taken for the walls). A line is
+    measured through them too, and kept where at least two of its links lie beyond them, where
+    its cell is: a 40 cm rod fixed to a wall lost its first 15 cm to the strip, measured 25 cm,
+    under ``guard_line_length``, and its cell read free. Only the pixels beyond the strip are
+    marked, so a sparse stretch of the wall itself occupies nothing.
     """
     obs = np.asarray(obstacles, dtype=bool)
+    edge = np.zeros_like(obs) if boundary is None else np.asarray(boundary, dtype=bool)
+    if boundary is not None:
+        obs = obs | edge
+        support = None  # the interior's support does not hold the strip's points
     if support is None:
         support = obstacle_support(obs, counts)
     links = obs & (support >= min_points)
@@ -527,7 +541,9 @@ def linear_obstacles(
         np.maximum.reduceat(proj[order], starts) - np.minimum.reduceat(proj[order], starts) + 1.0
     )
     long = extent >= min_length_px - 1e-9
-    keep = long[comp]
+    inner = ~edge[rows, cols]
+    long &= np.bincount(comp, inner, k) >= (2 if boundary is not None else 1)
+    keep = long[comp] & inner
     out[rows[keep], cols[keep]] = True
     return out
 
@@ -540,9 +556,10 @@ def thin_obstacle_guard(
     min_points: int,
     line_min_points: int = 0,
     line_min_length_px: float = 0.0,
+    boundary: np.ndarray | None = None,
 ) -> np.ndarray:
     """(rows, cols) bool: cells holding any pixel of a continuous or (when
-    ``line_min_length_px`` > 0) a linear obstacle."""
+    ``line_min_length_px`` > 0) a linear obstacle; ``boundary``: see :func:`linear_obstacles`."""
     support = obstacle_support(obstacles, counts)
     solid = continuous_obstacles(obstacles, counts, min_points, support)
     if line_min_length_px > 0:
@@ -553,25 +570,63 @@ def thin_obstacle_guard(
             line_min_length_px,
             solid_points=min_points,
             support=support,
+            boundary=boundary,
         )
     h, w = solid.shape
     return np.asarray(solid.reshape(h // m, m, w // n, n).any(axis=(1, 3)))
 
 
-def boundary_ring(shape: tuple[int, int], rows_width: int, cols_width: int) -> np.ndarray:
+def boundary_ring(
+    shape: tuple[int, int],
+    rows_width: int,
+    cols_width: int,
+    sides: tuple[int, int, int, int] | None = None,
+) -> np.ndarray:
     """(H, W) bool: the outer pixels of the image where the walls are -- ``rows_width`` pixel
-    rows at the top and bottom, ``cols_width`` pixel columns at the left and right."""
+    rows at the top and bottom, ``cols_width`` pixel columns at the left and right, or with
+    ``sides`` (top, bottom, left, right) each side's own width."""
     ring = np.zeros(shape, dtype=bool)
     h, w = shape
-    rw = min(max(rows_width, 0), (h + 1) // 2)
-    cw = min(max(cols_width, 0), (w + 1) // 2)
-    if rw:
-        ring[:rw, :] = True
-        ring[-rw:, :] = True
-    if cw:
-        ring[:, :cw] = True
-        ring[:, -cw:] = True
+    top, bottom, left, right = sides or (rows_width, rows_width, cols_width, cols_width)
+    top, bottom = (min(max(x, 0), (h + 1) // 2) for x in (top, bottom))
+    left, right = (min(max(x, 0), (w + 1) // 2) for x in (left, right))
+    if top:
+        ring[:top, :] = True
+    if bottom:
+        ring[-bottom:, :] = True
+    if left:
+        ring[:, :left] = True
+    if right:
+        ring[:, -right:] = True
     return ring
+
+
+def boundary_widths(
+    u0: float,
+    v0: float,
+    rows: int,
+    cols: int,
+    floor_u: tuple[float, float],
+    floor_v: tuple[float, float],
+    cfg: GridConfig,
+) -> tuple[float, float, float, float]:
+    """The boundary strip's width (m) on each side (top, bottom, left, right): the margin, plus
+    how far the grid reaches past the observed floor's end on that side (the walls stand where
+    the floor ends), minus how far the floor goes on beyond the grid's edge, within [0,
+    ``MAX_BOUNDARY_MARGIN``].
+
+    Per side and capped: taken as half the whole grid's overrun on both sides, a floor left
+    unseen under a 25 cm bench along one wall widened the strip on both sides to 25 cm, and
+    the bench and a 22 cm cabinet against the opposite wall read free; past 20 cm a strip
+    reaches into a centred chair's side clearance. Where the grid stops short of the walls (its
+    extent snapped down) the strip shrinks away: no wall stands at that edge, only floor, and a
+    post there is content of its cell.
+    """
+    u1, v1 = u0 + cols * cfg.cell_size, v0 + rows * cfg.cell_size
+    over = (v1 - floor_v[1], floor_v[0] - v0, floor_u[0] - u0, u1 - floor_u[1])
+    widths = (min(max(cfg.boundary_margin + o, 0.0), MAX_BOUNDARY_MARGIN) for o in over)
+    top, bottom, left, right = widths
+    return top, bottom, left, right
 
 
 def _rotate(xy: np.ndarray, yaw: float) -> tuple[np.ndarray, np.ndarray]:
@@ -691,8 +746,8 @@ def floor_extent(
     cfg: GridConfig,
     walls_u: np.ndarray | None = None,
     walls_v: np.ndarray | None = None,
-) -> tuple[float, float, int, int, float, float]:
-    """Grid lower-left corner (u0, v0), size (rows, cols) and the floor's spans (m) along u, v.
+) -> tuple[float, float, int, int, tuple[float, float], tuple[float, float]]:
+    """Grid lower-left corner (u0, v0), size (rows, cols) and the floor's ends (m) along u, v.
 
     The robust extent of the floor points (quantiles, so stray points do not stretch it) is
     snapped to a whole number of cells (allowing ``extent_tolerance`` for floor points that stop
@@ -713,7 +768,7 @@ def floor_extent(
         count = max(1, math.floor((hi - lo + cfg.extent_tolerance) / cfg.cell_size + 1e-9))
         out.append(((lo + hi) / 2.0 - count * cfg.cell_size / 2.0, count))
     (u0, cols), (v0, rows) = out
-    return u0, v0, rows, cols, umax - umin, vmax - vmin
+    return u0, v0, rows, cols, (umin, umax), (vmin, vmax)
 
 
 def _raster_classes(
@@ -855,7 +910,7 @@ def build_grid(
     # The extent's quantiles need no more than ~200k floor points: take a regular stride.
     step = max(1, math.ceil(int(class_counts[0]) / _EXTENT_MAX_POINTS))
     floor_pts = cls[::step] == 0
-    u0, v0, rows, cols, span_u, span_v = floor_extent(
+    u0, v0, rows, cols, floor_u, floor_v = floor_extent(
         u[::step][floor_pts], v[::step][floor_pts], cfg, wu, wv
     )
     h, w = rows * k, cols * k
@@ -875,16 +930,11 @@ def build_grid(
     counts = _raster_classes(u, v, cls, u0, v0, ps, h, w)
     obstacle_counts = counts[1] + counts[2]
     black = obstacle_counts >= cfg.min_points_per_pixel
-    # The boundary rule: the walls are expected where the observed floor ends. Where the grid
-    # reaches past the floor's extent (snapping up to whole cells, at most extent_tolerance / 2
-    # a side) that overflow is added to the margin, so the walls stay boundary, not content.
-    over_u = max(0.0, (cols * cfg.cell_size - span_u) / 2.0)
-    over_v = max(0.0, (rows * cfg.cell_size - span_v) / 2.0)
-    ring = boundary_ring(
-        (h, w),
-        round((cfg.boundary_margin + over_v) / ps),
-        round((cfg.boundary_margin + over_u) / ps),
-    )
+    # The boundary rule: the walls are expected where the observed floor ends, side by side
+    # (boundary_widths), never more than MAX_BOUNDARY_MARGIN deep.
+    sides = boundary_widths(u0, v0, rows, cols, floor_u, floor_v, cfg)
+    top, bottom, left, right = (round(x / ps) for x in sides)
+    ring = boundary_ring((h, w), 0, 0, (top, bottom, left, right))
     boundary = black & ring
     obstacles = black & ~ring
     floor = _dilate(counts[0] > 0, cfg.floor_fill) & ~black
@@ -900,6 +950,7 @@ def build_grid(
             cfg.guard_min_points,
             cfg.guard_line_min_points,
             cfg.guard_line_length / ps,
+            boundary,
         )
     else:
         guard = np.zeros_like(occupied)
