@@ -95,6 +95,10 @@ def _patch_header(raw: bytes, fmt_index: int, value: object) -> bytes:
         (2, 9, "size_mismatch"),
         (4, 0.0, "bad_intrinsics"),
         (6, float("inf"), "bad_intrinsics"),
+        # finite and positive, but no camera's: its rays overflowed float32 into inf points
+        (4, 1e-40, "bad_intrinsics"),
+        (5, 1e9, "bad_intrinsics"),
+        (6, -3e6, "bad_intrinsics"),
         (15, 9, "bad_depth_encoding"),
         (15, bp.DEPTH_U16_MM, "size_mismatch"),
         (16, 5, "bad_confidence_encoding"),

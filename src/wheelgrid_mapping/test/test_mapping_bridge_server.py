@@ -124,6 +124,27 @@ def test_garbage_closes_the_connection_but_not_the_server() -> None:
             assert wait_for(lambda: len(rec.frames) == 1)
 
 
+def test_a_peer_that_has_not_said_hello_cannot_make_the_bridge_hold_a_frame() -> None:
+    """Before HELLO only a HELLO of at most MAX_HELLO_BYTES is taken: a peer with no token
+    that declared a message of the frame limit (8 MB) and sent all but its last byte made the
+    bridge hold it until the HELLO timeout, eight connections at a time, on any interface."""
+    big = bp.PREFIX.pack(bp.MAGIC, bp.VERSION, bp.MSG_HELLO, 0, 8_000_000)
+    frame_first = bp.PREFIX.pack(bp.MAGIC, bp.VERSION, bp.MSG_FRAME, 0, 8_000_000)
+    with server(token="secret", hello_timeout_s=30.0) as (srv, rec):
+        for prefix, said in ((big, "more than"), (frame_first, "before HELLO")):
+            with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as s:
+                s.sendall(prefix + bytes(60_000))
+                s.settimeout(5)
+                reply = s.recv(4096)  # a STATUS naming the problem, then EOF, at once
+                status = bp.FrameDecoder(accept=(bp.MSG_STATUS,)).feed(reply)[0]
+                assert status.code == bp.STATUS_PROTOCOL_ERROR and said in status.text
+            assert wait_for(lambda: not srv._clients)
+        # a phone that sends its HELLO and its first frame in one write is still served
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as s:
+            s.sendall(bp.encode_hello("secret", "phone") + frame(1))
+            assert wait_for(lambda: len(rec.frames) == 1)
+
+
 def test_frame_before_hello_and_silent_client_are_dropped() -> None:
     with server(hello_timeout_s=0.3) as (srv, rec):
         with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as s:

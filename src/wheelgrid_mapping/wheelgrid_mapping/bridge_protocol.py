@@ -87,6 +87,9 @@ _U16 = struct.Struct("<H")
 # say hello at all; above the largest valid frame (4096 x 4096 float32 depth + confidence) a
 # limit only lets a peer make the receiver buffer more.
 MAX_HELLO_BYTES = 2 + MAX_TOKEN_BYTES + 2 + MAX_NAME_BYTES
+# The largest focal length (and principal point offset) in pixels a frame may give: 1e5 px is
+# a 0.6 deg field of view across a 1000 px image, far narrower than any depth camera.
+MAX_FOCAL_PX = 1e5
 MIN_FRAME_LIMIT = max(MAX_HELLO_BYTES, FRAME_HEADER.size + 5)
 MAX_FRAME_LIMIT = FRAME_HEADER.size + MAX_DIMENSION * MAX_DIMENSION * (4 + 1)
 
@@ -302,7 +305,16 @@ def decode_frame(body: bytes) -> Frame:
         )
     if not (0 < w <= MAX_DIMENSION and 0 < h <= MAX_DIMENSION):
         raise ProtocolError("bad_size", f"{w}x{h} outside 1..{MAX_DIMENSION}")
-    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+    # Finite and positive was all: fx = 1e-40 passed, its rays overflowed float32, and the
+    # organised cloud went out full of inf. A camera's focal length lies between a pixel and
+    # MAX_FOCAL_PX pixels, its principal point within as many of the image.
+    if not (
+        all(math.isfinite(v) for v in (fx, fy, cx, cy))
+        and 1.0 <= fx <= MAX_FOCAL_PX
+        and 1.0 <= fy <= MAX_FOCAL_PX
+        and abs(cx) <= MAX_FOCAL_PX
+        and abs(cy) <= MAX_FOCAL_PX
+    ):
         raise ProtocolError("bad_intrinsics", f"fx={fx} fy={fy} cx={cx} cy={cy}")
     if enc not in DEPTH_BYTES:
         raise ProtocolError("bad_depth_encoding", f"depth encoding {enc} (known: 1 f32, 2 u16)")
@@ -365,9 +377,15 @@ class FrameDecoder:
         self,
         max_frame_bytes: int = MAX_FRAME_BYTES,
         accept: tuple[int, ...] = (MSG_HELLO, MSG_FRAME),
+        hello_first: bool = False,
     ) -> None:
         self.max_frame_bytes = int(max_frame_bytes)
         self.accept = accept
+        # The bridge's side of a connection: until a HELLO has been read, only a HELLO of at
+        # most MAX_HELLO_BYTES is taken, and anything else ends the stream at its prefix. A
+        # peer with no token made the bridge hold a whole frame's worth (8 MB, up to 80 MB)
+        # per connection before it had said who it was.
+        self.hello_first = hello_first
         self._buf = bytearray()
         self._skip = 0  # bytes of an oversized body still to discard
         self._fatal: ProtocolError | None = None
@@ -431,6 +449,14 @@ class FrameDecoder:
                 return self._fail(out, "bad_magic", f"expected {MAGIC!r}, got {bytes(magic)!r}")
             if version != VERSION:
                 return self._fail(out, "bad_version", f"protocol version {version}, want {VERSION}")
+            if self.hello_first and mtype != MSG_HELLO:
+                return self._fail(out, "frame_before_hello", f"message type {mtype} before HELLO")
+            if self.hello_first and length > MAX_HELLO_BYTES:
+                return self._fail(
+                    out,
+                    "oversized_hello",
+                    f"HELLO of {length} B, more than {MAX_HELLO_BYTES} B, before HELLO",
+                )
             if length > self.max_frame_bytes:
                 out.append(
                     ProtocolError(
@@ -456,6 +482,7 @@ class FrameDecoder:
                     out.append(decode_frame(body))
                 elif mtype == MSG_HELLO:
                     out.append(decode_hello(body))
+                    self.hello_first = False
                 else:
                     out.append(decode_status(body))
                 self.messages_out += 1
@@ -742,7 +769,8 @@ class BridgeServer:
             self._close(oldest, (STATUS_BUSY, "too many connections waiting for HELLO"))
         sock.setblocking(False)
         now = time.monotonic()
-        c = _Client(sock, peer, FrameDecoder(self.max_frame_bytes), now, next(self._ids), now)
+        decoder = FrameDecoder(self.max_frame_bytes, hello_first=True)
+        c = _Client(sock, peer, decoder, now, next(self._ids), now)
         # a new dict, never changed in place (as _close does): the node's status timer loops
         # over it from another thread (``clients``), and an insert under that loop raised
         # "dictionary changed size during iteration" out of the timer and ended the node
