@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .params import read_yaml
+
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 
 
@@ -68,6 +70,39 @@ def _check_path(path: Path) -> None:
         raise BagError(f"{path}: not a bag (a rosbag2 folder or a ROS 1 .bag file)")
 
 
+def _check_metadata(path: Path) -> None:
+    """``BagError`` for a metadata.yaml whose file list or message counts cannot be true: a
+    count that is not a whole number >= 0 ended ``wheelgrid map`` in a TypeError traceback
+    (or, with ``--max-frames``, a ValueError), and a storage file listed twice was read twice,
+    every frame mapped twice, exit 0."""
+    if not path.is_dir():
+        return
+    try:
+        info = (read_yaml(path / "metadata.yaml") or {}).get("rosbag2_bagfile_information")
+    except (OSError, ValueError, AttributeError):
+        return  # rosbags says what is wrong with it, in its own words
+    if not isinstance(info, dict):
+        return
+    files = info.get("relative_file_paths") or []
+    if isinstance(files, list):
+        twice = sorted({str(f) for f in files if files.count(f) > 1})
+        if twice:
+            raise BagError(
+                f"{path}: metadata.yaml lists {', '.join(twice)} more than once; each "
+                "storage file is read once (fix relative_file_paths)"
+            )
+    for entry in info.get("topics_with_message_count") or []:
+        if not isinstance(entry, dict) or "message_count" not in entry:
+            continue
+        count = entry["message_count"]
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            topic = (entry.get("topic_metadata") or {}).get("name", "?")
+            raise BagError(
+                f"{path}: metadata.yaml gives topic {topic} a message_count of {count!r}, not "
+                "a whole number >= 0"
+            )
+
+
 @dataclass(frozen=True)
 class TopicInfo:
     name: str
@@ -86,6 +121,7 @@ class BagReader:
         from rosbags.highlevel import AnyReader
 
         _check_path(self.path)
+        _check_metadata(self.path)
         try:
             reader = AnyReader([self.path], default_typestore=typestore())
             reader.open()

@@ -208,6 +208,57 @@ def test_a_metadata_yaml_that_lists_too_few_messages_loses_no_frame(tmp_path: Pa
     assert rep["frames"]["read"] == 6
 
 
+@pytest.mark.parametrize("count", ["many", "null", "-5", "2.5"])
+def test_a_metadata_count_that_is_not_a_count_is_bad_input(tmp_path: Path, capsys, count) -> None:
+    """A message_count that is not a whole number >= 0 ended in a TypeError traceback (or,
+    with --max-frames, a ValueError from islice) and exit 1."""
+    import re
+
+    bag = _copy_first(tmp_path, "count", 4, {})
+    meta = bag / "metadata.yaml"
+    meta.write_text(re.sub(r"message_count: 4\b", f"message_count: {count}", meta.read_text()))
+    for extra in ([], ["--max-frames", "2"]):
+        argv = [str(bag), "--out", str(tmp_path / "map"), *extra]
+        assert cli_map.main(argv) == 2
+        err = capsys.readouterr().err
+        assert "not a whole number >= 0" in err and "Traceback" not in err, err
+        assert not (tmp_path / "map").exists()
+
+
+def test_a_metadata_yaml_that_lists_no_messages_loses_no_frame(tmp_path: Path, capsys) -> None:
+    """A metadata.yaml that lists 0 messages on the topic (the only count it reads) was
+    refused as an empty topic while its storage held every frame; with --max-frames it read
+    none. The storage is asked, and all it holds is read."""
+    import re
+
+    bag = _copy_first(tmp_path, "zero", 4, {})
+    meta = bag / "metadata.yaml"
+    text = re.sub(r"message_count: 4\n(\s+topic_metadata:\n\s+name: /iphone/points)",
+                  r"message_count: 0\n\1", meta.read_text())  # fmt: skip
+    meta.write_text(text)
+    for extra, frames in (([], 4), (["--max-frames", "3"], 3)):
+        out = tmp_path / f"map{frames}"
+        argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure", *extra]
+        assert cli_map.main(argv) == 0, capsys.readouterr().err
+        assert "lists no messages" in capsys.readouterr().err
+        assert json.loads((out / "report.json").read_text())["frames"]["read"] == frames
+
+
+def test_a_storage_file_listed_twice_is_bad_input(tmp_path: Path, capsys) -> None:
+    """A metadata.yaml listing its .db3 twice had every frame read and mapped twice, each
+    view agreeing with itself (the map 46 % larger, the report's counts doubled), exit 0."""
+    import yaml
+
+    bag = _copy_first(tmp_path, "twice", 4, {})
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    info = meta["rosbag2_bagfile_information"]
+    info["relative_file_paths"] = info["relative_file_paths"] * 2
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    assert cli_map.main([str(bag), "--out", str(tmp_path / "map")]) == 2
+    err = capsys.readouterr().err
+    assert "more than once" in err and "Traceback" not in err, err
+
+
 def test_frames_the_bag_lists_but_does_not_hold_are_reported_lost(tmp_path: Path, capsys) -> None:
     """A bag whose storage lost some of the messages its index lists (an MCAP chunk zeroed
     on a damaged card reads as no messages at all, rows gone from a sqlite3 file) mapped the

@@ -250,8 +250,20 @@ def bag_frames(
         return prior_poses[i] if abs(prior_stamps[i] - stamp) <= 0.1 else None
 
     if total == 0:
-        reader.__exit__()
-        raise InputError(f"{path}: topic {name} has no messages")
+        # metadata.yaml's count, not the storage's: a bag whose metadata lists none was
+        # refused as empty while it held every frame. The storage is asked.
+        try:
+            held = next(iter(reader.raw([name])), None) is not None
+        except BagError:
+            held = False
+        if not held:
+            reader.__exit__()
+            raise InputError(f"{path}: topic {name} has no messages")
+        print(
+            f"wheelgrid map: warning: {path}: metadata.yaml lists no messages on {name}, but "
+            "the bag holds some: all it holds is read",
+            file=sys.stderr,
+        )
 
     def gen() -> Iterator[Frame]:
         try:
@@ -475,12 +487,14 @@ def _run(args: argparse.Namespace) -> int:
             cfg.sensor_convention == "auto",
         )
     if args.max_frames > 0:
-        total = min(total, args.max_frames)
+        # a bag's count is its metadata.yaml's: one that lists none (or too few) would cut
+        # the run short of the frames asked for
+        total = min(total, args.max_frames) if total else args.max_frames
         # islice stops before it asks for one frame more: the generators count a malformed
         # frame as they yield it, so the frame after the last one asked for, read only to
         # find the run over, was reported as skipped (and with --max-frames 1 a good first
         # frame then ended the run as 'no readable PointCloud2 frame')
-        frames = itertools.islice(frames, total)
+        frames = itertools.islice(frames, args.max_frames)
     ensure_out_dir(args.out)
     if args.no_loop_closure:
         loop.enabled = False
