@@ -1020,10 +1020,10 @@ def test_a_frame_in_hand_at_a_reset_is_not_counted_after_it(tmp_path, monkeypatc
         entered, release = threading.Event(), threading.Event()
         real = node._prior_for
 
-        def held(stamp: float) -> Any:
+        def held(stamp: float, frame_id: str) -> Any:
             entered.set()
             release.wait(30.0)  # the worker has the frame in hand, as while its prior comes
-            return real(stamp)
+            return real(stamp, frame_id)
 
         monkeypatch.setattr(node, "_prior_for", held)
         (old, old_odom), (new, new_odom) = bag_cloud_odometry(BAG, 4)[2:]
