@@ -73,6 +73,18 @@ class Grid:
         return 0 <= row < self.rows and 0 <= col < self.cols
 
 
+def same_geometry(a: Any, b: Any) -> bool:
+    """Whether two grids put their cells at the same places (shape, resolution, origin, frame):
+    a cell index means a place only on the grid it was planned on."""
+    return (
+        b is not None
+        and np.shape(a.data) == np.shape(b.data)
+        and a.resolution == b.resolution
+        and tuple(a.origin) == tuple(b.origin)
+        and a.frame_id == b.frame_id
+    )
+
+
 def write_map(yaml_path: str | Path, grid: Grid, image_name: str | None = None) -> Path:
     """Write ``grid`` as map_server YAML + binary PGM (trinary); returns the YAML path."""
     yaml_path = Path(yaml_path)

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from wheelgrid_common.map_io import same_geometry as same_geometry
 from wheelgrid_drive.actions import Step, moves_from_cells
 from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
 
@@ -68,17 +69,6 @@ def grid_cell_check(grid_getter: Callable[[], Any]) -> CellCheck:
         return None
 
     return check
-
-
-def same_geometry(a: Any, b: Any) -> bool:
-    """Whether two grids put their cells at the same places (shape, resolution, origin, frame):
-    a cell index means a place only on the grid it was planned on."""
-    return (
-        np.shape(a.data) == np.shape(b.data)
-        and a.resolution == b.resolution
-        and tuple(a.origin) == tuple(b.origin)
-        and a.frame_id == b.frame_id
-    )
 
 
 def planned_grid_check(grid_getter: Callable[[], Any], planned_on: Any) -> CellCheck:

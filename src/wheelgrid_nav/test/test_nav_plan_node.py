@@ -511,6 +511,37 @@ def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(
         )
 
 
+@pytest.mark.parametrize("change", ["goal", "grid"])
+def test_a_goal_or_grid_that_came_while_a_route_was_learned_voids_it(tmp_path, change):
+    """A new goal or grid waited behind the learning, as e-stops did: the route to the old goal
+    went out after the new goal was sent (and stayed the plan while the new one was learned),
+    and a route through a cell the new grid had closed went out before the replan. Both are
+    read before a route is published: the first route out is the one for the newest inputs."""
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    closed = paper_grid()
+    closed[2, 3] = 100  # on the route to (6, 5) along row 2
+    with planner_process(
+        tmp_path, "check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0"
+    ) as (h, log):
+        h.grid_pub.publish(to_occupancy_grid(grid))
+        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+        spin_until(h.ex, lambda: False, 1.0)
+        h.goal_pub.publish(goal_msg(grid, (6, 5)))
+        spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
+        if change == "goal":
+            h.goal_pub.publish(goal_msg(grid, (0, 7)))
+        else:
+            h.grid_pub.publish(to_occupancy_grid(Grid(closed, RES, ORIGIN)))
+        assert spin_until(h.ex, lambda: h.paths, 120.0), log.read_text()
+        spin_until(h.ex, lambda: False, 1.0)
+        first = cells_of(h.paths[0], grid)
+        if change == "goal":
+            assert first[-1] == (0, 7), (first, log.read_text())
+        else:
+            assert first[-1] == (6, 5) and (2, 3) not in first, (first, log.read_text())
+        assert "was learned: replanning" in log.read_text(), log.read_text()
+
+
 def test_no_route_goes_out_where_the_estops_that_came_while_it_was_learned_cannot_be_read():
     """The check for e-stops that came during the learning uses rclpy's take_message, which is
     not public API: if a later rclpy broke it, the route learned meanwhile was published

@@ -49,7 +49,7 @@ import numpy as np
 
 from wheelgrid_common.fileio import quat_to_matrix
 from wheelgrid_common.frames import CONVENTIONS, convention_for_frame
-from wheelgrid_common.map_io import Grid, from_occupancy_grid
+from wheelgrid_common.map_io import Grid, from_occupancy_grid, same_geometry
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass
 from wheelgrid_common.params import field as pfield
 from wheelgrid_common.ros_env import spin_node, steady_timer
@@ -202,8 +202,15 @@ def _make_node_class() -> type:
             self.plans = 0  # planning attempts (for tests and diagnostics)
             self.path_pub = self.create_publisher(Path, "wheelgrid/plan", MAP_QOS)
             self.marker_pub = self.create_publisher(MarkerArray, "wheelgrid/plan_markers", MAP_QOS)
-            self.create_subscription(OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS)
-            self.create_subscription(PoseStamped, "goal_pose", self._on_goal, RELIABLE_QOS)
+            self._grid_sub = self.create_subscription(
+                OccupancyGrid, "wheelgrid/safe_grid", self._on_grid, MAP_QOS
+            )
+            self._goal_sub = self.create_subscription(
+                PoseStamped, "goal_pose", self._on_goal, RELIABLE_QOS
+            )
+            # while the inputs that waited behind a learning are read, they plan nothing: the
+            # learning's end decides whether to publish its route or plan again
+            self._draining = False
             self.create_subscription(Odometry, "wheelgrid/odometry", self._on_odom, SENSOR_QOS)
             self.create_subscription(
                 PoseWithCovarianceStamped, "initialpose", self._on_initialpose, RELIABLE_QOS
@@ -243,16 +250,9 @@ def _make_node_class() -> type:
             self.grid = grid
             if self.goal is None or self.start is None:
                 return
-            same_geometry = (
-                old is not None
-                and old.data.shape == grid.data.shape
-                and old.resolution == grid.resolution
-                and old.origin == grid.origin
-                and old.frame_id == grid.frame_id
-            )
             # the route's cells are only indices of the old grid: read on a smaller new one
             # they raised IndexError and ended the node
-            blocked = not same_geometry or not self.route or self._route_blocked(grid)
+            blocked = not same_geometry(grid, old) or not self.route or self._route_blocked(grid)
             if blocked:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
@@ -431,6 +431,8 @@ def _make_node_class() -> type:
 
         # ---- planning -------------------------------------------------------------------
         def _plan(self) -> None:
+            if self._draining:  # an input read after a learning: judged once it is done
+                return
             if self.grid is None or self.start is None or self.goal is None:
                 return
             self._goal_waits_since = None  # planned (or refused) now: it waits no more
@@ -467,22 +469,45 @@ def _make_node_class() -> type:
             if not res.ok:
                 self._no_route(grid, f"no route from {start} to {goal}: {res.reason}")
                 return
-            presses = self._estop_presses
+            presses, goal_before = self._estop_presses, self.goal
+            self._draining = True
             try:
                 self._take_waiting_estops()
+                self._take_waiting(self._goal_sub, self._on_goal)
+                self._take_waiting(self._grid_sub, self._on_grid)
             except Exception as exc:  # rclpy's take_message is not public API: fail safe
                 self.get_logger().error(
-                    f"cannot read the e-stops that came while the route was learned ({exc!r}); "
+                    f"cannot read the inputs that came while the route was learned ({exc!r}); "
                     "route not published, an empty path instead; goal dropped, send it again"
                 )
                 self.goal = None
                 self._publish_route(grid, [])
                 return
+            finally:
+                self._draining = False
             if self._estop_presses != presses:
                 # the e-stop has dropped the goal and published an empty path: this route
                 # leads to the goal of before it
                 self.get_logger().warning("route learned across an e-stop: not published")
                 return
+            if self.goal != goal_before:
+                # a new goal came while this one was learned (or was refused, and published
+                # its empty path): the route to the old goal went out after it, and stayed
+                # the plan while the new one was learned
+                self.get_logger().info("a new goal came while the route was learned: replanning")
+                if self.goal is not None:
+                    self._plan()
+                return
+            if self.grid is not grid:
+                newest = self.grid
+                if not (same_geometry(newest, grid) and self._cells_free(newest, res.cells)):
+                    # a route through a cell the newest grid closes went out before the replan
+                    self.get_logger().info(
+                        "the safe grid changed under the route while it was learned: replanning"
+                    )
+                    self._plan()
+                    return
+                grid = newest
             self.get_logger().info(
                 f"route {start} -> {goal} facing {heading}: {len(res.moves)} moves "
                 f"({res.episodes} episodes, {res.seconds * 1000:.0f} ms)"
@@ -497,6 +522,24 @@ def _make_node_class() -> type:
             self.get_logger().warning(f"{why}; publishing an empty path{dropped}")
             self.goal = None
             self._publish_route(grid, [])
+
+        def _take_waiting(self, sub: Any, handler: Any) -> None:
+            """Hand ``handler`` the messages waiting on ``sub`` (see _take_waiting_estops)."""
+            with sub.handle:
+                while True:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        return
+                    handler(taken[0])
+
+        def _cells_free(self, grid: Grid, cells: list[tuple[int, int]]) -> bool:
+            """Whether ``grid`` leaves every cell of a route open, by the rule it is planned
+            under (its first cell, the chair's own, may be unknown)."""
+            saved, self.route = self.route, list(cells)
+            try:
+                return not self._route_blocked(grid)
+            finally:
+                self.route = saved
 
         def _take_waiting_estops(self) -> None:
             """Handle the e-stops that arrived while a route was learned, before it goes out.
