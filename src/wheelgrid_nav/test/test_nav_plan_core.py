@@ -241,6 +241,22 @@ def test_bad_configs_and_methods_are_rejected():
             plan(g, (2, 0), (6, 5), PlannerConfig(max_seconds=seconds))
 
 
+def test_settings_under_which_the_cheapest_route_is_never_learned_are_refused():
+    """With qlearning-heading a discount under 1 makes fewer steps worth more than fewer turns:
+    the learned route never matched the cheapest one, and every reachable goal ended "not
+    converged" after max_seconds. A negative reward_goal did the same with either method."""
+    free = np.zeros((3, 3), dtype=np.int8)
+    turns = {"reward_turn": -0.25, "reward_backward": -5.0, "max_seconds": 2.0}
+    with pytest.raises(PlanInputError, match="discount must be 1 with qlearning-heading"):
+        plan(free, (0, 1), (1, 1), PlannerConfig(discount=0.9, **turns),
+             method="qlearning-heading", heading="up")  # fmt: skip
+    with pytest.raises(PlanInputError, match="reward_goal must not be negative"):
+        plan(free, (0, 1), (1, 1), PlannerConfig(reward_goal=-50.0, discount=0.9))
+    res = plan(free, (0, 1), (1, 1), PlannerConfig(**turns), method="qlearning-heading",
+               heading="up")  # fmt: skip
+    assert res.ok, res.reason
+
+
 def test_smaller_learning_rate_and_discount_still_verified():
     g = paper_grid()
     cfg = PlannerConfig(learning_rate=0.5, discount=0.95, q_init="zero", seed=1)

@@ -538,7 +538,7 @@ def plan(
     goal or an unconverged training returns a result with no cells and the reason.
     """
     cfg = cfg or PlannerConfig()
-    check_config(cfg)
+    check_config(cfg, method)
     if method not in METHODS:
         raise PlanInputError(f"unknown method {method!r} (use {' or '.join(METHODS)})")
     if heading is not None and heading not in DELTAS:
@@ -609,8 +609,13 @@ def plan(
     return res
 
 
-def check_config(cfg: PlannerConfig) -> None:
-    """Reject settings under which the learned optimum would not be the cheapest route."""
+def check_config(cfg: PlannerConfig, method: str | None = None) -> None:
+    """Reject settings under which the learned optimum would not be the cheapest route.
+
+    ``method`` "qlearning-heading" also needs ``discount`` 1: under 1 a route of fewer steps
+    is worth more than one of fewer turns, the learned route is never the cheapest the check
+    asks for, and every goal ended "not converged" after ``max_seconds`` (holding the node).
+    A negative ``reward_goal`` made reaching the goal a loss, to the same end."""
     try:
         # an infinite or NaN reward never converges (every goal then held the node for
         # max_seconds and ended "not converged"), and a NaN max_seconds compares false in
@@ -624,6 +629,13 @@ def check_config(cfg: PlannerConfig) -> None:
         raise PlanInputError("learning_rate must be in (0, 1]")
     if not 0.0 < cfg.discount <= 1.0:
         raise PlanInputError("discount must be in (0, 1]")
+    if method == "qlearning-heading" and cfg.discount != 1.0:
+        raise PlanInputError(
+            "discount must be 1 with qlearning-heading: under 1 fewer steps outweigh fewer "
+            "turns, and the cheapest route is never learned"
+        )
+    if cfg.reward_goal < 0:
+        raise PlanInputError("reward_goal must not be negative: reaching the goal is no loss")
     if not 0.0 <= cfg.epsilon <= 1.0:
         raise PlanInputError("epsilon must be in [0, 1]")
     if cfg.reward_step >= 0 or cfg.reward_blocked >= 0:

@@ -170,7 +170,7 @@ def _make_node_class() -> type:
                 self.node_cfg = declare_dataclass(self, PlannerNodeConfig())
                 self.cfg = declare_dataclass(self, PlannerConfig())
                 check_no_undeclared(self)
-                check_config(self.cfg)
+                check_config(self.cfg, self.node_cfg.method)
             except ValueError as exc:  # PlanInputError included
                 self.get_logger().fatal(f"bad planner parameters: {exc}")
                 raise SystemExit(2) from None
