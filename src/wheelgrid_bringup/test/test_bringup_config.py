@@ -239,6 +239,46 @@ def test_node_argv_passes_params_file_and_overrides():
     assert "__node:=grid" in argv
 
 
+def test_overrides_reach_a_node_as_the_strings_they_are():
+    """``-p output_dir:=scan #2`` is YAML to rcl: the value became ``scan`` (the rest a
+    comment), and the demo's maps went to a folder nobody named; a ``: `` in it made rcl
+    refuse the argument."""
+    import rclpy
+    from rclpy.context import Context
+
+    from wheelgrid_bringup.supervisor import override_text
+    from wheelgrid_common.ros_env import configure_ros_env
+
+    values = {"output_dir": "/tmp/scan #2", "port": "/dev/a: b", "quote": "it's", "n": 3}
+    args = ["--ros-args"]
+    for k, v in values.items():
+        args += ["-p", f"{k}:={override_text(v)}"]
+    configure_ros_env()
+    ctx = Context()
+    rclpy.init(args=args, context=ctx)
+    try:
+        node = rclpy.create_node("override_test", context=ctx)
+        got = {k: p.value for k, p in node._parameter_overrides.items()}
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    assert got == values
+    assert override_text(True) == "true" and override_text(0.5) == "0.5"
+
+
+def test_an_empty_discovery_range_is_loopback_not_the_subnet():
+    """Set but empty (`ROS_AUTOMATIC_DISCOVERY_RANGE= wheelgrid launch`, docker's ``-e``
+    with the host's unset) is unset to ROS, which then discovers across the subnet: it was
+    kept, and the chain multicast onto the LAN."""
+    from wheelgrid_common.ros_env import configure_ros_env
+
+    for value in ("", "  "):
+        env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": value, "ROS_LOG_DIR": "/tmp/wg-env-test"}
+        assert configure_ros_env(env)["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_LOG_DIR": "/tmp/wg-env-test"}
+    assert configure_ros_env(env)["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"  # asked for
+
+
 def test_help_lists_every_command_and_unknown_commands_exit_2(capsys):
     assert main(["--help"]) == 0
     out = capsys.readouterr().out

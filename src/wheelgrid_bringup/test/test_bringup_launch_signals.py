@@ -37,7 +37,11 @@ def _alive(pid: int) -> bool:
     return state not in ("Z", "X")  # a zombie no one reaped has stopped
 
 
-def _launch(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int], list[str]]:
+def _launch(
+    tmp_path: Path, hangup: object = signal.SIG_DFL
+) -> tuple[subprocess.Popen[str], dict[str, int], list[str]]:
+    """The launcher with SIGHUP as a terminal's child has it (``hangup``; SIG_IGN: under
+    ``nohup``), whatever the test run's own is: a run under nohup passed it on ignored."""
     params = yaml.safe_load(default_params_file().read_text())
     params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
     params["grid"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
@@ -54,7 +58,12 @@ def _launch(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int], list
         str(tmp_path / "logs"),
     ]
     proc = subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup),  # type: ignore[arg-type]
     )
     lines: list[str] = []
     threading.Thread(

@@ -215,7 +215,8 @@ def main(argv: list[str] | None = None) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGHUP, on_signal)  # the terminal closed: stop the chain too
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # kept under `nohup`
+        signal.signal(signal.SIGHUP, on_signal)  # the terminal closed: stop the chain too
     sup = Supervisor(out / "logs", child_env())
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)

@@ -190,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     # A closed terminal or a dropped ssh session: Python's default for SIGHUP ended the
     # launcher at once, skipping the clean-up below, and the nodes (in sessions of their own)
     # ran on, orphaned. It stops the chain like Ctrl-C.
-    signal.signal(signal.SIGHUP, on_signal)
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup wheelgrid launch`
+        signal.signal(signal.SIGHUP, on_signal)
 
     env = child_env()
     # a chain killed outright before this one (kill -9, the OOM killer, a power cut of the

@@ -62,6 +62,17 @@ def child_code(module: str, func: str) -> str:
     )
 
 
+def override_text(value: object) -> str:
+    """A ``-p name:=value`` value as rcl reads it, a YAML scalar: a string goes single-quoted.
+    Unquoted, `--out "scan #2"` became ``scan`` (the rest a YAML comment) and the maps were
+    written to a folder nobody named, and a `: ` in a path made rcl refuse the argument."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    return str(value)
+
+
 def node_argv(
     name: str, params_file: Path | None, overrides: dict[str, object], namespace: str = ""
 ) -> list[str]:
@@ -75,8 +86,7 @@ def node_argv(
     if params_file is not None:
         ros_args += ["--params-file", str(params_file)]
     for key, value in overrides.items():
-        text = ("true" if value else "false") if isinstance(value, bool) else str(value)
-        ros_args += ["-p", f"{key}:={text}"]
+        ros_args += ["-p", f"{key}:={override_text(value)}"]
     return [sys.executable, "-c", code, *ros_args]
 
 

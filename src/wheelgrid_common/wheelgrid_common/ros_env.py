@@ -21,7 +21,10 @@ def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMap
     """Fill in safe defaults without overriding what the user set explicitly."""
     env = os.environ if env is None else env
     # Fast DDS multicasts beyond the machine with default discovery; never do that by default.
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # Set but empty (`VAR= cmd`, docker's `-e VAR` with VAR unset on the host) is unset to
+    # ROS, which then discovers across the subnet: it multicast onto the LAN.
+    if not env.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").strip():
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     if "ROS_LOG_DIR" not in env:
         home = env.get("HOME")
         base = (
