@@ -6,6 +6,7 @@ Frames -> mapper -> grid -> planner -> drive -> simulated motor controller on a 
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -26,6 +27,13 @@ def test_demo_drives_the_chair_to_the_goal_through_free_cells_only(live_demo, ba
     assert live_demo["code"] == 0, live_demo["stdout"][-3000:] + live_demo["stderr"][-3000:]
     assert s["mapper"]["loop_closure"] == "closed", s["mapper"]
     assert "loops closed" in live_demo["stdout"]
+    # in a domain of its own, not the test run's (a chain launched from the same shell once
+    # got the demo's frames and goal)
+    from wheelgrid_bringup.demo import demo_domain
+
+    own = demo_domain(os.environ["ROS_DOMAIN_ID"])
+    assert f"demo: ROS_DOMAIN_ID={own} " in live_demo["stdout"]
+    assert own != int(os.environ["ROS_DOMAIN_ID"]) and 215 <= own <= 232
     assert s["reached_goal"] is True
     assert s["entered_non_free"] == []
     out = live_demo["out"]

@@ -14,6 +14,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import shutil
 import signal
 import sys
@@ -167,6 +168,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# Linux's other safe ROS domain range (its ephemeral ports end below their DDS ports): the
+# demo runs in one of these, apart from the 0-101 that scripts/env.sh and the tests use.
+DEMO_DOMAINS = range(215, 233)
+
+
+def demo_domain(inherited: str | None) -> int:
+    """The demo's own ROS domain, never the inherited one: in the checkout's domain (every
+    shell of it shares one, scripts/env.sh) a `wheelgrid launch` left running got the demo's
+    frames, goal and start pose, and its drive followed them."""
+    try:
+        base = int(inherited or 0)
+    except ValueError:
+        base = 0
+    pick = DEMO_DOMAINS[base % len(DEMO_DOMAINS)]
+    return pick if pick != base else DEMO_DOMAINS[(base + 1) % len(DEMO_DOMAINS)]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     t_start = time.monotonic()
@@ -193,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     configure_ros_env()
+    inherited = os.environ.get("ROS_DOMAIN_ID")
+    os.environ["ROS_DOMAIN_ID"] = str(demo_domain(inherited))
     params = args.params or default_params_file()
     out = args.out.resolve()
     try:
@@ -226,6 +246,10 @@ def main(argv: list[str] | None = None) -> int:
     summary: dict[str, Any] = {"bag": str(bag), "start_cell": list(start), "goal_cell": list(goal)}
     code = 1
     try:
+        print(
+            f"demo: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} (its own; a chain launched from "
+            f"this shell, in {inherited or 0}, stays apart: an RViz joins with that domain)"
+        )
         print(f"demo: bag {bag} ({', '.join(f'{t.name} x{t.count}' for t in topics)})")
         for name in ("mapper", "grid", "planner"):
             over: dict[str, object] = {"output_dir": str(out)}
