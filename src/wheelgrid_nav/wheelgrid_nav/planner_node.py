@@ -252,18 +252,22 @@ def _make_node_class() -> type:
                 return
             # the route's cells are only indices of the old grid: read on a smaller new one
             # they raised IndexError and ended the node
-            blocked = not same_geometry(grid, old) or not self.route or self._route_blocked(grid)
+            blocked = (
+                not same_geometry(grid, old)
+                or not self.route
+                or self._route_blocked(grid, self.route)
+            )
             if blocked:
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
 
-        def _route_blocked(self, grid: Grid) -> bool:
-            """Whether ``grid`` (same geometry as the route's) closes a cell of the route, by
+        def _route_blocked(self, grid: Grid, route: list[tuple[int, int]]) -> bool:
+            """Whether ``grid`` (same geometry as the route's) closes a cell of ``route``, by
             the rule the route was planned under: its first cell, the chair's own, may be
             unknown (``allow_unknown_start``). Judged "not free" like the rest, an unknown start
             cell replanned at every new grid (each map update), and the drive stopped the
             running move for the same route sent again."""
-            (r0, c0), rest = self.route[0], self.route[1:]
+            (r0, c0), rest = route[0], route[1:]
             first = int(grid.data[r0, c0])
             first_ok = first == 0 or (self.cfg.allow_unknown_start and first < 0)
             return not first_ok or any(grid.data[r, c] != 0 for r, c in rest)
@@ -500,7 +504,7 @@ def _make_node_class() -> type:
                 return
             if self.grid is not grid:
                 newest = self.grid
-                if not (same_geometry(newest, grid) and self._cells_free(newest, res.cells)):
+                if not same_geometry(newest, grid) or self._route_blocked(newest, res.cells):
                     # a route through a cell the newest grid closes went out before the replan
                     self.get_logger().info(
                         "the safe grid changed under the route while it was learned: replanning"
@@ -532,15 +536,6 @@ def _make_node_class() -> type:
                         return
                     handler(taken[0])
 
-        def _cells_free(self, grid: Grid, cells: list[tuple[int, int]]) -> bool:
-            """Whether ``grid`` leaves every cell of a route open, by the rule it is planned
-            under (its first cell, the chair's own, may be unknown)."""
-            saved, self.route = self.route, list(cells)
-            try:
-                return not self._route_blocked(grid)
-            finally:
-                self.route = saved
-
         def _take_waiting_estops(self) -> None:
             """Handle the e-stops that arrived while a route was learned, before it goes out.
 
@@ -550,13 +545,7 @@ def _make_node_class() -> type:
             no new command), and only then came the e-stop's empty path. ``take_message`` is
             what rclpy's own executor calls, but not public API: where it fails, the caller
             publishes no route rather than one an e-stop may have voided."""
-            sub = self._estop_sub
-            with sub.handle:
-                while True:
-                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
-                    if taken is None:
-                        return
-                    self._on_estop(taken[0])
+            self._take_waiting(self._estop_sub, self._on_estop)
 
         def _publish_route(
             self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
