@@ -20,7 +20,7 @@ from wheelgrid_common.params import DefaultsHelpFormatter
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
-from wheelgrid_drive.runner import CellCheck, grid_cell_check, run_steps, step_pose_problem
+from wheelgrid_drive.runner import CellCheck, controller_pose_check, grid_cell_check, run_steps
 
 MIN_SPEED_KMH = 0.1  # slower, a cell's move cannot end within the link's move timeout
 
@@ -281,7 +281,12 @@ def main(argv: list[str] | None = None) -> int:
             speed_kmh=speed,
             cell_check=check,
             on_step=on_step,
-            pose_check=None if args.no_pose_check else pose_check(link, _Cells(cell_size, grid)),
+            # each step drives one cell's length from where the chair really stands: checked
+            # on the plan's cells alone, a chair turned a few degrees per turn, or standing
+            # off the plan's start, drove a free-checked route through occupied cells, exit 0
+            pose_check=None
+            if args.no_pose_check
+            else controller_pose_check(link, _Cells(cell_size, grid)),
         )
         # the runner sent STOP already; once more, to learn whether the controller heard it
         stop_note = "" if result.ok else _stopped(link)
@@ -344,23 +349,6 @@ class _Cells:
 
     def cell_center(self, r: int, c: int) -> tuple[float, float]:
         return _cell_xy((r, c), self.resolution, self._grid)
-
-
-def pose_check(link: MotorLink, cells: _Cells) -> Any:
-    """Before each step, the controller's pose must be where the step can be driven from, as
-    the drive node checks it: each step drives one cell's length from where the chair really
-    stands, and the command checked only the plan's cells, so a chair turned a few degrees
-    per turn, or standing elsewhere than the plan's start, drove through occupied cells of a
-    free-checked route and exited 0."""
-
-    def check(step: actions.Step) -> str | None:
-        try:
-            st = link.status()
-        except LinkError as exc:
-            return f"no controller pose: {exc}"
-        return step_pose_problem(cells, st.x, st.y, st.yaw, step)
-
-    return check
 
 
 def _cell_xy(cell: tuple[int, int], cell_size: float, grid: Any) -> tuple[float, float]:

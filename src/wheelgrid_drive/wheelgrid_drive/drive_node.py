@@ -48,12 +48,12 @@ from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkErr
 from wheelgrid_drive.runner import (
     RunResult,
     cells_from_points,
+    controller_pose_check,
     dumps_record,
     grid_cell_check,
     planned_grid_check,
     run_steps,
     same_geometry,
-    step_pose_problem,
     step_to_centre,
 )
 
@@ -713,7 +713,9 @@ class DriveNode(Node):
             abort=abort,
             on_step=on_step,
             on_start=self._on_step_start,
-            pose_check=self._pose_check(grid) if self.cfg.check_start_pose else None,
+            pose_check=controller_pose_check(self.link, grid, self.cfg.pose_tolerance)
+            if self.cfg.check_start_pose
+            else None,
         )
         self._entering = None
         if result.ok:
@@ -722,18 +724,6 @@ class DriveNode(Node):
             self._set_state(WARN if not self._estop else ERROR, f"plan aborted: {result.error}")
         else:
             self._set_state(ERROR, f"plan stopped at step {result.done + 1}: {result.error}")
-
-    def _pose_check(self, grid: Grid) -> Callable[[actions.Step], str | None]:
-        """Before each step: the controller's pose now, within reach of the step's cells."""
-
-        def check(step: actions.Step) -> str | None:
-            try:
-                st = self.link.status()
-            except LinkError as exc:
-                return f"no controller pose: {exc}"
-            return step_pose_problem(grid, st.x, st.y, st.yaw, step, self.cfg.pose_tolerance)
-
-        return check
 
     def _on_step_start(self, step: actions.Step) -> None:
         self._entering = step.dst

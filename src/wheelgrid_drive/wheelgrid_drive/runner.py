@@ -131,6 +131,21 @@ def step_pose_problem(
     return None
 
 
+def controller_pose_check(link: MotorLink, grid: Any, tolerance: float = 0.25) -> PoseCheck:
+    """Before each step, the controller's pose now, within reach of the step's cells
+    (:func:`step_pose_problem`): the drive node's and ``wheelgrid drive``'s check. ``grid``
+    needs ``resolution`` and ``cell_center`` only."""
+
+    def check(step: Step) -> str | None:
+        try:
+            st = link.status()
+        except LinkError as exc:
+            return f"no controller pose: {exc}"
+        return step_pose_problem(grid, st.x, st.y, st.yaw, step, tolerance)
+
+    return check
+
+
 def step_to_centre(
     grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
 ) -> tuple[float, str | None]:
