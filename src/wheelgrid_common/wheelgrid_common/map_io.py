@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .fileio import quat_to_matrix, write_together
+from .fileio import quat_yaw, write_together
 from .params import read_yaml
 
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
@@ -324,8 +324,7 @@ def from_occupancy_grid(msg: Any) -> Grid:
         raise ValueError(f"OccupancyGrid origin {position}, orientation {quat} is not a pose")
     # normalised first: the unit formula read a 90 deg origin at a third of unit length as
     # 5.6 deg, and put start and goal in other cells
-    rot = quat_to_matrix(*quat)
-    yaw = math.atan2(float(rot[1, 0]), float(rot[0, 0]))
+    yaw = quat_yaw(*quat)
     return Grid(
         data=np.flipud(flat.reshape(rows, cols)).copy(),
         resolution=float(msg.info.resolution),

@@ -37,7 +37,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, String
 
-from wheelgrid_common.fileio import quat_to_matrix
+from wheelgrid_common.fileio import quat_yaw
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
@@ -600,10 +600,9 @@ class DriveNode(Node):
             q = msg.poses[0].pose.orientation
             # normalised first (a scaled quaternion read as another yaw by the unit formula)
             try:
-                rot = quat_to_matrix(float(q.x), float(q.y), float(q.z), float(q.w))
+                yaw = quat_yaw(float(q.x), float(q.y), float(q.z), float(q.w))
             except ValueError:
                 raise ValueError("the path's first pose has a zero quaternion") from None
-            yaw = math.atan2(float(rot[1, 0]), float(rot[0, 0]))
             if not math.isfinite(yaw):
                 raise ValueError("the path's first pose has a non-finite quaternion")
             heading = actions.heading_from_yaw(yaw, grid.origin[2])

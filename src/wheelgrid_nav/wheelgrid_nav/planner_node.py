@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import quat_to_matrix
+from wheelgrid_common.fileio import quat_yaw
 from wheelgrid_common.frames import CONVENTIONS, convention_for_frame
 from wheelgrid_common.map_io import Grid, from_occupancy_grid, same_geometry
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass
@@ -118,9 +118,8 @@ def forward_yaw(q: Any, child_frame: str = "", convention: str = "auto") -> floa
     quaternion is normalised first: the unit formula read a 90 deg yaw at a third of unit
     length as 5.6 deg.
     """
-    rot = quat_to_matrix(float(q.x), float(q.y), float(q.z), float(q.w))
     axis = 2 if convention_for_frame(child_frame, convention) == "optical" else 0
-    return math.atan2(float(rot[1, axis]), float(rot[0, axis]))
+    return quat_yaw(float(q.x), float(q.y), float(q.z), float(q.w), axis)
 
 
 def _quat_from_yaw(yaw: float) -> tuple[float, float]:
