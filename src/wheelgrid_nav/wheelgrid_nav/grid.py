@@ -502,7 +502,8 @@ def linear_obstacles(
     (a pixel or two of its scanned edge spilling over a cell border) joined it into one long
     component and occupied the neighbouring cell: on ``make demo``'s map that made truth-free
     cell (4, 3) occupied. A rope tied to a post still counts, from where the post's points end.
-    ``support``: :func:`obstacle_support`, where the caller has it already.
+    ``support``: :func:`obstacle_support` of ``obstacles | boundary``, where the caller has it
+    already.
 
     ``boundary``: the black pixels of the boundary strip (taken for the walls). A line is
     measured through them too, and kept where at least two of its links lie beyond them, where
@@ -512,9 +513,7 @@ def linear_obstacles(
     """
     obs = np.asarray(obstacles, dtype=bool)
     edge = np.zeros_like(obs) if boundary is None else np.asarray(boundary, dtype=bool)
-    if boundary is not None:
-        obs = obs | edge
-        support = None  # the interior's support does not hold the strip's points
+    obs = obs | edge
     if support is None:
         support = obstacle_support(obs, counts)
     links = obs & (support >= min_points)
@@ -542,7 +541,8 @@ def linear_obstacles(
     )
     long = extent >= min_length_px - 1e-9
     inner = ~edge[rows, cols]
-    long &= np.bincount(comp, inner, k) >= (2 if boundary is not None else 1)
+    if boundary is not None:
+        long &= np.bincount(comp, inner, k) >= 2
     keep = long[comp] & inner
     out[rows[keep], cols[keep]] = True
     return out
@@ -563,13 +563,19 @@ def thin_obstacle_guard(
     support = obstacle_support(obstacles, counts)
     solid = continuous_obstacles(obstacles, counts, min_points, support)
     if line_min_length_px > 0:
+        # a line is read through the wall strip too, so its support counts the strip's points
+        line_support = (
+            support
+            if boundary is None
+            else obstacle_support(np.asarray(obstacles, dtype=bool) | boundary, counts)
+        )
         solid |= linear_obstacles(
             obstacles,
             counts,
             line_min_points,
             line_min_length_px,
             solid_points=min_points,
-            support=support,
+            support=line_support,
             boundary=boundary,
         )
     h, w = solid.shape
