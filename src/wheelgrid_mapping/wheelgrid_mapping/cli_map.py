@@ -663,6 +663,13 @@ def _run(args: argparse.Namespace) -> int:
             "it could place them, the others failed",
             file=sys.stderr,
         )
+    if fr.get("after_gap"):
+        print(
+            f"wheelgrid map: warning: {fr['after_gap']} frame(s) came more than "
+            f"{mapper.reg_cfg.max_gap:g} s after the last registered one (a dropout); each was "
+            "registered as a relocalisation, every surface of it checked against the map",
+            file=sys.stderr,
+        )
     lost = lost_at_end(rep.get("registration", {}))
     if lost:
         print(f"wheelgrid map: warning: {lost}", file=sys.stderr)

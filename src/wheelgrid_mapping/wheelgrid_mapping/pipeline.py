@@ -938,6 +938,9 @@ class Mapper:
                 "out_of_order": self.out_of_order,
                 "other_frame": self.other_frame,
                 "relocalised": c.relocalised,
+                # frames after more than registration.max_gap without one registered:
+                # each registered as a relocalisation (relocalised where it passed)
+                "after_gap": c.gaps,
                 "prior_frozen": c.prior_frozen,
                 "priors_refused": self.priors_refused,
                 "errors": self.frames_errored,
