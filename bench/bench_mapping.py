@@ -285,7 +285,8 @@ def fidelity(
     if m.T_map_odom is None:
         # registration refused the frames (the bundled bag without a prior: every
         # relocalisation unconfirmed), so there is no map to measure; said, not raised
-        print(f"{label}: no map ({c.accepted} frames used): {m.level_info.get('error', '')}")
+        why = m.level_info.get("error") or "too few frames registered to find the floor"
+        print(f"{label}: no map ({c.accepted} frame(s) used): {why}")
         return m
     gt_stamps, gt = read_tum(sim / "poses_map.tum")
 
