@@ -524,3 +524,60 @@ def test_the_dropout_rule_is_checked() -> None:
     for bad in ({"max_gap": 0.0}, {"relocalise_min_fitness": 1.5}, {"relocalise_min_points": 0}):
         with pytest.raises(ValueError):
             RegistrationConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_a_prior_that_re_anchors_between_two_fast_frames_is_caught(world: np.ndarray) -> None:
+    """At 30 frames/s the prior moves 15 cm between two frames that each moved 1 cm: under the
+    speed rule (which allows 40 cm over its 0.2 s floor) but no continuation of the step
+    before it. Before, that frame was mapped where the prior put it. Now the prior's world is
+    re-anchored there, the frame fails, and mapping resumes on the true pose."""
+    rng = np.random.default_rng(38)
+    shift = np.eye(4)
+    shift[:3, 3] = [0.15, 0.0, 0.0]
+    reg = Registrar(RegistrationConfig())
+    truth = [pose(1.5 + 0.01 * i, 2.0, 0.002 * i) for i in range(16)]
+    results = []
+    for i, T in enumerate(truth):
+        res = reg.register(view(world, T, rng), i / 30, prior=T if i < 8 else shift @ T)
+        results.append(res)
+        if res.accepted:
+            err = np.linalg.inv(np.linalg.inv(truth[0]) @ T) @ res.pose
+            assert np.linalg.norm(err[:3, 3]) < 0.03, (i, err[:3, 3])
+    assert not results[8].accepted and "pose prior jumped" in results[8].reason
+    assert "its step changed by 0.15 m" in results[8].reason
+    assert results[9].accepted and results[9].relocalised, results[9].reason
+    assert all(r.accepted for r in results[9:])
+
+
+def _prior_stream(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The stamps and poses of a recorded pose prior: the bundled bag's odometry, or the real
+    capture's ARKit poses (skipped where absent)."""
+    root = Path(__file__).resolve().parents[3]
+    if name == "bundled":
+        from wheelgrid_common.bagio import BagReader
+        from wheelgrid_mapping.cli_map import ODOMETRY, _odometry_poses
+
+        with BagReader(root / "bags" / "paper_room" / "scan") as reader:
+            stamps, poses = _odometry_poses(reader, reader.pick_topic(None, ODOMETRY, "--prior"))
+        return np.asarray(stamps), np.asarray(poses)
+    from wheelgrid_mapping.stray import _read_odometry
+
+    stray = shared_data("stray-iphone-room", root)
+    if not (stray / "odometry.csv").exists():
+        pytest.skip(f"{stray}: not present (the real iPhone capture, ../shared/data)")
+    rows, _, _ = _read_odometry(stray / "odometry.csv")
+    items = [rows[k] for k in sorted(rows) if rows[k][1] is not None]
+    return np.array([t for t, _ in items]), np.array([T for _, T in items])
+
+
+@pytest.mark.parametrize("name", ["bundled", "real"])
+@pytest.mark.parametrize("every", [1, 6])
+def test_recorded_priors_never_look_like_a_jump(name: str, every: int) -> None:
+    """The jump checks against two recorded priors, every frame and every 6th (the node's
+    keyframes): a chair's simulated 5 Hz odometry through its turns, and ARKit's 60 Hz poses of
+    a hand-held phone. A false jump would fail a frame that was right."""
+    stamps, poses = _prior_stream(name)
+    reg = Registrar(RegistrationConfig())
+    for stamp, prior in zip(stamps[::every], poses[::every], strict=True):
+        _, reason = reg._continuous_prior(prior, float(stamp))
+        assert reason == "", (stamp, reason)

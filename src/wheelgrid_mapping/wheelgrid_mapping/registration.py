@@ -94,6 +94,21 @@ class RegistrationConfig:
     )
     max_turn_rate: float = field(120.0, "faster apparent rotation is a failure", "deg/s")
     min_dt: float = field(0.2, "time floor for the jump check (bag stamps can bunch)", "s")
+    max_accel: float = field(
+        8.0,
+        "a pose prior whose step changes from one frame to the next by more than this times "
+        "the frame interval squared (plus 2 cm) has jumped, however slow the step: its world "
+        "re-anchored. The bundled bag's prior changes its 0.2 s step by 5.4 m/s^2 at most, the "
+        "real capture's its 1/60 s step by 4.5 mm (16 m/s^2 of noise, within the 2 cm). Catches "
+        "a re-anchor of 2.5 cm at 60 Hz, 10 cm at 10 Hz, 34 cm at 5 Hz",
+        "m/s^2",
+    )
+    max_angular_accel: float = field(
+        500.0,
+        "the same for the prior's turn per frame (plus 1 deg): the bundled bag's changes by "
+        "386 deg/s^2 at most, the real capture's by 0.3 deg a frame",
+        "deg/s^2",
+    )
     max_prior_deviation: float = field(
         0.1, "a result this far from the pose prior's guess fails", "m"
     )
@@ -199,6 +214,7 @@ class RegistrationConfig:
             "voxel_size", "max_range", "initial_threshold", "prior_threshold", "fitness_cell",
             "max_speed", "max_turn_rate", "min_dt", "max_prior_deviation",
             "max_prior_deviation_deg", "relocalise_scale", "convergence", "max_gap",
+            "max_accel", "max_angular_accel",
         ):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ValueError(f"registration {name} must be > 0, not {getattr(self, name)}")
@@ -458,6 +474,11 @@ class _Attempt:
 PRIOR_FROZEN_AFTER_S = 0.25
 
 
+# What a pose prior's step may change by from one frame to the next beyond max_accel and
+# max_angular_accel: its own noise (the real capture's ARKit: 4.5 mm and 0.3 deg at 60 Hz) (m, deg)
+PRIOR_STEP_SLACK_M, PRIOR_STEP_SLACK_DEG = 0.02, 1.0
+
+
 # ICP alone's step that says the sensor moved while its frozen prior stood still (m, deg)
 STILL_M, STILL_DEG = 0.02, 1.0
 
@@ -532,6 +553,9 @@ class Registrar:
         self._fix_at_accept = np.eye(4)
         self._prev_prior: np.ndarray | None = None
         self._prev_prior_stamp: float | None = None
+        # the prior's step into the previous frame and its interval (s), where that frame's
+        # prior was neither a repeat nor a jump: what the next step is compared with
+        self._prev_step: tuple[np.ndarray, float] | None = None
         # the previous frame's prior as given, and the stamp of the first frame it came with
         self._raw_prior: np.ndarray | None = None
         self._raw_since = 0.0
@@ -692,7 +716,9 @@ class Registrar:
             self.counters.prior_frozen += 1
             virtual, jumped = self._prior_fix @ np.asarray(prior, dtype=np.float64), ""
         else:
-            virtual, jumped = (None, "") if prior is None else self._continuous_prior(prior, stamp)
+            virtual, jumped = (
+                (None, "") if prior is None else self._continuous_prior(prior, stamp, repeat)
+            )
         if self.last_stamp is None:  # the first frame: the map begins with it
             self._integrate(frame_down, np.eye(4))
             self._accepted_prior(stamp, virtual)
@@ -749,6 +775,7 @@ class Registrar:
             # and caught up): its world is the one from before the discontinuity
             self._prior_fix = raw_fix
             self._prev_prior = best.prior
+            self._prev_step = None
         pose, fitness, reason, guess = best.pose, best.fitness, best.reason, best.guess
         if reason:
             return self._fail(reason + gap, t0, fitness, pose)
@@ -818,7 +845,9 @@ class Registrar:
         self.last_prior = prior
         self._prior_pose = np.eye(4) if pose is None else pose
 
-    def _continuous_prior(self, prior: np.ndarray, stamp: float) -> tuple[np.ndarray, str]:
+    def _continuous_prior(
+        self, prior: np.ndarray, stamp: float, repeat: bool = False
+    ) -> tuple[np.ndarray, str]:
         """``prior`` in a world continuous from frame to frame, and a failure reason where the
         prior jumped since the previous frame that had one (a step no chair makes, by the same
         ``max_speed`` / ``max_turn_rate`` rule as the registered pose).
@@ -833,6 +862,11 @@ class Registrar:
         frame's motion, which relocalisation's wider search absorbs); the turn of the re-anchor
         is kept about the prior's z where it is within 10 deg of a turn about it (a
         gravity-aligned prior keeps gravity through a relocalisation), else taken whole.
+
+        A step that fits those rules can still be a jump: a re-anchor of 30 cm is a walk at 5 Hz
+        and a sprint at 60 Hz. So a step is also compared with the step before it
+        (:meth:`_jerk`), where neither is a repeat (a pose topic slower than the clouds gives
+        steps of 0 and 2x in turn) and no gap lies between (relocalisation checks those).
         """
         cfg = self.cfg
         virtual = self._prior_fix @ prior
@@ -841,7 +875,13 @@ class Registrar:
             jump = np.linalg.inv(self._prev_prior) @ virtual
             dt = max(float(stamp - self._prev_prior_stamp), cfg.min_dt)
             dist, turn = float(np.linalg.norm(jump[:3, 3])), rotation_angle_deg(jump)
-            if self._implausible(jump, dt):
+            interval = float(stamp - self._prev_prior_stamp)
+            jerk = ""
+            if self._prev_step is not None and not repeat and 0.0 < interval <= cfg.max_gap:
+                jerk = self._jerk(self._prev_step, jump, interval)
+            self._prev_step = None if repeat else (jump, interval)
+            if self._implausible(jump, dt) or jerk:
+                self._prev_step = None
                 fix = self._prev_prior @ np.linalg.inv(virtual)
                 R = fix[:3, :3]
                 if np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))) <= 10.0:
@@ -851,7 +891,7 @@ class Registrar:
                     fix[:3, 3] = self._prev_prior[:3, 3] - fix[:3, :3] @ virtual[:3, 3]
                 self._prior_fix = fix @ self._prior_fix
                 virtual = fix @ virtual
-                reason = f"pose prior jumped ({dist:.2f} m, {turn:.0f} deg in {dt:.2f} s)"
+                reason = f"pose prior jumped ({dist:.2f} m, {turn:.0f} deg in {dt:.2f} s{jerk})"
         self._prev_prior, self._prev_prior_stamp = virtual, float(stamp)
         return virtual, reason
 
@@ -938,6 +978,23 @@ class Registrar:
         if relocalising and not reason:
             reason = self._unconfirmed(inputs, pose, with_prior and not self._after_gap)
         return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior)
+
+    def _jerk(self, before: tuple[np.ndarray, float], step: np.ndarray, interval: float) -> str:
+        """Why the prior's ``step`` (over ``interval`` s) is no continuation of the step
+        ``before`` it, or "": it changed by more than ``max_accel`` / ``max_angular_accel``
+        allow over the longer of the two intervals (a bunched stamp must not shrink the
+        allowance), plus the slack of a prior's own noise."""
+        cfg = self.cfg
+        prev, prev_interval = before
+        dt = max(interval, prev_interval)
+        change = np.linalg.inv(prev) @ step
+        moved = float(np.linalg.norm(step[:3, 3] - prev[:3, 3]))
+        turned = rotation_angle_deg(change)
+        if moved > cfg.max_accel * dt * dt + PRIOR_STEP_SLACK_M:
+            return f"; its step changed by {moved:.2f} m from the one before"
+        if turned > cfg.max_angular_accel * dt * dt + PRIOR_STEP_SLACK_DEG:
+            return f"; its turn changed by {turned:.1f} deg from the one before"
+        return ""
 
     def _implausible(self, step: np.ndarray, dt: float) -> str:
         """Why ``step`` (a relative pose over ``dt`` seconds) is no motion a chair makes, or
