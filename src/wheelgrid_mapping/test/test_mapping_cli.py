@@ -940,6 +940,7 @@ def test_a_loop_closure_or_mapper_number_that_cannot_work_is_one_line(
         ("loop_closure: {odometry_sigma_deg: 0}", "odometry_sigma_deg must be > 0"),
         ("loop_closure: {observable_ratio: 1.5}", "observable_ratio must be in [0, 1]"),
         ("mapper: {min_frame_interval: .nan}", "mapper min_frame_interval must be finite"),
+        ("mapper: {min_frame_interval: 0.5}", "must be under registration max_gap (0.5 s)"),
         ("mapper: {map_voxel: .inf}", "mapper map_voxel must be finite"),
         ("mapper: {mount_xyz_rpy: 5}", "mount_xyz_rpy: expected a list, got 5"),
         ("mapper: {mount_xyz_rpy: [a, 0, 1, 0, 0, 0]}", "mount_xyz_rpy[0]: expected a number"),

@@ -23,7 +23,13 @@ import numpy as np
 from wheelgrid_common.fileio import folder_problem, out_folder
 from wheelgrid_common.progress import Progress
 
-from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, load_configs
+from .pipeline import (
+    DEFAULT_FRAME_ID,
+    FrameOutcome,
+    Mapper,
+    check_keyframe_interval,
+    load_configs,
+)
 from .prefetch import FramePipeline
 from .registration import PRIOR_SCALE_MIN_STEP
 from .thin_check import check_thin_obstacles
@@ -459,6 +465,7 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"--max-frames must be >= 0 (0: every frame), got {args.max_frames}")
     try:
         pre, reg, cfg, loop = load_configs(args.config)
+        check_keyframe_interval(reg, cfg)
         thin_note = check_thin_obstacles(pre)  # a filter that erases a bar: refused here
     except (OSError, ValueError) as exc:
         raise InputError(f"config: {exc}") from exc
@@ -522,6 +529,8 @@ def _run(args: argparse.Namespace) -> int:
                 print(
                     f"\nWARNING frame {k} (and any like it): skipped: {out.reason}", file=sys.stderr
                 )
+            elif out.after_gap:
+                print(f"\nframe {k}: after a dropout, placed against the map", file=sys.stderr)
             elif out.relocalised:
                 print(f"\nframe {k}: relocalised against the map; mapping resumed", file=sys.stderr)
 
@@ -666,7 +675,7 @@ def _run(args: argparse.Namespace) -> int:
     if fr.get("after_gap"):
         print(
             f"wheelgrid map: warning: {fr['after_gap']} frame(s) came more than "
-            f"{mapper.reg_cfg.max_gap:g} s after the last registered one (a dropout); each was "
+            f"{mapper.reg_cfg.max_gap:g} s after the frame before them (a dropout); each was "
             "registered as a relocalisation, every surface of it checked against the map",
             file=sys.stderr,
         )

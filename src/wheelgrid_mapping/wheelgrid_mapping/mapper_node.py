@@ -425,7 +425,9 @@ class MapperNode(Node):  # type: ignore[misc]
                 self._log_once(
                     out.cause, f"skipping clouds like the one at {stamp:.3f} s: {out.reason}"
                 )
-            if out.relocalised:
+            if out.after_gap:
+                self.get_logger().info(f"after a dropout, placed against the map at {stamp:.3f} s")
+            elif out.relocalised:
                 self.get_logger().info(f"relocalised at {stamp:.3f} s; mapping resumed")
             if out.status == "used":
                 with self._lock:  # only _lock: _bound_kept_frames takes _slot_lock

@@ -254,6 +254,17 @@ def load_configs(
     )
 
 
+def check_keyframe_interval(reg: RegistrationConfig, cfg: MapperConfig) -> None:
+    """ValueError where keyframes are kept further apart than a dropout: every one would be
+    registered as a relocalisation (``registration.max_gap``)."""
+    if cfg.min_frame_interval >= reg.max_gap:
+        raise ValueError(
+            f"mapper min_frame_interval ({cfg.min_frame_interval:g} s) must be under "
+            f"registration max_gap ({reg.max_gap:g} s): keyframes further apart would each be "
+            "taken for a dropout"
+        )
+
+
 SECTIONS = ("preprocess", "registration", "mapper", "loop_closure")
 DEFAULT_FRAME_ID = "iphone_depth_optical_frame"  # a frame without one: the phone's depth camera
 
@@ -266,6 +277,7 @@ class FrameOutcome:
     reason: str = ""
     pose_map: np.ndarray | None = None  # sensor pose in map (None until levelled)
     relocalised: bool = False
+    after_gap: bool = False  # came after a dropout (registration.max_gap), placed on the map
     # of a skipped frame that a user must hear of (not a keyframe interval): "other_frame"
     cause: str = ""
 
@@ -320,6 +332,7 @@ class Mapper:
         self.reg_cfg = reg or RegistrationConfig()
         self.cfg = cfg or MapperConfig()
         self.keep_frames = keep_frames
+        check_keyframe_interval(self.reg_cfg, self.cfg)
         self.reset()
 
     def reset(self) -> None:
@@ -339,6 +352,9 @@ class Mapper:
         self._frames: list[np.ndarray] = []
         self._map_keep: list[np.ndarray | None] = []  # per kept frame: PreparedFrame.map_keep
         self._priors: list[np.ndarray | None] = []  # the pose prior of each kept frame
+        # per kept frame: whether it came after a dropout (registered again, it must be told:
+        # without the frames that failed before it, its stamp would make gaps of their time)
+        self._after_gap: list[bool] = []
         # sum over the registered frames with a prior of the prior's up (its z) in odom
         self._prior_up_sum = np.zeros(3)
         self._prior_not_vertical = False  # its z is no up an upright sensor could have
@@ -386,6 +402,7 @@ class Mapper:
         self._frames = []
         self._map_keep = []
         self._priors = []
+        self._after_gap = []
 
     # -- per frame ----------------------------------------------------------------------------
     def add_frame(
@@ -535,6 +552,7 @@ class Mapper:
             self._frames.append(pts.astype(np.float32))
             self._map_keep.append(prep.map_keep)
             self._priors.append(None if prior is None else np.asarray(prior, dtype=np.float64))
+            self._after_gap.append(res.after_gap)
         t2 = time.perf_counter()
         self._evidence.add(transform(prep.map_points, res.pose), res.pose[:3, 3])
         self.timings["evidence_s"] += time.perf_counter() - t2
@@ -549,7 +567,10 @@ class Mapper:
         ):
             self.try_level()
         return FrameOutcome(
-            "used", pose_map=self.pose_in_map(res.pose), relocalised=res.relocalised
+            "used",
+            pose_map=self.pose_in_map(res.pose),
+            relocalised=res.relocalised,
+            after_gap=res.after_gap,
         )
 
     def close_loops(
@@ -636,12 +657,12 @@ class Mapper:
         reg = Registrar(replace(self.reg_cfg, prior_scale=scale))
         poses = []
         submaps = len(submap_groups(self.stamps, cfg.submap_seconds))
-        for k, (pts, stamp, prior) in enumerate(
-            zip(self._frames, self.stamps, self._priors, strict=True)
+        for k, (pts, stamp, prior, after_gap) in enumerate(
+            zip(self._frames, self.stamps, self._priors, self._after_gap, strict=True)
         ):
             if progress is not None and k % 10 == 0:
                 progress(0, submaps)
-            res = reg.register(pts.astype(np.float64), stamp, prior)
+            res = reg.register(pts.astype(np.float64), stamp, prior, after_gap=after_gap)
             if not res.accepted:
                 info["note"] = f"a frame failed when registered again ({res.reason}): kept"
                 return self.poses_odom, info
@@ -938,8 +959,8 @@ class Mapper:
                 "out_of_order": self.out_of_order,
                 "other_frame": self.other_frame,
                 "relocalised": c.relocalised,
-                # frames after more than registration.max_gap without one registered:
-                # each registered as a relocalisation (relocalised where it passed)
+                # frames more than registration.max_gap after the frame before them (a
+                # dropout): each registered as a relocalisation (relocalised where it passed)
                 "after_gap": c.gaps,
                 "prior_frozen": c.prior_frozen,
                 "priors_refused": self.priors_refused,

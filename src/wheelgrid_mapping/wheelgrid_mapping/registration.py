@@ -18,7 +18,7 @@ frame that failed to register. Here a frame is integrated only after it passed e
 A failed frame is reported loudly, integration pauses (state ``relocalising``), and each later
 frame is aligned against the unchanged map from the last good pose (or the prior's guess) with
 a wider search; the first one that passes resumes mapping. Every event is counted. A frame
-more than ``max_gap`` after the last accepted one is registered the same way: over a dropout
+more than ``max_gap`` after the frame before it is registered the same way: over a dropout
 the speed rule allows metres, so nothing else would catch a prior that re-anchored meanwhile.
 A relocalisation must convince on the map's structure, not its floor: each surface family of
 the frame (its points grouped by normal, :func:`surface_families`) is checked on its own.
@@ -184,7 +184,7 @@ class RegistrationConfig:
     )
     max_gap: float = field(
         0.5,
-        "a frame this long after the last accepted one is registered as a relocalisation "
+        "a frame this long after the frame before it is registered as a relocalisation "
         "(wider search, relocalise_min_fitness): over a dropout the speed rule allows metres, "
         "so a pose prior that re-anchored meanwhile (ARKit) would be followed, the floor alone "
         "giving the overlap; it had mapped a frame 1.5 m and 16 deg off, and the rest of the "
@@ -451,6 +451,9 @@ class RegResult:
     # the pose prior as registration used it: its world re-anchored at every jump, so that
     # what the mapper keeps of it (gravity, the loop closure's prior drift) is continuous too
     prior: np.ndarray | None = None
+    # the frame came more than max_gap after the one before it (a dropout): registered as a
+    # relocalisation, though mapping had not stopped
+    after_gap: bool = False
 
 
 @dataclass
@@ -483,6 +486,21 @@ PRIOR_STEP_SLACK_M, PRIOR_STEP_SLACK_DEG = 0.02, 1.0
 STILL_M, STILL_DEG = 0.02, 1.0
 
 
+def _reanchor(target: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """The re-anchoring of a prior's world that takes its pose ``current`` to ``target``:
+    ``fix @ current`` is ``target`` in position, and in rotation too, but where the turn is
+    within 10 deg of one about the world's z (a gravity-aligned prior keeps its gravity through
+    a relocalisation) it is that turn about z alone."""
+    fix = target @ np.linalg.inv(current)
+    R = fix[:3, :3]
+    if np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))) <= 10.0:
+        yaw = np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        fix[:3, :3] = [[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]
+        fix[:3, 3] = target[:3, 3] - fix[:3, :3] @ current[:3, 3]
+    return fix
+
+
 def _motion(step: np.ndarray | None) -> str:
     """What motion ``step`` is, for a failure reason; empty where it is none (within
     :data:`STILL_M` and :data:`STILL_DEG`)."""
@@ -503,7 +521,7 @@ class RegCounters:
     # frames whose pose prior had repeated itself to the bit for longer than
     # PRIOR_FROZEN_AFTER_S (tracking lost, a pose source that stalled)
     prior_frozen: int = 0
-    # frames that came more than max_gap after the last accepted one (a dropout, a stalled
+    # frames that came more than max_gap after the frame before them (a dropout, a stalled
     # stream): each was registered as a relocalisation, and counts as relocalised if it passed
     gaps: int = 0
     failure_reasons: dict[str, int] = dc_field(default_factory=dict)
@@ -541,6 +559,9 @@ class Registrar:
         self.last_pose = np.eye(4)
         self.last_delta = np.eye(4)
         self.last_stamp: float | None = None
+        # the stamp of the frame before this one that had points to register, accepted or not:
+        # a dropout is a gap between two such frames (max_gap)
+        self._seen_stamp: float | None = None
         self.last_prior: np.ndarray | None = None  # the last accepted frame's, continuous
         # the pose of the frame last_prior came with: the last accepted one, but where the
         # frames since were registered by ICP alone while the prior stood still (frozen); the
@@ -669,12 +690,16 @@ class Registrar:
         stamp: float,
         prior: np.ndarray | None = None,
         inputs: FrameInputs | None = None,
+        after_gap: bool | None = None,
     ) -> RegResult:
         """Register one filtered sensor-frame cloud; integrate it only if it passes the checks.
 
         ``prior`` is an optional pose of the sensor in ANY fixed frame (e.g. ARKit world); only
         its motion since the last accepted frame is used, as the initial guess. ``inputs``:
         :func:`frame_inputs` of ``points`` under this registrar's config, where computed ahead.
+        ``after_gap``: whether the frame follows a dropout (``max_gap``), where the stamps no
+        longer tell (frames registered again without the ones that failed between them); by
+        default read from the stamps.
         """
         t0 = time.perf_counter()
         cfg = self.cfg
@@ -687,15 +712,19 @@ class Registrar:
             return self._fail(f"too few points ({pts.shape[0]})", t0)
         relocalising = self.state == "relocalising"
         gap = ""
-        if not relocalising and self.last_stamp is not None:
-            waited = float(stamp - self.last_stamp)
-            if waited > cfg.max_gap:
+        if self._seen_stamp is not None and self.last_stamp is not None:
+            waited = float(stamp - self._seen_stamp)
+            if after_gap if after_gap is not None else waited > cfg.max_gap:
                 # Over a dropout the speed and turn rules allow metres and any heading, and a
                 # prior that re-anchored meanwhile cannot be told from a drive: the map decides.
+                # Frames that failed since the last accepted one do not make a gap: each had
+                # its prior checked against the one before (a prior that froze while they
+                # failed catches up unseen by no rule).
                 relocalising = True
                 self._after_gap = True
                 self.counters.gaps += 1
-                gap = f" ({waited:.1f} s after the last registered frame)"
+                gap = f" ({waited:.1f} s after the frame before)"
+        self._seen_stamp = float(stamp)
         # The prior's world as of the last accepted frame: a discontinuity since then
         # (:meth:`_continuous_prior`) is either the prior's world jumping (ARKit relocalising:
         # its raw step would put the frame metres off) or the prior catching up after it froze
@@ -727,8 +756,9 @@ class Registrar:
                 np.eye(4), True, fitness=1.0, seconds=time.perf_counter() - t0, prior=virtual
             )
         if jumped:
-            return self._fail(jumped, t0)
+            return self._fail(jumped + gap, t0)
         hypotheses = [None, virtual] if repeat else [virtual]
+        fallback = None  # the attempt of ICP alone where every guess of the prior failed
         raw = None
         if (
             relocalising
@@ -753,6 +783,7 @@ class Registrar:
             if not alone.reason:
                 tries.append(replace(alone, prior=virtual))
                 passed = tries[-1:]
+                fallback = tries[-1]
         moved = ""  # what ICP alone saw of the motion, where the prior repeated itself
         if repeat:
             alone, followed = tries
@@ -764,7 +795,7 @@ class Registrar:
                 # the view moved where the prior stood, or the prior's guess fails too
                 why = moved or alone.reason
                 return self._fail(
-                    f"pose prior stands still ({why}); its tracking lost?", t0, alone.fitness
+                    f"pose prior stands still ({why}); its tracking lost?{gap}", t0, alone.fitness
                 )
             else:
                 best = followed  # at rest, as ICP alone saw too, or not frozen: as before
@@ -779,6 +810,16 @@ class Registrar:
         pose, fitness, reason, guess = best.pose, best.fitness, best.reason, best.guess
         if reason:
             return self._fail(reason + gap, t0, fitness, pose)
+        if best is fallback and self.last_prior is not None and virtual is not None:
+            # The map placed the frame where the prior's guess was refuted: the prior's world
+            # is re-anchored to agree with it, so that what is kept of the prior (gravity, the
+            # loop closure's prior drift, a second registration pass) holds no refuted jump.
+            expected = self.last_prior @ np.linalg.inv(self._prior_pose) @ pose
+            fix = _reanchor(expected, virtual)
+            self._prior_fix = fix @ self._prior_fix
+            virtual = fix @ virtual
+            best = replace(best, prior=virtual)
+            self._prev_prior, self._prev_step = virtual, None
 
         if relocalising or best.prior_step is None or best.info is None:
             self._scale_window = None  # a scale measurement spans registered steps only
@@ -808,6 +849,7 @@ class Registrar:
             relocalised=relocalising,
             seconds=time.perf_counter() - t0,
             prior=said,
+            after_gap=bool(gap),
         )
 
     def _repeat(self, prior: np.ndarray | None, stamp: float) -> tuple[bool, bool]:
@@ -882,13 +924,7 @@ class Registrar:
             self._prev_step = None if repeat else (jump, interval)
             if self._implausible(jump, dt) or jerk:
                 self._prev_step = None
-                fix = self._prev_prior @ np.linalg.inv(virtual)
-                R = fix[:3, :3]
-                if np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))) <= 10.0:
-                    yaw = np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])
-                    c, s_ = np.cos(yaw), np.sin(yaw)
-                    fix[:3, :3] = [[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]
-                    fix[:3, 3] = self._prev_prior[:3, 3] - fix[:3, :3] @ virtual[:3, 3]
+                fix = _reanchor(self._prev_prior, virtual)
                 self._prior_fix = fix @ self._prior_fix
                 virtual = fix @ virtual
                 reason = f"pose prior jumped ({dist:.2f} m, {turn:.0f} deg in {dt:.2f} s{jerk})"
@@ -987,12 +1023,21 @@ class Registrar:
         cfg = self.cfg
         prev, prev_interval = before
         dt = max(interval, prev_interval)
+        # steps over unequal intervals differ at a steady speed too, by the speed times the
+        # difference (the node skips frames while busy; a frame without points is not seen)
+        uneven = abs(interval - prev_interval) / prev_interval if prev_interval > 0 else 0.0
         change = np.linalg.inv(prev) @ step
         moved = float(np.linalg.norm(step[:3, 3] - prev[:3, 3]))
         turned = rotation_angle_deg(change)
-        if moved > cfg.max_accel * dt * dt + PRIOR_STEP_SLACK_M:
+        if moved > (
+            cfg.max_accel * dt * dt + PRIOR_STEP_SLACK_M + uneven * np.linalg.norm(prev[:3, 3])
+        ):
             return f"; its step changed by {moved:.2f} m from the one before"
-        if turned > cfg.max_angular_accel * dt * dt + PRIOR_STEP_SLACK_DEG:
+        if turned > (
+            cfg.max_angular_accel * dt * dt
+            + PRIOR_STEP_SLACK_DEG
+            + uneven * rotation_angle_deg(prev)
+        ):
             return f"; its turn changed by {turned:.1f} deg from the one before"
         return ""
 
