@@ -603,13 +603,16 @@ class Registrar:
             return np.zeros(pts_odom.shape[0], dtype=bool)
         return contains_sorted(self._near, self._keys(pts_odom))
 
-    def _fitness(self, pts_odom: np.ndarray) -> float:
-        if pts_odom.shape[0] == 0:
-            return 0.0
-        return float(np.mean(self._hits(pts_odom)))
+    @staticmethod
+    def _share(hits: np.ndarray) -> float:
+        return float(np.mean(hits)) if hits.size else 0.0
 
-    def _unconfirmed(self, inputs: FrameInputs, pose: np.ndarray, with_prior: bool) -> str:
-        """Why a relocalised ``pose`` is not believed, or "".
+    def _fitness(self, pts_odom: np.ndarray) -> float:
+        return self._share(self._hits(pts_odom))
+
+    def _unconfirmed(self, inputs: FrameInputs, hits: np.ndarray, with_prior: bool) -> str:
+        """Why a relocalised pose is not believed, or "" (``hits``: :meth:`_hits` of the
+        frame's ``inputs.down`` at that pose).
 
         The frame's surface families (:func:`surface_families`) of ``relocalise_min_points`` or
         more must each land on the map with ``relocalise_min_fitness`` of their points (from
@@ -625,7 +628,6 @@ class Registrar:
         cfg = self.cfg
         least = cfg.relocalise_prior_min_fitness if with_prior else cfg.relocalise_min_fitness
         needed = 2 if with_prior else 3
-        hits = self._hits(transform(inputs.down, pose))
         counts = np.bincount(inputs.families[inputs.families >= 0], minlength=3)
         big = [f for f in range(3) if counts[f] >= cfg.relocalise_min_points]
         if len(big) < needed:
@@ -717,9 +719,8 @@ class Registrar:
             if after_gap if after_gap is not None else waited > cfg.max_gap:
                 # Over a dropout the speed and turn rules allow metres and any heading, and a
                 # prior that re-anchored meanwhile cannot be told from a drive: the map decides.
-                # Frames that failed since the last accepted one do not make a gap: each had
-                # its prior checked against the one before (a prior that froze while they
-                # failed catches up unseen by no rule).
+                # Measured from the frame before, failed or not: frames that fail one after
+                # another make no gap, as each had its prior checked against the one before.
                 relocalising = True
                 self._after_gap = True
                 self.counters.gaps += 1
@@ -915,9 +916,9 @@ class Registrar:
         reason = ""
         if self._prev_prior is not None and self._prev_prior_stamp is not None:
             jump = np.linalg.inv(self._prev_prior) @ virtual
-            dt = max(float(stamp - self._prev_prior_stamp), cfg.min_dt)
-            dist, turn = float(np.linalg.norm(jump[:3, 3])), rotation_angle_deg(jump)
             interval = float(stamp - self._prev_prior_stamp)
+            dt = max(interval, cfg.min_dt)
+            dist, turn = float(np.linalg.norm(jump[:3, 3])), rotation_angle_deg(jump)
             jerk = ""
             if self._prev_step is not None and not repeat and 0.0 < interval <= cfg.max_gap:
                 jerk = self._jerk(self._prev_step, jump, interval)
@@ -993,7 +994,8 @@ class Registrar:
                 None if cfg.prior_tilt_gain < 0 else cfg.prior_tilt_gain,
                 prior[2, :3],  # its world's z in this sensor frame
             )
-        fitness = self._fitness(transform(frame_down, pose))
+        hits = self._hits(transform(frame_down, pose))  # the overlap, and each family's
+        fitness = self._share(hits)
 
         reason = ""
         dt = max(float(stamp - self.last_stamp), cfg.min_dt)
@@ -1012,7 +1014,7 @@ class Registrar:
             elif rotation_angle_deg(dev) > cfg.max_prior_deviation_deg:
                 reason = f"disagrees with pose prior by {rotation_angle_deg(dev):.0f} deg"
         if relocalising and not reason:
-            reason = self._unconfirmed(inputs, pose, with_prior and not self._after_gap)
+            reason = self._unconfirmed(inputs, hits, with_prior and not self._after_gap)
         return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior)
 
     def _jerk(self, before: tuple[np.ndarray, float], step: np.ndarray, interval: float) -> str:
