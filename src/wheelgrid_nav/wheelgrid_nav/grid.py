@@ -582,18 +582,12 @@ def thin_obstacle_guard(
     return np.asarray(solid.reshape(h // m, m, w // n, n).any(axis=(1, 3)))
 
 
-def boundary_ring(
-    shape: tuple[int, int],
-    rows_width: int,
-    cols_width: int,
-    sides: tuple[int, int, int, int] | None = None,
-) -> np.ndarray:
-    """(H, W) bool: the outer pixels of the image where the walls are -- ``rows_width`` pixel
-    rows at the top and bottom, ``cols_width`` pixel columns at the left and right, or with
-    ``sides`` (top, bottom, left, right) each side's own width."""
+def boundary_ring(shape: tuple[int, int], sides: tuple[int, int, int, int]) -> np.ndarray:
+    """(H, W) bool: the outer pixels of the image where the walls are, ``sides`` (top, bottom,
+    left, right) pixels deep on each side."""
     ring = np.zeros(shape, dtype=bool)
     h, w = shape
-    top, bottom, left, right = sides or (rows_width, rows_width, cols_width, cols_width)
+    top, bottom, left, right = sides
     top, bottom = (min(max(x, 0), (h + 1) // 2) for x in (top, bottom))
     left, right = (min(max(x, 0), (w + 1) // 2) for x in (left, right))
     if top:
@@ -940,7 +934,7 @@ def build_grid(
     # (boundary_widths), never more than MAX_BOUNDARY_MARGIN deep.
     sides = boundary_widths(u0, v0, rows, cols, floor_u, floor_v, cfg)
     top, bottom, left, right = (round(x / ps) for x in sides)
-    ring = boundary_ring((h, w), 0, 0, (top, bottom, left, right))
+    ring = boundary_ring((h, w), (top, bottom, left, right))
     boundary = black & ring
     obstacles = black & ~ring
     floor = _dilate(counts[0] > 0, cfg.floor_fill) & ~black
