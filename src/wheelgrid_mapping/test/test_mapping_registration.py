@@ -525,8 +525,15 @@ def test_a_relocalisation_needs_the_surface_families_on_the_map() -> None:
 
 
 def test_the_dropout_rule_is_checked() -> None:
-    for bad in ({"max_gap": 0.0}, {"relocalise_min_fitness": 1.5}, {"relocalise_min_points": 0}):
-        with pytest.raises(ValueError):
+    for bad in (
+        {"max_gap": 0.0},
+        {"relocalise_min_fitness": 1.5},
+        {"relocalise_prior_min_fitness": -0.1},
+        {"relocalise_min_points": 0},
+        {"max_accel": 0.0},
+        {"max_angular_accel": float("nan")},
+    ):
+        with pytest.raises(ValueError, match=next(iter(bad))):
             RegistrationConfig(**bad)  # type: ignore[arg-type]
 
 
