@@ -334,13 +334,19 @@ def test_two_real_room_scans_register_onto_their_reference_transform() -> None:
 
 
 def _drive(
-    world: np.ndarray, seed: int, priors: list[np.ndarray], reg: Registrar | None = None
+    world: np.ndarray,
+    seed: int,
+    priors: list[np.ndarray],
+    reg: Registrar | None = None,
+    truth: list[np.ndarray] | None = None,
 ) -> tuple[list, list]:
-    """Register a slow drive (5 cm, 1 deg a frame at 5 Hz) with the given priors; the results
-    and each frame's position error against the truth (m)."""
+    """Register a drive at 5 Hz (by default a slow one, 5 cm and 1 deg a frame) with the given
+    priors; the results and each frame's position error against the truth (m)."""
     rng = np.random.default_rng(seed)
     reg = Registrar(RegistrationConfig()) if reg is None else reg
-    poses = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(len(priors))]
+    if truth is None:
+        truth = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(len(priors))]
+    poses = truth
     results, errors = [], []
     for i, (T, prior) in enumerate(zip(poses, priors, strict=True)):
         res = reg.register(view(world, T, rng), 0.2 * i, prior=prior)
@@ -532,6 +538,9 @@ def test_the_dropout_rule_is_checked() -> None:
         {"relocalise_min_points": 0},
         {"max_accel": 0.0},
         {"max_angular_accel": float("nan")},
+        {"prior_check_step": -0.05},
+        {"prior_check_turn": float("inf")},
+        {"prior_check_gain": 1.5},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             RegistrationConfig(**bad)  # type: ignore[arg-type]
@@ -558,6 +567,101 @@ def test_a_prior_that_re_anchors_between_two_fast_frames_is_caught(world: np.nda
     assert "its step changed by 0.15 m" in results[8].reason
     assert results[9].accepted and results[9].relocalised, results[9].reason
     assert all(r.accepted for r in results[9:])
+
+
+def _asked(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """What :meth:`Registrar._map_prefers` answered each time the map was asked."""
+    answers: list[str] = []
+    ask = Registrar._map_prefers
+
+    def spy(self: Registrar, *args: object) -> str:
+        answers.append(ask(self, *args))  # type: ignore[arg-type]
+        return answers[-1]
+
+    monkeypatch.setattr(Registrar, "_map_prefers", spy)
+    return answers
+
+
+@pytest.mark.parametrize(
+    ("dx", "dy", "yaw_deg"),
+    [(0.25, 0.0, 0.0), (0.0, -0.15, 0.0), (0.0, 0.0, 4.0)],
+)
+def test_a_prior_that_re_anchors_within_max_accel_is_judged_by_the_map(
+    world: np.ndarray, monkeypatch: pytest.MonkeyPatch, dx: float, dy: float, yaw_deg: float
+) -> None:
+    """At 5 Hz max_accel allows a step to change by 34 cm, so a re-anchor of the prior's world
+    under that passed as the chair's acceleration. Before, the frame was mapped where the prior
+    put it (ICP searches 4.5 cm around the prior's guess; the floor gave the overlap), 15-25 cm
+    off, and every later frame with it, no failure counted. Now a step that changed by more
+    than prior_check_step asks the map, which prefers the step before continued: the frame
+    fails ("pose prior jumped"), the prior is re-anchored, and the next frame relocalises on
+    the true pose."""
+    answers = _asked(monkeypatch)
+    shift = np.eye(4)
+    shift[:3, :3] = rpy_matrix(0.0, 0.0, np.radians(yaw_deg))  # about the prior's origin
+    shift[:3, 3] = [dx, dy, 0.0]
+    truth = [pose(1.5 + 0.05 * i, 2.0 + 0.01 * i, 0.02 * i) for i in range(16)]
+    reg = Registrar(RegistrationConfig())
+    priors = [T if i < 8 else shift @ T for i, T in enumerate(truth)]
+    results, errors = _drive(world, 42, priors, reg, truth)
+    assert not results[8].accepted
+    assert "pose prior jumped (the map places the frame" in results[8].reason, results[8].reason
+    assert answers == [results[8].reason[len("pose prior jumped (") : -1]]
+    assert results[9].accepted and results[9].relocalised, results[9].reason
+    for i, (res, err) in enumerate(zip(results, errors, strict=True)):
+        assert res.accepted == (i != 8), (i, res.reason)
+        assert not res.accepted or err < 0.03, (i, round(err, 3))
+    assert reg.counters.failure_reasons == {"pose prior jumped": 1}
+
+
+def test_a_chair_that_speeds_up_is_no_jump_to_the_map(
+    world: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The chair goes from 5 to 17 cm a frame at 5 Hz (3 m/s^2) and turns: its prior's step
+    changes by 12 cm, over prior_check_step, so the map is asked; the prior's own step is
+    where the map holds the frame, and nothing fails."""
+    answers = _asked(monkeypatch)
+    xs = np.cumsum([0.0] + [0.05] * 8 + [0.17] * 7)
+    truth = [pose(1.5 + x, 2.0, 0.02 * i + (0.1 if i >= 8 else 0.0)) for i, x in enumerate(xs)]
+    reg = Registrar(RegistrationConfig())
+    results, errors = _drive(world, 43, truth, reg, truth)
+    assert all(r.accepted for r in results), [(i, r.reason) for i, r in enumerate(results)]
+    assert max(errors) < 0.03, np.round(errors, 3)
+    assert answers == ["", ""]  # asked at the speed-up and at the turn's end: the prior is right
+
+
+def test_a_frame_without_a_prior_after_a_checked_step_is_registered(world: np.ndarray) -> None:
+    """The map was to judge frame 2's step (the chair sped up); frame 3 comes without a prior
+    (the pose topic fell silent): it is registered by ICP alone, not judged on frame 2's
+    question."""
+    rng = np.random.default_rng(45)
+    truth = [pose(1.5 + x, 2.0, 0.0) for x in (0.0, 0.05, 0.2, 0.35)]
+    reg = Registrar(RegistrationConfig())
+    for i, T in enumerate(truth):
+        res = reg.register(view(world, T, rng), 0.2 * i, prior=T if i < 3 else None)
+        assert res.accepted, (i, res.reason)
+        if i == 2:
+            assert reg._suspect is not None  # the step changed by 10 cm: the map was asked
+
+
+def test_a_caught_jump_is_re_anchored_on_the_step_before(world: np.ndarray) -> None:
+    """The prior's world jumps 1 m while the chair drives 15 cm a frame at 5 Hz. The prior is
+    re-anchored so that the frame's prior continues the step before: re-anchored standing
+    still instead, the next frame's guess was a frame's motion short, and on the bundled bag a
+    relocalisation settled 18 cm and 2.2 deg off for good."""
+    truth = [pose(1.0 + 0.15 * i, 2.0 + 0.02 * i, 0.02 * i) for i in range(14)]
+    shift = np.eye(4)
+    shift[:3, 3] = [1.0, 0.3, 0.0]
+    reg = Registrar(RegistrationConfig())
+    priors = [T if i < 8 else shift @ T for i, T in enumerate(truth)]
+    results, errors = _drive(world, 44, priors, reg, truth)
+    assert not results[8].accepted and "pose prior jumped (1.19 m" in results[8].reason
+    assert results[9].accepted and results[9].relocalised, results[9].reason
+    # the prior as kept crosses the jump at the chair's speed: two steps of 15 cm
+    step = np.linalg.inv(results[7].prior) @ results[9].prior
+    assert abs(np.linalg.norm(step[:3, 3]) - 0.30) < 0.01
+    for i, (res, err) in enumerate(zip(results, errors, strict=True)):
+        assert not res.accepted or err < 0.03, (i, round(err, 3))
 
 
 def _prior_stream(name: str) -> tuple[np.ndarray, np.ndarray]:
