@@ -654,7 +654,11 @@ class Mapper:
             return self.poses_odom, info
         t0 = time.perf_counter()
         scale = given * (1.0 + fit.error)
-        reg = Registrar(replace(self.reg_cfg, prior_scale=scale))
+        # the priors kept are continuous already: any jump the map judged was re-anchored in
+        # the first pass, so a second verdict could only be on the rescale's own few mm
+        reg = Registrar(
+            replace(self.reg_cfg, prior_scale=scale, prior_check_step=0.0, prior_check_turn=0.0)
+        )
         poses = []
         submaps = len(submap_groups(self.stamps, cfg.submap_seconds))
         for k, (pts, stamp, prior, after_gap) in enumerate(

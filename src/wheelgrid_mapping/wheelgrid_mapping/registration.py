@@ -113,9 +113,9 @@ class RegistrationConfig:
         0.05,
         "a pose prior's step that changes from the step before by more than this, within "
         "max_accel, is checked against the map: the frame is also aligned from the step before "
-        "continued, and where the map clearly prefers that (prior_check_gain), the prior's "
-        "world re-anchored (a jump max_accel allows at low frame rates: 34 cm at 5 Hz). The "
-        "bundled bag's 5 Hz prior changes its step by more on 11 % of frames, the real "
+        "continued, and where the map clearly prefers that (prior_check_gain), the frame fails "
+        "as a jump of the prior's world, which is re-anchored (max_accel allows 34 cm at 5 Hz). "
+        "The bundled bag's 5 Hz prior changes its step by more on 11 % of frames, the real "
         "capture's never (0 = no check)",
         "m",
     )
@@ -250,6 +250,11 @@ class RegistrationConfig:
                 raise ValueError(
                     f"registration {name} must be in [0, 1], not {getattr(self, name)}"
                 )
+        if not self.prior_check_gain > 0:  # 0 would call every checked step a jump
+            raise ValueError(
+                f"registration prior_check_gain must be in (0, 1] (prior_check_step and "
+                f"prior_check_turn 0 turn the check off), not {self.prior_check_gain}"
+            )
         if (
             self.max_points_per_voxel < 1
             or self.max_iterations < 1
@@ -528,13 +533,20 @@ def _reanchor(target: np.ndarray, current: np.ndarray) -> np.ndarray:
     return fix
 
 
-def _continued(step: tuple[np.ndarray, float], interval: float) -> np.ndarray:
+def _continued(
+    step: tuple[np.ndarray, float], interval: float, max_gap: float
+) -> np.ndarray | None:
     """The prior's ``step`` (over its interval, s) continued over ``interval``: what a steady
-    motion would have moved since, the guess where the prior's own step is in doubt."""
+    motion would have moved since, the guess where the prior's own step is in doubt. None where
+    the two intervals are too unlike to carry one over to the other (bunched stamps would blow
+    a 5 ms step up 40 times; a step over a dropout says little of the motion at its end)."""
     prev, prev_interval = step
-    if prev_interval <= 0.0 or abs(interval - prev_interval) <= 1e-3 * prev_interval:
-        return prev
-    return exp_se3(log_se3(prev) * (interval / prev_interval))
+    if not 0.0 < prev_interval <= max_gap:
+        return None
+    ratio = interval / prev_interval
+    if not 0.5 <= ratio <= 2.0:
+        return None
+    return prev if abs(ratio - 1.0) <= 1e-3 else exp_se3(log_se3(prev) * ratio)
 
 
 def _motion(step: np.ndarray | None) -> str:
@@ -815,7 +827,13 @@ class Registrar:
             for h in hypotheses
         ]
         passed = [t for t in tries if not t.reason]
-        if self._suspect is not None and not relocalising and not repeat and passed:
+        if (
+            self._suspect is not None
+            and not relocalising
+            and not repeat
+            and passed
+            and tries[0].prior_step is not None  # the prior's step was followed
+        ):
             assert virtual is not None  # (a suspect is a prior's step; for mypy)
             judged = self._map_prefers(inputs, stamp, tries[0], self._suspect)
             if judged:
@@ -983,7 +1001,11 @@ class Registrar:
             continued = self._prev_prior
             if self._prev_step is not None and not repeat and 0.0 < interval <= cfg.max_gap:
                 jerk, suspect = self._jerk(self._prev_step, jump, interval)
-                continued = self._prev_prior @ _continued(self._prev_step, interval)
+                steady = _continued(self._prev_step, interval, cfg.max_gap)
+                if steady is not None:
+                    continued = self._prev_prior @ steady
+                else:
+                    suspect = False  # no steady motion to weigh the prior's step against
             self._prev_step = None if repeat else (jump, interval)
             if self._implausible(jump, dt) or jerk:
                 self._prev_step = None
