@@ -123,11 +123,12 @@ class RegistrationConfig:
         3.0, "the same for the change of the prior's turn per frame (0 = no check)", "deg"
     )
     prior_check_gain: float = field(
-        0.2,
-        "the prior jumped where one of the frame's surface families lands on the map with this "
-        "much more of its points from the step before continued than from the prior's step, "
-        "and none with 0.05 less. Re-anchors of 12-30 cm and 2-5 deg at 5 Hz on the bundled bag "
-        "gained 0.33-0.75, the prior's true steps on 11 simulated runs at most 0.10",
+        0.25,
+        "the prior jumped where one of the frame's surface families lands in the map's own "
+        "occupied cells (fitness_cell, no neighbour's) with this much more of its points from "
+        "the step before continued than from the prior's step, and none with 0.15 less. "
+        "Re-anchors of 10-30 cm and 1-5 deg at 5 Hz on the bundled bag gained 0.28-0.59, the "
+        "prior's true steps on 11 simulated runs at most 0.14",
         "",
     )
     max_prior_deviation: float = field(
@@ -495,7 +496,6 @@ class _Attempt:
     prior_step: np.ndarray | None
     step: np.ndarray  # from the last accepted pose
     prior: np.ndarray | None  # the prior as used (continuous world)
-    hits: np.ndarray  # which of the frame's points (``FrameInputs.down``) land on the map
 
 
 # A pose prior that repeats itself to the bit for longer than this has stopped estimating
@@ -509,9 +509,10 @@ PRIOR_FROZEN_AFTER_S = 0.25
 PRIOR_STEP_SLACK_M, PRIOR_STEP_SLACK_DEG = 0.02, 1.0
 
 
-# What a surface family's share on the map may lose where the step before, continued, is
-# preferred to the prior's own step (:meth:`Registrar._map_prefers`)
-PRIOR_CHECK_LOSS = 0.05
+# What a surface family's share in the map's own cells may lose where the step before,
+# continued, is preferred to the prior's own step (:meth:`Registrar._map_prefers`): the floor's
+# lost 0.04-0.10 at the bundled bag's re-anchors, where a wall gained 0.28-0.59
+PRIOR_CHECK_LOSS = 0.15
 
 
 # ICP alone's step that says the sensor moved while its frozen prior stood still (m, deg)
@@ -844,6 +845,11 @@ class Registrar:
                 fix = _reanchor(self._suspect, virtual)
                 self._prior_fix = fix @ self._prior_fix
                 self._prev_prior, self._prev_step = fix @ virtual, None
+                # and the world it jumped to is not tried again while relocalising (the "raw"
+                # guess, for a prior that froze and caught up): the map has refuted it, and the
+                # overlap that picks between guesses cannot tell a wall 10 cm off (at a 10 cm
+                # re-anchor it took the refuted world back, and the map went on 10.5 cm off)
+                self._fix_at_accept = self._prior_fix.copy()
                 return self._fail(f"pose prior jumped ({judged})", t0)
         if relocalising and virtual is not None and not repeat and not passed:
             # The map refutes every guess the prior gives (its world re-anchored over a gap,
@@ -1101,7 +1107,7 @@ class Registrar:
                 reason = f"disagrees with pose prior by {rotation_angle_deg(dev):.0f} deg"
         if relocalising and not reason:
             reason = self._unconfirmed(inputs, hits, with_prior and not self._after_gap)
-        return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior, hits)
+        return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior)
 
     def _map_prefers(
         self, inputs: FrameInputs, stamp: float, followed: _Attempt, continued: np.ndarray
@@ -1110,12 +1116,15 @@ class Registrar:
 
         The frame is aligned again from ``continued`` (the prior's step before, continued) as a
         relocalisation would be. The prior jumped where that placing passes every check and
-        lands one of the frame's surface families (of ``relocalise_min_points`` or more) on the
-        map with ``prior_check_gain`` more of its points than ``followed`` (the prior's own
-        step) does, and none with :data:`PRIOR_CHECK_LOSS` less. A chair's true acceleration
-        puts the step before, continued, off instead, and the map never prefers it by much
-        (0.10 at most on 11 simulated runs); a re-anchor of the prior's world leaves a wall
-        or a table off by its size, which the step before, continued, puts back (0.33-0.75).
+        lands one of the frame's surface families (of ``relocalise_min_points`` or more) in
+        the map's own occupied cells with ``prior_check_gain`` more of its points than
+        ``followed`` (the prior's own step) does, and none with :data:`PRIOR_CHECK_LOSS` less.
+        The map's own cells, not the overlap check's 1-2 cells around them: a wall 10 cm off
+        still lands within those (0.94 against 0.98 of it at a 10 cm re-anchor, where the
+        chair's own steps read up to 0.10 apart). A chair's true acceleration puts the step
+        before, continued, off instead, and the map never prefers it by much (0.14 at most on
+        11 simulated runs); a re-anchor of the prior's world leaves a wall or a table off by
+        its size, which the step before, continued, puts back (0.28-0.59).
         """
         cfg = self.cfg
         other = self._attempt(inputs, stamp, continued, True)
@@ -1123,25 +1132,28 @@ class Registrar:
             return ""
         fam = inputs.families
         counts = np.bincount(fam[fam >= 0], minlength=3)
-        best, gain = -1, -np.inf
+        shares = []
+        for pose in (followed.pose, other.pose):
+            keys = self._keys(transform(inputs.down, pose))
+            shares.append(contains_sorted(self._occupied, keys))
+        best, gain, was, now = -1, -np.inf, 0.0, 0.0
         for family in range(3):
             if counts[family] < cfg.relocalise_min_points:
                 continue
             mine = fam == family
-            change = float(other.hits[mine].mean() - followed.hits[mine].mean())
-            if change < -PRIOR_CHECK_LOSS:
+            before, after = float(shares[0][mine].mean()), float(shares[1][mine].mean())
+            if after - before < -PRIOR_CHECK_LOSS:
                 return ""
-            if change > gain:
-                best, gain = family, change
+            if after - before > gain:
+                best, gain, was, now = family, after - before, before, after
         if best < 0 or gain < cfg.prior_check_gain:
             return ""
-        mine = fam == best
         off = np.linalg.inv(followed.pose) @ other.pose
         return (
             f"the map places the frame {np.linalg.norm(off[:3, 3]):.2f} m, "
             f"{rotation_angle_deg(off):.0f} deg from its guess: surface family {best} "
-            f"{followed.hits[mine].mean():.2f} -> {other.hits[mine].mean():.2f} of "
-            f"{int(counts[best])} points on the map with the step before continued"
+            f"{was:.2f} -> {now:.2f} of {int(counts[best])} points in the map's cells with the "
+            f"step before continued"
         )
 
     def _jerk(
