@@ -715,7 +715,7 @@ def test_recorded_priors_never_look_like_a_jump(name: str, every: int) -> None:
         keep = np.random.default_rng(40).random(len(stamps)) < 0.4
     reg = Registrar(RegistrationConfig())
     for stamp, prior in zip(stamps[keep], poses[keep], strict=True):
-        _, reason = reg._continuous_prior(prior, float(stamp))
+        _, reason, _ = reg._continuous_prior(prior, float(stamp))
         assert reason == "", (stamp, reason)
 
 

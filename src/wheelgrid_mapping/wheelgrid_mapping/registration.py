@@ -626,9 +626,6 @@ class Registrar:
         # the prior's step into the previous frame and its interval (s), where that frame's
         # prior was neither a repeat nor a jump: what the next step is compared with
         self._prev_step: tuple[np.ndarray, float] | None = None
-        # this frame's prior where its step changed enough for the map to be asked (a jump
-        # max_accel allows at a low frame rate?): the step before, continued; else None
-        self._suspect: np.ndarray | None = None
         # the previous frame's prior as given, and the stamp of the first frame it came with
         self._raw_prior: np.ndarray | None = None
         self._raw_since = 0.0
@@ -647,13 +644,15 @@ class Registrar:
         # space (about 100 km at 5 cm: only a pose gone wild) matches nothing and is not stored
         return voxel_keys_or_invalid(pts, self.cfg.fitness_cell)
 
-    def _hits(self, pts_odom: np.ndarray) -> np.ndarray:
+    def _hits(self, pts_odom: np.ndarray, own_cells: bool = False) -> np.ndarray:
         """Which points land on the map. A point matches when its cell or one of the 26 around
         it is occupied: the tolerance is one to two cells, independent of where cell borders
-        fall. ``_near`` holds exactly those cells, so that is one lookup per point, not 27."""
-        if self._near.size == 0:
+        fall. ``_near`` holds exactly those cells, so that is one lookup per point, not 27.
+        ``own_cells``: in the map's occupied cells themselves (``_occupied``), no tolerance."""
+        cells = self._occupied if own_cells else self._near
+        if cells.size == 0:
             return np.zeros(pts_odom.shape[0], dtype=bool)
-        return contains_sorted(self._near, self._keys(pts_odom))
+        return contains_sorted(cells, self._keys(pts_odom))
 
     @staticmethod
     def _share(hits: np.ndarray) -> float:
@@ -661,6 +660,13 @@ class Registrar:
 
     def _fitness(self, pts_odom: np.ndarray) -> float:
         return self._share(self._hits(pts_odom))
+
+    def _families(self, inputs: FrameInputs) -> tuple[np.ndarray, list[int]]:
+        """The frame's surface-family sizes, and the families that count (of
+        ``relocalise_min_points`` or more): smaller ones fix no direction to be checked."""
+        fam = inputs.families
+        counts = np.bincount(fam[fam >= 0], minlength=3)
+        return counts, [f for f in range(3) if counts[f] >= self.cfg.relocalise_min_points]
 
     def _unconfirmed(self, inputs: FrameInputs, hits: np.ndarray, with_prior: bool) -> str:
         """Why a relocalised pose is not believed, or "" (``hits``: :meth:`_hits` of the
@@ -680,8 +686,7 @@ class Registrar:
         cfg = self.cfg
         least = cfg.relocalise_prior_min_fitness if with_prior else cfg.relocalise_min_fitness
         needed = 2 if with_prior else 3
-        counts = np.bincount(inputs.families[inputs.families >= 0], minlength=3)
-        big = [f for f in range(3) if counts[f] >= cfg.relocalise_min_points]
+        counts, big = self._families(inputs)
         if len(big) < needed:
             small = ", ".join(str(int(counts[f])) for f in range(3) if f not in big)
             return (
@@ -792,16 +797,18 @@ class Registrar:
         # alone cannot place the frame, but not once it is frozen and ICP saw the view move.
         # A frozen prior's continuity is not updated: its catch-up is measured from where it
         # froze, and its step is taken from the pose of the last frame that followed it.
-        self._suspect = None  # where the map is to judge the prior's step (_continuous_prior)
         repeat, frozen = self._repeat(prior, stamp)
         virtual: np.ndarray | None
+        # where the prior's step changed enough for the map to judge it: the step before,
+        # continued (:meth:`_continuous_prior`)
+        suspect: np.ndarray | None = None
         if frozen:
             self.counters.prior_frozen += 1
             virtual, jumped = self._prior_fix @ np.asarray(prior, dtype=np.float64), ""
+        elif prior is None:
+            virtual, jumped = None, ""
         else:
-            virtual, jumped = (
-                (None, "") if prior is None else self._continuous_prior(prior, stamp, repeat)
-            )
+            virtual, jumped, suspect = self._continuous_prior(prior, stamp, repeat)
         if self.last_stamp is None:  # the first frame: the map begins with it
             self._integrate(frame_down, np.eye(4))
             self._accepted_prior(stamp, virtual)
@@ -829,22 +836,20 @@ class Registrar:
         ]
         passed = [t for t in tries if not t.reason]
         if (
-            self._suspect is not None
+            suspect is not None
             and not relocalising
             and not repeat
             and passed
             and tries[0].prior_step is not None  # the prior's step was followed
         ):
             assert virtual is not None  # (a suspect is a prior's step; for mypy)
-            judged = self._map_prefers(inputs, stamp, tries[0], self._suspect)
+            judged = self._map_prefers(inputs, stamp, tries[0], suspect)
             if judged:
                 # The map holds the prior's step to be a re-anchor of its world that max_accel
                 # allows at this frame rate (34 cm at 5 Hz): followed, ICP's narrow search
                 # around the prior's guess could not correct it, the floor gave the overlap,
                 # and the map went on 0.1-0.7 m off with no failure counted.
-                fix = _reanchor(self._suspect, virtual)
-                self._prior_fix = fix @ self._prior_fix
-                self._prev_prior, self._prev_step = fix @ virtual, None
+                self._prev_prior = self._move_prior_world(suspect, virtual)
                 # and the world it jumped to is not tried again while relocalising (the "raw"
                 # guess, for a prior that froze and caught up): the map has refuted it, and the
                 # overlap that picks between guesses cannot tell a wall 10 cm off (at a 10 cm
@@ -892,11 +897,9 @@ class Registrar:
             # is re-anchored to agree with it, so that what is kept of the prior (gravity, the
             # loop closure's prior drift, a second registration pass) holds no refuted jump.
             expected = self.last_prior @ np.linalg.inv(self._prior_pose) @ pose
-            fix = _reanchor(expected, virtual)
-            self._prior_fix = fix @ self._prior_fix
-            virtual = fix @ virtual
+            virtual = self._move_prior_world(expected, virtual)
             best = replace(best, prior=virtual)
-            self._prev_prior, self._prev_step = virtual, None
+            self._prev_prior = virtual
 
         if relocalising or best.prior_step is None or best.info is None:
             self._scale_window = None  # a scale measurement spans registered steps only
@@ -964,12 +967,22 @@ class Registrar:
         self.last_prior = prior
         self._prior_pose = np.eye(4) if pose is None else pose
 
+    def _move_prior_world(self, target: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """Re-anchor the prior's world so that its pose ``current`` (continuous) becomes
+        ``target`` (:func:`_reanchor`), and return it re-anchored. The step into it is no step
+        of the prior's, so the next one is not compared with it (:meth:`_jerk`)."""
+        fix = _reanchor(target, current)
+        self._prior_fix = fix @ self._prior_fix
+        self._prev_step = None
+        return fix @ current
+
     def _continuous_prior(
         self, prior: np.ndarray, stamp: float, repeat: bool = False
-    ) -> tuple[np.ndarray, str]:
-        """``prior`` in a world continuous from frame to frame, and a failure reason where the
+    ) -> tuple[np.ndarray, str, np.ndarray | None]:
+        """``prior`` in a world continuous from frame to frame, a failure reason where the
         prior jumped since the previous frame that had one (a step no chair makes, by the same
-        ``max_speed`` / ``max_turn_rate`` rule as the registered pose).
+        ``max_speed`` / ``max_turn_rate`` rule as the registered pose), and where its step
+        changed enough for the map to judge it, the step before, continued (else None).
 
         Why: a visual-inertial prior re-anchors its world now and then (ARKit relocalising
         against its own map moves it by metres) or freezes and then catches up. Its step since
@@ -988,14 +1001,13 @@ class Registrar:
         and a sprint at 60 Hz. So a step is also compared with the step before it
         (:meth:`_jerk`), where neither is a repeat (a pose topic slower than the clouds gives
         steps of 0 and 2x in turn) and no gap lies between (relocalisation checks those). A
-        change within ``max_accel`` but over ``prior_check_step`` / ``prior_check_turn`` leaves
-        the step before, continued, in ``_suspect``, for the map to judge
-        (:meth:`_map_prefers`).
+        change within ``max_accel`` but over ``prior_check_step`` / ``prior_check_turn`` is
+        returned with the step before, continued, for the map to judge (:meth:`_map_prefers`).
         """
         cfg = self.cfg
         virtual = self._prior_fix @ prior
         reason = ""
-        self._suspect = None
+        judge: np.ndarray | None = None
         if self._prev_prior is not None and self._prev_prior_stamp is not None:
             jump = np.linalg.inv(self._prev_prior) @ virtual
             interval = float(stamp - self._prev_prior_stamp)
@@ -1014,15 +1026,12 @@ class Registrar:
                     suspect = False  # no steady motion to weigh the prior's step against
             self._prev_step = None if repeat else (jump, interval)
             if self._implausible(jump, dt) or jerk:
-                self._prev_step = None
-                fix = _reanchor(continued, virtual)
-                self._prior_fix = fix @ self._prior_fix
-                virtual = fix @ virtual
+                virtual = self._move_prior_world(continued, virtual)
                 reason = f"pose prior jumped ({dist:.2f} m, {turn:.0f} deg in {dt:.2f} s{jerk})"
             elif suspect:
-                self._suspect = continued
+                judge = continued
         self._prev_prior, self._prev_prior_stamp = virtual, float(stamp)
-        return virtual, reason
+        return virtual, reason, judge
 
     def _attempt(
         self,
@@ -1130,18 +1139,15 @@ class Registrar:
         other = self._attempt(inputs, stamp, continued, True)
         if other.reason:
             return ""
-        fam = inputs.families
-        counts = np.bincount(fam[fam >= 0], minlength=3)
-        shares = []
-        for pose in (followed.pose, other.pose):
-            keys = self._keys(transform(inputs.down, pose))
-            shares.append(contains_sorted(self._occupied, keys))
+        counts, big = self._families(inputs)
+        was_in, now_in = (
+            self._hits(transform(inputs.down, pose), own_cells=True)
+            for pose in (followed.pose, other.pose)
+        )
         best, gain, was, now = -1, -np.inf, 0.0, 0.0
-        for family in range(3):
-            if counts[family] < cfg.relocalise_min_points:
-                continue
-            mine = fam == family
-            before, after = float(shares[0][mine].mean()), float(shares[1][mine].mean())
+        for family in big:
+            mine = inputs.families == family
+            before, after = float(was_in[mine].mean()), float(now_in[mine].mean())
             if after - before < -PRIOR_CHECK_LOSS:
                 return ""
             if after - before > gain:
