@@ -23,7 +23,9 @@ chair with no command: one refused while the map was still growing was planned t
 grid change, minutes on, and a goal reached long ago was planned back to from wherever the
 user had driven the chair since, the next time the grid changed under the old route. So the
 only goal ever planned to is one the user sent and that has neither failed nor been reached;
-send it again after a "no route".
+send it again after a "no route". A new goal in another cell withdraws the route to the old
+one (an empty path) before its own is learned: the drive went on toward the replaced goal for
+as long as the learning took.
 
 An e-stop (``/wheelgrid/estop`` true) drops the goal and publishes an empty path, and goals
 are refused until it is cleared: nothing the planner does after a clear moves the chair until
@@ -300,12 +302,30 @@ def _make_node_class() -> type:
                 self.goal = None
                 self._publish_route(self.grid, [])
                 return
-            self.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
+            goal = (float(msg.pose.position.x), float(msg.pose.position.y))
+            if self.route and not self._same_goal_cell(goal, msg.header.frame_id):
+                # The route to the goal of before is withdrawn while the new one is learned
+                # (up to max_seconds): kept, the drive went on toward a goal the user had
+                # just replaced, for as long as the learning took.
+                self.get_logger().info(
+                    "new goal: the route to the previous one is withdrawn (an empty path) "
+                    "while the new one is learned"
+                )
+                self._publish_route(self.grid, [])
+            self.goal = goal
             self.goal_frame = msg.header.frame_id
             self._goal_waits_since = None
             if self._say_what_the_goal_waits_for():
                 self._goal_waits_since = time.monotonic()
             self._plan()
+
+        def _same_goal_cell(self, goal: tuple[float, float], frame: str) -> bool:
+            """Whether ``goal`` lies in the cell of the goal being planned or driven to: a goal
+            sent again keeps its route (a second press of RViz's tool must not stop the
+            chair)."""
+            if self.goal is None or self.grid is None or frame != self.goal_frame:
+                return False
+            return self.grid.cell_of(*goal) == self.grid.cell_of(*self.goal)
 
         def _missing_for_a_goal(self) -> list[str]:
             missing = []
