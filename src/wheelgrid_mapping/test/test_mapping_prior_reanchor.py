@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.bagio import BagReader, BagWriter
-from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
+from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix, read_tum
 from wheelgrid_mapping import cli_map
 from wheelgrid_mapping.levelling import rpy_matrix
 
@@ -24,13 +24,9 @@ FRAMES, AT = 130, 110  # the bag's first 130 frames; the odometry re-anchors fro
 
 
 def _tum(path: Path) -> dict[float, np.ndarray]:
-    out = {}
-    for row in np.loadtxt(path, ndmin=2):
-        T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(*row[4:8])
-        T[:3, 3] = row[1:4]
-        out[round(float(row[0]), 2)] = T
-    return out
+    """A TUM file's poses by stamp, to the 10 ms that tell the bag's 5 Hz frames apart."""
+    stamps, poses = read_tum(path)
+    return {round(float(t), 2): pose for t, pose in zip(stamps, poses, strict=True)}
 
 
 def _reanchored_bag(out: Path, shift: np.ndarray) -> Path:
