@@ -546,9 +546,13 @@ def test_a_new_goal_withdraws_the_route_to_the_old_one_while_it_is_learned(tmp_p
     """The route to a goal the user had replaced stayed the plan while the new one was learned
     (up to max_seconds), and the drive went on along it. Now a new goal in another cell
     publishes an empty path at once, before its own route; the same goal sent again keeps the
-    route (no stop)."""
+    route (no stop). The learning is made to take seconds: the plan topic keeps one message
+    (MAP_QOS), so paths published milliseconds apart may reach a subscriber as the last one
+    alone, and the withdrawal matters where the learning is long."""
     grid = Grid(paper_grid(), RES, ORIGIN)
-    with planner_process(tmp_path) as (h, log):
+    with planner_process(
+        tmp_path, "check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0"
+    ) as (h, log):
         h.grid_pub.publish(to_occupancy_grid(grid))
         h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
         spin_until(h.ex, lambda: False, 1.0)
@@ -556,13 +560,13 @@ def test_a_new_goal_withdraws_the_route_to_the_old_one_while_it_is_learned(tmp_p
         first = h.next_path(0, timeout=120.0)
         assert cells_of(first, grid)[-1] == (6, 5), log.read_text()
         h.goal_pub.publish(goal_msg(grid, (6, 5)))  # the same goal again: its route stands
-        h.next_path(1)
+        h.next_path(1, timeout=120.0)
         h.goal_pub.publish(goal_msg(grid, (0, 7)))
         assert spin_until(h.ex, lambda: len(h.paths) >= 4, 120.0), log.read_text()
         spin_until(h.ex, lambda: False, 0.5)
         ends = [cells_of(p, grid)[-1] if p.poses else None for p in h.paths]
-        # the first goal, the same goal again (planned again, the route kept), then the new
-        # goal: the old route withdrawn before its own route goes out
+        # the first goal, the same goal again (learned again, the route kept meanwhile), then
+        # the new goal: the old route withdrawn while its own route is learned
         assert ends == [(6, 5), (6, 5), None, (0, 7)], (ends, log.read_text())
         assert log.read_text().count("withdrawn") == 1, log.read_text()
 
