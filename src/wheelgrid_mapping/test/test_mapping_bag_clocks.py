@@ -1,6 +1,7 @@
 """``wheelgrid map --prior arkit`` on a bag whose clouds and odometry are stamped on different
 clocks, or whose odometry covers only part of the scan: the frames without a prior must be
-said, not mapped geometry-only without a word."""
+said, not mapped geometry-only without a word. And stamps that jump, in a bag and in a Stray
+export (which has no log time: its frame counter is the second clock)."""
 
 import json
 from collections.abc import Callable
@@ -12,6 +13,7 @@ import pytest
 from wheelgrid_common.bagio import BagReader, BagWriter
 from wheelgrid_common.fileio import read_tum
 from wheelgrid_mapping import cli_map
+from wheelgrid_mapping.stray import StrayExport
 
 SCAN = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
 
@@ -130,3 +132,58 @@ def test_a_clock_that_goes_back_leaves_the_trajectory_monotone(tmp_path, capsys)
     assert rep["mapping_time"]["offset_s"] == pytest.approx(100.0, abs=1e-6)
     stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
     assert np.allclose(np.diff(stamps), 0.2, atol=1e-6)
+
+
+def _stray_every_third(capture: Path, out: Path, frames: int, ahead: dict[int, float]) -> Path:
+    """The real capture's first ``frames`` x 3 frames, every third kept (Stray's own numbers,
+    as an export thinned by hand keeps them), the k-th kept row of odometry.csv stamped
+    ``ahead[k]`` seconds later."""
+    import shutil
+
+    for sub in ("depth", "confidence"):
+        (out / sub).mkdir(parents=True)
+        for i in range(0, 3 * frames, 3):
+            shutil.copy(capture / sub / f"{i:06d}.png", out / sub)
+    shutil.copy(capture / "camera_matrix.csv", out)
+    header, *rows = (capture / "odometry.csv").read_text().splitlines()
+    kept = [header]
+    for row in rows[: 3 * frames : 3]:
+        t, rest = row.split(",", 1)
+        k = len(kept) - 1
+        kept.append(f"{float(t) + ahead.get(k, 0.0)!r},{rest}")
+    (out / "odometry.csv").write_text("\n".join(kept) + "\n")
+    return out
+
+
+def test_a_stray_frame_stamped_far_ahead_is_skipped_by_its_place_in_capture_order(
+    tmp_path, capsys, stray_capture: Path
+) -> None:
+    """One row of odometry.csv stamped an hour ahead. An export has no log time, so the frame
+    read as a pause in the capture: it was registered as after a dropout, and every later stamp
+    in trajectory.tum came an hour late (report: a clock jump, offset 3600 s). Stray numbers
+    frames in capture order, so it was taken before the frame after it: it is skipped, said and
+    counted, and the others keep their own stamps."""
+    cap = _stray_every_third(stray_capture, tmp_path / "cap", 16, {8: 3600.0})
+    err, rep = _run(cap, tmp_path, capsys)
+    assert "frame 8 (and any like it): skipped: stamped 3599.9" in err  # the next one's 0.05 s
+    fr = rep["frames"]
+    assert fr["stamped_ahead"] == 1 and fr["skipped"] == 1 and fr["clock_jumps"] == 0
+    assert fr["used"] == 15 and fr["after_gap"] == 0
+    assert rep["mapping_time"] == {"offset_s": 0.0, "jumps": []}
+    stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
+    want = [StrayExport(cap).stamp(i) for i in range(16) if i != 8]
+    np.testing.assert_allclose(stamps, want, atol=1e-6)
+
+
+def test_a_stray_capture_that_stalled_stays_a_pause(tmp_path, capsys, stray_capture: Path) -> None:
+    """Every row from the eighth on 2 s later (the app stalled and went on): a real pause,
+    which the frame's place in capture order cannot tell from a jump of the clock. No frame is
+    skipped, the first after it is registered as after a dropout, and every frame keeps its
+    own stamp (the gap stays in trajectory.tum)."""
+    cap = _stray_every_third(stray_capture, tmp_path / "cap", 16, {k: 2.0 for k in range(8, 16)})
+    _, rep = _run(cap, tmp_path, capsys)
+    fr = rep["frames"]
+    assert fr["stamped_ahead"] == 0 and fr["skipped"] == 0 and fr["clock_jumps"] == 0
+    assert fr["used"] == 16 and fr["after_gap"] == 1
+    stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
+    np.testing.assert_allclose(stamps, [StrayExport(cap).stamp(i) for i in range(16)], atol=1e-6)

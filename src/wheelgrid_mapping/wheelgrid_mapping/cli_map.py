@@ -34,8 +34,9 @@ from .prefetch import FramePipeline
 from .registration import PRIOR_SCALE_MIN_STEP
 from .thin_check import check_thin_obstacles
 
-# points, stamp, frame_id, confidence, pose prior, and when it arrived (a bag's log time: none
-# in a Stray export), which tells a stamp far ahead from a pause (:mod:`.frame_clock`)
+# points, stamp, frame_id, confidence, pose prior, and when it arrived (a bag's log time; in
+# a Stray export, the latest time its place in capture order allows), which tells a stamp far
+# ahead from a pause (:mod:`.frame_clock`)
 Frame = tuple[np.ndarray, float, str, np.ndarray | None, np.ndarray | None, float | None]
 
 
@@ -107,7 +108,8 @@ def stray_frames(
             if fr is None:
                 if bad is not None:
                     bad.append("unreadable image")
-                yield np.empty((0, 3)), export.stamp(i), DEFAULT_FRAME_ID, None, None, None
+                taken_by = export.captured_by(i)
+                yield np.empty((0, 3)), export.stamp(i), DEFAULT_FRAME_ID, None, None, taken_by
                 continue
             # organised (H, W, 3): the pixel grid, for the mixed-pixel test
             pts = depth_to_points(fr.depth, fr.K).reshape(*fr.depth.shape, 3)
@@ -118,7 +120,7 @@ def stray_frames(
                 DEFAULT_FRAME_ID,
                 conf,
                 (arkit_pose_to_ros(fr.pose) if use_prior and fr.pose is not None else None),
-                None,
+                export.captured_by(i),
             )
 
     return len(export), gen()

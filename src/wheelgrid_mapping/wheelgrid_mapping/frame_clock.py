@@ -19,9 +19,11 @@ time between two frames), the keyframe interval, the loop closure's submaps and
   stamps by one offset, so the trajectory stays monotone and continuous; the report lists
   every jump with its offset, so a user can undo it.
 
-Without receipt times (a Stray export, the API called with stamps only) a stamp far ahead
-cannot be told from a pause in the stream and is taken as it comes; the clock going back is
-still caught from the stamps alone.
+A Stray export has no arrival times; its capture order stands in for them (a frame was
+taken no later than the frames after it: :meth:`.stray.StrayExport.captured_by`), which
+holds back one stamp far ahead and leaves a real pause a pause. Without either (the API
+called with stamps only) a stamp far ahead cannot be told from a pause in the stream and is
+taken as it comes; the clock going back is still caught from the stamps alone.
 """
 
 from __future__ import annotations

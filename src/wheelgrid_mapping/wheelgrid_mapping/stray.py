@@ -39,6 +39,9 @@ RGB_HEIGHT = 1440
 PRINCIPAL_POINT_TOLERANCE = 0.1
 # Stray records at 60 Hz; used for stamps only when odometry.csv is missing.
 NOMINAL_RATE_HZ = 60.0
+# A frame stamped later than any of this many frames after it is stamped ahead (a bad
+# timestamp); stamps that jump and stay there are a pause (StrayExport.captured_by).
+CAPTURE_ORDER_FRAMES = 3
 
 
 @dataclass(frozen=True)
@@ -250,6 +253,18 @@ class StrayExport:
     def stamp(self, i: int) -> float:
         """Capture time of position ``i`` without reading its images (for real-time playback)."""
         return self._stamp_of(int(self._depth_files[i].stem))
+
+    def captured_by(self, i: int) -> float:
+        """The latest time position ``i`` can have been captured: Stray numbers frames in
+        capture order, so no later than the stamps of the :data:`CAPTURE_ORDER_FRAMES` frames
+        after it (its own, where it is the earliest). An export has no arrival times, so a
+        frame stamped far in the future (one bad timestamp in odometry.csv) read as a pause in
+        the capture: it was registered as after a dropout, and every later stamp in
+        trajectory.tum came shifted by its lead. Given as the frame's arrival, this holds such
+        a frame back (:mod:`.frame_clock`), while a real pause (the app stalled: the stamps
+        jump and go on from there) stays a pause."""
+        end = min(len(self), i + 1 + CAPTURE_ORDER_FRAMES)
+        return min(self.stamp(j) for j in range(i, end))
 
     def _stamp_of(self, index: int) -> float:
         """Odometry time of frame ``index``; else extrapolated at 60 Hz on the same clock from
