@@ -50,3 +50,42 @@ def test_a_metadata_yaml_that_does_not_parse_is_one_line(tmp_path):
         BagReader(tmp_path).__enter__()
     text = str(info.value)
     assert "\n" not in text and "line 2" in text, text
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_edit_bag_copies_keeps_stops_and_edits(tmp_path, storage):
+    """The test helper that every bag-bending test goes through: untouched messages copied
+    byte for byte, ``keep`` and ``until`` counted per topic, an edit decoded and re-encoded,
+    raw bytes written as given."""
+    from std_msgs.msg import String
+
+    from wheelgrid_common.testing import edit_bag
+
+    src = tmp_path / "src"
+    with BagWriter(src, storage) as w:
+        for i in range(6):
+            w.write("/a", "std_msgs/msg/String", 10 * i, String(data=f"a{i}"))
+            w.write("/b", "std_msgs/msg/String", 10 * i + 5, String(data=f"b{i}"))
+
+    def shout(k, msg):
+        msg.data = msg.data.upper()
+
+    out = edit_bag(
+        src,
+        tmp_path / "out",
+        keep=lambda t, k: not (t == "/b" and k == 1),
+        until=lambda t, k: t == "/a" and k == 4,
+        edits={"/b": lambda k, m: b"\x00\x01\x00\x00bad" if k == 3 else shout(k, m)},
+        storage=storage,
+    )
+    with BagReader(src) as r:
+        before = {(t, ns): raw for t, _, ns, raw in r.raw(["/a", "/b"])}
+    with BagReader(out) as r:
+        after = list(r.raw(["/a", "/b"]))
+    assert [(t, ns) for t, _, ns, _ in after] == [
+        ("/a", 0), ("/b", 5), ("/a", 10), ("/a", 20), ("/b", 25), ("/a", 30), ("/b", 35)
+    ]  # fmt: skip
+    assert all(raw == before[(t, ns)] for t, _, ns, raw in after if t == "/a")
+    with BagReader(out) as r:
+        msgs = list(r.messages(["/b"], damaged_as_none=True))
+    assert [m.data if m is not None else None for _, _, m in msgs] == ["B0", "B2", None]

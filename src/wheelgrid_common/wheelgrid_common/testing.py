@@ -12,7 +12,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -248,3 +248,62 @@ def ros1_cloud_bag(src: Any, dst: Path, n: int) -> Path:
                       row_step=m.row_step, data=m.data, is_dense=m.is_dense)  # fmt: skip
             w.write(conn, t_ns, ts.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
     return dst
+
+
+def edit_bag(
+    src: Path,
+    out: Path,
+    *,
+    topics: Iterable[str] | None = None,
+    keep: Callable[[str, int], bool] | None = None,
+    until: Callable[[str, int], bool] | None = None,
+    edits: Mapping[str, Callable[[int, Any], bytes | None]] | None = None,
+    storage: str = "sqlite3",
+) -> Path:
+    """A copy of the rosbag2 bag ``src`` at ``out``, message by message in log-time order, for
+    tests that need a bag broken or bent one way: every such test had its own copy loop.
+
+    ``k`` counts each topic's messages from 0. ``topics`` (default all) are copied;
+    ``until(topic, k)`` true ends the copy before that message; ``keep(topic, k)`` false
+    leaves a message out; ``edits[topic](k, msg)`` gets each kept message of its topic decoded
+    (a rosbags message), changes it in place, or returns the raw bytes to write instead (a
+    message that does not deserialise). Others are copied byte for byte."""
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    from wheelgrid_common.bagio import typestore
+
+    store = typestore()
+    edits = edits or {}
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Reader(src) as reader:
+        names = None if topics is None else set(topics)
+        wanted = [c for c in reader.connections if names is None or c.topic in names]
+        writer = Writer(out, version=9, storage_plugin=plugin)
+        writer.open()
+        conns = {}
+        for c in wanted:
+            if c.topic not in conns:
+                conns[c.topic] = writer.add_connection(c.topic, c.msgtype, typestore=store)
+        seen: dict[str, int] = {}
+        try:
+            for conn, t_ns, raw in reader.messages(connections=wanted):
+                k = seen.get(conn.topic, 0)
+                seen[conn.topic] = k + 1
+                if until is not None and until(conn.topic, k):
+                    break
+                if keep is not None and not keep(conn.topic, k):
+                    continue
+                data = bytes(raw)
+                edit = edits.get(conn.topic)
+                if edit is not None:
+                    msg = store.deserialize_cdr(data, conn.msgtype)
+                    replaced = edit(k, msg)
+                    data = (
+                        replaced
+                        if replaced is not None
+                        else bytes(store.serialize_cdr(msg, conn.msgtype))
+                    )
+                writer.write(conns[conn.topic], t_ns, data)
+        finally:
+            writer.close()
+    return out

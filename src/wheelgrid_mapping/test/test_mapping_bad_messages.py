@@ -7,10 +7,12 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
+from wheelgrid_common.testing import edit_bag
 from wheelgrid_mapping import cli_map
 
 BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
@@ -25,34 +27,21 @@ def _copy_first(
     message."""
     if not (BUNDLED / "metadata.yaml").exists():
         pytest.skip("bags/paper_room: not present")
-    from rosbags.rosbag2 import Reader, Writer
-    from rosbags.typesys import Stores, get_typestore
 
-    store = get_typestore(Stores.ROS2_JAZZY)
-    bag = tmp_path / name
-    with Reader(BUNDLED) as reader:
-        writer = Writer(bag, version=8)
-        writer.open()
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                 for c in reader.connections}  # fmt: skip
-        clouds = seen = 0
-        for conn, t, raw in reader.messages():
-            if conn.topic == POINTS:
-                if clouds == frames:
-                    break
-                clouds += 1
-            if conn.topic == topic:
-                change = damage.get(seen)
-                seen += 1
-                if isinstance(change, bytes):
-                    raw = change
-                elif change is not None:
-                    msg = store.deserialize_cdr(raw, conn.msgtype)
-                    change(msg)  # type: ignore[operator]
-                    raw = store.serialize_cdr(msg, conn.msgtype)
-            writer.write(conns[conn.id], t, raw)
-        writer.close()
-    return bag
+    def spoil(k: int, msg: Any) -> bytes | None:
+        change = damage.get(k)
+        if isinstance(change, bytes):
+            return change
+        if change is not None:
+            change(msg)  # type: ignore[operator]
+        return None
+
+    return edit_bag(
+        BUNDLED,
+        tmp_path / name,
+        until=lambda t, k: t == POINTS and k == frames,
+        edits={topic: spoil},
+    )
 
 
 def test_a_message_that_does_not_deserialise_costs_its_frame_only(tmp_path: Path, capsys) -> None:
@@ -290,23 +279,9 @@ def test_storage_damaged_mid_bag_keeps_the_frames_before_it(tmp_path: Path, caps
 
     if not (BUNDLED / "metadata.yaml").exists():
         pytest.skip("bags/paper_room: not present")
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    bag = tmp_path / "chunks"
-    with Reader(BUNDLED) as reader:
-        writer = Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP)
-        writer.open()
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                 for c in reader.connections}  # fmt: skip
-        clouds = 0
-        for conn, t, raw in reader.messages():
-            clouds += conn.topic == POINTS
-            if clouds > 30:
-                break
-            writer.write(conns[conn.id], t, raw)
-        writer.close()
+    bag = edit_bag(
+        BUNDLED, tmp_path / "chunks", until=lambda t, k: t == POINTS and k == 30, storage="mcap"
+    )
     (mcap,) = bag.glob("*.mcap")
     data = bytearray(mcap.read_bytes())
     pos, chunks = 8, []

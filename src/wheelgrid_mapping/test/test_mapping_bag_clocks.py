@@ -6,16 +6,18 @@ export (which has no log time: its frame counter is the second clock)."""
 import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from wheelgrid_common.bagio import BagReader, BagWriter
 from wheelgrid_common.fileio import read_tum
+from wheelgrid_common.testing import edit_bag
 from wheelgrid_mapping import cli_map
 from wheelgrid_mapping.stray import StrayExport
 
 SCAN = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
+CLOUDS, ODOMETRY = "/iphone/points", "/iphone/odometry"
 
 
 def _bag(
@@ -31,31 +33,21 @@ def _bag(
     time, when the recorder got it, stays)."""
     if not (SCAN / "metadata.yaml").exists():
         pytest.skip("bags/paper_room: not present")
-    from rosbags.typesys import Stores, get_typestore
 
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    clouds = odoms = 0
-    with BagReader(SCAN) as src, BagWriter(out) as w:
-        for topic, msgtype, t_ns, raw in src.raw(["/iphone/points", "/iphone/odometry"]):
-            if topic == "/iphone/points":
-                if clouds >= frames:
-                    continue
-                k, clouds = clouds, clouds + 1
-                moved = 0.0
-            else:
-                k, odoms = odoms, odoms + 1
-                if (odom_keep is not None and odoms > odom_keep) or k >= frames:
-                    continue
-                moved = odom_shift_s
-            moved += shift(topic, k) if shift is not None else 0.0
-            if moved:
-                msg = ts.deserialize_cdr(raw, msgtype)
-                st = msg.header.stamp
-                ns = st.sec * 1_000_000_000 + st.nanosec + round(moved * 1e9)
-                st.sec, st.nanosec = divmod(ns, 1_000_000_000)
-                raw = bytes(ts.serialize_cdr(msg, msgtype))
-            w.write(topic, msgtype, t_ns, raw)
-    return out
+    def keep(topic: str, k: int) -> bool:
+        return k < frames and (topic == CLOUDS or odom_keep is None or k < odom_keep)
+
+    def moved(topic: str) -> Callable[[int, Any], None]:
+        def edit(k: int, msg: Any) -> None:
+            by = (odom_shift_s if topic == ODOMETRY else 0.0) + (shift(topic, k) if shift else 0.0)
+            st = msg.header.stamp
+            ns = st.sec * 1_000_000_000 + st.nanosec + round(by * 1e9)
+            st.sec, st.nanosec = divmod(ns, 1_000_000_000)
+
+        return edit
+
+    topics = [CLOUDS, ODOMETRY]
+    return edit_bag(SCAN, out, topics=topics, keep=keep, edits={t: moved(t) for t in topics})
 
 
 def _run(

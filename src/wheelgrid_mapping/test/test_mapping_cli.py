@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.fileio import read_ply, read_tum, write_ply
+from wheelgrid_common.testing import edit_bag
 from wheelgrid_mapping import cli_map, cli_measure
 
 BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
@@ -52,24 +53,7 @@ def test_map_from_a_simulated_bag(sim_dir: Path, tmp_path: Path, capsys) -> None
 def _edit_odometry(sim_dir: Path, bag: Path, edit: Any) -> None:
     """A copy of the bundled bag at ``bag`` with ``edit(k, msg)`` applied to its k-th (from 1)
     /iphone/odometry message, in place."""
-    from rosbags.rosbag2 import Reader, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    with Reader(sim_dir / "scan") as reader:
-        writer = Writer(bag, version=8)
-        writer.open()
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                 for c in reader.connections}  # fmt: skip
-        odometry = 0
-        for conn, t, raw in reader.messages():
-            if conn.topic == "/iphone/odometry":
-                odometry += 1
-                msg = store.deserialize_cdr(raw, conn.msgtype)
-                edit(odometry, msg)
-                raw = store.serialize_cdr(msg, conn.msgtype)
-            writer.write(conns[conn.id], t, raw)
-        writer.close()
+    edit_bag(sim_dir / "scan", bag, edits={"/iphone/odometry": lambda k, msg: edit(k + 1, msg)})
 
 
 def test_a_zero_quaternion_in_the_odometry_costs_its_frames_prior_only(

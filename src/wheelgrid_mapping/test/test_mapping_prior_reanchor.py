@@ -10,12 +10,13 @@ the next frame relocalised 18-19 cm and 2.2 deg off for good.
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from wheelgrid_common.bagio import BagReader, BagWriter
 from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix, read_tum
+from wheelgrid_common.testing import edit_bag
 from wheelgrid_mapping import cli_map
 from wheelgrid_mapping.levelling import rpy_matrix
 
@@ -34,28 +35,25 @@ def _reanchored_bag(out: Path, shift: np.ndarray) -> Path:
     moved by ``shift`` (in the odometry's world)."""
     if not (ROOM / "scan" / "metadata.yaml").exists():
         pytest.skip("bags/paper_room: not present")
-    from rosbags.typesys import Stores, get_typestore
 
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    seen = {"/iphone/points": 0, "/iphone/odometry": 0}
-    with BagReader(ROOM / "scan") as src, BagWriter(out) as w:
-        for topic, msgtype, t_ns, raw in src.raw(list(seen)):
-            k = seen[topic]
-            seen[topic] += 1
-            if k >= FRAMES:
-                continue
-            if topic == "/iphone/odometry" and k >= AT:
-                msg = ts.deserialize_cdr(raw, msgtype)
-                p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                T = np.eye(4)
-                T[:3, :3] = quat_to_matrix(q.x, q.y, q.z, q.w)
-                T[:3, 3] = [p.x, p.y, p.z]
-                T = shift @ T
-                p.x, p.y, p.z = (float(v) for v in T[:3, 3])
-                q.x, q.y, q.z, q.w = (float(v) for v in matrix_to_quat(T[:3, :3]))
-                raw = bytes(ts.serialize_cdr(msg, msgtype))
-            w.write(topic, msgtype, t_ns, raw)
-    return out
+    def move(k: int, msg: Any) -> None:
+        if k < AT:
+            return
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(q.x, q.y, q.z, q.w)
+        T[:3, 3] = [p.x, p.y, p.z]
+        T = shift @ T
+        p.x, p.y, p.z = (float(v) for v in T[:3, 3])
+        q.x, q.y, q.z, q.w = (float(v) for v in matrix_to_quat(T[:3, :3]))
+
+    return edit_bag(
+        ROOM / "scan",
+        out,
+        topics=["/iphone/points", "/iphone/odometry"],
+        keep=lambda topic, k: k < FRAMES,
+        edits={"/iphone/odometry": move},
+    )
 
 
 @pytest.mark.parametrize(
