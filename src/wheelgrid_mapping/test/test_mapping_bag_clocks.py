@@ -179,3 +179,38 @@ def test_a_stray_capture_that_stalled_stays_a_pause(tmp_path, capsys, stray_capt
     assert fr["used"] == 16 and fr["after_gap"] == 1
     stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
     np.testing.assert_allclose(stamps, [StrayExport(cap).stamp(i) for i in range(16)], atol=1e-6)
+
+
+def test_import_and_stream_stray_time_a_frame_stamped_far_ahead_by_capture_order(
+    tmp_path, capsys, stray_capture: Path
+) -> None:
+    """The same export through import-stray and stream-stray. The import wrote the bad frame
+    with a log time an hour on (the end of the bag, where it read as a pause); the stream held
+    the phone's next frame back for that hour. Both now time it by its place in capture order:
+    the bag's log time lets `wheelgrid map` hold it back, and the stream plays in its 0.75 s."""
+    from wheelgrid_common.bagio import BagReader
+    from wheelgrid_mapping import bridge_protocol as bp
+    from wheelgrid_mapping.cli_stray import import_main, stream_export
+
+    cap = _stray_every_third(stray_capture, tmp_path / "cap", 16, {8: 3600.0})
+    bag = tmp_path / "bag"
+    assert import_main([str(cap), "--out", str(bag)]) == 0
+    with BagReader(bag) as r:
+        clouds = list(r.messages([CLOUDS]))
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for _, _, m in clouds]
+    logged = [t * 1e-9 for _, t, _ in clouds]
+    assert stamps[8] - stamps[7] > 3599.0  # the header keeps the export's stamp
+    assert np.all(np.diff(logged) >= 0) and logged[8] <= logged[9]
+    np.testing.assert_allclose(np.delete(logged, 8), np.delete(stamps, 8), atol=1e-6)
+    err, rep = _run(bag, tmp_path, capsys)
+    assert "stamped 3599.9" in err and rep["frames"]["stamped_ahead"] == 1
+
+    got: list[bp.Frame] = []
+    srv = bp.BridgeServer(lambda f, c: got.append(f), lambda lv, t: None, port=0)
+    srv.start()
+    try:
+        stats = stream_export(StrayExport(cap), "127.0.0.1", srv.port, rate=1.0)
+    finally:
+        srv.stop()
+    assert stats.frames_sent == 16 and stats.capture_s < 1.0
+    assert stats.wall_s < 30.0  # an hour before; the frames' own pace is 0.75 s

@@ -6,6 +6,14 @@ factor), standing in for the phone so the whole live path (TCP, bridge, DDS, map
 and measured without one. ``import-stray`` writes the same topics the bridge publishes into a
 rosbag2 bag, stamped with the capture's own timestamps, using the same message builder
 (:func:`wheelgrid_mapping.iphone_bridge_node.frame_messages`), so offline and live runs agree.
+
+Both time a frame by the latest time its place in capture order allows
+(:meth:`wheelgrid_mapping.stray.StrayExport.captured_by`; a frame's own stamp unless it is
+stamped after the frames that follow it): ``stream-stray`` paces its sending by it, and
+``import-stray`` makes it the bag's log time (when a recorder would have got the frame). One
+timestamp an hour ahead in odometry.csv held the stream for that hour, and went to the end of
+the bag with a log time an hour on, where nothing could tell it from a pause. Its header keeps
+the stamp as the export has it, so the mapper can hold it back.
 """
 
 from __future__ import annotations
@@ -133,7 +141,7 @@ def stream_export(
     indices: range | None = None,
     depth_encoding: int = DEPTH_U16_MM,
 ) -> StreamStats:
-    """Send frames of ``exp`` to a bridge, paced by their capture stamps / ``rate`` (0 = no
+    """Send frames of ``exp`` to a bridge, paced by their capture times / ``rate`` (0 = no
     pacing). Raises ConnectionError/OSError when the bridge refuses or goes away."""
     idx = indices if indices is not None else range(len(exp))
     stats = StreamStats()
@@ -141,7 +149,7 @@ def stream_export(
         return stats
     sock = connect(host, port, token=token, name=f"stream-stray {exp.path.name}")
     try:
-        t_first = exp.stamp(idx[0])
+        t_first = exp.captured_by(idx[0])
         t0 = time.monotonic()
         for seq, i in enumerate(idx):
             sf = exp.frame_or_warn(i)
@@ -159,7 +167,7 @@ def stream_export(
                 depth_encoding=depth_encoding,
             )
             if rate > 0:
-                slot = t0 + (sf.stamp - t_first) / rate
+                slot = t0 + (exp.captured_by(i) - t_first) / rate
                 wait = slot - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
@@ -173,7 +181,7 @@ def stream_export(
                 raise BridgeClosedError(text) from None
             stats.frames_sent += 1
             stats.bytes_sent += len(data)
-        stats.capture_s = exp.stamp(idx[-1]) - t_first
+        stats.capture_s = exp.captured_by(idx[-1]) - t_first
         stats.wall_s = time.monotonic() - t0
     finally:
         sock.close()
@@ -289,11 +297,11 @@ def import_main(argv: list[str]) -> int:
                     bar.update()
                     continue
                 frame = stray_to_frame(sf, seq)
-                stamp_ns = round(frame.stamp * 1e9)
+                log_ns = round(exp.captured_by(i) * 1e9)
                 for topic, msgtype, msg in frame_messages(
                     frame, frame.stamp, min_confidence=args.min_confidence, organized=not args.dense
                 ):
-                    bag.write(topic, msgtype, stamp_ns, msg)
+                    bag.write(topic, msgtype, log_ns, msg)
                     counts[topic] = counts.get(topic, 0) + 1
                 bar.update()
     except BagError as exc:
