@@ -316,6 +316,24 @@ def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, ca
     assert "expected a mapping of node name" in err and "Traceback" not in err
 
 
+def test_the_namespaced_copy_is_the_params_file_as_checked(tmp_path):
+    """`wheelgrid launch --namespace` read the params file twice, once to check it and once to
+    copy it for the namespace: a file edited in between reached the nodes unchecked. The copy
+    is now written from what the check read."""
+    import yaml
+
+    from wheelgrid_bringup.launcher import check_params_file, namespaced_params_file
+
+    params = tmp_path / "p.yaml"
+    params.write_text("mapper:\n  ros__parameters: {topic: /checked}\n")
+    checked = check_params_file(params)
+    params.write_text("mapper:\n  ros__parameters: 5\n")  # edited after the check
+    copy = namespaced_params_file(params, "/chair1", tmp_path / "out", checked)
+    assert yaml.safe_load(copy.read_text()) == {
+        "/chair1/mapper": {"ros__parameters": {"topic": "/checked"}}
+    }
+
+
 def test_a_replay_stopped_before_it_started_stops_cleanly():
     """``wheelgrid launch`` opens the bag before it starts the nodes, so a node that dies while
     the chain starts stops a player whose thread never ran: that must not raise (joining an

@@ -14,6 +14,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
 from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
@@ -78,14 +79,19 @@ def check_namespace(text: str) -> str:
     return ns
 
 
-def namespaced_params_file(path: Path, namespace: str, out_dir: Path) -> Path:
+def namespaced_params_file(
+    path: Path, namespace: str, out_dir: Path, data: dict[str, Any] | None = None
+) -> Path:
     """A copy of the params file whose plain node keys (``mapper:``) name the nodes in
     ``namespace`` (``/chair1/mapper:``): rcl matches a plain key to ``/mapper`` only, and the
     chain's nodes would have run on their defaults. Keys already absolute (``/**``,
-    ``/chair1/grid``) and namespace sections (``chair1: {grid: ...}``) are kept as written."""
+    ``/chair1/grid``) and namespace sections (``chair1: {grid: ...}``) are kept as written.
+    ``data``: the file as :func:`check_params_file` read it, so that the copy is what was
+    checked (read a second time, a file edited in between went unchecked)."""
     import yaml
 
-    data = read_yaml(path)
+    if data is None:
+        data = read_yaml(path)
     out = {}
     for key, body in data.items():
         plain = isinstance(body, dict) and "ros__parameters" in body
@@ -110,11 +116,11 @@ def node_overrides(name: str, args: argparse.Namespace) -> dict[str, object]:
     return overrides
 
 
-def check_params_file(path: Path) -> None:
-    """``ValueError`` unless ``path`` is a ROS 2 parameter file (``node: {ros__parameters:
-    {...}}`` per node): rcl would refuse it only inside each node, as a traceback in that
-    node's log after the chain had started, and the launch would end with exit 1 naming a
-    dead node instead of the file's line."""
+def check_params_file(path: Path) -> dict[str, Any]:
+    """The ROS 2 parameter file at ``path`` (``node: {ros__parameters: {...}}`` per node), or
+    ``ValueError`` where it is not one: rcl would refuse it only inside each node, as a
+    traceback in that node's log after the chain had started, and the launch would end with
+    exit 1 naming a dead node instead of the file's line."""
     data = read_yaml(path)
     if not isinstance(data, dict) or not data:
         raise ValueError(f"{path}: expected a mapping of node name: {{ros__parameters: ...}}")
@@ -134,6 +140,7 @@ def check_params_file(path: Path) -> None:
 
     for node, body in data.items():
         check(str(node), body)
+    return data
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -163,9 +170,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wheelgrid launch: no such params file {params}", file=sys.stderr)
         return 2
     try:
-        check_params_file(params)
+        checked = check_params_file(params)
         if namespace:
-            params = namespaced_params_file(params, namespace, args.log_dir)
+            params = namespaced_params_file(params, namespace, args.log_dir, checked)
     except (OSError, ValueError) as exc:
         print(f"wheelgrid launch: {exc}", file=sys.stderr)
         return 2
