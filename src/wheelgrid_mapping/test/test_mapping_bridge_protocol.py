@@ -61,6 +61,17 @@ def test_millimetre_depth_sent_as_float_metres_is_converted() -> None:
     np.testing.assert_allclose(f.depth_m(), [[1.5, np.nan], [65.535, 0.25]], rtol=1e-6)
 
 
+def test_a_float_depth_beyond_any_return_is_no_return() -> None:
+    """A float frame's depth of 3e38 m (or inf) became a finite point 3e38 m away on
+    /iphone/points; the mapper's range filter dropped it, but RViz or another stack got it.
+    Beyond the 16-bit millimetres' ceiling a depth is no return, in both encodings."""
+    depth = np.array([[3e38, np.inf], [bp.MAX_DEPTH_M, 70.0]], dtype=np.float32)
+    (f,) = bp.FrameDecoder().feed(bp.encode_frame(3.0, K, depth))
+    dm = f.depth_m()
+    assert np.isnan(dm[0]).all() and np.isnan(dm[1, 1])
+    assert dm[1, 0] == np.float32(bp.MAX_DEPTH_M)
+
+
 def test_stream_split_anywhere_and_hello_status() -> None:
     stream = bp.encode_hello("s3cret", "test") + _frame_bytes(seq=1) + _frame_bytes(seq=2)
     dec = bp.FrameDecoder()

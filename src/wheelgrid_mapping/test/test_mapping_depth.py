@@ -98,6 +98,9 @@ def test_image_array_and_depth_encodings() -> None:
     f = np.array([[1.0, np.nan], [0.0, -2.0]], dtype=np.float32)
     d2 = depth_image_to_metres("32FC1", 2, 2, 8, False, f.tobytes())
     assert d2[0, 0] == 1.0 and np.isnan(d2[0, 1]) and np.isnan(d2[1, 0]) and np.isnan(d2[1, 1])
+    far = np.array([[3e38, np.inf, 65.535, 70.0]], dtype=np.float32)  # beyond any return: NaN
+    d3 = depth_image_to_metres("32FC1", 1, 4, 16, False, far.tobytes())
+    assert np.isnan(d3[0, [0, 1, 3]]).all() and d3[0, 2] == np.float32(65.535)
     with pytest.raises(ValueError, match="needs step"):
         image_array("mono8", 2, 3, 3, False, b"12345")
     with pytest.raises(ValueError, match="not supported"):

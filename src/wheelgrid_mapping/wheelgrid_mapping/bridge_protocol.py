@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from wheelgrid_mapping.depth import MAX_DEPTH_M
+
 MAGIC = b"WGIP"
 VERSION = 1
 
@@ -142,12 +144,13 @@ class Frame:
         return int(self.depth.shape[1])
 
     def depth_m(self) -> np.ndarray:
-        """Depth as float32 metres with NaN where there was no return."""
+        """Depth as float32 metres with NaN where there was no return (0, NaN, or beyond
+        :data:`MAX_DEPTH_M`)."""
         if self.depth_encoding == DEPTH_U16_MM:
             d = self.depth.astype(np.float32) * np.float32(0.001)
         else:
             d = self.depth.astype(np.float32, copy=True)
-        d[~(d > 0)] = np.nan
+        d[~((d > 0) & (d <= np.float32(MAX_DEPTH_M)))] = np.nan
         return d
 
     def pose_optical(self) -> np.ndarray | None:

@@ -22,6 +22,13 @@ from functools import lru_cache
 
 import numpy as np
 
+# The deepest depth read as a return: 16-bit millimetres' ceiling, where the bridge's two
+# encodings and a 16UC1 image meet. A float depth beyond it is no LiDAR return (a phone's
+# LiDAR reaches about 5 m, an indoor depth camera tens of metres at most), and 3e38 m went
+# out as finite points, for every consumer of /iphone/points but the mapper (whose range
+# filter drops them) to draw or plan with.
+MAX_DEPTH_M = 65.535
+
 # ARKit world (y up, -z initial forward, x right) -> ROS world (x forward, y left, z up).
 ARKIT_WORLD_TO_ROS: np.ndarray = np.array(
     [
@@ -179,16 +186,18 @@ def depth_image_to_metres(
 ) -> np.ndarray:
     """Depth Image (32FC1 metres, or 16UC1/mono16 scaled by ``mm_scale``) -> float32 metres.
 
-    0 and non-finite values become NaN: REP-118 uses 0 (16UC1) and NaN (32FC1) for "no return".
+    0 and non-finite values become NaN: REP-118 uses 0 (16UC1) and NaN (32FC1) for "no return";
+    so does a 32FC1 depth beyond :data:`MAX_DEPTH_M` (a 16UC1 one is scaled as configured).
     """
     if encoding not in ("32FC1", "16UC1", "mono16"):
         raise ValueError(f"depth encoding {encoding!r} not supported (32FC1 m or 16UC1 mm)")
     arr = image_array(encoding, height, width, step, is_bigendian, data)
     if encoding == "32FC1":
         d = arr.astype(np.float32)
+        d[~((d > 0) & (d <= np.float32(MAX_DEPTH_M)))] = np.nan
     else:
         d = arr.astype(np.float32) * np.float32(mm_scale)
-    d[~(np.isfinite(d) & (d > 0))] = np.nan
+        d[~(np.isfinite(d) & (d > 0))] = np.nan
     return d
 
 
