@@ -282,6 +282,42 @@ def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_
         assert len(grids) == n, "a parameter change republished the cleared map's grid"
 
 
+@pytest.mark.parametrize("then", ["a refused map", "a good map", "a parameter change"])
+def test_a_reset_within_the_rate_limit_withdraws_the_grid_whatever_comes_next(then: str) -> None:
+    """The mapper's ~/reset waited, as any map does, for the rate limit (1 / max_rate_hz after
+    the last grid), and the next map cloud replaced it there: with a refused map next (a new
+    scan's first frames: only floor) the cleared map's grid stayed published as current; with
+    a good one no all-unknown grid ever went out, so the planner kept a goal in the cleared
+    map's frame; a parameter change rebuilt the cleared map's grid. The reset now withdraws
+    the grid as it comes."""
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_common.map_io import UNKNOWN
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with in_process_grid(max_rate_hz=1.0) as t:
+        t.pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(t.ex, lambda: t.grids, 20.0)
+        t.pub.publish(to_pointcloud2(np.empty((0, 3)), "map"))  # the mapper's ~/reset
+        assert spin_until(t.ex, lambda: len(t.grids) > 1, 1.0), "the reset was held back"
+        assert (from_occupancy_grid(t.grids[-1]).data == UNKNOWN).all()
+        if then == "a parameter change":
+            assert t.grid_node.set_parameters([Parameter("safe_height", value=1.6)])[0].successful
+        elif then == "a refused map":
+            xy = np.random.default_rng(0).uniform(0, 3, (5000, 2))
+            t.pub.publish(to_pointcloud2(np.column_stack([xy, np.zeros(5000)]), "map"))
+        else:
+            t.pub.publish(
+                to_pointcloud2(cloud[::2] + np.array([1.0, 0.5, 0.0]), "map")
+            )  # new frame
+        # the next map waits for the rate limit (1 s after the first grid, on a 1 s timer)
+        spin_until(t.ex, lambda: len(t.grids) > 2, 6.0 if then == "a good map" else 2.5)
+        if then == "a good map":
+            assert len(t.grids) == 3 and (from_occupancy_grid(t.grids[-1]).data == 0).any()
+        else:
+            assert len(t.grids) == 2 and t.grid_node.result is None
+
+
 def test_a_cloud_of_no_points_over_bytes_of_data_keeps_the_grid():
     """A map cloud whose header says 0 points but which carries data does not describe its
     data: it was taken for the mapper's ~/reset (an empty map) and withdrew a good grid (every

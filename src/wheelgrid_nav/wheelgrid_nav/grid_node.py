@@ -98,8 +98,13 @@ class GridNode(Node):
             if exc.cause != "empty":
                 self._reject(f"unusable map cloud ({exc})")
                 return
-            # the mapper's ~/reset (a 1 x 0 cloud): an empty map, which withdraws the grid
-            points = np.empty((0, 3))
+            # The mapper's ~/reset (a 1 x 0 cloud): the map is gone, at once. It waited as the
+            # next map to build at the rate limit, where the next map cloud replaced it, so
+            # the cleared map's grid stayed published (and a parameter change rebuilt it). A
+            # map still waiting was made before the reset, in the cleared map's frame: gone too.
+            self._pending = None
+            self._withdraw(GridError("empty", "an empty map cloud (the mapper's ~/reset)"))
+            return
         self._pending = (points, msg.header.frame_id or "map")
         self._maybe_compute()
 
@@ -118,7 +123,7 @@ class GridNode(Node):
         try:
             result = build_grid(points, self.grid_cfg, frame_id=frame_id)
         except GridError as exc:
-            if exc.cause == "empty" and self.result is not None:
+            if exc.cause == "empty":  # no finite point: a cleared map as well
                 self._withdraw(exc)
                 return
             self._refused = (points, frame_id)
@@ -149,12 +154,15 @@ class GridNode(Node):
         pose, so the old cells no longer lie where the new poses are. Kept, the planner and the
         drive went on using them. Both grids are replaced by their geometry with every cell
         unknown (no route; a running move sees its cells change and stops), and the map is
-        forgotten, so a parameter change cannot bring the old grid back."""
-        assert self.result is not None
+        forgotten, so a parameter change cannot bring the old grid back (nor a refused map:
+        with no grid yet, there is nothing to withdraw but the maps are forgotten all the same)."""
         old = self.result
         self.result = None
         self._last_good = self._refused = None
         self._no_grid = "the map was cleared (the mapper's ~/reset); no grid until a new map"
+        if old is None:
+            self.get_logger().info(f"the map was cleared ({exc}): no grid until a new map")
+            return
         stamp = self.get_clock().now().to_msg()
         for grid, pub in ((old.grid, self.grid_pub), (old.fine, self.fine_pub)):
             unknown = replace(grid, data=np.full_like(grid.data, UNKNOWN))
