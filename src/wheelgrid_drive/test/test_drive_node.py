@@ -755,11 +755,17 @@ def test_link_settings_it_cannot_run_with_stop_the_node_with_exit_2():
 
 @pytest.mark.parametrize(
     "param",
-    ["cmd_vel_timeout:=.nan", "linear_deadband:=-1.0", "state_rate:=0.0", "initial_heading:=north"],
+    [
+        "cmd_vel_timeout:=.nan",
+        "linear_deadband:=-1.0",
+        "state_rate:=0.0",
+        "initial_heading:=north",
+        "speed:=0.0",
+    ],
 )
 def test_settings_that_would_drive_unsafely_stop_the_node_with_exit_2(param):
     """A NaN cmd_vel_timeout let one Twist drive on for ever; a negative deadband turned a
-    zero Twist into a move."""
+    zero Twist into a move; a speed of 0 (or less) was replaced by the 3 km/h cap."""
     import subprocess
     import sys
 
@@ -832,6 +838,35 @@ def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
             h.pub_twist.publish(fast)
             h.spin(lambda: False, 0.1)
         assert sim_moves(sim) == []  # inf drove five cells at full speed
+
+
+def test_a_plan_refused_for_its_size_voids_the_one_parked_for_the_grid(make_sim):
+    """A plan parked until the grid came (none yet), then a newer plan refused for its 10,001
+    poses: every other newer plan voids the parked one, this one did not, and the old plan
+    drove once the grid came."""
+    sim = make_sim()
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2)])  # parked: no grid yet
+        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+        ps = h.PoseStamped()
+        ps.header.frame_id = "map"
+        x, y = grid.cell_center(3, 0)
+        ps.pose.position.x, ps.pose.position.y = float(x), float(y)
+        ps.pose.orientation.w = 1.0
+        huge = h.Path()
+        huge.header.frame_id = "map"
+        huge.poses = [ps] * 10_001
+        h.pub_plan.publish(huge)
+        assert h.spin(lambda: any("10001 poses, more than" in s.message for s in h.states), 10)
+        assert h.drive._pending_plan is None
+        assert h.give_grid(grid)
+        h.spin(lambda: False, 1.5)
+        assert sim_moves(sim) == []
 
 
 def test_the_chairs_pose_is_in_the_frame_of_its_grid(make_sim):

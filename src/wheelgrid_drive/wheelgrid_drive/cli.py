@@ -22,8 +22,6 @@ from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
 from wheelgrid_drive.runner import CellCheck, controller_pose_check, grid_cell_check, run_steps
 
-MIN_SPEED_KMH = 0.1  # slower, a cell's move cannot end within the link's move timeout
-
 
 class PlanError(ValueError):
     """The plan file is unusable (message is shown to the user as is)."""
@@ -159,8 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         steps, cells = load_plan(doc, args.heading)
     except PlanError as exc:
         return _err(str(exc))
-    if not args.speed >= MIN_SPEED_KMH:  # NaN too
-        return _err(f"--speed must be >= {MIN_SPEED_KMH:g} km/h, not {args.speed:g}")
+    if not args.speed >= proto.MIN_SPEED_KMH:  # NaN too
+        return _err(f"--speed must be >= {proto.MIN_SPEED_KMH:g} km/h, not {args.speed:g}")
     try:
         check_link_settings(args.baud, args.reply_timeout, args.retries)
     except ValueError as exc:

@@ -121,7 +121,7 @@ class DriveConfig:
 
     port: str = field("", "serial device of the motor controller (or a simulator pty)")
     baud: int = field(115200, "serial baud rate", "baud")
-    speed: float = field(3.0, "driving speed, hard-capped at 3 km/h", "km/h")
+    speed: float = field(3.0, "driving speed, hard-capped at 3 km/h; at least 0.1", "km/h")
     cell_size: float = field(
         1.2,
         "not used: a /cmd_vel step needs the safe grid and drives to its next cell's centre, and "
@@ -165,6 +165,13 @@ def check_config(c: DriveConfig) -> None:
     :func:`~wheelgrid_drive.link.check_link_settings`'): a NaN ``cmd_vel_timeout`` let one
     Twist drive on for ever, and a negative deadband turned a zero Twist into a move."""
     check_finite(c)
+    if not c.speed >= proto.MIN_SPEED_KMH:
+        # 0 and below were replaced by the 3 km/h cap, with a warning: a user who set 0 to
+        # keep the chair still got full speed (over the cap is capped, as documented)
+        raise ValueError(
+            f"speed must be >= {proto.MIN_SPEED_KMH:g} km/h (it is capped at "
+            f"{proto.MAX_SPEED_KMH:g}), not {c.speed}"
+        )
     if not 0.0 < c.cmd_vel_timeout <= 5.0:
         raise ValueError(f"cmd_vel_timeout must be in (0, 5] s, not {c.cmd_vel_timeout}")
     if c.linear_deadband < 0 or c.angular_deadband < 0:
@@ -186,9 +193,9 @@ class DriveNode(Node):
         super().__init__("drive", **kwargs)
         self.cfg = declare_dataclass(self, cfg or DriveConfig())
         c = self.cfg
-        self.speed = min(c.speed, proto.MAX_SPEED_KMH) if c.speed > 0 else proto.MAX_SPEED_KMH
-        if c.speed > proto.MAX_SPEED_KMH or c.speed <= 0:
-            self.get_logger().warning(f"speed {c.speed} km/h replaced by {self.speed} km/h")
+        self.speed = min(c.speed, proto.MAX_SPEED_KMH)  # check_config refuses too slow
+        if c.speed > proto.MAX_SPEED_KMH:
+            self.get_logger().warning(f"speed {c.speed} km/h capped at {self.speed} km/h")
         self._started_ns = time.time_ns()  # plans published before it are not driven
         self._lock = threading.Lock()
         self._grid: Grid | None = None
@@ -532,7 +539,11 @@ class DriveNode(Node):
             return
         if len(msg.poses) > MAX_PATH_POSES:
             # a route across a building is a few hundred cells; more is a broken publisher, and
-            # reading it would hold this executor (and an e-stop behind it) for seconds
+            # reading it would hold this executor (and an e-stop behind it) for seconds. As
+            # every newer plan does, it voids one parked for the grid (that one drove once the
+            # grid came).
+            with self._gate:
+                self._pending_plan = None
             self._stop_job()
             self._set_state(
                 ERROR, f"plan refused: {len(msg.poses)} poses, more than {MAX_PATH_POSES}"

@@ -27,6 +27,7 @@ FRAME_OVERHEAD = HEADER_LEN + 2
 # chair at 3 km/h "to match the system's processing performance"; nothing here may go faster.
 MAX_SPEED_KMH = 3.0
 MAX_SPEED_MM_S = int(MAX_SPEED_KMH / 3.6 * 1000.0)  # 833
+MIN_SPEED_KMH = 0.1  # slower, a cell's move cannot end within the link's move timeout
 MAX_DISTANCE_MM = 2000  # one grid cell is at most 2 m; anything longer is a corrupt command
 MAX_POSE_M = 1_000_000.0  # |x|, |y| a SET_POSE may set: int32 mm holds 2147 km, with room to drive
 DEFAULT_HEARTBEAT_TIMEOUT_S = 0.5
