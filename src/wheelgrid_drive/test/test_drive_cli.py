@@ -331,3 +331,26 @@ def test_a_controller_elsewhere_than_the_plans_start_is_refused_before_any_move(
         [plan, "--port", sim.slave_path, "--cell-size", "1.2", "--heading", "up", "--no-pose-check"]
     )
     assert rc == 0 and len(sim_moves(sim)) == 9, capsys.readouterr().err
+
+
+def test_sigterm_mid_move_stops_the_chair_as_ctrl_c_does(make_sim, tmp_path):
+    """`wheelgrid drive` killed with SIGTERM (a launcher, systemd, `timeout`) mid-move sent no
+    STOP: the chair drove on until the controller's own watchdog stopped it, half a second
+    later. It now stops the chair and says whether the controller heard it, as Ctrl-C does."""
+    import signal
+    import subprocess
+
+    from wheelgrid_common.services import poll_until
+    from wheelgrid_common.testing import managed_process, python_module
+
+    sim = make_sim(time_scale=1.0)  # real time: a 1.2 m cell takes 1.4 s
+    plan = write(tmp_path, {"cells": [[0, 0], [0, 1], [0, 2]]})
+    argv = python_module("wheelgrid_drive.cli", plan, "--port", sim.slave_path)
+    argv += ["--heading", "right", "--set-pose", "--cell-size", "1.2"]
+    with managed_process(argv, stderr=subprocess.PIPE, text=True) as proc:
+        assert poll_until(lambda: sim.result == proto.Result.RUNNING, 20.0, 0.01)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20.0)
+    assert proc.returncode == 143, err
+    assert "terminated (SIGTERM); chair stopped" in err, err
+    assert sim.result == proto.Result.STOPPED  # not WATCHDOG: the host stopped it

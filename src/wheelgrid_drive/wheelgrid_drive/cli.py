@@ -12,7 +12,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -262,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         line = f"  {counter['i']}/{total}: {_describe(step)} -> {rec['ack']}{extra}{reason}"
         print(line, flush=True)
 
+    on_term = _stop_on_sigterm()
     try:
         link.start_heartbeat()
         st = link.status()
@@ -294,7 +297,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"wheelgrid drive: interrupted; {_stopped(link)}", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"wheelgrid drive: terminated (SIGTERM); {_stopped(link)}", file=sys.stderr)
+        return 143
     finally:
+        if on_term is not None:
+            signal.signal(signal.SIGTERM, on_term)
         link.close()
     if not result.ok:
         hint = ""
@@ -322,6 +330,26 @@ STOP_UNCONFIRMED = (
     "STOP NOT CONFIRMED by the controller: the chair may still be moving (its own watchdog "
     "stops it 0.5 s after the last frame); check the chair"
 )
+
+
+class Terminated(BaseException):
+    """SIGTERM (a launcher, systemd, ``timeout``) while the chair drives: raised where the run
+    is, as Ctrl-C's KeyboardInterrupt is, and a BaseException for the same reason (no
+    ``except Exception`` on the way swallows it)."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+def _stop_on_sigterm() -> Any:
+    """Make SIGTERM stop the chair as Ctrl-C does, and return the handler it replaces (None
+    where no handler can be set: not the main thread). SIGTERM killed the command outright
+    mid-move, with no STOP sent: the chair drove on until the controller's own watchdog."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    return previous if previous is not None else signal.SIG_DFL  # None: one set from C
 
 
 def _stopped(link: MotorLink) -> str:
