@@ -869,6 +869,26 @@ def test_a_plan_refused_for_its_size_voids_the_one_parked_for_the_grid(make_sim)
         assert sim_moves(sim) == []
 
 
+def test_a_plan_parked_while_a_stopped_move_still_ends_is_dropped_and_said(make_sim):
+    """A bad grid stops a move and leaves no grid; a plan that comes then is parked; if the
+    good grid comes while the stopped move's worker still ends, the plan is dropped, never
+    queued behind it: the state still said "plan waiting for the safe grid". (The worker's
+    ending is a few milliseconds here, so the node is told it is busy.)"""
+    sim = make_sim()
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.publish_plan(grid, [(3, 0), (3, 1)])  # parked: no grid yet
+        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+        h.drive._busy = lambda: True  # type: ignore[method-assign]
+        assert h.give_grid(grid)
+        assert h.spin(lambda: any("plan dropped" in s.message for s in h.states), 5.0)
+        assert h.drive._pending_plan is None and sim_moves(sim) == []
+
+
 def test_the_chairs_pose_is_in_the_frame_of_its_grid(make_sim):
     """The controller's pose is a place on the safe grid (set from its cell centres, checked
     against them), but /wheelgrid/chair_pose always said "map": with the mapper's map_frame

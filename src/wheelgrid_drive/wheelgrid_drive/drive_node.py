@@ -452,8 +452,15 @@ class DriveNode(Node):
             self._abort_if_moving("the safe grid's size, resolution, origin or frame changed")
         with self._gate:
             pending, self._pending_plan = self._pending_plan, None
-        if pending is not None and not self._busy():
-            self._plan_arrived(*pending)
+        if pending is not None:
+            if not self._busy():
+                self._plan_arrived(*pending)
+            else:  # the move a bad grid stopped is still ending: never queued behind it
+                self._set_state(
+                    WARN,
+                    "plan dropped: the chair was still stopping when the safe grid came; "
+                    "send the goal again",
+                )
         dst = self._entering
         if dst is not None and self._busy():
             reason = grid_cell_check(lambda: grid)(dst)
