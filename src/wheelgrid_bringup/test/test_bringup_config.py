@@ -366,6 +366,57 @@ def test_demo_with_a_folder_that_holds_no_bag_says_what_bag_takes(tmp_path, caps
     assert not (tmp_path / "out").exists()
 
 
+def _bag_with_a_vendor_type(out: Path) -> Path:
+    """Two clouds of the bundled bag and a /battery topic of a type no installation has."""
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg("float32 voltage\n", "vendor_msgs/msg/Battery"))
+    battery = store.types["vendor_msgs/msg/Battery"](voltage=24.0)
+    with Reader(PKG.parents[1] / "bags" / "paper_room" / "scan") as r, Writer(out, version=9) as w:
+        clouds = [c for c in r.connections if c.topic == "/iphone/points"]
+        cloud_conn = w.add_connection("/iphone/points", clouds[0].msgtype, typestore=store)
+        vendor = w.add_connection("/battery", "vendor_msgs/msg/Battery", typestore=store)
+        for _, (_, t, raw) in zip(range(2), r.messages(connections=clouds), strict=False):
+            w.write(cloud_conn, t, raw)
+            w.write(vendor, t, store.serialize_cdr(battery, "vendor_msgs/msg/Battery"))
+    return out
+
+
+def test_launch_and_demo_refuse_what_they_cannot_run_with_one_line_before_any_node(
+    tmp_path, capsys
+):
+    """Found by a review: `--rate nan` was taken (the replay spun a core and sent nothing,
+    exit 0), `--duration -1` ended at once with exit 0 and nan never, a --log-dir below a file
+    and a bag holding a type this installation lacks ended in tracebacks (exit 1); the demo
+    took `--rate 0` and such a bag only after three nodes had started, with a traceback."""
+    from wheelgrid_bringup.demo import main as demo_main
+    from wheelgrid_bringup.launcher import main as launch_main
+
+    (tmp_path / "afile").write_text("")
+    vendor = _bag_with_a_vendor_type(tmp_path / "vendor_bag")
+    quick = ["--no-drive", "--duration", "1", "--log-dir", str(tmp_path / "logs")]
+    for argv, says in (
+        (["--rate", "nan"], "--rate must be > 0, not nan"),
+        (["--duration", "-1"], "--duration must be >= 0 s"),
+        (["--duration", "nan"], "--duration must be >= 0 s"),
+        (["--log-dir", str(tmp_path / "afile" / "logs")], "Not a directory"),
+        (["--bag", str(vendor)], "/battery holds vendor_msgs/msg/Battery, a message type"),
+    ):
+        assert launch_main([*quick, *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err, (argv, err)
+    for argv, says in (
+        (["--rate", "0"], "--rate must be > 0"),
+        (["--bag", str(vendor)], "a message type this ROS installation does not have"),
+    ):
+        assert demo_main([*argv, "--out", str(tmp_path / "demo")]) == 2, argv
+        captured = capsys.readouterr()
+        assert says in captured.err and "Traceback" not in captured.err, (argv, captured.err)
+        assert not (tmp_path / "demo" / "logs" / "mapper.log").exists()  # no node started
+
+
 def test_launch_file_gives_the_mapper_time_to_save_as_it_stops():
     """ros2 launch sends SIGTERM 5 s after its SIGINT by default: a mapper cancelling a loop
     closure was killed before its save on exit, as under `wheelgrid launch` before."""

@@ -188,6 +188,10 @@ def demo_domain(inherited: str | None) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     t_start = time.monotonic()
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        # checked before any node starts: the replay refused it with a traceback after three
+        print(f"wheelgrid demo: --rate must be > 0, not {args.rate}", file=sys.stderr)
+        return 2
     why = out_refusal(args.out.resolve())
     if why:
         print(f"wheelgrid demo: {why}", file=sys.stderr)
@@ -251,6 +255,11 @@ def main(argv: list[str] | None = None) -> int:
             f"this shell, in {inherited or 0}, stays apart: an RViz joins with that domain)"
         )
         print(f"demo: bag {bag} ({', '.join(f'{t.name} x{t.count}' for t in topics)})")
+        try:  # before any node starts: a ROS 1 bag or an unknown type ended in a traceback
+            player = BagPlayer(monitor.node, bag, rate=args.rate)
+        except BagError as exc:
+            print(f"wheelgrid demo: {exc}", file=sys.stderr)
+            return 2
         for name in ("mapper", "grid", "planner"):
             over: dict[str, object] = {"output_dir": str(out)}
             if name == "mapper":
@@ -259,7 +268,6 @@ def main(argv: list[str] | None = None) -> int:
                 over = {}
             sup.start_node(name, params, over)
         n_frames = sum(t.count for t in topics if t.msgtype.endswith("PointCloud2"))
-        player = BagPlayer(monitor.node, bag, rate=args.rate)
         # The first frame defines the map frame: start only once the mapper listens to every
         # replayed topic (its start-up, importing Open3D and KISS-ICP, takes seconds).
         if not chain.wait(lambda: not player.unsubscribed(), 60.0, "nodes"):

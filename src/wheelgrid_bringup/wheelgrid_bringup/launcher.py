@@ -145,8 +145,15 @@ def check_params_file(path: Path) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.rate <= 0:
-        print("wheelgrid launch: --rate must be > 0", file=sys.stderr)
+    if not (math.isfinite(args.rate) and args.rate > 0):  # NaN: a replay that spun, silent
+        print(f"wheelgrid launch: --rate must be > 0, not {args.rate}", file=sys.stderr)
+        return 2
+    if not (math.isfinite(args.duration) and args.duration >= 0):
+        # NaN never stopped, and -1 stopped at once with exit 0
+        print(
+            f"wheelgrid launch: --duration must be >= 0 s (0: never), not {args.duration}",
+            file=sys.stderr,
+        )
         return 2
     if args.clock is not None and not args.bag:
         # live, time is the sensor's own: there is no bag time to send
@@ -217,7 +224,11 @@ def main(argv: list[str] | None = None) -> int:
         + (f" namespace {namespace}" if namespace else ""),
         flush=True,
     )
-    sup = Supervisor(args.log_dir, env)
+    try:
+        sup = Supervisor(args.log_dir, env)
+    except OSError as exc:  # a --log-dir below a file: a traceback, exit 1
+        print(f"wheelgrid launch: --log-dir {args.log_dir}: {exc.strerror}", file=sys.stderr)
+        return 2
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     monitor = Monitor(ctx, "wheelgrid_launch", namespace or None)

@@ -84,8 +84,8 @@ class BagPlayer:
     ) -> None:
         """``namespace`` (absolute, e.g. ``/chair1``) puts the bag's topics under it, for a
         chain started there: ``/iphone/points`` goes out on ``/chair1/iphone/points``."""
-        if rate <= 0:
-            raise ValueError("rate must be > 0")
+        if not (math.isfinite(rate) and rate > 0):  # NaN made every due time NaN: a spin
+            raise ValueError(f"rate must be a number > 0, not {rate}")
         if not clock_hz >= 0:
             raise ValueError("clock_hz must be >= 0 (0: no /clock)")
         self.node = node
@@ -118,9 +118,19 @@ class BagPlayer:
                 )
             self.topics = [t for t in infos if t.name in wanted]
             self.total = sum(t.count for t in self.topics)
+        classes = {}
+        for t in self.topics:
+            try:
+                classes[t.name] = message_class(t.msgtype)
+            except (ImportError, AttributeError, ValueError):
+                # a robot's bag often carries a vendor's types: a traceback named no topic
+                raise BagError(
+                    f"{self.bag}: {t.name} holds {t.msgtype}, a message type this ROS "
+                    "installation does not have; replay the other topics with --topic"
+                ) from None
         self._pubs = {
             t.name: node.create_publisher(
-                message_class(t.msgtype), replayed_name(t.name, namespace), REPLAY_QOS
+                classes[t.name], replayed_name(t.name, namespace), REPLAY_QOS
             )
             for t in self.topics
         }
