@@ -222,7 +222,7 @@ def stream_main(argv: list[str]) -> int:
             exp, host, port, rate=args.rate, token=token, indices=idx, depth_encoding=enc
         )
     except KeyboardInterrupt:
-        return _fail(1, "interrupted")
+        return _fail(130, "interrupted")  # as import-stray and every other command
     except ConnectionRefusedError:
         return _fail(
             1,
