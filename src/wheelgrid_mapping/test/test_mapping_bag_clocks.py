@@ -108,22 +108,25 @@ def test_a_cloud_stamped_far_ahead_of_its_log_time_is_skipped(tmp_path, capsys) 
 def test_a_clock_that_goes_back_leaves_the_trajectory_monotone(tmp_path, capsys) -> None:
     """The clouds and their odometry from the fifth on stamped 100 s earlier (a publisher
     restarted on another clock): those frames were mapped on their own stamps, and
-    trajectory.tum went back in time, which no TUM reader takes. The mapping time goes on from
-    the frame before by the time the log says passed; report.json gives the offset, and every
-    frame still found its prior."""
+    trajectory.tum went back in time, which no TUM reader takes. The second frame in a row on
+    the new clock starts a new time base (the first is held back: one alone is a bad stamp),
+    and the mapping time goes on from the frame before by the time the log says passed;
+    report.json gives the offset, and every frame still found its prior."""
     err, rep = _run(
         _bag(tmp_path / "bag", 0.0, frames=8, shift=lambda t, k: -100.0 if k >= 4 else 0.0),
         tmp_path,
         capsys,
     )
     assert "no odometry message" not in err
+    assert "frame 4 (and any like it): skipped: stamped 99.80 s before the frame before" in err
     fr = rep["frames"]
-    assert fr["clock_jumps"] == 1 and fr["used"] == 8 and fr["skipped"] == 0
+    assert fr["clock_jumps"] == 1 and fr["used"] == 7 and fr["skipped"] == 1
+    assert fr["stamped_behind"] == 1 and fr["after_gap"] == 0 and fr["failed"] == 0
     (jump,) = rep["mapping_time"]["jumps"]
-    assert jump["frame"] == 4 and jump["jump_s"] == pytest.approx(-100.0, abs=1e-6)
+    assert jump["frame"] == 5 and jump["jump_s"] == pytest.approx(-100.0, abs=1e-6)
     assert rep["mapping_time"]["offset_s"] == pytest.approx(100.0, abs=1e-6)
     stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
-    assert np.allclose(np.diff(stamps), 0.2, atol=1e-6)
+    assert np.allclose(np.diff(stamps), [0.2, 0.2, 0.2, 0.4, 0.2, 0.2], atol=1e-6)
 
 
 def _stray_every_third(capture: Path, out: Path, frames: int, ahead: dict[int, float]) -> Path:

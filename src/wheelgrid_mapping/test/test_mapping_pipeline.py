@@ -555,19 +555,38 @@ def test_kept_frames_pair_with_the_trajectory() -> None:
 def test_a_frame_stamped_in_the_future_does_not_stop_the_keyframes() -> None:
     """With keyframes 0.1 s apart, one frame stamped 1e6 s ahead (or a publisher restarted
     with an older clock) used to put every later frame "between keyframes": the map stopped
-    without a word. The keyframe clock restarts at a stamp that goes back, and it is counted."""
+    without a word. The keyframe clock restarts where the stamps go back, on the second frame
+    in a row that does (one alone is a bad stamp), and it is counted."""
     m = Mapper(cfg=MapperConfig(min_frame_interval=0.1))
     stamps = [0.0, 0.2, 1e6, 0.4, 0.6, 0.65, 0.8]
     outcomes = [m.admit(t, "base_link") for t in stamps]
     admitted = [t for t, out in zip(stamps, outcomes, strict=True) if out is None]
-    assert admitted == [0.0, 0.2, 1e6, 0.4, 0.6, 0.8]  # 0.65 is between keyframes
-    assert m.clock_jumps == 1 and m.frames_skipped == 1
+    assert admitted == [0.0, 0.2, 1e6, 0.6, 0.8]  # 0.4 held back, 0.65 between keyframes
+    assert [o.cause for o in outcomes if o is not None] == ["stamped_behind", ""]
+    assert m.clock_jumps == 1 and m.frames_skipped == 2 and m.stamped_behind == 1
     assert m.report()["frames"]["clock_jumps"] == 1
     # with stamps alone the future one cannot be told from a pause: taken, and the mapping
     # time (trajectory.tum's) goes on from it by the usual interval, never back
     times = [t for _, _, t in m._admitted]
-    assert times == pytest.approx([0.0, 0.2, 1e6, 1e6 + 0.2, 1e6 + 0.4, 1e6 + 0.6])
-    assert [j["frame"] for j in m.report()["mapping_time"]["jumps"]] == [3]
+    assert times == pytest.approx([0.0, 0.2, 1e6, 1e6 + 0.2, 1e6 + 0.4])
+    assert [j["frame"] for j in m.report()["mapping_time"]["jumps"]] == [4]
+
+
+def test_one_frame_stamped_zero_costs_that_frame_only() -> None:
+    """A driver's unset stamp (0) on one cloud was taken at once as a clock that went back;
+    the next cloud, back on the real clock, then came decades "later" with no pace on the new
+    base to hold it back, and it and the frames after it were registered as after a dropout
+    (a third of the bundled bag lost in a review's run). The frame is held back, counted, and
+    the stream goes on as if it had not come."""
+    m = Mapper(cfg=MapperConfig(min_frame_interval=0.1))
+    stamps = [1.7e9 + 0.2 * k for k in range(8)]
+    stamps[3] = 0.0
+    outcomes = [m.admit(t, "base_link", 50.0 + 0.2 * k) for k, t in enumerate(stamps)]
+    assert [o.cause if o else "" for o in outcomes] == ["", "", "", "stamped_behind"] + [""] * 4
+    assert m.clock_jumps == 0 and m.stamped_behind == 1 and m.stamped_ahead == 0
+    times = [t for _, _, t in m._admitted]
+    assert times == pytest.approx([s for s in stamps if s > 0.0])
+    assert m.report()["frames"]["stamped_behind"] == 1
 
 
 def test_a_frame_stamped_far_ahead_of_its_arrival_is_skipped_and_counted() -> None:

@@ -17,7 +17,9 @@ time between two frames), the keyframe interval, the loop closure's submaps and
   mapped on their own stamps, and ``trajectory.tum`` went back in time, which no TUM reader
   takes. The mapping time now goes on from the frame before: each jump shifts the later
   stamps by one offset, so the trajectory stays monotone and continuous; the report lists
-  every jump with its offset, so a user can undo it.
+  every jump with its offset, so a user can undo it. The pipeline takes a clock that went back
+  on its second frame in a row (one frame stamped back, a driver's 0, is a bad stamp:
+  ``pipeline.BEHIND_CONFIRM``).
 
 A Stray export has no arrival times; its capture order stands in for them (a frame was
 taken no later than the frames after it: :meth:`.stray.StrayExport.captured_by`), which
@@ -98,6 +100,14 @@ class FrameClock:
         self._suspects.clear()
         return Verdict(jumped_forward=True)
 
+    def interval(self) -> float:
+        """The usual interval between admitted frames: the lower median of the last ones, so
+        that one pause (or one stamp far ahead, without arrival times to tell it) among few
+        intervals is not it; :data:`DEFAULT_INTERVAL` before any."""
+        if not self._intervals:
+            return DEFAULT_INTERVAL
+        return sorted(self._intervals)[(len(self._intervals) - 1) // 2]
+
     def admit(
         self, index: int, stamp: float, received: float | None, jumped: bool, min_gap: float
     ) -> float:
@@ -113,13 +123,7 @@ class FrameClock:
                 pace, _, r1 = read
                 gap = pace * (float(received) - r1)
             if gap <= 0.0:
-                # the lower median: one pause (or one stamp far ahead, without arrival times to
-                # tell it) among few intervals must not become the step
-                gap = (
-                    sorted(self._intervals)[(len(self._intervals) - 1) // 2]
-                    if self._intervals
-                    else DEFAULT_INTERVAL
-                )
+                gap = self.interval()
             gap = max(gap, min_gap, 1e-3)
             old = self.offset
             self.offset = self._last_time + gap - stamp

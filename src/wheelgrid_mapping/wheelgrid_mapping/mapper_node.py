@@ -591,6 +591,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_out_of_order": self.mapper.out_of_order,  # repeats, late: skipped
             # stamped far ahead of their arrival: skipped (:mod:`.frame_clock`)
             "frames_stamped_ahead": self.mapper.stamped_ahead,
+            "frames_stamped_behind": self.mapper.stamped_behind,
             "frames_other_frame": self.mapper.other_frame,  # the other axis convention: skipped
             "frames_malformed": self.counts["malformed"],
             "frames_empty": self.mapper.frames_empty,

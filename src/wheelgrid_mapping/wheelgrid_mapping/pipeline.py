@@ -24,7 +24,7 @@ from wheelgrid_common.fileio import write_ply, write_together, write_tum
 from wheelgrid_common.params import check_finite, field, from_mapping, read_yaml
 
 from .evidence import EvidenceMap
-from .frame_clock import AHEAD_CONFIRM, FrameClock
+from .frame_clock import AHEAD_CONFIRM, AHEAD_WINDOW, FrameClock
 from .levelling import (
     DOWN_HINT,
     FloorNotFoundError,
@@ -161,6 +161,9 @@ FLOOR_CHECK_GAIN = 1.1
 # A frame stamped at most this long before the last keyframe (or at its very stamp) is a repeat
 # or a late frame, skipped; one stamped farther back is a clock jump, and mapping goes on (s).
 LATE_FRAME_WINDOW = 1.0
+# Frames in a row stamped LATE_FRAME_WINDOW or more back that make a clock that went back
+# (the first of them held back: one alone is a bad stamp, a driver's 0)
+BEHIND_CONFIRM = 2
 # report.json's reason for a frame with no valid point (all NaN, out of range, filtered away)
 EMPTY_REASON = "no valid points"
 # report.json lists this many registration failures one by one (all are counted): a
@@ -366,6 +369,7 @@ class Mapper:
         # confirmed ahead (:mod:`.frame_clock`); the mapping time goes on across them
         self.clock_jumps = 0
         self.stamped_ahead = 0  # of frames_skipped: stamped ahead of their arrival
+        self.stamped_behind = 0  # of frames_skipped: stamped back, held (clock not confirmed)
         self.out_of_order = 0  # of frames_skipped: repeats and late frames (LATE_FRAME_WINDOW)
         self.other_frame = 0  # of frames_skipped: a frame_id of another axis convention
         self.frames_errored = 0  # raised while prepared or registered (FrameOutcome "error")
@@ -388,6 +392,9 @@ class Mapper:
             "levelling_s": 0.0,
         }
         self._last_processed: float | None = None
+        # stamps of the frames in a row stamped LATE_FRAME_WINDOW or more before the last
+        # keyframe, held back until BEHIND_CONFIRM of them agree that the clock went back
+        self._behind: list[float] = []
         # (index, stamp, mapping time) admitted, not yet added
         self._admitted: list[tuple[int, float, float]] = []
         self.clock = FrameClock()
@@ -493,12 +500,34 @@ class Mapper:
             return FrameOutcome("skipped", "stamped at or before the frame before it")
         if self._last_processed is not None and stamp < self._last_processed:
             # A stamp before the last keyframe's: a publisher restarted, a clock was set, or
-            # one frame came stamped in the future. The keyframe clock restarts here; kept on
-            # the old stamp, every frame after a future one would fall "between keyframes"
-            # and the map would stop without a word.
+            # one frame came stamped 0 (a driver's unset stamp). Taken as a new time base at
+            # once, one such frame left the next, back on the real clock, decades "later":
+            # nothing had set the pace on the new base to hold it back, and it and the frames
+            # after it were registered as after a dropout (a third of a bag lost). It is held
+            # back until the next frame agrees (BEHIND_CONFIRM in a row, each after the one
+            # before): a publisher restarted costs one frame, which at 5 Hz leaves no dropout.
+            behind = self._last_processed - stamp
+            window = AHEAD_WINDOW + self.clock.interval()
+            if self._behind and not 0.0 < stamp - self._behind[-1] <= window:
+                self._behind.clear()  # not one clock: another bad stamp
+            self._behind.append(stamp)
+            if len(self._behind) < BEHIND_CONFIRM:
+                self.frames_skipped += 1
+                self.stamped_behind += 1
+                return FrameOutcome(
+                    "skipped",
+                    f"stamped {behind:.2f} s before the frame before it (a bad stamp; a clock "
+                    f"that went back is taken after {BEHIND_CONFIRM} such frames in a row)",
+                    cause="stamped_behind",
+                )
+            # The keyframe clock restarts here; kept on the old stamp, every frame after would
+            # fall "between keyframes" and the map would stop without a word.
+            self._behind.clear()
             self.clock_jumps += 1
             self._last_processed = None
             jumped = True
+        else:
+            self._behind.clear()
         if (
             self.cfg.min_frame_interval > 0
             and self._last_processed is not None
@@ -960,6 +989,7 @@ class Mapper:
                 "skipped": self.frames_skipped,
                 "clock_jumps": self.clock_jumps,
                 "stamped_ahead": self.stamped_ahead,
+                "stamped_behind": self.stamped_behind,
                 "out_of_order": self.out_of_order,
                 "other_frame": self.other_frame,
                 "relocalised": c.relocalised,
