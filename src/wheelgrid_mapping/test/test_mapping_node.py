@@ -818,31 +818,43 @@ def test_publish_tf_off_leaves_tf_to_the_robots_own_tree(tmp_path: Path, capfd) 
     assert "/tf off" in capfd.readouterr().err
 
 
-def test_each_pose_carries_its_clouds_exact_stamp(tmp_path: Path) -> None:
+@pytest.mark.parametrize("repeat", [False, True])
+def test_each_pose_carries_its_clouds_exact_stamp(tmp_path: Path, repeat: bool) -> None:
     """The pose (and its /tf) went out stamped with the cloud's stamp after a round trip
     through a float: at epoch times (1.7e9 s) that is some 100 ns off, so the map -> sensor
     transform of a cloud never had the cloud's own stamp (a tf lookup at the cloud's time
-    extrapolated into the future; an exact-time sync never paired them)."""
+    extrapolated into the future; an exact-time sync never paired them). ``repeat``: the third
+    cloud delivered twice, the repeat under another frame_id; the repeat (skipped) took the
+    first one's entry, and its pose went out under the repeat's frame_id and a rounded stamp
+    (found by a review)."""
     if not BAG.exists():
         pytest.skip("bags/paper_room: not present")
     sent = bag_cloud_odometry(BAG, 4)
+    for msg, odom in sent:  # off the bag's 0.2 s grid, as a driver's stamps are
+        msg.header.stamp.nanosec += 123457
+        odom.header.stamp.nanosec += 123457
     with rclpy_context() as ctx:
         node = in_process_mapper_node(ctx, tmp_path, "/stamp_test", max_queue=100)
         published: list = []
         node.odom_pub = SimpleNamespace(publish=published.append)
         try:
-            for msg, odom in sent:
+            for k, (msg, odom) in enumerate(sent):
                 node._on_prior(odom)
                 node._on_cloud(msg)
+                if repeat and k == 2:
+                    again = copy.deepcopy(msg)
+                    again.header.frame_id = "other_camera_optical_frame"
+                    node._on_cloud(again)
             wait_settled(node)
         finally:
             node.close()
             node.destroy_node()
     assert len(published) >= 2, len(published)
-    stamps = {(m.header.stamp.sec, m.header.stamp.nanosec) for m, _ in sent}
+    assert node.mapper.out_of_order == int(repeat)
+    frames = {(m.header.stamp.sec, m.header.stamp.nanosec): m.header.frame_id for m, _ in sent}
     for pose in published:
         got = (pose.header.stamp.sec, pose.header.stamp.nanosec)
-        assert got in stamps, (got, sorted(stamps))
+        assert frames.get(got) == pose.child_frame_id, (got, pose.child_frame_id, frames)
 
 
 def test_the_map_is_published_under_use_sim_time_with_no_clock(tmp_path):
