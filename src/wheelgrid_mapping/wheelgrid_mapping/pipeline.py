@@ -376,7 +376,11 @@ class Mapper:
         self.failed_since_used = 0  # registration failures since the last frame mapped
         self.frames_empty = 0
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
+        # the first MAX_LISTED_FAILURES registration failures, as report.json lists them, and
+        # how many there were: all of them kept, a sensor covered for hours on a live node grew
+        # the list by some 9 MB an hour
         self.failures: list[dict[str, Any]] = []
+        self.failures_total = 0
         self.points = {
             "input": 0,
             "valid": 0,
@@ -541,6 +545,11 @@ class Mapper:
         self._admitted.append((index, float(stamp), t_map))
         return None
 
+    def _note_failure(self, entry: dict[str, Any]) -> None:
+        self.failures_total += 1
+        if len(self.failures) < MAX_LISTED_FAILURES:
+            self.failures.append(entry)
+
     def add_prepared(self, prep: PreparedFrame, prior: np.ndarray | None = None) -> FrameOutcome:
         """The second half of :meth:`add_frame`: register and integrate the oldest admitted frame,
         ``prep`` its :func:`prepare_frame`."""
@@ -560,12 +569,12 @@ class Mapper:
         t1 = time.perf_counter()
         if st.valid == 0:
             self.frames_empty += 1
-            self.failures.append({"frame": index, "stamp": stamp, "reason": EMPTY_REASON})
+            self._note_failure({"frame": index, "stamp": stamp, "reason": EMPTY_REASON})
             return FrameOutcome("empty", "no valid points (all NaN or out of range)")
         res = self.registrar.register(pts, t_map, prior, prep.inputs)
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
-            self.failures.append({"frame": index, "stamp": stamp, "reason": res.reason})
+            self._note_failure({"frame": index, "stamp": stamp, "reason": res.reason})
             self.failed_since_used += 1
             return FrameOutcome("failed", res.reason, self.pose_in_map(self.registrar.last_pose))
         self.failed_since_used = 0
@@ -1018,9 +1027,9 @@ class Mapper:
                 c.failure_reasons,
                 **({EMPTY_REASON: self.frames_empty} if self.frames_empty else {}),
             ),
-            "failures": self.failures[:MAX_LISTED_FAILURES],
+            "failures": self.failures,
             # the list stops at MAX_LISTED_FAILURES; the count says it was cut, and by how much
-            "failures_not_listed": max(0, len(self.failures) - MAX_LISTED_FAILURES),
+            "failures_not_listed": self.failures_total - len(self.failures),
             "points": dict(self.points, map=int(self.map_odom().shape[0])),
             "timings": {k: round(v, 3) for k, v in self.timings.items()},
             "levelling": self.levelling_report(),
