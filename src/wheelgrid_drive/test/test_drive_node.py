@@ -141,6 +141,22 @@ def driving_along_row_3(make_sim):
         yield h, sim, grid
 
 
+@contextlib.contextmanager
+def a_plan_parked_for_the_grid(make_sim):
+    """A drive node (heading right, pose set on the plan) given a plan along row 3 before any
+    grid: parked until the grid comes."""
+    sim = make_sim()
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+    ):
+        assert h.matched()
+        h.publish_plan(grid, [(3, 0), (3, 1)])  # parked: no grid yet
+        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+        yield h, sim, grid
+
+
 def test_node_drives_the_table_ii_route(make_sim):
     sim = make_sim()
     grid = free_grid()
@@ -793,15 +809,7 @@ def test_a_grid_that_moves_under_a_running_plan_stops_it(make_sim):
 def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
     """A parked plan does not survive an e-stop; a pose in another frame, a path of 100k
     poses, a grid of resolution NaN and a Twist of inf are refused; the chair never moves."""
-    sim = make_sim()
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.publish_plan(grid, [(3, 0), (3, 1)])  # parked: no grid yet
-        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+    with a_plan_parked_for_the_grid(make_sim) as (h, sim, grid):
         h.pub_estop.publish(h.Bool(data=True))
         assert h.spin(lambda: h.drive._estop, 3.0)
         h.pub_estop.publish(h.Bool(data=False))
@@ -844,15 +852,7 @@ def test_a_plan_refused_for_its_size_voids_the_one_parked_for_the_grid(make_sim)
     """A plan parked until the grid came (none yet), then a newer plan refused for its 10,001
     poses: every other newer plan voids the parked one, this one did not, and the old plan
     drove once the grid came."""
-    sim = make_sim()
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2)])  # parked: no grid yet
-        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+    with a_plan_parked_for_the_grid(make_sim) as (h, sim, grid):
         ps = h.PoseStamped()
         ps.header.frame_id = "map"
         x, y = grid.cell_center(3, 0)
@@ -874,15 +874,7 @@ def test_a_plan_parked_while_a_stopped_move_still_ends_is_dropped_and_said(make_
     good grid comes while the stopped move's worker still ends, the plan is dropped, never
     queued behind it: the state still said "plan waiting for the safe grid". (The worker's
     ending is a few milliseconds here, so the node is told it is busy.)"""
-    sim = make_sim()
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
-    ):
-        assert h.matched()
-        h.publish_plan(grid, [(3, 0), (3, 1)])  # parked: no grid yet
-        assert h.spin(lambda: h.drive._pending_plan is not None, 5.0)
+    with a_plan_parked_for_the_grid(make_sim) as (h, sim, grid):
         h.drive._busy = lambda: True  # type: ignore[method-assign]
         assert h.give_grid(grid)
         assert h.spin(lambda: any("plan dropped" in s.message for s in h.states), 5.0)
