@@ -211,3 +211,33 @@ def test_odometry_is_arkit_like(sim_clean: Path) -> None:
     path = np.sum(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1))
     err = np.linalg.norm(est_a[-1, :3, 3] - true[-1, :3, 3])
     assert 0.0 < err < 0.05 * path + 0.05
+
+
+def test_an_interrupted_simulation_leaves_no_bag_that_looks_complete(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C (or a full disk) mid-run left a bag that opened as complete with fewer frames
+    than the ground truth beside it, and a rerun into the same --out was refused. What the run
+    wrote goes; a file that was in --out before stays."""
+    from wheelgrid_sim.simulate import simulate
+
+    def stop_at(k: int):
+        def on_frame(i: int) -> None:
+            if i == k:
+                raise KeyboardInterrupt
+
+        return on_frame
+
+    fresh = tmp_path / "fresh"
+    with pytest.raises(KeyboardInterrupt):
+        simulate(fresh, frames=6, stride=16, on_frame=stop_at(2))
+    assert not fresh.exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    with pytest.raises(KeyboardInterrupt):
+        simulate(kept, frames=6, stride=16, on_frame=stop_at(2))
+    assert [p.name for p in kept.iterdir()] == ["notes.txt"]
+    assert simulate(kept, frames=3, stride=16).frames == 3  # the rerun is not refused
+    assert cli_main(["--rate", "inf", "--out", str(tmp_path / "inf")]) == 2
+    assert "--rate must be in (0, 1000] Hz" in capsys.readouterr().err

@@ -6,12 +6,13 @@ import argparse
 import sys
 
 from wheelgrid_common.bagio import BagError
-from wheelgrid_common.fileio import out_folder
+from wheelgrid_common.fileio import folder_problem, out_folder
 from wheelgrid_common.progress import Progress
 from wheelgrid_sim.simulate import make_scene, simulate
 from wheelgrid_sim.trajectory import SPEED, nominal_duration, nominal_frames
 
 CHAIR_SPEED = 3.0 / 3.6  # m/s: the paper's chair drives at <= 3 km/h
+MAX_RATE_HZ = 1000.0  # a depth camera's frame rate; inf ended in an OverflowError traceback
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,8 +79,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames is not None and args.frames < 1:
         print("wheelgrid simulate: --frames must be >= 1", file=sys.stderr)
         return 2
-    if not args.rate > 0:
-        print("wheelgrid simulate: --rate must be > 0 Hz", file=sys.stderr)
+    if not 0 < args.rate <= MAX_RATE_HZ:
+        print(
+            f"wheelgrid simulate: --rate must be in (0, {MAX_RATE_HZ:g}] Hz, not {args.rate}",
+            file=sys.stderr,
+        )
         return 2
     nominal = nominal_duration(make_scene(args.scene, args.seed), args.back_to_start)  # s
     at_speed = nominal_frames(nominal, args.rate)
@@ -89,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     speed = SPEED * nominal * args.rate / (args.frames - 1) if args.frames > 1 else 0.0
     if not 1 <= args.stride <= 32:
         print("wheelgrid simulate: --stride must be in 1..32", file=sys.stderr)
+        return 2
+    why = folder_problem(args.out)  # bad input, before any frame: exit 2, not a failure
+    if why:
+        print(f"wheelgrid simulate: {why}", file=sys.stderr)
         return 2
     bar = Progress(args.frames, "simulate", unit="frames")
     try:
@@ -104,10 +112,21 @@ def main(argv: list[str] | None = None) -> int:
             on_frame=lambda _i: bar.update(),
             back_to_start=args.back_to_start,
         )
-    except (BagError, ValueError, OSError) as exc:
+    except (BagError, ValueError) as exc:
         bar.close()
         print(f"wheelgrid simulate: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        bar.close()
+        print("wheelgrid simulate: interrupted; what it wrote is removed", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a full disk: OSError, or sqlite3's OperationalError (a traceback)
+        bar.close()
+        print(
+            f"wheelgrid simulate: failed ({type(exc).__name__}: {exc}); what it wrote is removed",
+            file=sys.stderr,
+        )
+        return 1
     bar.close()
     rows, cols = res.grid_shape
     topics = "/iphone/points" + ("" if args.no_odometry else " + /iphone/odometry")

@@ -13,8 +13,10 @@ Output folder layout (fixed; other stages and tests read it)::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -180,7 +182,44 @@ def simulate(
     bag = out / "scan"
     if bag.exists():
         raise BagError(f"{bag}: already exists; choose a new --out or remove it")
+    before = set(out.iterdir()) if out.is_dir() else None
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _simulate(out, bag, sc, cam, frames, rate, seed, stride, storage, noise,
+                         odometry, on_frame, back_to_start, t0)  # fmt: skip
+    except BaseException:
+        # Ctrl-C or a full disk: the bag, closed as it was, opened as a complete recording of
+        # fewer frames than the ground truth beside it described, and a second run into the
+        # same --out was refused. What this run wrote goes; the cause goes on.
+        made = sorted(out.iterdir()) if before is None else sorted(set(out.iterdir()) - before)
+        for path in made:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        if before is None:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+
+
+def _simulate(
+    out: Path,
+    bag: Path,
+    sc: Scene,
+    cam: DepthCamera,
+    frames: int,
+    rate: float,
+    seed: int,
+    stride: int,
+    storage: str,
+    noise: bool,
+    odometry: bool,
+    on_frame: Callable[[int], None] | None,
+    back_to_start: bool,
+    t0: float,
+) -> SimResult:
+    """:func:`simulate`'s work, once its arguments are checked and ``out`` exists."""
 
     _, poses = make_trajectory(sc, frames, rate, seed, back_to_start)
     stamps_ns = [frame_stamp_ns(i, rate) for i in range(frames)]
