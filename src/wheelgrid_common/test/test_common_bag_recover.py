@@ -163,3 +163,27 @@ def test_the_chunks_after_a_damaged_one_are_given_back(tmp_path, capsys) -> None
     assert set(msgs[:10]) <= set(got)  # and the first
     assert f"{len(msgs) - len(got)} of the {len(msgs)} messages" in line, line
     assert "the cut went through" not in line  # nothing was cut off: it was damaged
+
+
+def test_an_interrupted_recovery_leaves_no_bag_that_looks_complete(
+    tmp_path, capsys, monkeypatch
+) -> None:
+    """Ctrl-C during the copy: the writer was closed as it was, and --out opened as a complete
+    bag of fewer messages, with nothing to say so (and a rerun was refused: --out exists). The
+    part written is removed. (The interrupt is raised from the progress bar, where a Ctrl-C
+    during a long copy lands as often as anywhere.)"""
+    bag, _ = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[: int(0.6 * mcap.stat().st_size)])
+    (bag / "metadata.yaml").unlink()
+    calls = {"n": 0}
+
+    def update(self, n: int = 1, **kw: object) -> None:
+        calls["n"] += 1
+        if calls["n"] == 10:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(bag_recover.Progress, "update", update)
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 130
+    assert "interrupted; the part of" in capsys.readouterr().err
+    assert calls["n"] == 10 and not (tmp_path / "back").exists()

@@ -18,6 +18,8 @@ puts them, so the chunks after the damage are copied too.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import shutil
 import struct
 import sys
 from dataclasses import dataclass, field
@@ -312,8 +314,18 @@ def _copy(
                         f"({type(exc).__name__}: {exc}); the {res.messages} messages before "
                         f"it are in {out}"
                     ) from exc
-    finally:
-        writer.close()
+    except BagError:
+        writer.close()  # the messages before the damage are kept, and the error says where
+        raise
+    except BaseException:
+        # Ctrl-C, a full disk: closed as it was, the part copied opened as a complete bag of
+        # fewer messages, with nothing to say so (and a close that failed on the full disk
+        # hid why). It is removed; the cause goes on.
+        with contextlib.suppress(Exception):
+            writer.close()
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    writer.close()
 
 
 def _connection(writer: Any, conn: Any, store: Any) -> Any:
@@ -346,6 +358,12 @@ def main(argv: list[str] | None = None) -> int:
     except (BagError, OSError) as exc:
         print(f"wheelgrid bag-recover: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(
+            f"wheelgrid bag-recover: interrupted; the part of {args.out} written is removed",
+            file=sys.stderr,
+        )
+        return 130
     span = (res.end_ns - res.start_ns) / 1e9 if res.messages else 0.0
     topics = ", ".join(f"{t} {n}" for t, n in sorted(res.topics.items())) or "none"
     unknown = (
