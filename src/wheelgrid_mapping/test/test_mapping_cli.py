@@ -837,6 +837,21 @@ def test_measure_refuses_boxes_whose_points_fix_no_plane(tmp_path: Path, capsys)
     assert abs(cli_measure.fit_plane(tri).normal[0]) == pytest.approx(1.0)
 
 
+def test_measure_refuses_a_box_of_a_few_stray_points(tmp_path: Path, capsys) -> None:
+    """A wall and 4 scattered points 1.2 m from it: the 4 read as a face, "distance 121.25 +-
+    1.11 cm", exit 0 (a review's find). A box needs as many points as a face's normal step
+    does (MIN_FACING); fewer is a one-line error naming the box, exit 2."""
+    rng = np.random.default_rng(5)
+    wall = np.column_stack([np.zeros(2000), rng.random(2000), rng.random(2000)])
+    stray = np.array([[1.2, 0.2, 0.3], [1.25, 0.7, 0.6], [1.15, 0.4, 0.9], [1.22, 0.9, 0.1]])
+    path = tmp_path / "stray.ply"
+    write_ply(path, np.vstack([wall, stray]))
+    argv = [str(path), "--box-a", "-.05", "0", "0", ".05", "1", "1", "--box-b", "1", "0", "0"]
+    assert cli_measure.main([*argv, "1.4", "1", "1"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "--box-b: the box holds 4 points, too few to be a surface" in err
+
+
 def test_measure_json_is_never_nan_or_infinity(tmp_path: Path, capsys) -> None:
     """Coordinates near float64's range overflow the fits (rms and the sideways offset came
     out inf) and json.dumps printed Infinity: the reading is refused instead (exit 2)."""
