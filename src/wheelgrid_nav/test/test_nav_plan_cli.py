@@ -182,6 +182,16 @@ def test_huge_check_every_is_refused_not_a_hang(paper_yaml, tmp_path, capsys):
     assert code == 2 and "check_every must be from 1 to" in err
 
 
+@pytest.mark.parametrize("setting", ["replay: 100000000", "agents: 1000000000"])
+def test_a_replay_history_too_large_to_keep_is_exit_2(paper_yaml, tmp_path, capsys, setting):
+    """replay 1e8 or agents 1e9 passed the settings check and ended in a 38.7 GiB allocation
+    error, a 17-line traceback, exit 1 (a review's find)."""
+    cfg = tmp_path / "big.yaml"
+    cfg.write_text(f"{setting}\n")
+    code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--config", cfg)
+    assert code == 2 and "GiB of history" in err and "Traceback" not in err, err
+
+
 @pytest.mark.parametrize("where", ["missing/plan.png", "."])
 def test_unwritable_png_exit_2_before_planning(paper_yaml, tmp_path, capsys, where):
     png = tmp_path / where

@@ -277,17 +277,24 @@ def _build_mdp(
     return _Mdp(nxt, rew, terminal, cost, rc[cell], start_state, hd)
 
 
-def _optimal_cost(mdp: _Mdp) -> float:
-    """Dijkstra over the MDP's move costs from the start to any goal state (inf if none).
+def _optimal_cost(mdp: _Mdp, deadline: float = math.inf) -> float | None:
+    """Dijkstra over the MDP's move costs from the start to any goal state (inf if none);
+    None once ``deadline`` (``time.perf_counter()``) has passed: on a 600 x 600 grid this
+    pure-Python search alone took 11.6 s, outside the ``max_seconds`` the planner promises.
 
-    For the plain planner every move costs the same, so this is exactly BFS length x cost.
+    The plain planner does not need it: every move costs the same, so its optimum is exactly
+    BFS length x cost (:func:`plan`).
     """
     S = len(mdp.terminal)
     dist = np.full(S, np.inf)
     dist[mdp.start] = 0.0
     heap = [(0.0, mdp.start)]
     nxt, cost, terminal = mdp.nxt.tolist(), mdp.cost.tolist(), mdp.terminal
+    pops = 0
     while heap:
+        pops += 1
+        if pops % 4096 == 0 and time.perf_counter() > deadline:
+            return None
         d, s = heapq.heappop(heap)
         if d > dist[s]:
             continue
@@ -419,7 +426,13 @@ def _manoeuvre_lower_bound(mdp: _Mdp, goal_rc: np.ndarray, cfg: PlannerConfig) -
     return lb
 
 
-def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
+# The replay history is (replay x agents) int64: at most this many entries (2 GiB)
+MAX_HISTORY = 2**28
+
+
+def _learn(
+    mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float = math.inf
+) -> dict[str, Any]:
     """Batched epsilon-greedy Q-learning until the greedy route is optimal and stable.
 
     Every step moves all agents once and applies one Q-learning update per agent; every
@@ -431,6 +444,13 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
     S = len(mdp.terminal)
     nonterminal = np.nonzero(~mdp.terminal)[0]
     B = cfg.agents if cfg.agents > 0 else len(nonterminal)
+    if max(cfg.replay, 1) * B > MAX_HISTORY:
+        # replay 1e8 (or agents 1e9) passed the settings check and ended in a 38.7 GiB
+        # allocation error, a traceback, exit 1
+        raise PlanInputError(
+            f"replay {cfg.replay} x {B} agents would keep {max(cfg.replay, 1) * B * 8 / 2**30:.1f}"
+            f" GiB of history (at most {MAX_HISTORY * 8 / 2**30:.0f}): lower replay or agents"
+        )
     max_ep_steps = cfg.max_episode_steps if cfg.max_episode_steps > 0 else 2 * S
     check_every = cfg.check_every  # check_config keeps it in [1, MAX_CHECK_EVERY]
     H = max(0, cfg.replay)
@@ -508,7 +528,11 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float) -> dict[str, Any]:
                 break
         # The budgets are checked every step, not only at convergence checks: with a large
         # check_every the time limit would otherwise not bound the training at all.
-        if episodes >= cfg.max_episodes or time.perf_counter() - t0 > cfg.max_seconds:
+        if (
+            episodes >= cfg.max_episodes
+            or time.perf_counter() - t0 > cfg.max_seconds
+            or time.perf_counter() > deadline
+        ):
             break
     return {
         "Q": Q2,
@@ -577,8 +601,16 @@ def plan(
     mdp = _build_mdp(
         free, s, g, cfg, heading if heading_aware else None, reenter_start=not start_unknown
     )
-    optimal = _optimal_cost(mdp)
-    out = _learn(mdp, cfg, optimal)
+    # The time budget holds from here (the search for the optimum and the MDP are part of the
+    # work: a large grid held the planner's node for tens of seconds beyond max_seconds).
+    deadline = t0 + cfg.max_seconds
+    found = bfs_len * -cfg.reward_step if not heading_aware else _optimal_cost(mdp, deadline)
+    if found is None:
+        res.reason = "not converged"
+        res.seconds = time.perf_counter() - t0
+        return res
+    optimal = found
+    out = _learn(mdp, cfg, optimal, deadline)
     res.episodes, res.steps, res.updates = out["episodes"], out["steps"], out["updates"]
     res.optimal_cost = optimal
     res.converged = out["converged"]
