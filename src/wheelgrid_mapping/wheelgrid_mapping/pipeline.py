@@ -159,7 +159,7 @@ FLOOR_CHECK_GROWTH = 2.0
 # z = 0 holds: z = 0 misses part of the floor, and the map frame is taken from the floor found.
 FLOOR_CHECK_GAIN = 1.1
 # A frame stamped at most this long before the last keyframe (or at its very stamp) is a repeat
-# or a late frame, skipped; one stamped farther back is a clock jump, and mapping goes on (s).
+# or a late frame, skipped; farther back, a bad stamp or a clock jump (BEHIND_CONFIRM) (s).
 LATE_FRAME_WINDOW = 1.0
 # Frames in a row stamped LATE_FRAME_WINDOW or more back that make a clock that went back
 # (the first of them held back: one alone is a bad stamp, a driver's 0)

@@ -601,8 +601,8 @@ def plan(
     mdp = _build_mdp(
         free, s, g, cfg, heading if heading_aware else None, reenter_start=not start_unknown
     )
-    # The time budget holds from here (the search for the optimum and the MDP are part of the
-    # work: a large grid held the planner's node for tens of seconds beyond max_seconds).
+    # The time budget counts from t0, the start of planning: the search for the optimum and
+    # the MDP are part of the work (a large grid held the node tens of seconds past it).
     deadline = t0 + cfg.max_seconds
     found = bfs_len * -cfg.reward_step if not heading_aware else _optimal_cost(mdp, deadline)
     if found is None:
