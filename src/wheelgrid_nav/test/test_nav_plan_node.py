@@ -124,6 +124,20 @@ def planner_process(tmp_path, *params):
             h.close()
 
 
+# check_every this large makes the (converging) learning take seconds on the paper grid
+SLOW_LEARNING = ("check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0")
+
+
+def paper_grid_with_the_chair_at_its_start(h) -> Grid:
+    """Publish the paper grid and the chair at (2, 0) facing grid "down", and give the planner
+    a second to take both; returns the grid."""
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    h.grid_pub.publish(to_occupancy_grid(grid))
+    h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+    spin_until(h.ex, lambda: False, 1.0)
+    return grid
+
+
 def test_planner_node_plans_replans_and_stops(tmp_path):
     from rclpy.parameter import Parameter
 
@@ -488,16 +502,10 @@ def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(
     the learning are read before a route is published: none is, and the path is empty."""
     from std_msgs.msg import Bool
 
-    grid = Grid(paper_grid(), RES, ORIGIN)
-    # check_every this large makes the (converging) learning take seconds on this grid
-    with planner_process(
-        tmp_path, "check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0"
-    ) as (h, log):
+    with planner_process(tmp_path, *SLOW_LEARNING) as (h, log):
         estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
         assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 15.0)
-        h.grid_pub.publish(to_occupancy_grid(grid))
-        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
-        spin_until(h.ex, lambda: False, 1.0)
+        grid = paper_grid_with_the_chair_at_its_start(h)
         h.goal_pub.publish(goal_msg(grid, (6, 5)))
         spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
         estop.publish(Bool(data=True))
@@ -517,15 +525,10 @@ def test_a_goal_or_grid_that_came_while_a_route_was_learned_voids_it(tmp_path, c
     went out after the new goal was sent (and stayed the plan while the new one was learned),
     and a route through a cell the new grid had closed went out before the replan. Both are
     read before a route is published: the first route out is the one for the newest inputs."""
-    grid = Grid(paper_grid(), RES, ORIGIN)
     closed = paper_grid()
     closed[2, 3] = 100  # on the route to (6, 5) along row 2
-    with planner_process(
-        tmp_path, "check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0"
-    ) as (h, log):
-        h.grid_pub.publish(to_occupancy_grid(grid))
-        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
-        spin_until(h.ex, lambda: False, 1.0)
+    with planner_process(tmp_path, *SLOW_LEARNING) as (h, log):
+        grid = paper_grid_with_the_chair_at_its_start(h)
         h.goal_pub.publish(goal_msg(grid, (6, 5)))
         spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
         if change == "goal":
@@ -549,13 +552,8 @@ def test_a_new_goal_withdraws_the_route_to_the_old_one_while_it_is_learned(tmp_p
     route (no stop). The learning is made to take seconds: the plan topic keeps one message
     (MAP_QOS), so paths published milliseconds apart may reach a subscriber as the last one
     alone, and the withdrawal matters where the learning is long."""
-    grid = Grid(paper_grid(), RES, ORIGIN)
-    with planner_process(
-        tmp_path, "check_every:=20000", "max_episodes:=1000000000000", "max_seconds:=60.0"
-    ) as (h, log):
-        h.grid_pub.publish(to_occupancy_grid(grid))
-        h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
-        spin_until(h.ex, lambda: False, 1.0)
+    with planner_process(tmp_path, *SLOW_LEARNING) as (h, log):
+        grid = paper_grid_with_the_chair_at_its_start(h)
         h.goal_pub.publish(goal_msg(grid, (6, 5)))
         first = h.next_path(0, timeout=120.0)
         assert cells_of(first, grid)[-1] == (6, 5), log.read_text()
