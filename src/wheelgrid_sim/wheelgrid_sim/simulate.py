@@ -13,7 +13,6 @@ Output folder layout (fixed; other stages and tests read it)::
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import shutil
@@ -191,15 +190,14 @@ def simulate(
         # Ctrl-C or a full disk: the bag, closed as it was, opened as a complete recording of
         # fewer frames than the ground truth beside it described, and a second run into the
         # same --out was refused. What this run wrote goes; the cause goes on.
-        made = sorted(out.iterdir()) if before is None else sorted(set(out.iterdir()) - before)
-        for path in made:
+        if before is None:  # the folder is this run's
+            shutil.rmtree(out, ignore_errors=True)
+            raise
+        for path in set(out.iterdir()) - before:
             if path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path, ignore_errors=True)
             else:
                 path.unlink(missing_ok=True)
-        if before is None:
-            with contextlib.suppress(OSError):
-                out.rmdir()
         raise
 
 
