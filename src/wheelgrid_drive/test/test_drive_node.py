@@ -630,6 +630,7 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim, 
     import subprocess
     import sys
 
+    from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Bool
 
     from wheelgrid_common.ros_env import child_env
@@ -661,6 +662,13 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim, 
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         pub = node.create_publisher(Bool, "/wg_test/estop", RELIABLE_QOS)
+        states: list[str] = []
+        node.create_subscription(
+            DiagnosticArray,
+            "/wheelgrid/drive_state",
+            lambda m: states.extend(s.message for s in m.status),
+            RELIABLE_QOS,
+        )
         deadline = time.monotonic() + 15.0
         while time.monotonic() < deadline and not any(
             e.what == "rx" and e.detail == "HEARTBEAT" for e in sim.events
@@ -678,6 +686,10 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim, 
         assert spin_until(
             ex, lambda: any(e.what == "rx" and e.detail == "STOP" for e in sim.events), 5.0
         ), "the remapped e-stop did not stop the chair"
+        # STOP goes out before the e-stop is logged and published: a SIGINT sent on the STOP
+        # alone could shut the node's context down between the two (CI, stop 65), and the log
+        # line then failed to reach /rosout. The state comes after the log line.
+        assert spin_until(ex, lambda: any("e-stop latched" in s for s in states), 5.0), states
         node.destroy_node()
         assert stop_process(proc) == 0
     # Shutting the node down sends STOP before the port closes.
