@@ -189,3 +189,38 @@ def test_a_process_started_with_the_profile_gets_the_large_shared_memory_segment
 
     assert max(new_segments("1"), default=0) >= 16 * 1024 * 1024
     assert max(new_segments("0"), default=0) < 16 * 1024 * 1024
+
+
+def test_a_number_written_1e_4_reads_as_rcl_reads_it(tmp_path):
+    """One file serves ``--params-file`` (rcl) and ``--config`` (PyYAML, YAML 1.1): rcl read
+    ``1e-4`` as a double, PyYAML as a string, and ``wheelgrid map --config`` refused the
+    file the mapper node ran with. A quoted one stays a string in both."""
+    from rclpy.node import Node
+
+    from wheelgrid_common.params import field, load_yaml
+
+    text = "mapper:\n  ros__parameters:\n    a: 1e-4\n    b: -2E+3\n    c: 1.5e1\n    d: '1e-4'\n"
+    (tmp_path / "p.yaml").write_text(text)
+    with rclpy_context() as ctx:
+        node = Node(
+            "mapper",
+            context=ctx,
+            cli_args=["--ros-args", "--params-file", str(tmp_path / "p.yaml")],
+            automatically_declare_parameters_from_overrides=True,
+        )
+        try:
+            by_rcl = {k: node.get_parameter(k).value for k in "abcd"}
+        finally:
+            node.destroy_node()
+    assert by_rcl == {"a": 1e-4, "b": -2000.0, "c": 15.0, "d": "1e-4"}
+
+    from dataclasses import dataclass
+
+    @dataclass
+    class Cfg:
+        a: float = field(0.0, "a")
+        b: float = field(0.0, "b")
+        c: float = field(0.0, "c")
+        d: str = field("", "d")
+
+    assert load_yaml(Cfg, tmp_path / "p.yaml") == Cfg(**by_rcl)

@@ -13,6 +13,7 @@ import copy
 import dataclasses
 import functools
 import math
+import re
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
@@ -102,6 +103,20 @@ def _coerce(value: Any, typ: Any, name: str) -> Any:
     return value
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading ``1e-4`` as the number rcl, yaml-cpp (Nav2's map_server)
+    and YAML 1.2 read it as. PyYAML follows YAML 1.1, where a float needs a dot, and read it as
+    a string: ``convergence: 1e-4`` ran in the mapper node from ``--params-file`` and was
+    refused by ``wheelgrid map --config`` from the same file ("expected a number")."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
 def read_yaml(path: str | Path) -> Any:
     """A YAML file's document, a syntax error turned into a ``ValueError`` that names the file
     and the line: every CLI reports ``ValueError`` as a one-line error with exit 2, and a
@@ -111,7 +126,7 @@ def read_yaml(path: str | Path) -> Any:
     except UnicodeDecodeError:  # a PLY or PGM given where a YAML belongs
         raise ValueError(f"{path}: not a YAML file (binary content)") from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_Loader)  # a SafeLoader: builds plain data only
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
