@@ -121,6 +121,25 @@ def test_a_launcher_whose_terminal_closes_stops_every_node(tmp_path):
         _cleanup(pids)
 
 
+def test_a_node_that_must_be_killed_at_the_stop_makes_the_launch_fail(tmp_path):
+    """A node that ignores its SIGINT and SIGTERM (here: stopped with SIGSTOP) is killed 7 s
+    on; the launcher said "stopped grid (-9)" and exited 0, so a script never learned that a
+    node had not done what it does on its way out."""
+    proc, pids, lines = _launch(tmp_path)
+    try:
+        os.kill(pids["grid"], signal.SIGSTOP)
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=60) == 1, "".join(lines[-10:])
+        left = _gone(pids, 10.0)
+        assert not left, f"left running: {left}"
+        said = [ln for ln in lines if "did not stop cleanly" in ln]
+        assert len(said) == 1, "".join(lines[-10:])
+        assert said[0].startswith("wheelgrid launch: grid (exit -9) did not stop cleanly: see ")
+    finally:
+        stop_process(proc)
+        _cleanup(pids)
+
+
 def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
     proc, pids, _ = _launch(tmp_path)
     try:

@@ -308,6 +308,18 @@ def main(argv: list[str] | None = None) -> int:
         if "mapper" in sup.procs:
             for line in save_on_exit_lines(sup.procs["mapper"].log_path):
                 print(f"launch: mapper: {line}", flush=True)
+        unclean = {n: c for n, c in codes.items() if c != 0}
+        if unclean and code == 0:
+            # A node that had to be killed may have lost what it does on its way out (the
+            # mapper's save, the drive's last STOP): exit 0 told a script all was well.
+            print(
+                "wheelgrid launch: "
+                + ", ".join(f"{n} (exit {c})" for n, c in unclean.items())
+                + " did not stop cleanly: see "
+                + ", ".join(str(sup.procs[n].log_path) for n in unclean),
+                file=sys.stderr,
+            )
+            code = 1
     return code
 
 
