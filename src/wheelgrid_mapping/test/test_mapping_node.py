@@ -504,6 +504,44 @@ def in_process_mapper_node(ctx: Any, tmp_path: Path, prefix: str, **params: Any)
     return MapperNode(context=ctx, parameter_overrides=overrides)
 
 
+def test_a_map_never_levelled_is_saved_on_exit_in_odom(tmp_path, capfd):
+    """A live scan whose floor never came into view (no mount given) ended with "map NOT
+    saved on exit: no plane ...": every registered frame was lost. It is saved in odom, under
+    names no grid tool takes for the levelled map."""
+    from builtin_interfaces.msg import Time
+
+    from wheelgrid_common.fileio import read_ply, read_tum
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+    from wheelgrid_common.testing import body_frame_room
+
+    rng = np.random.default_rng(21)
+    with rclpy_context() as ctx:
+        node = in_process_mapper_node(
+            ctx, tmp_path, "/unlevelled", save_on_exit=True, pose_prior_topic=""
+        )
+        try:
+            for i in range(4):
+                stamp = Time(sec=100, nanosec=i * 200_000_000)
+                node._on_cloud(to_pointcloud2(body_frame_room(rng, False), "base_link", stamp))
+                # one at a time: the node keeps only the newest waiting frame
+                assert poll_until(lambda n=i: len(node.mapper.poses_odom) > n, 60.0, 0.02), i
+            assert not node.mapper.try_level()
+        finally:
+            node.close()
+            node.destroy_node()
+    out = tmp_path / "on_exit"
+    assert sorted(p.name for p in out.iterdir()) == [
+        "map_odom.ply",
+        "report.json",
+        "trajectory_odom.tum",
+    ]
+    assert read_ply(out / "map_odom.ply").shape[0] > 1000
+    assert read_tum(out / "trajectory_odom.tum")[1].shape == (4, 4, 4)
+    logged = "".join(capfd.readouterr())
+    assert "map saved on exit, NOT levelled (no plane" in logged, logged[-2000:]
+    assert "map NOT saved" not in logged, logged[-2000:]
+
+
 def test_the_thin_obstacle_opt_out_starts_the_mapper_with_a_warning(tmp_path, capfd):
     """``preprocess.accept_thin_obstacle_loss`` (for a sensor unlike the iPhone) runs settings
     the start-up check refuses, and the log says at start what they lose."""

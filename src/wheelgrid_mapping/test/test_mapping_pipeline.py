@@ -28,6 +28,33 @@ def test_no_floor_no_map() -> None:
     assert m.report()["levelling"]["method"] == "none"
 
 
+def test_a_map_never_levelled_is_saved_in_odom_under_names_of_its_own(tmp_path: Path) -> None:
+    """What the live node saves on exit when no floor was ever found: the scan in the first
+    frame's sensor frame, never as map.ply (the levelled frame a grid stands on)."""
+    from wheelgrid_common.fileio import read_ply, read_tum
+
+    rng = np.random.default_rng(21)
+    m = Mapper()
+    for i in range(4):
+        m.add_frame(body_frame_room(rng, False), i * 0.2, "base_link")
+    assert not m.try_level()
+    rep = m.save_unlevelled(tmp_path, {"saved_on_exit": True})
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "map_odom.ply",
+        "report.json",
+        "trajectory_odom.tum",
+    ]
+    pts = read_ply(tmp_path / "map_odom.ply")
+    assert pts.shape[0] == rep["points"]["map"] > 1000
+    assert np.allclose(pts, m.map_odom(), atol=1e-5)
+    stamps, poses = read_tum(tmp_path / "trajectory_odom.tum")
+    assert np.allclose(stamps, [0.0, 0.2, 0.4, 0.6])
+    assert np.allclose(poses, np.array(m.poses_odom), atol=1e-5)
+    saved = json.loads((tmp_path / "report.json").read_text())
+    assert "NOT levelled" in saved["frame"] and saved["saved_on_exit"] is True
+    assert saved["levelling"]["method"] == "none"
+
+
 def test_the_report_says_how_many_failures_it_does_not_list() -> None:
     """report.json lists the first failures one by one; a lost scan's hundreds were cut at 200
     without a word, where the README promised every failure."""

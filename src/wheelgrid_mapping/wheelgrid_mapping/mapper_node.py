@@ -798,19 +798,31 @@ class MapperNode(Node):  # type: ignore[misc]
                 return  # nothing mapped, or ~/save_map already has exactly this map
             extra = {"node_counts": dict(self.counts), "saved_on_exit": True}
             out = user_folder(self.output_dir) / "on_exit"
+            # A floor never seen (no mount given either) left no map frame, and the scan was
+            # lost with "map NOT saved on exit": it is kept in odom, under other names.
+            levelled = self.mapper.try_level()
+            save = self.mapper.save if levelled else self.mapper.save_unlevelled
             try:
-                rep = self.mapper.save(out, extra)
+                rep = save(out, extra)
             except OSError as exc:
                 # An unwritable output_dir (a read-only mount, a full disk, a typo) must not
                 # lose the scan this save exists for: a fresh temporary folder is tried next.
                 fallback = Path(tempfile.mkdtemp(prefix="wheelgrid_on_exit_"))
                 log.error(f"cannot save the map to {out} ({exc}); trying {fallback}")
                 out = fallback
-                rep = self.mapper.save(out, extra)
-            log.warning(
-                f"map saved on exit: {out}/map.ply ({rep['points']['map']} points, {frames} "
-                "frames), trajectory.tum, report.json"
-            )
+                rep = save(out, extra)
+            if levelled:
+                log.warning(
+                    f"map saved on exit: {out}/map.ply ({rep['points']['map']} points, "
+                    f"{frames} frames), trajectory.tum, report.json"
+                )
+            else:
+                why = self.mapper.level_info.get("error", "map frame unknown")
+                log.warning(
+                    f"map saved on exit, NOT levelled ({why}): {out}/map_odom.ply "
+                    f"({rep['points']['map']} points, {frames} frames, in the first frame's "
+                    "sensor frame), trajectory_odom.tum, report.json"
+                )
         except (RuntimeError, OSError) as exc:
             log.error(f"map NOT saved on exit: {exc}")
         finally:

@@ -1078,3 +1078,30 @@ class Mapper:
             }
         )
         return rep
+
+    def save_unlevelled(
+        self, out_dir: str | Path, extra: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
+        """Write map_odom.ply, trajectory_odom.tum and report.json into ``out_dir``: the map
+        and the sensor poses in odom (the first registered frame's sensor frame), for a live
+        scan whose floor was never found that must not be lost as its node stops. Not
+        map.ply: nothing may take these for the levelled map frame a grid stands on."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        pts = self.map_odom()
+        stamps, poses = np.asarray(self.stamps), np.array(self.poses_odom).reshape(-1, 4, 4)
+        rep = self.report()
+        rep["frame"] = "odom: the first registered frame's sensor frame, NOT levelled"
+        if extra:
+            rep.update(extra)
+        comment = "wheelgrid odom frame (the first sensor frame; not levelled), metres"
+        write_together(
+            {
+                out / "map_odom.ply": lambda p: write_ply(p, pts, comment=comment),
+                out / "trajectory_odom.tum": lambda p: write_tum(p, stamps, poses),
+                out / "report.json": lambda p: p.write_text(
+                    json.dumps(rep, indent=2, default=float)
+                ),
+            }
+        )
+        return rep
