@@ -121,6 +121,23 @@ def test_abort_stops_a_running_move(make_sim, make_link, wait):
         link.execute("FORWARD", 1.2, 3.0, abort=abort)
 
 
+def test_a_stray_frame_start_on_the_line_does_not_hold_back_the_stop(make_sim, make_link, wait):
+    """Line noise of ``A5 40`` (a SOF and a LEN of 64) just before the e-stop's STOP: the
+    controller waited for a 70-byte frame, the STOP went unacknowledged and the watchdog
+    stopped the chair 0.4 s later, 34 cm on at 3 km/h. The cut-off frame is given up."""
+    sim = make_sim(time_scale=1.0)
+    link = make_link(sim.slave_path)
+    link.move("FORWARD", 2.0, 3.0)
+    assert wait(lambda: sim.state != proto.State.IDLE, 3.0)
+    with link._write_lock:  # noise on the wire, as a UART glitch makes it
+        link._ser.write(bytes([proto.SOF, 0x40]))
+        link._ser.flush()
+    assert link.stop(), "the STOP was not acknowledged"
+    assert wait(lambda: sim.state == proto.State.IDLE, 1.0)
+    assert sim.result == proto.Result.STOPPED  # by the STOP, not by the watchdog
+    assert any(e.what == "rx_error" and "frame cut off" in e.detail for e in sim.events)
+
+
 HOST = textwrap.dedent("""
     import sys, time
     from wheelgrid_drive.link import MotorLink

@@ -49,6 +49,32 @@ def test_oversize_length_resyncs():
     assert isinstance(out[0], proto.DecodeError) and out[-1] == good
 
 
+def test_a_frame_cut_off_is_given_up_after_the_gap_and_frames_held_behind_it_come_out():
+    """A stray SOF and a LEN of 64 or less claimed the next 70 bytes: the STOP just behind it
+    waited until enough heartbeats came to fail the CRC (100-400 ms on the wire)."""
+    stop = proto.Frame(9, proto.MsgType.STOP)
+    dec = proto.FrameDecoder()
+    assert dec.feed(bytes([proto.SOF, 0x40]) + stop.encode(), now=10.0) == []
+    assert dec.feed(b"", now=10.0 + proto.FRAME_GAP_S * 0.9) == []  # not yet a gap
+    out = dec.feed(b"", now=10.0 + proto.FRAME_GAP_S)
+    assert isinstance(out[0], proto.DecodeError) and "frame cut off" in out[0].reason
+    assert out[1:] == [stop] and dec.pending() == 0
+    # Two unfinished frames, one behind the other, both given up: nothing is held after.
+    assert dec.feed(bytes([proto.SOF, 0x30, proto.SOF, 0x20, 1, 2]), now=20.0) == []
+    out = dec.feed(b"", now=21.0)
+    assert len(out) == 1 and isinstance(out[0], proto.DecodeError) and dec.pending() == 0
+
+
+def test_the_rest_of_a_frame_fetched_late_by_a_busy_reader_is_not_a_gap():
+    """Only a read that found nothing gives a frame up: the bytes a reader fetched long after
+    they came are the rest of the frame."""
+    frame = proto.Frame(4, proto.MsgType.STATUS, bytes(range(18)))
+    wire = frame.encode()
+    dec = proto.FrameDecoder()
+    assert dec.feed(wire[:5], now=1.0) == []
+    assert dec.feed(wire[5:], now=2.0) == [frame]
+
+
 def test_speed_is_capped_at_3_kmh_and_distance_bounded():
     assert proto.MAX_SPEED_MM_S == 833
     assert proto.unpack_move(proto.pack_move(1.2, 3.0)) == (1200, 833)

@@ -265,9 +265,10 @@ class MotorLink:
                 if not self._closing.is_set():  # dropped only if it is still the port
                     self._drop_port(str(exc), lost=ser)
                 return
-            if data:
-                for item in self._decoder.feed(data):
-                    self._dispatch(item)
+            # fed after every read, b"" on the port's 20 ms timeout: a reply cut off is given up
+            # in time, and the replies held behind it come out
+            for item in self._decoder.feed(data):
+                self._dispatch(item)
 
     def _dispatch(self, item: proto.Frame | proto.DecodeError) -> None:
         if isinstance(item, proto.DecodeError):

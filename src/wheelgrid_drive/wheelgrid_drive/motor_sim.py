@@ -200,15 +200,15 @@ class MotorSim:
             except (OSError, ValueError):
                 break
             now = time.monotonic()
+            data = b""
             if ready:
                 try:
                     data = os.read(self._master, 4096)
                 except OSError:
                     data = b""
-                if data:
-                    with self._lock:
-                        for item in self._decoder.feed(data):
-                            self._handle(item, now)
+            with self._lock:  # fed on every pass: a frame cut off is given up in time
+                for item in self._decoder.feed(data, now):
+                    self._handle(item, now)
             with self._lock:
                 self._integrate(now)
                 self._watchdog(now)

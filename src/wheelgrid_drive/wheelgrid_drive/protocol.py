@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -31,6 +32,11 @@ MIN_SPEED_KMH = 0.1  # slower, a cell's move cannot end within the link's move t
 MAX_DISTANCE_MM = 2000  # one grid cell is at most 2 m; anything longer is a corrupt command
 MAX_POSE_M = 1_000_000.0  # |x|, |y| a SET_POSE may set: int32 mm holds 2147 km, with room to drive
 DEFAULT_HEARTBEAT_TIMEOUT_S = 0.5
+# A frame begun and not finished after this long with no byte arriving never will be: every
+# frame is written whole (70 bytes at most, 6 ms at 115200 baud; a USB adapter's latency timer
+# may pause a frame 16 ms). A stray SOF followed by a small LEN held every frame behind it,
+# the e-stop's STOP too, until enough bytes came to fail the CRC (100-400 ms, up to 34 cm).
+FRAME_GAP_S = 0.05
 
 
 class MsgType(IntEnum):
@@ -136,13 +142,35 @@ def encode(seq: int, mtype: int, payload: bytes = b"") -> bytes:
 
 
 class FrameDecoder:
-    """Streaming decoder: feed raw bytes, get frames and decode errors in arrival order."""
+    """Streaming decoder: feed raw bytes, get frames and decode errors in arrival order.
 
-    def __init__(self) -> None:
+    A reader feeds it on every pass, with ``b""`` when nothing came, so that a frame cut off
+    (``gap_s`` without a byte) is given up and the frames held behind it come out."""
+
+    def __init__(self, gap_s: float = FRAME_GAP_S) -> None:
         self._buf = bytearray()
+        self.gap_s = gap_s
+        self._last_byte = 0.0  # monotonic time the newest held byte arrived
 
-    def feed(self, data: bytes) -> list[Frame | DecodeError]:
-        self._buf.extend(data)
+    def feed(self, data: bytes, now: float | None = None) -> list[Frame | DecodeError]:
+        now = time.monotonic() if now is None else now
+        out: list[Frame | DecodeError] = []
+        if data:
+            self._last_byte = now
+            self._buf.extend(data)
+            out.extend(self._scan())
+        elif self._buf and now - self._last_byte >= self.gap_s:
+            # Only on a read that found nothing: bytes a busy reader fetched late are the rest
+            # of the frame, not a gap. Every byte held is older than the gap: drop each
+            # unfinished frame's SOF in turn, as for a bad LEN (a real frame may start inside
+            # it), until nothing is held.
+            while self._buf:
+                del self._buf[:1]
+                out.append(DecodeError(f"frame cut off (no byte for {self.gap_s * 1e3:.0f} ms)", 1))
+                out.extend(self._scan())
+        return _merge_errors(out)
+
+    def _scan(self) -> list[Frame | DecodeError]:
         out: list[Frame | DecodeError] = []
         buf = self._buf
         while buf:
@@ -171,7 +199,7 @@ class FrameDecoder:
                 continue
             out.append(Frame(seq=buf[2], type=buf[3], payload=bytes(buf[4 : 4 + length])))
             del buf[:total]
-        return _merge_errors(out)
+        return out
 
     def pending(self) -> int:
         """Bytes held waiting for the rest of a frame."""
