@@ -165,6 +165,23 @@ def test_the_chunks_after_a_damaged_one_are_given_back(tmp_path, capsys) -> None
     assert "the cut went through" not in line  # nothing was cut off: it was damaged
 
 
+def test_a_reader_that_fails_on_damage_inside_an_mcap_names_the_recovery(tmp_path, capsys) -> None:
+    """A damaged summary (the file still ends with the MCAP magic): the reader refused the bag
+    with no word of ``bag-recover``, which copies every message of it."""
+    bag, msgs = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    data[-300:-100] = bytes(200)
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError) as err:
+        BagReader(bag).__enter__()
+    text = str(err.value)
+    assert "cannot open bag" in text and "\n" not in text, text
+    assert f"`wheelgrid bag-recover {bag} --out NEW_BAG` copies the messages of its intact" in text
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
+    assert sorted(_read(tmp_path / "back")) == sorted(msgs)
+
+
 def test_an_interrupted_recovery_leaves_no_bag_that_looks_complete(
     tmp_path, capsys, monkeypatch
 ) -> None:
@@ -187,3 +204,44 @@ def test_an_interrupted_recovery_leaves_no_bag_that_looks_complete(
     assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 130
     assert "interrupted; the part of" in capsys.readouterr().err
     assert calls["n"] == 10 and not (tmp_path / "back").exists()
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_message_type_this_distribution_does_not_know_is_copied_with_its_definition(
+    tmp_path, capsys, storage
+) -> None:
+    """A vendor's message type beside the clouds: the copy passed rosbags' writer an empty type
+    hash, which it refuses, and every such recording ended "damaged before the cut" with two
+    messages copied. Its definition and hash now travel from the file, and a reader that checks
+    the one against the other opens the copy."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(
+        get_types_from_msg("std_msgs/Header header\nfloat32 level\n", "acme_msgs/msg/Battery")
+    )
+    battery = store.types["acme_msgs/msg/Battery"]
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    bag = tmp_path / "rec"
+    w = Writer(bag, version=9, storage_plugin=plugin)
+    w.open()
+    conn = w.add_connection("/acme/battery", "acme_msgs/msg/Battery", typestore=store)
+    for i in range(5):
+        msg = battery(
+            header=store.types["std_msgs/msg/Header"](
+                stamp=store.types["builtin_interfaces/msg/Time"](sec=i, nanosec=0), frame_id="base"
+            ),
+            level=0.5 + i,
+        )
+        w.write(conn, 1_000 + i, store.serialize_cdr(msg, "acme_msgs/msg/Battery"))
+    w.close()
+    if storage == "sqlite3":
+        (bag / "metadata.yaml").unlink()  # the definitions are in the database
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0, capsys.readouterr()
+    with AnyReader([tmp_path / "back"]) as r:
+        (c,) = r.connections
+        levels = [r.deserialize(raw, c.msgtype).level for c, _, raw in r.messages()]
+    assert c.msgtype == "acme_msgs/msg/Battery" and levels == [0.5, 1.5, 2.5, 3.5, 4.5]
+    assert c.digest == store.hash_rihs01("acme_msgs/msg/Battery")

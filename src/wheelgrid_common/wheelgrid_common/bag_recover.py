@@ -299,7 +299,14 @@ def _copy(
                     for conn, t_ns, data in reader.messages(reader.connections):
                         key = (conn.topic, conn.msgtype)
                         if key not in conns:
-                            conns[key] = _connection(writer, conn, store)
+                            try:
+                                conns[key] = _connection(writer, conn, store)
+                            except Exception as exc:  # not the file's damage: say what it is
+                                raise BagError(
+                                    f"{path}: cannot copy topic {conn.topic} ({conn.msgtype}): "
+                                    f"{type(exc).__name__}: {exc}; the {res.messages} messages "
+                                    f"before it are in {out}"
+                                ) from exc
                         writer.write(conns[key], t_ns, data)
                         res.messages += 1
                         res.copied[str(path)] = res.copied.get(str(path), 0) + 1
@@ -308,6 +315,8 @@ def _copy(
                         res.end_ns = max(res.end_ns, t_ns)
                         if total:
                             bar.update()
+                except BagError:
+                    raise
                 except Exception as exc:
                     raise BagError(
                         f"{path}: damaged before the cut, not only cut off "
@@ -334,10 +343,39 @@ def _connection(writer: Any, conn: Any, store: Any) -> Any:
         return writer.add_connection(
             conn.topic, conn.msgtype, typestore=store, offered_qos_profiles=qos
         )
-    # a type this ROS distribution's store does not know: its definition travels from the file
+    # A type this ROS distribution's store does not know: its definition travels from the file,
+    # with its type hash. rosbags' writer refused the empty hash this passed (an AssertionError,
+    # which every recording with a vendor's message type died of, reported as damage), and a
+    # reader checks the hash against the definition, so it is the file's or computed from it.
+    digest = str(getattr(conn, "digest", "") or "")
+    rihs01 = digest if digest.startswith("RIHS01_") else _hash_of_definition(conn, store)
     return writer.add_connection(
-        conn.topic, conn.msgtype, msgdef=conn.msgdef.data, rihs01="", offered_qos_profiles=qos
+        conn.topic, conn.msgtype, msgdef=conn.msgdef.data, rihs01=rihs01, offered_qos_profiles=qos
     )
+
+
+def _hash_of_definition(conn: Any, store: Any) -> str:
+    """The RIHS01 type hash of ``conn``'s type from the definition the file carries, its
+    dependencies taken from there first and from ``store`` for the rest (as a reader does)."""
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+    data = conn.msgdef.data
+    if conn.msgdef.format == MessageDefinitionFormat.MSG:
+        types = get_types_from_msg(data, conn.msgtype)
+    elif conn.msgdef.format == MessageDefinitionFormat.IDL:
+        sep = "=" * 80 + "\n"
+        parts = [data]
+        if data.startswith(sep):  # each dependency in a section of its own, as rosbag2 writes
+            parts = [p.split("\n", 1)[1] for p in data.split(sep)[1:]]
+        types = {}
+        for idl in parts:
+            types.update(get_types_from_idl(idl))
+    else:
+        raise ValueError("the file holds no definition of it")
+    merged = get_typestore(Stores.EMPTY)
+    merged.register({**store.fielddefs, **types})
+    return str(merged.hash_rihs01(conn.msgtype))
 
 
 def main(argv: list[str] | None = None) -> int:
