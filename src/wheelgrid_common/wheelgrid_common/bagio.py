@@ -7,6 +7,7 @@ rosbag2 (sqlite3 or mcap) from rclpy messages: rclpy's CDR bytes are what rosbag
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,22 @@ def recover_hint(path: Path) -> str:
     return (
         f"a recording that was cut off? `wheelgrid bag-recover {path} --out NEW_BAG` copies "
         "its complete messages into a bag that opens"
+    )
+
+
+def damage_hint(path: Path) -> str:
+    """What to do with an MCAP recording a reader fails on: cut off (:func:`recover_hint`), or
+    damaged inside, where ``wheelgrid bag-recover`` still copies the chunks that are intact (a
+    zeroed first chunk lost a map every frame of the second; nothing said the tool would help).
+    '' for other storage."""
+    if cut_off_mcap(path):
+        return recover_hint(path)
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    if not any(f.suffix == ".mcap" for f in files):
+        return ""
+    return (
+        f"`wheelgrid bag-recover {path} --out NEW_BAG` copies the messages of its intact "
+        "chunks into a bag that opens"
     )
 
 
@@ -85,7 +102,10 @@ def _check_metadata(path: Path) -> None:
         return
     files = info.get("relative_file_paths") or []
     if isinstance(files, list):
-        twice = sorted({str(f) for f in files if files.count(f) > 1})
+        # the same file under two spellings (x.mcap, ./x.mcap, its absolute path) is read
+        # twice as surely as one name listed twice
+        where = [os.path.realpath(path / str(f)) for f in files]
+        twice = sorted({str(f) for f, w in zip(files, where, strict=True) if where.count(w) > 1})
         if twice:
             raise BagError(
                 f"{path}: metadata.yaml lists {', '.join(twice)} more than once; each "
@@ -130,9 +150,8 @@ class BagReader:
             # One line: a YAML parser's message spans several, with carets under the error.
             detail = " ".join(str(exc).split())
             text = f"{self.path}: cannot open bag ({type(exc).__name__}: {detail})"
-            if cut_off_mcap(self.path):
-                text += f"; {recover_hint(self.path)}"
-            raise BagError(text) from exc
+            hint = damage_hint(self.path)
+            raise BagError(text + (f"; {hint}" if hint else "")) from exc
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -192,7 +211,11 @@ class BagReader:
             for conn, t_ns, raw in self.reader.messages(connections=conns):
                 yield conn.topic, conn.msgtype, int(t_ns), bytes(raw)
         except Exception as exc:
-            raise BagError(f"{self.path}: bag is corrupt ({type(exc).__name__}: {exc})") from exc
+            hint = damage_hint(self.path)
+            raise BagError(
+                f"{self.path}: bag is corrupt ({type(exc).__name__}: {exc})"
+                + (f"; {hint}" if hint else "")
+            ) from exc
 
     def messages(
         self, topics: Iterable[str], *, damaged_as_none: bool = False

@@ -241,11 +241,14 @@ def test_a_storage_file_listed_twice_is_bad_input(tmp_path: Path, capsys) -> Non
     bag = _copy_first(tmp_path, "twice", 4, {})
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())
     info = meta["rosbag2_bagfile_information"]
-    info["relative_file_paths"] = info["relative_file_paths"] * 2
-    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
-    assert cli_map.main([str(bag), "--out", str(tmp_path / "map")]) == 2
-    err = capsys.readouterr().err
-    assert "more than once" in err and "Traceback" not in err, err
+    (name,) = info["relative_file_paths"]
+    # the same name twice, and the same file under another spelling (read twice as well)
+    for twice in ([name, name], [name, f"./{name}"], [name, str((bag / name).resolve())]):
+        info["relative_file_paths"] = twice
+        (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+        assert cli_map.main([str(bag), "--out", str(tmp_path / "map")]) == 2, twice
+        err = capsys.readouterr().err
+        assert "more than once" in err and "Traceback" not in err, err
 
 
 def test_frames_the_bag_lists_but_does_not_hold_are_reported_lost(tmp_path: Path, capsys) -> None:
