@@ -86,6 +86,13 @@ def test_big_endian_and_row_padding_are_honoured():
         (lambda m: setattr(m, "row_step", 3), "bad_row_step"),
         # a second x over the y bytes: which one is x is anyone's guess
         (lambda m: setattr(m, "fields", [*m.fields, _field("x", 4)]), "duplicate_fields"),
+        # x, y and z all at offset 0: read as x = y = z, a cloud on one line, and mapped
+        (
+            lambda m: setattr(m, "fields", [_field("x", 0), _field("y", 0), _field("z", 0)]),
+            "overlapping_fields",
+        ),
+        # z starting inside y
+        (lambda m: setattr(m, "fields", [*m.fields[:2], _field("z", 6)]), "overlapping_fields"),
         # one row more than the header says: the header does not describe the data
         (lambda m: setattr(m, "data", bytes(m.data) + bytes(m.row_step)), "excess_data"),
     ],

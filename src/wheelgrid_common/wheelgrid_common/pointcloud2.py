@@ -9,6 +9,7 @@ Works on rclpy messages and on messages deserialised by ``rosbags`` alike: both 
 from __future__ import annotations
 
 import array
+import itertools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -103,6 +104,17 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
                 "bad_point_step",
                 f"field {n!r} at offset {spec.offset} (+{size} B) does not fit point_step "
                 f"{point_step}",
+            )
+    # Fields read that share bytes (x, y and z all at offset 0) decode as x = y = z, a cloud
+    # on one line that the mapper took as frames: refused as the header's error it is.
+    spans = sorted(
+        (specs[n].offset, specs[n].offset + np.dtype(_DTYPES[specs[n].datatype]).itemsize, n)
+        for n in names
+    )
+    for (_, end, a), (start, _, b) in itertools.pairwise(spans):
+        if start < end:
+            raise CloudError(
+                "overlapping_fields", f"fields {a!r} and {b!r} share bytes (offsets overlap)"
             )
     if row_step < width * point_step:
         raise CloudError(
