@@ -51,8 +51,6 @@ def test_the_defaults_and_the_shipped_presets_keep_every_thin_obstacle(settings)
             {"pfc_min_offset": 0.0, "pfc_threshold": 0.5},
             "the 5 cm bar keeps 45 % of its length (pfc_threshold 0.5, pfc_min_offset 0.0)",
         ),
-        # many neighbours with m = 0: SOR takes the table's front edge (its sparsest points)
-        ({"sor_k": 50, "sor_m": 0.0}, "the table's front edge keeps 62 % of its length"),
         # cells coarser than the obstacles: the edge's points move inward, the bar thins out
         ({"voxel_size": 0.2}, "(voxel_size 0.2)"),
         ({"target_points": 2000}, "the table's front edge keeps 12 % of its length"),
@@ -67,6 +65,16 @@ def test_settings_that_erase_a_thin_obstacle_are_refused_in_one_line(settings, s
     assert isinstance(err.value, ValueError)  # every entry point's "invalid settings" path
     assert text.startswith("preprocess settings erase thin obstacles: ") and "\n" not in text
     assert says in text and "; the defaults keep all of " in text, text
+
+
+def test_no_outlier_removal_setting_takes_a_line_of_cells() -> None:
+    """Many neighbours with m = 0 flag every point above the mean distance, the table's front
+    edge among them (its sparsest points): it kept 62 % of its length and the settings were
+    refused. A point inside or at the end of a line of cells is kept whatever eq. 4 says, so
+    the outlier removal alone can no longer erase a thin obstacle."""
+    for settings in ({"sor_k": 50, "sor_m": 0.0}, {"sor_k": 20, "sor_m": 0.0}):
+        cov = thin_obstacle_coverage(PreprocessConfig(**settings))
+        assert cov.ok, (settings, cov.kept)
 
 
 def test_a_refusal_names_every_obstacle_lost() -> None:

@@ -388,6 +388,7 @@ class Mapper:
             "after_sor": 0,
             "after_pfc": 0,
             "mixed_out_of_map": 0,
+            "sor_kept_on_lines": 0,
         }
         self.timings = {
             "preprocess_s": 0.0,

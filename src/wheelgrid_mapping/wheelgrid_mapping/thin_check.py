@@ -4,7 +4,8 @@ Issue #3: no filter may erase a 5 cm bar, a table leg or a table edge. ``validat
 settings that cannot work, but settings that pass it can still filter such an obstacle away
 frame after frame, and the map then shows free floor where the chair would hit a bar:
 ``pfc_min_offset 0`` with ``pfc_threshold 0.5`` removed 55 % of the bar, ``sor_k 50`` with
-``sor_m 0`` 38 % of the table's front edge, a 20 cm voxel most of all three. No rule on the
+``sor_m 0`` 38 % of the table's front edge (before the outlier removal kept lines of cells),
+a 20 cm voxel most of all three. No rule on the
 numbers alone foresees every such combination, so the settings are run through the very steps
 the mapper runs on each frame (:func:`~wheelgrid_mapping.preprocess.preprocess_for_map`) on a
 small synthetic room, and refused where an obstacle loses a 10 cm stretch.
