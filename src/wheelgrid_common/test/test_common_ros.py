@@ -199,7 +199,10 @@ def test_a_number_written_1e_4_reads_as_rcl_reads_it(tmp_path):
 
     from wheelgrid_common.params import field, load_yaml
 
-    text = "mapper:\n  ros__parameters:\n    a: 1e-4\n    b: -2E+3\n    c: 1.5e1\n    d: '1e-4'\n"
+    text = (
+        "mapper:\n  ros__parameters:\n    a: 1e-4\n    b: -2E+3\n    c: 1.5e1\n    d: '1e-4'\n"
+        "    e: 1_0e5\n    f: -1e400\n"  # text to rcl: an underscore, an overflow
+    )
     (tmp_path / "p.yaml").write_text(text)
     with rclpy_context() as ctx:
         node = Node(
@@ -209,10 +212,10 @@ def test_a_number_written_1e_4_reads_as_rcl_reads_it(tmp_path):
             automatically_declare_parameters_from_overrides=True,
         )
         try:
-            by_rcl = {k: node.get_parameter(k).value for k in "abcd"}
+            by_rcl = {k: node.get_parameter(k).value for k in "abcdef"}
         finally:
             node.destroy_node()
-    assert by_rcl == {"a": 1e-4, "b": -2000.0, "c": 15.0, "d": "1e-4"}
+    assert by_rcl == {"a": 1e-4, "b": -2000.0, "c": 15.0, "d": "1e-4", "e": "1_0e5", "f": "-1e400"}
 
     from dataclasses import dataclass
 
@@ -222,5 +225,7 @@ def test_a_number_written_1e_4_reads_as_rcl_reads_it(tmp_path):
         b: float = field(0.0, "b")
         c: float = field(0.0, "c")
         d: str = field("", "d")
+        e: str = field("", "e")
+        f: str = field("", "f")
 
     assert load_yaml(Cfg, tmp_path / "p.yaml") == Cfg(**by_rcl)

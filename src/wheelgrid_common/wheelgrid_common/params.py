@@ -110,11 +110,22 @@ class _Loader(yaml.SafeLoader):
     refused by ``wheelgrid map --config`` from the same file ("expected a number")."""
 
 
+_SCIENTIFIC = "tag:wheelgrid,2026:scientific"
+
+
+def _scientific(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> float | str:
+    """A plain ``1e-4``: its number, as rcl reads it; one that overflows (``1e400``) stays the
+    text rcl keeps it as, not an infinity."""
+    text = str(loader.construct_scalar(node))
+    value = float(text)
+    return value if math.isfinite(value) else text
+
+
+# digits only, no "_" (rcl reads 1_0e5 as text), a dot optional, an exponent required
 _Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
+    _SCIENTIFIC, re.compile(r"^[-+]?[0-9]+(?:\.[0-9]*)?[eE][-+]?[0-9]+$"), list("-+0123456789")
 )
+_Loader.add_constructor(_SCIENTIFIC, _scientific)
 
 
 def read_yaml(path: str | Path) -> Any:

@@ -529,12 +529,14 @@ def test_a_map_never_levelled_is_saved_on_exit_in_odom(tmp_path, capfd):
         finally:
             node.close()
             node.destroy_node()
-    out = tmp_path / "on_exit"
+    out = tmp_path / "on_exit_unlevelled"
     assert sorted(p.name for p in out.iterdir()) == [
         "map_odom.ply",
         "report.json",
         "trajectory_odom.tum",
     ]
+    # an earlier session's levelled map in on_exit is not paired with this scan's report
+    assert not (tmp_path / "on_exit").exists()
     assert read_ply(out / "map_odom.ply").shape[0] > 1000
     assert read_tum(out / "trajectory_odom.tum")[1].shape == (4, 4, 4)
     logged = "".join(capfd.readouterr())

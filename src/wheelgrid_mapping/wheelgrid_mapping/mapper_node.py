@@ -76,7 +76,8 @@ class MapperNodeConfig:
         True,
         "on Ctrl-C / SIGTERM a map not saved since it last changed is written to "
         "<output_dir>/on_exit (never over ~/save_map's files; a new temporary folder, logged, "
-        "if that cannot be written): a scan is not lost to a closed terminal",
+        "if that cannot be written; one never levelled to <output_dir>/on_exit_unlevelled, in "
+        "odom): a scan is not lost to a closed terminal",
     )
     map_frame: str = field("map", "frame id of the levelled map")
     publish_tf: bool = field(
@@ -797,11 +798,13 @@ class MapperNode(Node):  # type: ignore[misc]
             if frames == 0 or self._map_state() == self._saved:
                 return  # nothing mapped, or ~/save_map already has exactly this map
             extra = {"node_counts": dict(self.counts), "saved_on_exit": True}
-            out = user_folder(self.output_dir) / "on_exit"
             # A floor never seen (no mount given either) left no map frame, and the scan was
-            # lost with "map NOT saved on exit": it is kept in odom, under other names.
+            # lost with "map NOT saved on exit": it is kept in odom, under other names, in a
+            # folder of its own (in on_exit, an earlier session's map.ply stayed beside it
+            # under this scan's report.json).
             levelled = self.mapper.try_level()
             save = self.mapper.save if levelled else self.mapper.save_unlevelled
+            out = user_folder(self.output_dir) / ("on_exit" if levelled else "on_exit_unlevelled")
             try:
                 rep = save(out, extra)
             except OSError as exc:
