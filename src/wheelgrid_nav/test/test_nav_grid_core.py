@@ -2,6 +2,7 @@
 guard, drops, wall alignment, extent/phase and the boundary rule, bad input."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -446,7 +447,9 @@ def test_a_raster_too_fine_for_the_floor_is_refused_before_it_is_allocated():
     floor = np.column_stack([rng.uniform(0, 90, (20000, 2)), np.zeros(20000)])
     posts = np.column_stack([rng.uniform(0, 90, (1000, 2)), np.ones(1000)])
     with pytest.raises(GridError, match="raise pixel_size") as info:  # 9000 x 9000 pixels
-        build_grid(np.vstack([floor, posts]), GridConfig(pixel_size=0.01, cell_size=1.2))
+        # (1 cm pixels need guard_line_min_points 1: a rope leaves ~1.5 points in 3x3 of them)
+        cfg = GridConfig(pixel_size=0.01, cell_size=1.2, guard_line_min_points=1)
+        build_grid(np.vstack([floor, posts]), cfg)
     assert info.value.cause == "too_large"
 
 
@@ -464,7 +467,7 @@ def test_the_wall_search_needs_memory_for_its_points_not_for_the_floors_area():
     points = np.vstack([floor, posts])
     tracemalloc.start()
     try:
-        wall_yaw(points, GridConfig(pixel_size=0.01, cell_size=1.2))
+        wall_yaw(points, GridConfig(pixel_size=0.01, cell_size=1.2, guard_line_min_points=1))
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
@@ -502,6 +505,42 @@ def test_guard_catches_a_rope_or_rod_one_map_point_thick(p0, p1):
     # what the point rule alone said: free, a chair planned through the rope
     before = build_grid(np.vstack([ROOM_3x3, rope(p0, p1, seed=1)]), NO_LINES)
     assert before.grid.data[1, 1] == FREE
+
+
+@pytest.mark.parametrize("pixel_size", [0.02, 0.03, 0.04, 0.05, 0.06])
+def test_a_rope_is_caught_at_every_pixel_size_accepted_and_finer_ones_say_what_to_lower(
+    pixel_size,
+):
+    """The line rule's counts are per 3x3 pixels: at 3 cm pixels a rope leaves about 4.5 points
+    there, under guard_line_min_points 5, and the rope's cell read free with no word. Such a
+    pixel size is refused, naming the guard_line_min_points that would catch it."""
+    cloud = np.vstack([ROOM_3x3, rope((1.25, 1.77, 0.8), (2.35, 1.77, 0.8), seed=1)])
+    cfg = GridConfig(pixel_size=pixel_size)
+    try:
+        cfg.validate()
+    except ValueError as exc:
+        assert pixel_size < 0.04, exc
+        found = re.search(r"guard_line_min_points <= (\d+)$", str(exc))
+        assert found and "ropes and cables would read free" in str(exc), exc
+        cfg = GridConfig(pixel_size=pixel_size, guard_line_min_points=int(found.group(1)))
+    res = build_grid(cloud, cfg)
+    assert res.grid.data[1, 1] == OCCUPIED and res.guard[1, 1], pixel_size
+
+
+def test_the_wall_strip_never_grows_past_its_cap_at_coarse_pixels():
+    """The strip of obstacles taken for the walls is at most MAX_BOUNDARY_MARGIN (20 cm) deep;
+    rounded to 24 cm pixels, a 16 cm strip became 24 cm and hid a 22 cm deep cabinet standing
+    against the wall (its cell read free)."""
+    from wheelgrid_nav.grid_synth import Box
+
+    pts = room_cloud([Box(0.0, 0.22, 4.0, 5.0, 0.0, 0.8)], spacing=0.02)
+    pts = pts[~((pts[:, 2] == 0.0) & (pts[:, 0] < 0.10))]  # the floor unseen by that wall
+    for ps in (0.05, 0.24):
+        cfg = GridConfig(pixel_size=ps, alignment="map", guard_line_length=max(0.3, 3 * ps))
+        cfg.floor_fill = 1 if ps <= 0.2 else 0
+        res = build_grid(pts, cfg)
+        r, c = res.grid.cell_of(0.11, 4.5)
+        assert res.grid.data[r, c] == OCCUPIED, ps
 
 
 def test_guard_catches_a_2cm_pole():

@@ -86,6 +86,9 @@ _MANY_DROPS = 0.1
 # Indoor scans rise 2-4 m above their floor; higher, the map is probably not z-up.
 _TALL_MAP_M = 5.0
 MIN_PIXEL_SIZE = 0.01  # m
+# m: the mapper's map_voxel, the spacing of the line of map points a rope or a cable leaves
+LINE_MAP_SPACING = 0.02
+GUARD_LINE_MIN_POINTS = 5  # guard_line_min_points' default: ~7.5 such points in 3 x 5 cm pixels
 MIN_SAFE_HEIGHT = 0.9  # m: no wheelchair user sits lower (a child's chair seat ~45 cm + torso)
 MAX_FLOOR_CLEARANCE = 0.15  # m: above it, a step is an obstacle to a wheelchair
 # m: the deepest step down that may be read as floor. drop_depth 0 ("disables") or 0.7 m made
@@ -163,7 +166,7 @@ class GridConfig:
         "points",
     )
     guard_line_min_points: int = field(
-        5,
+        GUARD_LINE_MIN_POINTS,
         "guard: points within a black pixel's 3x3 neighbourhood that make it a link of a line "
         "(a rod, rope or cable leaving one line of map points: about 7 at 2 cm map voxels; a "
         "row of lone noise points gives 3)",
@@ -316,6 +319,23 @@ class GridConfig:
                 f"min_points_per_pixel ({self.min_points_per_pixel}) must be <= "
                 f"guard_line_min_points ({self.guard_line_min_points}), the points a thin "
                 "obstacle leaves in a pixel: more erases bars and table edges from the grid"
+            )
+        per_link = 3 * self.pixel_size / LINE_MAP_SPACING
+        if (
+            self.thin_obstacle_guard
+            and self.guard_line_length != 0.0
+            and per_link < min(self.guard_line_min_points, GUARD_LINE_MIN_POINTS) - 1e-9
+        ):
+            # The counts are per 3x3 pixels: finer pixels leave a rope fewer points there, and
+            # at 3 cm (4.5 against 5) ropes, rods and cables at chair height read free, silently.
+            # (A count raised above the default is the user's own, for a finer map's spacing.)
+            raise ValueError(
+                f"pixel_size {self.pixel_size:g} m leaves a rope's line of map points "
+                f"({LINE_MAP_SPACING * 100:g} cm apart) about {per_link:.1f} points in a link's "
+                f"3x3 pixels, under guard_line_min_points ({self.guard_line_min_points}): ropes "
+                "and cables would read free; use pixel_size >= "
+                f"{self.guard_line_min_points * LINE_MAP_SPACING / 3:.3g} m or "
+                f"guard_line_min_points <= {math.floor(per_link + 1e-9)}"
             )
         if self.guard_line_length != 0.0 and not (
             3 * self.pixel_size - 1e-9 <= self.guard_line_length <= self.cell_size
@@ -945,7 +965,10 @@ def build_grid(
     # The boundary rule: the walls are expected where the observed floor ends, side by side
     # (boundary_widths), never more than MAX_BOUNDARY_MARGIN deep.
     sides = boundary_widths(u0, v0, rows, cols, floor_u, floor_v, cfg)
-    top, bottom, left, right = (round(x / ps) for x in sides)
+    # rounded, but never past the cap: at 24 cm pixels a 16 cm strip rounded to 24 cm hid a
+    # 22 cm deep cabinet against the wall
+    cap = math.floor(MAX_BOUNDARY_MARGIN / ps + 1e-9)
+    top, bottom, left, right = (min(round(x / ps), cap) for x in sides)
     ring = boundary_ring((h, w), (top, bottom, left, right))
     boundary = black & ring
     obstacles = black & ~ring
