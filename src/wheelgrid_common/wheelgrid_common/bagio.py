@@ -43,8 +43,7 @@ def damage_hint(path: Path) -> str:
     '' for other storage."""
     if cut_off_mcap(path):
         return recover_hint(path)
-    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
-    if not any(f.suffix == ".mcap" for f in files):
+    if not _mcap_files(path):
         return ""
     return (
         f"`wheelgrid bag-recover {path} --out NEW_BAG` copies the messages of its intact "
@@ -61,10 +60,7 @@ def cut_off_mcap(path: Path) -> bool:
     A complete MCAP file ends with its footer and the magic; one a killed recorder left does
     not. Judged from the file itself, not from a reader's error text, which a release may reword.
     """
-    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
-    for f in files:
-        if f.suffix != ".mcap":
-            continue
+    for f in _mcap_files(path):
         try:
             size = f.stat().st_size
             with f.open("rb") as fh:
@@ -74,6 +70,12 @@ def cut_off_mcap(path: Path) -> bool:
         except OSError:
             continue
     return False
+
+
+def _mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a bag folder, or the file itself where it is one."""
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    return [f for f in files if f.suffix == ".mcap"]
 
 
 def _check_path(path: Path) -> None:

@@ -94,6 +94,7 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
     if missing:
         raise CloudError("missing_fields", f"no field(s) {missing}; has {sorted(specs)}")
     order = ">" if msg.is_bigendian else "<"
+    spans = []  # (first byte, end, name) of each field read
     for n in names:
         spec = specs[n]
         if spec.datatype not in _DTYPES:
@@ -105,13 +106,10 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
                 f"field {n!r} at offset {spec.offset} (+{size} B) does not fit point_step "
                 f"{point_step}",
             )
+        spans.append((spec.offset, spec.offset + size, n))
     # Fields read that share bytes (x, y and z all at offset 0) decode as x = y = z, a cloud
     # on one line that the mapper took as frames: refused as the header's error it is.
-    spans = sorted(
-        (specs[n].offset, specs[n].offset + np.dtype(_DTYPES[specs[n].datatype]).itemsize, n)
-        for n in names
-    )
-    for (_, end, a), (start, _, b) in itertools.pairwise(spans):
+    for (_, end, a), (start, _, b) in itertools.pairwise(sorted(spans)):
         if start < end:
             raise CloudError(
                 "overlapping_fields", f"fields {a!r} and {b!r} share bytes (offsets overlap)"

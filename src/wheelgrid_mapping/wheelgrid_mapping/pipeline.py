@@ -1060,25 +1060,11 @@ class Mapper:
         levelling error) leaves the folder's previous map, trajectory and report as they were.
         It used to write map.ply in place, so a second run into the same ``--out`` that failed
         mid-write left a cut-off map.ply beside the first run's report, the first map gone."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        Path(out_dir).mkdir(parents=True, exist_ok=True)  # before the levelling may refuse
         pts = self.map_points()
         stamps, poses = self.trajectory()
-        rep = self.report()
-        if extra:
-            rep.update(extra)
-        write_together(
-            {
-                out / "map.ply": lambda p: write_ply(
-                    p, pts, comment="wheelgrid map frame: z up, z=0 floor, metres"
-                ),
-                out / "trajectory.tum": lambda p: write_tum(p, stamps, poses),
-                out / "report.json": lambda p: p.write_text(
-                    json.dumps(rep, indent=2, default=float)
-                ),
-            }
-        )
-        return rep
+        comment = "wheelgrid map frame: z up, z=0 floor, metres"
+        return self._write(out_dir, "", pts, stamps, poses, comment, extra)
 
     def save_unlevelled(
         self, out_dir: str | Path, extra: dict[str, Any] | None = None
@@ -1087,19 +1073,35 @@ class Mapper:
         and the sensor poses in odom (the first registered frame's sensor frame), for a live
         scan whose floor was never found that must not be lost as its node stops. Not
         map.ply: nothing may take these for the levelled map frame a grid stands on."""
+        poses = np.array(self.poses_odom).reshape(-1, 4, 4)
+        comment = "wheelgrid odom frame (the first sensor frame; not levelled), metres"
+        extra = {"frame": "odom: the first registered frame's sensor frame, NOT levelled"} | (
+            extra or {}
+        )
+        return self._write(
+            out_dir, "_odom", self.map_odom(), np.asarray(self.stamps), poses, comment, extra
+        )
+
+    def _write(
+        self,
+        out_dir: str | Path,
+        suffix: str,
+        pts: np.ndarray,
+        stamps: np.ndarray,
+        poses: np.ndarray,
+        comment: str,
+        extra: dict[str, Any] | None,
+    ) -> dict[str, Any]:
+        """map{suffix}.ply, trajectory{suffix}.tum and report.json, written together."""
         out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        pts = self.map_odom()
-        stamps, poses = np.asarray(self.stamps), np.array(self.poses_odom).reshape(-1, 4, 4)
+        out.mkdir(parents=True, exist_ok=True)  # (save's is made already; the odom save's not)
         rep = self.report()
-        rep["frame"] = "odom: the first registered frame's sensor frame, NOT levelled"
         if extra:
             rep.update(extra)
-        comment = "wheelgrid odom frame (the first sensor frame; not levelled), metres"
         write_together(
             {
-                out / "map_odom.ply": lambda p: write_ply(p, pts, comment=comment),
-                out / "trajectory_odom.tum": lambda p: write_tum(p, stamps, poses),
+                out / f"map{suffix}.ply": lambda p: write_ply(p, pts, comment=comment),
+                out / f"trajectory{suffix}.tum": lambda p: write_tum(p, stamps, poses),
                 out / "report.json": lambda p: p.write_text(
                     json.dumps(rep, indent=2, default=float)
                 ),
