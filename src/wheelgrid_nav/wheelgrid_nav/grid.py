@@ -321,20 +321,17 @@ class GridConfig:
                 "obstacle leaves in a pixel: more erases bars and table edges from the grid"
             )
         per_link = 3 * self.pixel_size / LINE_MAP_SPACING
-        if (
-            self.thin_obstacle_guard
-            and self.guard_line_length != 0.0
-            and per_link < min(self.guard_line_min_points, GUARD_LINE_MIN_POINTS) - 1e-9
-        ):
+        # (a count raised above the default is the user's own, for a finer map's spacing)
+        needed = min(self.guard_line_min_points, GUARD_LINE_MIN_POINTS)
+        if self.thin_obstacle_guard and self.guard_line_length != 0.0 and per_link < needed - 1e-9:
             # The counts are per 3x3 pixels: finer pixels leave a rope fewer points there, and
             # at 3 cm (4.5 against 5) ropes, rods and cables at chair height read free, silently.
-            # (A count raised above the default is the user's own, for a finer map's spacing.)
             raise ValueError(
                 f"pixel_size {self.pixel_size:g} m leaves a rope's line of map points "
                 f"({LINE_MAP_SPACING * 100:g} cm apart) about {per_link:.1f} points in a link's "
                 f"3x3 pixels, under guard_line_min_points ({self.guard_line_min_points}): ropes "
                 "and cables would read free; use pixel_size >= "
-                f"{self.guard_line_min_points * LINE_MAP_SPACING / 3:.3g} m or "
+                f"{needed * LINE_MAP_SPACING / 3:.3g} m or "
                 f"guard_line_min_points <= {math.floor(per_link + 1e-9)}"
             )
         if self.guard_line_length != 0.0 and not (
