@@ -270,8 +270,9 @@ def test_a_one_cell_wide_obstacle_survives_the_outlier_removal_at_every_lattice_
     """Eqs. 1-4 run after the downsampling: a thin leg or a table's edge seen from chair height
     is then one cell wide, half of its K = 8 neighbours are out of reach, and eq. 4 flagged it
     whole: this 3 cm leg lost a stretch on 6 of 36 lattice phases (all of it on the worst),
-    the table a third of its length (a reviewer's ray cast). Slid through one 3 cm cell in 5 mm steps, each 10 cm
-    stretch of it that the frame sees keeps a point; floating returns still go."""
+    the table a third of its length (a reviewer's ray cast). Slid through one 3 cm cell in 5 mm
+    steps, each 10 cm stretch of it that the frame sees keeps a point; floating returns still
+    go."""
     lo = np.array([[-5.0, -1.0, -0.1], [-5.0, 4.5, 0.0], obstacle[0]])
     hi = np.array([[5.0, 10.0, 0.0], [5.0, 4.6, 3.0], obstacle[1]])
     cfg = PreprocessConfig()
