@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from wheelgrid_common.fileio import quat_to_matrix
 from wheelgrid_common.pointcloud2 import read_fields
@@ -74,3 +75,11 @@ def test_stamp_to_msg_rounding() -> None:
     assert t.nanosec < 1_000_000_000
     t2 = stamp_to_msg(3.0000000004)
     assert (t2.sec, t2.nanosec) == (3, 0)
+
+
+@pytest.mark.parametrize("seconds", [3e9, 2.0**31, -0.5, float("nan"), float("inf")])
+def test_stamp_to_msg_refuses_what_a_ros_time_cannot_hold(seconds: float) -> None:
+    """rclpy takes ``Time(sec=3000000000)`` and the int32 on the wire wraps it to 1928, so a
+    corrupt Stray timestamp went into `import-stray`'s bag silently: it is an error here."""
+    with pytest.raises(ValueError, match="outside 0"):
+        stamp_to_msg(seconds)

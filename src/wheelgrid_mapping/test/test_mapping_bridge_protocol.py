@@ -10,26 +10,36 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from wheelgrid_mapping import bridge_protocol as bp
-from wheelgrid_mapping.depth import ARKIT_CAMERA_TO_OPTICAL, pose_from_xyz_quat
+from wheelgrid_mapping.depth import (
+    ARKIT_CAMERA_TO_OPTICAL,
+    metres_to_millimetres,
+    pose_from_xyz_quat,
+)
 
-K = np.array([[180.0, 0.0, 128.0], [0.0, 181.0, 96.0], [0.0, 0.0, 1.0]])
+K = np.array([[180.0, 0.0, 128.0], [0.0, 181.0, 96.0], [0.0, 0.0, 1.0]])  # for 256 x 192
+
+
+def k_for(depth: np.ndarray) -> np.ndarray:
+    """K with its principal point at the centre of ``depth`` (the decoder refuses one far off)."""
+    h, w = depth.shape
+    return np.array([[180.0, 0.0, w / 2], [0.0, 181.0, h / 2], [0.0, 0.0, 1.0]])
 
 
 def _frame_bytes(w: int = 8, h: int = 6, **kw: object) -> bytes:
     rng = np.random.default_rng(0)
     depth = rng.uniform(0.5, 5.0, (h, w)).astype(np.float32)
-    return bp.encode_frame(1.5, K, depth, **kw)  # type: ignore[arg-type]
+    return bp.encode_frame(1.5, k_for(depth), depth, **kw)  # type: ignore[arg-type]
 
 
 def test_frame_round_trip_f32_with_confidence_and_pose() -> None:
     depth = np.array([[1.0, np.nan, 0.0], [2.5, 3.25, 4.0]], dtype=np.float32)
     conf = np.array([[2, 1, 0], [2, 2, 1]], dtype=np.uint8)
     pose = pose_from_xyz_quat(0.1, 1.2, -0.3, 0.1, 0.2, 0.3, 0.9)
-    raw = bp.encode_frame(12.25, K, depth, seq=7, confidence=conf, pose=pose)
+    raw = bp.encode_frame(12.25, k_for(depth), depth, seq=7, confidence=conf, pose=pose)
     (f,) = bp.FrameDecoder().feed(raw)
     assert isinstance(f, bp.Frame)
     assert (f.stamp, f.seq, f.width, f.height) == (12.25, 7, 3, 2)
-    np.testing.assert_allclose(f.K, K)
+    np.testing.assert_allclose(f.K, k_for(depth))
     np.testing.assert_array_equal(f.confidence, conf)
     dm = f.depth_m()
     assert np.isnan(dm[0, 1]) and np.isnan(dm[0, 2]) and dm[1, 1] == 3.25
@@ -40,13 +50,18 @@ def test_u16_millimetres_and_arkit_axes_pose() -> None:
     depth_m = np.array([[1.2344, 0.0], [np.nan, 6.5]], dtype=np.float32)
     pose = pose_from_xyz_quat(0, 1, 0, 0, 0, 0, 1)
     raw = bp.encode_frame(
-        3.0, K, depth_m, pose=pose, pose_axes=bp.POSE_ARKIT, depth_encoding=bp.DEPTH_U16_MM
+        3.0,
+        k_for(depth_m),
+        depth_m,
+        pose=pose,
+        pose_axes=bp.POSE_ARKIT,
+        depth_encoding=bp.DEPTH_U16_MM,
     )
     (f,) = bp.FrameDecoder().feed(raw)
     assert f.depth.dtype == np.uint16 and f.depth.tolist() == [[1234, 0], [0, 6500]]
     assert f.confidence is None
     np.testing.assert_allclose(f.pose_optical(), pose @ ARKIT_CAMERA_TO_OPTICAL, atol=1e-12)
-    (g,) = bp.FrameDecoder().feed(bp.encode_frame(3.0, K, depth_m))
+    (g,) = bp.FrameDecoder().feed(bp.encode_frame(3.0, k_for(depth_m), depth_m))
     assert g.pose is None and g.pose_optical() is None
 
 
@@ -55,7 +70,7 @@ def test_millimetre_depth_sent_as_float_metres_is_converted() -> None:
     to the encoding asked for. Asked for DEPTH_F32_M, it sent the millimetres as metres: a
     wall 1.5 m away arrived 1.5 km away."""
     mm = np.array([[1500, 0], [65535, 250]], dtype=np.uint16)
-    raw = bp.encode_frame(3.0, K, mm, depth_encoding=bp.DEPTH_F32_M)
+    raw = bp.encode_frame(3.0, k_for(mm), mm, depth_encoding=bp.DEPTH_F32_M)
     (f,) = bp.FrameDecoder().feed(raw)
     assert f.depth_encoding == bp.DEPTH_F32_M
     np.testing.assert_allclose(f.depth_m(), [[1.5, np.nan], [65.535, 0.25]], rtol=1e-6)
@@ -64,12 +79,38 @@ def test_millimetre_depth_sent_as_float_metres_is_converted() -> None:
 def test_a_float_depth_beyond_any_return_is_no_return() -> None:
     """A float frame's depth of 3e38 m (or inf) became a finite point 3e38 m away on
     /iphone/points; the mapper's range filter dropped it, but RViz or another stack got it.
-    Beyond the 16-bit millimetres' ceiling a depth is no return, in both encodings."""
-    depth = np.array([[3e38, np.inf], [bp.MAX_DEPTH_M, 70.0]], dtype=np.float32)
-    (f,) = bp.FrameDecoder().feed(bp.encode_frame(3.0, K, depth))
-    dm = f.depth_m()
-    assert np.isnan(dm[0]).all() and np.isnan(dm[1, 1])
-    assert dm[1, 0] == np.float32(bp.MAX_DEPTH_M)
+    Beyond the 16-bit millimetres' ceiling a depth is no return, in both encodings: sent as
+    DEPTH_U16_MM (`stream-stray`'s default, `import-stray`'s only encoding) 70 m and 3e38 m
+    were clipped to 65,535 mm, a real-looking point 65.5 m away."""
+    depth = np.array([[3e38, np.inf], [bp.MAX_DEPTH_M, 70.0], [-1.0, np.nan]], dtype=np.float32)
+    for enc in (bp.DEPTH_F32_M, bp.DEPTH_U16_MM):
+        (f,) = bp.FrameDecoder().feed(bp.encode_frame(3.0, k_for(depth), depth, depth_encoding=enc))
+        dm = f.depth_m()
+        assert np.isnan(dm[0]).all() and np.isnan(dm[1, 1]) and np.isnan(dm[2]).all(), enc
+        assert dm[1, 0] == np.float32(bp.MAX_DEPTH_M), enc
+    assert metres_to_millimetres(np.array([65.5354, 65.5356, 0.0004, 0.0006])).tolist() == [
+        65535,
+        0,
+        0,
+        1,
+    ]
+
+
+def test_intrinsics_of_the_rgb_image_are_refused_near_centre_ones_taken() -> None:
+    """ARKit's K is for the 1920 x 1440 RGB image. Sent unscaled with a 256 x 192 depth, the
+    frame was taken and a wall 2.7 m wide came out 0.36 m wide, off to one side."""
+    depth = np.full((192, 256), 2.0, np.float32)
+    rgb_k = np.array([[1400.0, 0.0, 960.0], [0.0, 1400.0, 720.0], [0.0, 0.0, 1.0]])
+    dec = bp.FrameDecoder()
+    assert dec.feed(bp.encode_frame(1.0, rgb_k, depth)) == []
+    assert [e.reason for e in dec.errors] == ["bad_intrinsics"]
+    assert "not scaled to the depth resolution" in str(dec.errors[0])
+    scaled = rgb_k * [[256 / 1920], [192 / 1440], [1.0]]
+    off = scaled.copy()
+    off[:2, 2] += (0.2 * 256, -0.2 * 192)
+    for k in (scaled, off):  # a principal point 20 % off the centre is still a camera's
+        (f,) = bp.FrameDecoder().feed(bp.encode_frame(1.0, k, depth))
+        np.testing.assert_allclose(f.K, k)
 
 
 def test_stream_split_anywhere_and_hello_status() -> None:
@@ -110,6 +151,9 @@ def _patch_header(raw: bytes, fmt_index: int, value: object) -> bytes:
         (4, 1e-40, "bad_intrinsics"),
         (5, 1e9, "bad_intrinsics"),
         (6, -3e6, "bad_intrinsics"),
+        # the 8 x 6 frame's K at 1920 x 1440 (not scaled to the depth): squashed clouds
+        (6, 960.0, "bad_intrinsics"),
+        (7, 720.0, "bad_intrinsics"),
         (15, 9, "bad_depth_encoding"),
         (15, bp.DEPTH_U16_MM, "size_mismatch"),
         (16, 5, "bad_confidence_encoding"),
@@ -134,7 +178,9 @@ def test_largest_stamp_still_publishable() -> None:
     from wheelgrid_mapping.iphone_bridge_node import stamp_to_msg
 
     stamp = np.nextafter(bp.MAX_STAMP_S, 0.0)
-    (f,) = bp.FrameDecoder().feed(bp.encode_frame(stamp, K, np.ones((2, 2), np.float32)))
+    (f,) = bp.FrameDecoder().feed(
+        bp.encode_frame(stamp, k_for(np.ones((2, 2))), np.ones((2, 2), np.float32))
+    )
     assert stamp_to_msg(f.stamp).sec == 2**31 - 2  # fits int32, nanoseconds did not carry
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -19,7 +20,13 @@ K = np.array([[180.0, 0.0, 128.0], [0.0, 180.0, 96.0], [0.0, 0.0, 1.0]])
 
 def frame(seq: int, w: int = 16, h: int = 12) -> bytes:
     depth = np.full((h, w), 1.5, dtype=np.float32)
-    return bp.encode_frame(10.0 + seq / 60, K, depth, seq=seq, pose=np.eye(4))
+    return bp.encode_frame(
+        10.0 + seq / 60,
+        K * [[1, 1, w / 256], [1, 1, h / 192], [1, 1, 1]],
+        depth,
+        seq=seq,
+        pose=np.eye(4),
+    )
 
 
 class Recorder:
@@ -476,3 +483,19 @@ def test_a_phone_that_leaves_mid_frame_is_said_to_have_lost_it() -> None:
             assert wait_for(lambda: len(rec.frames) == 2)
         assert wait_for(lambda: rec.logged("(tidy) disconnected"))
         assert [lv for lv, t in rec.logs if "(tidy) disconnected" in t] == ["info"]
+
+
+def test_a_phone_whose_connection_is_reset_mid_frame_is_said_to_have_lost_it() -> None:
+    """A reset (the app killed with the bridge's STATUS still unread, SO_LINGER 0 here) ends
+    in a read error, not a clean close: the log said "read failed" and nothing of the frame
+    begun."""
+    with server() as (srv, rec):
+        half = frame(0)
+        sock = bp.connect("127.0.0.1", srv.port, name="phone")
+        sock.sendall(half[: len(half) // 2])
+        assert wait_for(lambda: any(c.decoder.buffered for c in list(srv._clients.values())))
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        sock.close()  # RST
+        assert wait_for(lambda: rec.logged("read failed"))
+        said = [t for lv, t in rec.logs if "read failed" in t and lv == "warn"]
+        assert f"{len(half) // 2} B of an unfinished message" in said[0], said

@@ -204,6 +204,24 @@ def test_a_nan_or_zero_quaternion_pose_row_costs_its_frame_its_pose_only(tmp_pat
     assert exp.frame(2).stamp == pytest.approx(100.033333)
 
 
+def test_a_timestamp_a_ros_stamp_cannot_hold_costs_its_frame_its_row(tmp_path: Path) -> None:
+    """A corrupt timestamp of 3e9 s (or a negative one) was taken as the frame's stamp, and
+    `import-stray` wrote it into the bag's headers as sec = -1294967296 (1928: int32 seconds
+    wrap), where the live bridge refuses such a stamp. The row now counts as missing: the frame
+    keeps its place between its neighbours, without a pose."""
+    cap = make_export(tmp_path / "cap", 4)
+    rows = (cap / "odometry.csv").read_text().splitlines()
+    rows[2] = "3000000000.0, 000001, 0.1, 1.0, 0.0, 0, 0, 0, 1"
+    rows[3] = "-5.0, 000002, 0.2, 1.0, 0.0, 0, 0, 0, 1"
+    (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
+    exp = StrayExport(cap)
+    assert exp.frames_without_pose == 2
+    stamps = [exp.frame(i).stamp for i in range(4)]
+    assert stamps[0] == pytest.approx(100.0) and stamps[3] == pytest.approx(100.05)
+    assert stamps[0] < stamps[1] < stamps[2] < stamps[3]
+    assert exp.frame(1).pose is None and exp.frame(2).pose is None
+
+
 def test_two_odometry_rows_that_disagree_on_a_frame_cost_it_its_pose(tmp_path: Path) -> None:
     """Two rows for one frame number (an export concatenated, an app's retry) read as the last
     row's pose, silently: which of the two is ARKit's is not known, and a wrong prior moves the

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wheelgrid_mapping.depth import MAX_DEPTH_M
+from wheelgrid_mapping.depth import MAX_DEPTH_M, metres_to_millimetres
 
 MAGIC = b"WGIP"
 VERSION = 1
@@ -199,9 +199,9 @@ def encode_frame(
     """Encode one frame; ``depth`` float (metres) or uint16 (millimetres).
 
     ``depth_encoding`` converts on the way: float depth sent as DEPTH_U16_MM is rounded to mm
-    (NaN -> 0 = no return), uint16 depth sent as DEPTH_F32_M is scaled to metres (0 stays 0 =
-    no return; it went out as metres unscaled, 1000x too far). ``pose`` is ARKit world <-
-    camera in ``pose_axes``.
+    (NaN, inf and beyond 65.535 m -> 0 = no return), uint16 depth sent as DEPTH_F32_M is
+    scaled to metres (0 stays 0 = no return; it went out as metres unscaled, 1000x too far).
+    ``pose`` is ARKit world <- camera in ``pose_axes``.
     """
     d = np.asarray(depth)
     if d.ndim != 2:
@@ -214,11 +214,7 @@ def encode_frame(
         metres = d.astype(np.float32) * np.float32(0.001) if d.dtype == np.uint16 else d
         payload = np.ascontiguousarray(metres, dtype="<f4").tobytes()
     elif enc == DEPTH_U16_MM:
-        if d.dtype == np.uint16:
-            mm = d
-        else:
-            m = np.nan_to_num(d.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-            mm = np.clip(np.rint(m * 1000.0), 0, 65535).astype(np.uint16)
+        mm = d if d.dtype == np.uint16 else metres_to_millimetres(d)
         payload = np.ascontiguousarray(mm, dtype="<u2").tobytes()
     else:
         raise ValueError(f"unknown depth encoding {enc}")
@@ -319,6 +315,15 @@ def decode_frame(body: bytes) -> Frame:
         and abs(cy) <= MAX_FOCAL_PX
     ):
         raise ProtocolError("bad_intrinsics", f"fx={fx} fy={fy} cx={cx} cy={cy}")
+    # ARKit's intrinsics are for the 1920x1440 RGB image; sent unscaled with a 256x192 depth,
+    # every cloud came out squashed and pushed to one side (a wall 2.7 m wide read 0.36 m).
+    # Any camera's principal point lies near its image's centre (the iPhone's within 0.5 %).
+    if abs(cx - w / 2) > w / 4 or abs(cy - h / 2) > h / 4:
+        raise ProtocolError(
+            "bad_intrinsics",
+            f"principal point ({cx:g}, {cy:g}) is not near the centre of the {w}x{h} depth "
+            "image: intrinsics not scaled to the depth resolution?",
+        )
     if enc not in DEPTH_BYTES:
         raise ProtocolError("bad_depth_encoding", f"depth encoding {enc} (known: 1 f32, 2 u16)")
     if conf_enc not in (CONF_NONE, CONF_U8):
@@ -819,7 +824,11 @@ class BridgeServer:
         except BlockingIOError:
             return
         except OSError as exc:
-            self._log("warn", f"bridge: {c.addr} read failed ({exc}); closing")
+            # a reset (the app killed with a STATUS unread) loses a frame begun as surely as
+            # a clean close does, and said so only there
+            partial = c.decoder.buffered
+            lost = f", {partial} B of an unfinished message (a frame) dropped" if partial else ""
+            self._log("warn", f"bridge: {c.addr} read failed ({exc}){lost}; closing")
             self._close(c, None)
             return
         if not data:

@@ -27,8 +27,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from wheelgrid_common.fileio import folder_problem, out_folder
 from wheelgrid_mapping.bridge_protocol import (
     DEPTH_F32_M,
@@ -40,7 +38,7 @@ from wheelgrid_mapping.bridge_protocol import (
     parting_status,
     status_words,
 )
-from wheelgrid_mapping.depth import check_min_confidence
+from wheelgrid_mapping.depth import check_min_confidence, metres_to_millimetres
 from wheelgrid_mapping.stray import StrayExport, StrayFrame
 
 TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
@@ -66,19 +64,13 @@ def parse_host_port(text: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
-def to_millimetres(depth_m: np.ndarray) -> np.ndarray:
-    """float metres (NaN = none) -> uint16 mm (0 = none), exact for Stray's mm depth."""
-    m = np.nan_to_num(depth_m.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(np.rint(m * 1000.0), 0, 65535).astype(np.uint16)
-
-
 def stray_to_frame(sf: StrayFrame, seq: int) -> Frame:
     """A Stray frame as the bridge would receive it (uint16 mm depth, optical-axes pose)."""
     return Frame(
         stamp=sf.stamp,
         seq=seq,
         K=sf.K,
-        depth=to_millimetres(sf.depth),
+        depth=metres_to_millimetres(sf.depth),  # exact for Stray's mm depth
         depth_encoding=DEPTH_U16_MM,
         confidence=sf.confidence,
         pose=sf.pose,

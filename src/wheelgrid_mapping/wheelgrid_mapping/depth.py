@@ -29,6 +29,18 @@ import numpy as np
 # filter drops them) to draw or plan with.
 MAX_DEPTH_M = 65.535
 
+
+def metres_to_millimetres(depth_m: np.ndarray) -> np.ndarray:
+    """Float metres -> uint16 mm with 0 for "no return": NaN, inf, <= 0 and anything beyond
+    :data:`MAX_DEPTH_M`. Clipping there instead turned a 70 m or 3e38 m pixel into 65,535 mm,
+    a real-looking point 65.5 m away, where the float path drops it."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.rint(np.asarray(depth_m, dtype=np.float64) * 1000.0)
+    # what rounds to 65,535 mm is kept: float32's 65.535 is 65.53500366 m
+    keep = (mm > 0) & (mm <= 65535)  # False for NaN
+    return np.where(keep, mm, 0).astype(np.uint16)
+
+
 # ARKit world (y up, -z initial forward, x right) -> ROS world (x forward, y left, z up).
 ARKIT_WORLD_TO_ROS: np.ndarray = np.array(
     [

@@ -93,8 +93,12 @@ def check_config(cfg: BridgeConfig) -> None:
 
 
 def stamp_to_msg(seconds: float) -> Any:
+    """``ValueError`` for a stamp a ROS Time cannot hold: rclpy takes ``sec=3000000000`` and the
+    serialised int32 wraps it to 1928, without a word."""
     from builtin_interfaces.msg import Time
 
+    if not 0 <= seconds < MAX_STAMP_S:
+        raise ValueError(f"stamp {seconds} s outside 0 .. 2^31 s (a ROS Time's int32 seconds)")
     sec = int(np.floor(seconds))
     nsec = round((seconds - sec) * 1e9)
     if nsec >= 1_000_000_000:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wheelgrid_mapping.bridge_protocol import MAX_STAMP_S
 from wheelgrid_mapping.depth import pose_from_xyz_quat
 
 # Stray's camera_matrix.csv describes the RGB video, which is always 1920 x 1440.
@@ -110,7 +111,9 @@ def _read_odometry(
     moves the frame. Identical repeats are one row.
 
     A row of numbers whose pose is NaN or has a zero quaternion costs its frame the pose only
-    (None; its timestamp is kept when finite), as a bag's NaN pose prior does: it refused the
+    (None; its timestamp is kept where it is one: finite, from 0 to 2^31 s, as a ROS stamp
+    holds it; a corrupt 3e9 s went into `import-stray`'s bag as 1928), as a bag's NaN pose
+    prior does: it refused the
     whole export. A row that is not 9 numbers, or has no frame number, still raises
     ``ValueError`` naming the line: that file is not odometry. A capture cut short (a full
     phone, the app killed) may leave the file empty (no poses) or its last line cut off (no
@@ -154,7 +157,7 @@ def _read_odometry(
             with contextlib.suppress(ValueError):  # a zero quaternion
                 pose = pose_from_xyz_quat(*v)
         unusable += pose is None
-        if math.isfinite(t):
+        if 0 <= t < MAX_STAMP_S:  # False for NaN; past it a ROS stamp's int32 seconds wrap
             out[int(frame)] = (t, pose)
     return out, unusable, len(disagree)
 
