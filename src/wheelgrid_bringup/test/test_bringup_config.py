@@ -299,7 +299,7 @@ def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, ca
     check_params_file(default_params_file())
     nested = tmp_path / "ns.yaml"
     nested.write_text("chair:\n  mapper:\n    ros__parameters: {topic: /x}\n")
-    check_params_file(nested)  # nodes under a namespace, as rcl reads them
+    check_params_file(nested, "/chair")  # nodes under a namespace, as rcl reads them
     bad = tmp_path / "bad.yaml"
     for text, says in (
         ("mapper:\n  ros__parameters: {topic: [/x\n", "bad.yaml: not valid YAML at line 3"),
@@ -314,6 +314,41 @@ def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, ca
     assert launch_main(["--params", str(bad), "--no-drive", "--duration", "1"]) == 2
     err = capsys.readouterr().err
     assert "expected a mapping of node name" in err and "Traceback" not in err
+
+
+def test_a_section_that_reaches_no_node_of_the_chain_is_refused(tmp_path, capsys):
+    """rcl ignores a section naming no node: `gird:` for `grid:` ran the grid on its
+    defaults (a safe height of 1.5 m where the file said 1.7) with exit 0, and so did a file
+    written for `chair2` under `--namespace chair1`. Wildcards and namespaced nodes reach."""
+    import pytest
+
+    from wheelgrid_bringup.launcher import check_params_file
+    from wheelgrid_bringup.launcher import main as launch_main
+
+    params = tmp_path / "p.yaml"
+    for text, namespace in (
+        ("gird:\n  ros__parameters: {safe_height: 1.7}\n", ""),
+        ("chair2:\n  grid:\n    ros__parameters: {safe_height: 1.7}\n", "/chair1"),
+        ("/chair2/grid:\n  ros__parameters: {safe_height: 1.7}\n", "/chair1"),
+        ("chair1:\n  grid:\n    ros__parameters: {safe_height: 1.7}\n", ""),
+        ("/*/grid:\n  ros__parameters: {safe_height: 1.7}\n", ""),  # * is one token
+    ):
+        params.write_text(text)
+        with pytest.raises(ValueError, match="reaches no node of the chain"):
+            check_params_file(params, namespace)
+    params.write_text("gird:\n  ros__parameters: {safe_height: 1.7}\n")
+    assert launch_main(["--params", str(params), "--no-drive", "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean '/grid'?" in err and "Traceback" not in err
+    for text, namespace in (
+        ("grid:\n  ros__parameters: {safe_height: 1.7}\n", "/chair1"),
+        ("chair1:\n  grid:\n    ros__parameters: {safe_height: 1.7}\n", "/chair1"),
+        ("/**:\n  ros__parameters: {use_sim_time: true}\n", "/a/b"),
+        ("/**/grid:\n  ros__parameters: {safe_height: 1.7}\n", ""),
+        ("/*/grid:\n  ros__parameters: {safe_height: 1.7}\n", "/chair1"),
+    ):
+        params.write_text(text)
+        check_params_file(params, namespace)
 
 
 def test_the_namespaced_copy_is_the_params_file_as_checked(tmp_path):

@@ -17,7 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
-from wheelgrid_bringup.supervisor import REPLAY_MAX_QUEUE, Supervisor, default_params_file
+from wheelgrid_bringup.supervisor import (
+    NODES,
+    REPLAY_MAX_QUEUE,
+    Supervisor,
+    default_params_file,
+)
 from wheelgrid_common.bagio import BagError
 from wheelgrid_common.params import read_yaml
 from wheelgrid_common.ros_env import child_env, configure_ros_env, rcl_reason
@@ -116,19 +121,54 @@ def node_overrides(name: str, args: argparse.Namespace) -> dict[str, object]:
     return overrides
 
 
-def check_params_file(path: Path) -> dict[str, Any]:
+def section_reaches(pattern: str, node: str) -> bool:
+    """Whether a params file's section (``/chair1/grid``, ``/**``, ``/*/grid``) applies to
+    the node of fully qualified name ``node``, as rcl matches them: ``**`` stands for any
+    number of name tokens, ``*`` within a token for any characters."""
+    import fnmatch
+
+    def match(pat: list[str], name: list[str]) -> bool:
+        if not pat:
+            return not name
+        if pat[0] == "**":
+            return any(match(pat[1:], name[i:]) for i in range(len(name) + 1))
+        return bool(name) and fnmatch.fnmatchcase(name[0], pat[0]) and match(pat[1:], name[1:])
+
+    return match(pattern.strip("/").split("/"), node.strip("/").split("/"))
+
+
+def check_params_file(path: Path, namespace: str = "") -> dict[str, Any]:
     """The ROS 2 parameter file at ``path`` (``node: {ros__parameters: {...}}`` per node), or
     ``ValueError`` where it is not one: rcl would refuse it only inside each node, as a
     traceback in that node's log after the chain had started, and the launch would end with
-    exit 1 naming a dead node instead of the file's line."""
+    exit 1 naming a dead node instead of the file's line.
+
+    Every section must also reach a node of the chain in ``namespace`` (a plain ``mapper:`` is
+    given to the namespace's mapper, see :func:`namespaced_params_file`). rcl ignores a section
+    that names no node, so ``gird:`` (or ``chair2:`` under ``--namespace chair1``) ran the grid
+    on its defaults, its safe height among them, with exit 0."""
+    import difflib
+
     data = read_yaml(path)
     if not isinstance(data, dict) or not data:
         raise ValueError(f"{path}: expected a mapping of node name: {{ros__parameters: ...}}")
+    chain = [f"{namespace}/{name}" for name in NODES]
 
     def check(name: str, body: object) -> None:  # a node, or a namespace holding nodes
         if isinstance(body, dict) and "ros__parameters" in body:
             if not isinstance(body["ros__parameters"], dict):
                 raise ValueError(f"{path}: {name}'s ros__parameters must be a mapping")
+            # a plain top-level key is the namespace's node; anything else is as written
+            fqn = f"{namespace}/{name}" if "/" not in name else "/" + name.lstrip("/")
+            if not any(section_reaches(fqn, node) for node in chain):
+                close = difflib.get_close_matches(fqn, chain, n=1)
+                raise ValueError(
+                    f"{path}: section {name!r} (node {fqn}) reaches no node of the chain "
+                    f"({', '.join(chain)})"
+                    + (f": did you mean {close[0]!r}?" if close else "")
+                    + "; its parameters would apply to nothing, and the node meant would run "
+                    "on its defaults"
+                )
             return
         if not isinstance(body, dict) or not body:
             raise ValueError(
@@ -177,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wheelgrid launch: no such params file {params}", file=sys.stderr)
         return 2
     try:
-        checked = check_params_file(params)
+        checked = check_params_file(params, namespace)
         if namespace:
             params = namespaced_params_file(params, namespace, args.log_dir, checked)
     except (OSError, ValueError) as exc:
