@@ -142,3 +142,64 @@ def test_launch_clock_runs_every_node_on_the_bags_time_and_needs_a_bag(capsys) -
     assert "--clock needs --bag" in capsys.readouterr().err
     assert main(["--bag", str(SCAN), "--clock", "0"]) == 2
     assert "--clock must be > 0 Hz" in capsys.readouterr().err
+
+
+@pytest.mark.ros
+def test_a_replay_that_fails_mid_bag_is_said_and_ends_the_launch_with_exit_1(
+    tmp_path: Path,
+) -> None:
+    """A bag that opens and lists but breaks part-way (an MCAP chunk zeroed): the replay died,
+    its error showed only on the scrolling status line, and the launch ended with exit 0 on a
+    map of half the bag."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from wheelgrid_bringup.supervisor import default_params_file
+    from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
+    from wheelgrid_common.testing import stop_process
+
+    bag = tmp_path / "broken"
+    with BagReader(SCAN) as r, BagWriter(bag, "mcap") as w:
+        for i, (topic, _type, t_ns, raw) in enumerate(r.raw(["/iphone/points"])):
+            if i == 12:
+                break
+            w.write(topic, POINTCLOUD2, t_ns, raw)
+    mcap = next(bag.glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    n = len(data)
+    data[n // 3 : n // 2] = bytes(n // 2 - n // 3)
+    mcap.write_bytes(bytes(data))
+    with BagReader(bag) as r:  # it opens and counts its messages: the damage shows when read
+        assert sum(t.count for t in r.topics()) == 12
+
+    params = yaml.safe_load(default_params_file().read_text())
+    params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    cmd = [
+        sys.executable,
+        "-c",
+        "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
+        "launch",
+        "--bag",
+        str(bag),
+        "--rate",
+        "4",
+        "--no-drive",
+        "--duration",
+        "8",
+        "--params",
+        str(tmp_path / "params.yaml"),
+        "--log-dir",
+        str(tmp_path / "logs"),
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=90)
+    finally:
+        stop_process(proc)
+    assert proc.returncode == 1, out + err
+    said = [ln for ln in err.splitlines() if "the replay failed after" in ln]
+    assert len(said) == 1 and " of 12 messages (" in said[0], out + err
+    assert "Traceback" not in err

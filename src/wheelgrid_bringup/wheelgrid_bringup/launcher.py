@@ -275,6 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     chain = Chain(sup, monitor)
     player = None
     code = 0
+    replay_failed = False
     try:
         if args.bag:  # opened before any node starts: a wrong path costs no node start-up
             try:
@@ -315,6 +316,11 @@ def main(argv: list[str] | None = None) -> int:
         while not stop["flag"]:
             chain.check()
             now = time.monotonic()
+            if player is not None and player.error and not replay_failed:
+                # said once, where a script reads it, and the exit says it too: a status line
+                # alone scrolled by, and the launch ended 0 on a map of half the bag
+                replay_failed = True
+                say_replay_failed(player)
             if now - last >= 1.0:
                 extra = ""
                 if player is not None:
@@ -348,6 +354,10 @@ def main(argv: list[str] | None = None) -> int:
         if "mapper" in sup.procs:
             for line in save_on_exit_lines(sup.procs["mapper"].log_path):
                 print(f"launch: mapper: {line}", flush=True)
+        if player is not None and player.error:  # a replay stopped early sets no error
+            if not replay_failed:
+                say_replay_failed(player)
+            code = code or 1
         unclean = {n: c for n, c in codes.items() if c != 0}
         if unclean and code == 0:
             # A node that had to be killed may have lost what it does on its way out (the
@@ -361,6 +371,15 @@ def main(argv: list[str] | None = None) -> int:
             )
             code = 1
     return code
+
+
+def say_replay_failed(player: Any) -> None:
+    print(
+        f"wheelgrid launch: the replay failed after {player.published} of {player.total} "
+        f"messages ({player.error}); the map holds only the messages before it",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 SAVE_ON_EXIT = ("map saved on exit", "map NOT saved on exit", "cannot save the map")

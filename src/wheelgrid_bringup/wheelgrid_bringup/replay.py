@@ -19,7 +19,7 @@ from typing import Any
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from wheelgrid_common.bagio import BagError, BagReader
+from wheelgrid_common.bagio import BagError, BagReader, damage_hint
 
 REPLAY_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -182,7 +182,16 @@ class BagPlayer:
                     self.published += 1
                 if self._clock_pub is not None and t0_bag is not None:
                     self._publish_clock(t_ns)  # the clock ends on the last message's time
-        except Exception as exc:  # reported by the launcher's status line, never swallowed
+                if self.published < self.total:
+                    # the MCAP reader ends quietly at a damaged chunk: 5 of 12 went out, and
+                    # the replay read as complete
+                    hint = damage_hint(self.bag)
+                    raise BagError(
+                        f"{self.bag}: its metadata lists {self.total} message(s) but only "
+                        f"{self.published} could be read (damaged storage?)"
+                        + (f"; {hint}" if hint else "")
+                    )
+        except Exception as exc:  # reported by the launcher, never swallowed
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
             self.done.set()
