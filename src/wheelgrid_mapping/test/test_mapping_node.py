@@ -456,6 +456,15 @@ def test_mapper_node_saves_an_unsaved_map_when_stopped(tmp_path: Path) -> None:
     poses = (out / "on_exit" / "trajectory.tum").read_text().split("\n")
     assert len([ln for ln in poses if ln and not ln.startswith("#")]) == used
 
+    # a second session on the same output_dir rescues its own scan beside the first one's,
+    # which it used to replace
+    first = {f.name: f.read_bytes() for f in (out / "on_exit").iterdir()}
+    with running_mapper(tmp_path / "a", "exit_mapper_again") as t:
+        feed(t, pairs[:4])
+    assert {f.name: f.read_bytes() for f in (out / "on_exit").iterdir()} == first
+    (again,) = out.glob("on_exit_*")
+    assert (again / "map.ply").stat().st_size > 1000 and (again / "report.json").exists()
+
     with running_mapper(tmp_path / "b", "exit_mapper_saved") as t:
         feed(t, pairs)
         saved = call_service(t.ex, t.client("save_map"), Trigger.Request, timeout=30.0)

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import matrix_to_quat, pose_or_nan, user_folder
+from wheelgrid_common.fileio import matrix_to_quat, new_folder, pose_or_nan, user_folder
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.pointcloud2 import (
     CloudError,
@@ -75,9 +75,10 @@ class MapperNodeConfig:
     save_on_exit: bool = field(
         True,
         "on Ctrl-C / SIGTERM a map not saved since it last changed is written to "
-        "<output_dir>/on_exit (never over ~/save_map's files; a new temporary folder, logged, "
-        "if that cannot be written; one never levelled to <output_dir>/on_exit_unlevelled, in "
-        "odom): a scan is not lost to a closed terminal",
+        "<output_dir>/on_exit (on_exit_<UTC time> where an earlier one lies; never over "
+        "~/save_map's files; a new temporary folder, logged, if that cannot be written; one "
+        "never levelled to <output_dir>/on_exit_unlevelled, in odom): a scan is not lost to a "
+        "closed terminal",
     )
     map_frame: str = field("map", "frame id of the levelled map")
     publish_tf: bool = field(
@@ -804,14 +805,20 @@ class MapperNode(Node):  # type: ignore[misc]
             # under this scan's report.json).
             levelled = self.mapper.try_level()
             save = self.mapper.save if levelled else self.mapper.save_unlevelled
-            out = user_folder(self.output_dir) / ("on_exit" if levelled else "on_exit_unlevelled")
+            name = "on_exit" if levelled else "on_exit_unlevelled"
             try:
+                # on_exit, or on_exit_<UTC time> where an earlier session's rescue lies: a
+                # second launch's scan replaced the first one's there
+                out = new_folder(user_folder(self.output_dir) / name)
                 rep = save(out, extra)
             except OSError as exc:
                 # An unwritable output_dir (a read-only mount, a full disk, a typo) must not
                 # lose the scan this save exists for: a fresh temporary folder is tried next.
                 fallback = Path(tempfile.mkdtemp(prefix="wheelgrid_on_exit_"))
-                log.error(f"cannot save the map to {out} ({exc}); trying {fallback}")
+                log.error(
+                    f"cannot save the map to {user_folder(self.output_dir) / name} ({exc}); "
+                    f"trying {fallback}"
+                )
                 out = fallback
                 rep = save(out, extra)
             if levelled:
