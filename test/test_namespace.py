@@ -248,7 +248,7 @@ def test_wheelgrid_launch_runs_the_chain_in_a_namespace(tmp_path: Path, run_wg, 
     used = [int(m) for m in re.findall(r"\] map (\d+)/\d+ frames", out)]
     assert used and max(used) > 0, out
     assert "| grid 8x8" in out, out  # and the grid node's safe grid from that map
-    mapper_log = (logs / "mapper.log").read_text(errors="replace")
+    mapper_log = (logs / "chair1" / "mapper.log").read_text(errors="replace")
     assert f"{NS}/iphone/points -> {NS}/wheelgrid/map_cloud" in mapper_log
     # the params file's `mapper:` section reached /chair1/mapper: its map saved there on exit
     assert (tmp_path / "map" / "on_exit" / "map.ply").exists(), out

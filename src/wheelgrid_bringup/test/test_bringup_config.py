@@ -471,3 +471,20 @@ def test_launch_file_gives_the_mapper_time_to_save_as_it_stops():
     for node in mappers:
         timeout = next(kw.value.value for kw in node.keywords if kw.arg == "sigterm_timeout")
         assert float(timeout) == STOP_GRACE_S["mapper"]
+
+
+def test_a_launch_keeps_the_logs_of_the_runs_before(tmp_path):
+    """Each launch opened <node>.log with "wb": the next one over the same --log-dir erased a
+    crashed node's traceback. The run before's log is now <node>.log.1, up to .5."""
+    import sys
+
+    from wheelgrid_bringup.supervisor import KEPT_LOGS, Supervisor
+
+    for run in range(KEPT_LOGS + 2):
+        sup = Supervisor(tmp_path, {})
+        sup.start("grid", [sys.executable, "-c", f"print('run {run}')"]).proc.wait(timeout=30)
+    said = {p.name: p.read_text().strip() for p in tmp_path.iterdir()}
+    last = KEPT_LOGS + 1
+    assert said == {"grid.log": f"run {last}"} | {
+        f"grid.log.{n}": f"run {last - n}" for n in range(1, KEPT_LOGS + 1)
+    }

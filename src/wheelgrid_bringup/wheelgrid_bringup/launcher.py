@@ -55,7 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--motor-port", help="serial port of the motor controller (drive node)")
     p.add_argument("--no-drive", action="store_true", help="do not start the drive node")
-    p.add_argument("--log-dir", type=Path, default=Path("log/launch"), help="node logs")
+    p.add_argument(
+        "--log-dir",
+        type=Path,
+        default=Path("log/launch"),
+        help="node logs, NODE.log (the run before's kept as NODE.log.1, up to .5); with "
+        "--namespace NS in LOG_DIR/NS",
+    )
     p.add_argument("--duration", type=float, default=0.0, help="stop after S seconds (0: never)")
     p.add_argument(
         "--namespace",
@@ -265,7 +271,9 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     try:
-        sup = Supervisor(args.log_dir, env)
+        # a chain in a namespace logs in a folder of its own: two chains on one --log-dir
+        # wrote into the same files, and each launcher read the other's mapper log
+        sup = Supervisor(args.log_dir / namespace.strip("/") if namespace else args.log_dir, env)
     except OSError as exc:  # a --log-dir below a file: a traceback, exit 1
         print(f"wheelgrid launch: --log-dir {args.log_dir}: {exc.strerror}", file=sys.stderr)
         return 2

@@ -98,8 +98,24 @@ class Managed:
     started: float = field(default_factory=time.monotonic)
 
 
+KEPT_LOGS = 5  # earlier runs' logs kept per node: <name>.log.1 (the last run) .. .5
+
+
+def rotate_log(path: Path) -> None:
+    """Move an earlier run's ``path`` to ``path.1`` (and ``.1`` to ``.2`` ...), as logrotate
+    does: a launch truncated the last one's logs, and with them a crashed node's traceback."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    for n in range(KEPT_LOGS - 1, 0, -1):
+        older = path.with_name(f"{path.name}.{n}")
+        if older.exists():
+            older.replace(path.with_name(f"{path.name}.{n + 1}"))
+    path.replace(path.with_name(f"{path.name}.1"))
+
+
 class Supervisor:
-    """Start, watch and stop a set of node processes; logs go to ``log_dir/<name>.log``."""
+    """Start, watch and stop a set of node processes; logs go to ``log_dir/<name>.log``, an
+    earlier run's kept as ``<name>.log.1`` (:func:`rotate_log`)."""
 
     def __init__(self, log_dir: Path, env: dict[str, str] | None = None) -> None:
         self.log_dir = Path(log_dir)
@@ -109,6 +125,7 @@ class Supervisor:
 
     def start(self, name: str, argv: Sequence[str]) -> Managed:
         log_path = self.log_dir / f"{name}.log"
+        rotate_log(log_path)
         log = open(log_path, "wb")  # noqa: SIM115 - owned by the child for its lifetime
         env = dict(self.env)
         env.setdefault("PYTHONUNBUFFERED", "1")
