@@ -214,7 +214,7 @@ def test_odometry_is_arkit_like(sim_clean: Path) -> None:
 
 
 def test_an_interrupted_simulation_leaves_no_bag_that_looks_complete(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Ctrl-C (or a full disk) mid-run left a bag that opened as complete with fewer frames
     than the ground truth beside it, and a rerun into the same --out was refused. What the run
@@ -241,3 +241,14 @@ def test_an_interrupted_simulation_leaves_no_bag_that_looks_complete(
     assert simulate(kept, frames=3, stride=16).frames == 3  # the rerun is not refused
     assert cli_main(["--rate", "inf", "--out", str(tmp_path / "inf")]) == 2
     assert "--rate must be in (0, 1000] Hz" in capsys.readouterr().err
+    # the command: folder_problem made --out before simulate() looked, and an empty --out
+    # stayed behind "removed"
+    from wheelgrid_common.progress import Progress
+
+    def ctrl_c(self: Progress, n: int = 1, **kw: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Progress, "update", ctrl_c)
+    assert cli_main(["--frames", "4", "--stride", "16", "--out", str(tmp_path / "cli")]) == 130
+    assert "interrupted; what it wrote is removed" in capsys.readouterr().err
+    assert not (tmp_path / "cli").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
 from wheelgrid_common.bagio import BagError
@@ -94,11 +95,20 @@ def main(argv: list[str] | None = None) -> int:
     if not 1 <= args.stride <= 32:
         print("wheelgrid simulate: --stride must be in 1..32", file=sys.stderr)
         return 2
+    made = not args.out.exists()
     why = folder_problem(args.out)  # bad input, before any frame: exit 2, not a failure
     if why:
         print(f"wheelgrid simulate: {why}", file=sys.stderr)
         return 2
     bar = Progress(args.frames, "simulate", unit="frames")
+
+    def remove_made() -> None:
+        # simulate() takes back what it wrote, but folder_problem made --out before it
+        # looked, so the empty folder stayed (and "removed" was not quite true)
+        if made:
+            with contextlib.suppress(OSError):
+                args.out.rmdir()
+
     try:
         res = simulate(
             args.out,
@@ -114,14 +124,17 @@ def main(argv: list[str] | None = None) -> int:
         )
     except (BagError, ValueError) as exc:
         bar.close()
+        remove_made()
         print(f"wheelgrid simulate: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         bar.close()
+        remove_made()
         print("wheelgrid simulate: interrupted; what it wrote is removed", file=sys.stderr)
         return 130
     except Exception as exc:  # a full disk: OSError, or sqlite3's OperationalError (a traceback)
         bar.close()
+        remove_made()
         print(
             f"wheelgrid simulate: failed ({type(exc).__name__}: {exc}); what it wrote is removed",
             file=sys.stderr,
