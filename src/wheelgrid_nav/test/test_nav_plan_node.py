@@ -549,7 +549,7 @@ def test_a_new_goal_withdraws_the_route_to_the_old_one_while_it_is_learned(tmp_p
     """The route to a goal the user had replaced stayed the plan while the new one was learned
     (up to max_seconds), and the drive went on along it. Now a new goal in another cell
     publishes an empty path at once, before its own route; the same goal sent again keeps the
-    route (no stop). The learning is made to take seconds: the plan topic keeps one message
+    route, and publishes nothing (a route sent anew stopped the drive's running move). The learning is made to take seconds: the plan topic keeps one message
     (MAP_QOS), so paths published milliseconds apart may reach a subscriber as the last one
     alone, and the withdrawal matters where the learning is long."""
     with planner_process(tmp_path, *SLOW_LEARNING) as (h, log):
@@ -558,14 +558,17 @@ def test_a_new_goal_withdraws_the_route_to_the_old_one_while_it_is_learned(tmp_p
         first = h.next_path(0, timeout=120.0)
         assert cells_of(first, grid)[-1] == (6, 5), log.read_text()
         h.goal_pub.publish(goal_msg(grid, (6, 5)))  # the same goal again: its route stands
-        h.next_path(1, timeout=120.0)
+        assert spin_until(
+            h.ex, lambda: "again: the route to its cell stands" in log.read_text(), 30.0
+        )
         h.goal_pub.publish(goal_msg(grid, (0, 7)))
-        assert spin_until(h.ex, lambda: len(h.paths) >= 4, 120.0), log.read_text()
+        assert spin_until(h.ex, lambda: len(h.paths) >= 3, 120.0), log.read_text()
         spin_until(h.ex, lambda: False, 0.5)
         ends = [cells_of(p, grid)[-1] if p.poses else None for p in h.paths]
-        # the first goal, the same goal again (learned again, the route kept meanwhile), then
-        # the new goal: the old route withdrawn while its own route is learned
-        assert ends == [(6, 5), (6, 5), None, (0, 7)], (ends, log.read_text())
+        # the first goal (the same goal again published nothing: not learned again, and the
+        # drive's move not stopped for it), then the new goal: the old route withdrawn while
+        # its own route is learned
+        assert ends == [(6, 5), None, (0, 7)], (ends, log.read_text())
         assert log.read_text().count("withdrawn") == 1, log.read_text()
 
 
@@ -693,6 +696,52 @@ def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_sta
             occupied[2, 0] = 100  # the start cell turns occupied: that is a change
             node._on_grid(to_occupancy_grid(Grid(occupied, 1.0)))
             assert node.plans == 2 and published[-1] == []
+        finally:
+            node.destroy_node()
+
+
+def test_the_same_goal_again_and_a_cell_behind_the_chair_leave_the_route_as_it_is():
+    """Three things made the planner send a route anew, each stopping the drive's running move
+    (and a chair half-way through a quarter turn then got "heading off the grid", its goal
+    dropped): the same goal sent again (relearned); a cell the chair has already driven over
+    turning unknown or occupied in a new grid (the chair's own trace); and a cell ahead that
+    closed kept the old route published for the whole relearning. Now the first two change
+    nothing, and the third withdraws the route at once, before the new one."""
+    from wheelgrid_nav.planner_node import make_node
+
+    data = np.zeros((6, 6), np.int8)
+    grid = Grid(data, 1.0)
+    with rclpy_context() as ctx:
+        node = make_node(context=ctx)
+        try:
+            published: list[list] = []
+            publish = node._publish_route
+
+            def record(g, cells, heading=None):
+                published.append(list(cells))
+                publish(g, cells, heading)
+
+            node._publish_route = record
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_initialpose(start_msg(grid, (2, 0), 0.0))
+            node._on_goal(goal_msg(grid, (2, 4)))
+            route = [(2, c) for c in range(5)]
+            assert published == [route] and node.plans == 1
+            node._on_goal(goal_msg(grid, (2, 4)))  # the same goal again
+            assert published == [route] and node.plans == 1
+            x, y = grid.cell_center(2, 2)
+            node.start = (float(x), float(y), 0.0)  # the chair drove on to (2, 2)
+            behind = data.copy()
+            behind[2, 0] = 100  # where the chair started: behind it now
+            behind[2, 1] = -1
+            node._on_grid(to_occupancy_grid(Grid(behind, 1.0)))
+            assert published == [route] and node.plans == 1
+            ahead = behind.copy()
+            ahead[2, 3] = 100  # ahead: withdrawn at once, then the way round
+            node._on_grid(to_occupancy_grid(Grid(ahead, 1.0)))
+            assert node.plans == 2 and published[1] == [], published
+            assert published[2][0] == (2, 2) and published[2][-1] == (2, 4)
+            assert (2, 3) not in published[2]
         finally:
             node.destroy_node()
 

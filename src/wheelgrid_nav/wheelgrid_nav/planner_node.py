@@ -253,14 +253,26 @@ def _make_node_class() -> type:
                 return
             # the route's cells are only indices of the old grid: read on a smaller new one
             # they raised IndexError and ended the node
-            blocked = (
-                not same_geometry(grid, old)
-                or not self.route
-                or self._route_blocked(grid, self.route)
-            )
-            if blocked:
+            if not self.route or not same_geometry(grid, old):
                 self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
+            elif self._route_blocked(grid, self._route_ahead(grid)):
+                # Withdrawn at once: the route through the closed cell stayed the plan for
+                # as long as the new one was learned (seconds). Only the cells still ahead
+                # count: one driven over going unknown (the chair's own trace, a person
+                # behind it) replanned, and the drive stopped a move for nothing.
+                self.get_logger().info(
+                    "safe grid closed a cell ahead on the route: the route is withdrawn (an "
+                    "empty path) while a new one is learned"
+                )
+                self._publish_route(grid, [])
+                self._plan()
+
+        def _route_ahead(self, grid: Grid) -> list[tuple[int, int]]:
+            """The route from the chair's cell on (the whole route where the chair is off it)."""
+            here = grid.cell_of(self.start[0], self.start[1]) if self.start else None
+            route = self.route
+            return route[route.index(here) :] if here in route else route
 
         def _route_blocked(self, grid: Grid, route: list[tuple[int, int]]) -> bool:
             """Whether ``grid`` (same geometry as the route's) closes a cell of ``route``, by
@@ -303,6 +315,12 @@ def _make_node_class() -> type:
                 self._publish_route(self.grid, [])
                 return
             goal = (float(msg.pose.position.x), float(msg.pose.position.y))
+            if (self.route or self._draining) and self._same_goal_cell(goal, msg.header.frame_id):
+                # RViz's goal tool pressed again: relearned, the same route went out anew and
+                # the drive stopped its running move for it (mid-turn, the heading check then
+                # refused the route and dropped the goal)
+                self.get_logger().info(f"goal {goal} again: the route to its cell stands")
+                return
             if self.route and not self._same_goal_cell(goal, msg.header.frame_id):
                 # The route to the goal of before is withdrawn while the new one is learned
                 # (up to max_seconds): kept, the drive went on toward a goal the user had
