@@ -124,3 +124,34 @@ def test_stamp_sync_matches_by_stamp_and_bounds_memory() -> None:
     assert sync.add("info", 9.0, "i9") is None
     assert sync.add("conf", 9.0, "c9") == {"depth": "d9", "info": "i9", "conf": "c9"}
     assert sync._items["depth"] == []  # d7, d8 were older than the completed set: abandoned
+
+
+def test_camera_info_of_a_binned_cropped_or_other_resolution_image_is_refused() -> None:
+    """depth_to_cloud projected any depth image whose CameraInfo had its size with that K,
+    whatever binning and roi said (REP-104: K is for the calibration's full resolution) or
+    where its principal point lay: a cloud squashed or shifted, never a word."""
+    from sensor_msgs.msg import CameraInfo
+
+    from wheelgrid_mapping.depth import camera_info_intrinsics
+
+    def info(**kw: object) -> CameraInfo:
+        msg = CameraInfo(width=256, height=192, k=[200.0, 0, 128, 0, 200.0, 96, 0, 0, 1])
+        for key, value in kw.items():
+            if key.startswith("roi_"):
+                setattr(msg.roi, key[4:], value)
+            else:
+                setattr(msg, key, value)
+        return msg
+
+    np.testing.assert_allclose(camera_info_intrinsics(info(), 256, 192)[0, 2], 128)
+    camera_info_intrinsics(info(binning_x=1, roi_width=256, roi_height=192), 256, 192)
+    for bad, says in (
+        (info(), "camera info is 256x192, depth 128x96"),
+        (info(binning_x=2, binning_y=2), "binned or cropped"),
+        (info(roi_x_offset=10, roi_width=100, roi_height=50), "binned or cropped"),
+        (info(k=[1400.0, 0, 960, 0, 1400.0, 720, 0, 0, 1]), "not near the centre"),
+        (info(k=[0.0, 0, 128, 0, 200.0, 96, 0, 0, 1]), "finite positive fx"),
+    ):
+        size = (128, 96) if "depth 128x96" in says else (256, 192)
+        with pytest.raises(ValueError, match=says):
+            camera_info_intrinsics(bad, *size)

@@ -19,6 +19,7 @@ points in place, so organised clouds keep their pixel order and nothing downstre
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -78,6 +79,36 @@ def check_intrinsics(K: np.ndarray) -> np.ndarray:
     if not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
         raise ValueError(f"intrinsics need finite positive fx, fy; got fx={k[0, 0]} fy={k[1, 1]}")
     return k
+
+
+def camera_info_intrinsics(info: Any, width: int, height: int) -> np.ndarray:
+    """K of a ``sensor_msgs/CameraInfo`` for a ``width`` x ``height`` image, or ``ValueError``.
+
+    REP-104: K is for the resolution the camera was calibrated at, and ``binning`` and ``roi``
+    say how the image published was cut from it. A driver that bins or crops states so there,
+    and K projected the smaller image wrongly (a cloud squashed or shifted); that is refused,
+    as is a principal point far from the image's centre (K of another resolution)."""
+    if (info.width, info.height) != (width, height):
+        raise ValueError(f"camera info is {info.width}x{info.height}, depth {width}x{height}")
+    binning = (int(info.binning_x), int(info.binning_y))
+    roi = info.roi
+    full_roi = (roi.x_offset, roi.y_offset) == (0, 0) and (roi.width, roi.height) in (
+        (0, 0),
+        (width, height),
+    )
+    if any(b > 1 for b in binning) or not full_roi:
+        raise ValueError(
+            f"camera info binning {binning[0]}x{binning[1]}, roi {roi.width}x{roi.height} at "
+            f"({roi.x_offset}, {roi.y_offset}): a binned or cropped image is not supported "
+            "(its K is for the full resolution)"
+        )
+    K = check_intrinsics(np.asarray(info.k, dtype=np.float64).reshape(3, 3))
+    if abs(K[0, 2] - width / 2) > width / 4 or abs(K[1, 2] - height / 2) > height / 4:
+        raise ValueError(
+            f"camera info principal point ({K[0, 2]:g}, {K[1, 2]:g}) is not near the centre of "
+            f"the {width}x{height} image (intrinsics of another resolution?)"
+        )
+    return K
 
 
 ARKIT_CONFIDENCE_LEVELS = (0, 1, 2)  # low, medium, high

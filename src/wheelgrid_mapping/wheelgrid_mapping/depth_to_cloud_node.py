@@ -21,7 +21,7 @@ import numpy as np
 from wheelgrid_common.params import check_no_undeclared, field
 from wheelgrid_mapping.depth import (
     StampSync,
-    check_intrinsics,
+    camera_info_intrinsics,
     check_min_confidence,
     depth_image_to_metres,
     depth_to_points,
@@ -173,12 +173,7 @@ def _make_node() -> Any:
                 bytes(depth_msg.data),
                 self.cfg.mm_scale,
             )
-            K = check_intrinsics(np.asarray(info.k, dtype=np.float64).reshape(3, 3))
-            if (info.width, info.height) != (depth_msg.width, depth_msg.height):
-                raise ValueError(
-                    f"camera info is {info.width}x{info.height}, depth "
-                    f"{depth_msg.width}x{depth_msg.height}"
-                )
+            K = camera_info_intrinsics(info, depth_msg.width, depth_msg.height)
             conf = None
             if conf_msg is not None:
                 conf = image_array(
