@@ -416,6 +416,43 @@ def test_a_cmd_vel_stream_that_goes_on_through_an_estop_does_not_drive_after_the
         assert h.spin(lambda: len(sim_moves(sim)) == 2, 3.0), sim_moves(sim)
 
 
+def test_a_joystick_held_through_an_unplugged_controller_does_not_drive_after_the_replug(
+    make_sim, tmp_path
+):
+    """A controller that comes back is one powering on: nothing under way resumes on it
+    (serial-protocol.md, host duty 5). A forward stick held through a USB unplug and replug
+    drove the chair 1.5 m off the reopened port 50 ms after its STOP, with no new command."""
+    port = str(tmp_path / "ttyWG")
+    grid = free_grid()
+    x, y = grid.cell_center(3, 3)
+    sim1 = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0), link=port)
+    with rclpy_context() as ctx, Harness(ctx, port, reconnect_period=0.1) as h:
+        assert h.matched()
+        h.give_grid(grid)
+        assert h.armed()
+        tw = h.Twist()
+        tw.linear.x = 0.8
+
+        def stream(seconds):  # a joystick held forward
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                h.pub_twist.publish(tw)
+                h.spin(lambda: False, 0.05)
+
+        stream(0.5)
+        assert sim_moves(sim1) == ["FORWARD"]
+        sim1.vanish()  # unplugged mid-step, the stick still held
+        stream(0.6)
+        sim2 = make_sim(time_scale=1.0, pose=(sim1.x, sim1.y, sim1.yaw), link=port)
+        assert h.spin(lambda: h.drive.link.stats.reconnects == 1, 5.0)
+        stream(1.5)
+        assert sim_moves(sim2) == [] and sim2.state == proto.State.IDLE, sim_moves(sim2)
+        h.pub_twist.publish(h.Twist())  # let go of the stick: armed again
+        h.spin(lambda: False, 0.2)
+        h.pub_twist.publish(tw)
+        assert h.spin(lambda: sim_moves(sim2) == ["FORWARD"], 3.0), sim_moves(sim2)
+
+
 @pytest.mark.parametrize(
     ("offset", "yaw_deg", "drives"),
     [

@@ -416,6 +416,12 @@ class DriveNode(Node):
     def _on_link_event(self, kind: str, message: str) -> None:
         if kind == "timeout":
             return
+        if kind in ("vanished", "reconnected"):
+            # A controller that comes back is one powering on: nothing under way resumes
+            # (serial-protocol.md, host duty 5). A joystick held through the unplug drove the
+            # chair 1.5 m off the reopened port, 50 ms after its STOP; it must go zero (or
+            # silent) first, as after an e-stop.
+            self._disarm_cmd_vel()
         self._link_note = f"{kind}: {message}"
         logger = exit_logger(self)  # close() stops the chair after the context is shut down
         if kind in ("vanished", "stop", "nak", "garbled", "unexpected"):
@@ -759,6 +765,10 @@ class DriveNode(Node):
 
     # ---- /cmd_vel -----------------------------------------------------------------------------
 
+    def _disarm_cmd_vel(self) -> None:
+        with self._gate:
+            self._twist_armed = False
+
     def _arm_if_quiet(self) -> None:
         """/cmd_vel is silent: it may drive again, unless an e-stop is latched or the node is
         too young to have heard a stream already running. Under the gate: an e-stop latched
@@ -795,7 +805,8 @@ class DriveNode(Node):
             if action is not None:
                 self.get_logger().warning(
                     "/cmd_vel ignored: it was already moving when the drive started, or it "
-                    "went on through the e-stop; send a zero Twist (or none for "
+                    "went on through the e-stop or a loss of the controller's link; send a "
+                    "zero Twist (or none for "
                     f"{max(self.cfg.cmd_vel_timeout, STARTUP_QUIET_S):g} s) to drive with it",
                     throttle_duration_sec=2.0,
                 )
@@ -869,6 +880,8 @@ class DriveNode(Node):
             if problem:
                 raise ValueError(problem)
         except (LinkError, ValueError) as exc:
+            if isinstance(exc, LinkError):  # no controller: not a step a tick later either
+                self._disarm_cmd_vel()
             self._set_state(ERROR, f"/cmd_vel {action} refused: {exc}")
             self._publish_record(
                 {"action": action, "ack": "REFUSED", "reason": str(exc), "t": time.time()}
@@ -887,6 +900,8 @@ class DriveNode(Node):
         )
         self._entering = None
         if not result.ok and not result.aborted:
+            if not result.refused:  # the link failed under the step: as a loss of it
+                self._disarm_cmd_vel()
             self._set_state(ERROR, f"/cmd_vel {action}: {result.error}")
 
     # ---- shutdown -----------------------------------------------------------------------------
