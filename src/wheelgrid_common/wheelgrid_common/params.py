@@ -176,7 +176,8 @@ def load_yaml(cls: type[T], path: str | Path | None, section: str | None = None)
     """
     if path is None:
         return cls()
-    data = read_yaml(path) or {}
+    data = read_yaml(path)
+    data = {} if data is None else data  # an empty file; `false` or `0` is no mapping
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
     if section and section in data:

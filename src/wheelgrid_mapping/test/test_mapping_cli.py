@@ -234,6 +234,10 @@ def test_a_broken_config_or_output_path_stops_before_the_first_frame(
     for text, says in (
         ("preprocess: {voxel_size: [0.03\n", "c.yaml: not valid YAML at line 2"),
         ("preprocess: 5\n", "section 'preprocess' must be a mapping of parameter: value"),
+        # falsy sections were read as empty: the loop closure this meant to turn off ran
+        ("loop_closure: false\n", "to turn it off: `loop_closure: {enabled: false}`"),
+        ("registration: []\n", "section 'registration' must be a mapping"),
+        ("mapper: 0\n", "section 'mapper' must be a mapping"),
     ):
         cfg.write_text(text)
         out = tmp_path / "o"

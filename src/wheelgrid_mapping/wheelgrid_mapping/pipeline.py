@@ -237,23 +237,32 @@ def load_configs(
     """Read ``preprocess:``, ``registration:``, ``mapper:``, ``loop_closure:`` from one YAML."""
     if path is None:
         return PreprocessConfig(), RegistrationConfig(), MapperConfig(), LoopClosureConfig()
-    data = read_yaml(path) or {}
+    data = read_yaml(path)
+    data = {} if data is None else data  # an empty file; `false` or `0` is no mapping
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping with preprocess/registration/mapper")
     unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
         raise ValueError(f"{path}: unknown section(s) {unknown}; use {'/'.join(SECTIONS)}")
+    sections: dict[str, dict] = {}
     for name in SECTIONS:
-        if not isinstance(data.get(name) or {}, dict):
+        # only an empty section (``mapper:``) is no settings: `loop_closure: false` read as
+        # one, and the loop closure it meant to turn off ran
+        body = data.get(name)
+        if body is None:
+            body = {}
+        if not isinstance(body, dict):
+            hint = " (to turn it off: `loop_closure: {enabled: false}`, or --no-loop-closure)"
             raise ValueError(
-                f"{path}: section {name!r} must be a mapping of parameter: value, "
-                f"got {data[name]!r}"
+                f"{path}: section {name!r} must be a mapping of parameter: value, got {body!r}"
+                + (hint if name == "loop_closure" and body is False else "")
             )
+        sections[name] = body
     return (
-        from_mapping(PreprocessConfig, data.get("preprocess") or {}),
-        from_mapping(RegistrationConfig, data.get("registration") or {}),
-        from_mapping(MapperConfig, data.get("mapper") or {}),
-        from_mapping(LoopClosureConfig, data.get("loop_closure") or {}),
+        from_mapping(PreprocessConfig, sections["preprocess"]),
+        from_mapping(RegistrationConfig, sections["registration"]),
+        from_mapping(MapperConfig, sections["mapper"]),
+        from_mapping(LoopClosureConfig, sections["loop_closure"]),
     )
 
 
