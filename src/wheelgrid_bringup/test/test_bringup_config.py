@@ -346,9 +346,13 @@ def test_a_section_that_reaches_no_node_of_the_chain_is_refused(tmp_path, capsys
         ("/**:\n  ros__parameters: {use_sim_time: true}\n", "/a/b"),
         ("/**/grid:\n  ros__parameters: {safe_height: 1.7}\n", ""),
         ("/*/grid:\n  ros__parameters: {safe_height: 1.7}\n", "/chair1"),
+        ("/chair1/:\n  grid:\n    ros__parameters: {safe_height: 1.7}\n", "/chair1"),
     ):
         params.write_text(text)
         check_params_file(params, namespace)
+    params.write_text("/gr*:\n  ros__parameters: {safe_height: 1.7}\n")  # rcl: no such key
+    with pytest.raises(ValueError, match="only as whole name tokens"):
+        check_params_file(params)
 
 
 def test_the_namespaced_copy_is_the_params_file_as_checked(tmp_path):

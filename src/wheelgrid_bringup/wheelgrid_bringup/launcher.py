@@ -129,18 +129,22 @@ def node_overrides(name: str, args: argparse.Namespace) -> dict[str, object]:
 
 def section_reaches(pattern: str, node: str) -> bool:
     """Whether a params file's section (``/chair1/grid``, ``/**``, ``/*/grid``) applies to
-    the node of fully qualified name ``node``, as rcl matches them: ``**`` stands for any
-    number of name tokens, ``*`` within a token for any characters."""
-    import fnmatch
+    the node of fully qualified name ``node``, as rcl matches them: a ``*`` token stands for
+    one name token, ``**`` for any number of them (rcl parses no ``*`` inside a token:
+    :func:`check_params_file` refuses one). Empty tokens (``/chair1//grid``, a namespace key
+    written ``/chair1/``) are none, as in rcl."""
 
     def match(pat: list[str], name: list[str]) -> bool:
         if not pat:
             return not name
         if pat[0] == "**":
             return any(match(pat[1:], name[i:]) for i in range(len(name) + 1))
-        return bool(name) and fnmatch.fnmatchcase(name[0], pat[0]) and match(pat[1:], name[1:])
+        return bool(name) and pat[0] in ("*", name[0]) and match(pat[1:], name[1:])
 
-    return match(pattern.strip("/").split("/"), node.strip("/").split("/"))
+    def tokens(text: str) -> list[str]:
+        return [t for t in text.split("/") if t]
+
+    return match(tokens(pattern), tokens(node))
 
 
 def check_params_file(path: Path, namespace: str = "") -> dict[str, Any]:
@@ -166,6 +170,11 @@ def check_params_file(path: Path, namespace: str = "") -> dict[str, Any]:
                 raise ValueError(f"{path}: {name}'s ros__parameters must be a mapping")
             # a plain top-level key is the namespace's node; anything else is as written
             fqn = f"{namespace}/{name}" if "/" not in name else "/" + name.lstrip("/")
+            if any("*" in t and t not in ("*", "**") for t in fqn.split("/")):
+                raise ValueError(
+                    f"{path}: section {name!r}: rcl reads * and ** only as whole name tokens "
+                    "(/*/grid, /**), and refuses this file in every node"
+                )
             if not any(section_reaches(fqn, node) for node in chain):
                 close = difflib.get_close_matches(fqn, chain, n=1)
                 raise ValueError(

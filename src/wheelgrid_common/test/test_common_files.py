@@ -489,18 +489,28 @@ def test_pcd_without_points_or_with_a_zero_count_is_read_or_refused_in_one_line(
 
 def test_a_new_folder_is_never_one_an_earlier_run_wrote_into(tmp_path):
     """The mapper's rescue save on exit went to a fixed on_exit/, and a second session's scan
-    replaced the first one's there. An empty folder is free; a taken one gets a UTC time."""
+    replaced the first one's there. A folder that exists is taken, even empty (another
+    process's, made and not yet written): the next gets a UTC time."""
+    import threading
+
     from wheelgrid_common.fileio import new_folder
 
     base = tmp_path / "out" / "on_exit"
     assert new_folder(base) == base and base.is_dir()  # the parent is made too
-    assert new_folder(base) == base  # still empty: free
     (base / "map.ply").write_text("first")
     second = new_folder(base)
     assert second.name.startswith("on_exit_") and second.name.endswith("Z") and second.is_dir()
     third = new_folder(base)  # within the same second: a counter
     assert third not in (base, second) and third.name.startswith("on_exit_") and third.is_dir()
     assert (base / "map.ply").read_text() == "first"
+    race = tmp_path / "race" / "on_exit"
+    claimed: list = []
+    threads = [threading.Thread(target=lambda: claimed.append(new_folder(race))) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(set(claimed)) == 8, claimed  # eight savers at once: eight folders
     (tmp_path / "file").write_text("")
     with pytest.raises(OSError):
         new_folder(tmp_path / "file" / "on_exit")

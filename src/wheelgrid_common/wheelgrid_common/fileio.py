@@ -443,15 +443,14 @@ def user_folder(text: str) -> Path:
 
 
 def new_folder(base: Path) -> Path:
-    """``base``, made now, or where it holds something already ``base_<UTC time>`` (then
-    ``_2``, ``_3`` ...): a folder no earlier run wrote into. Claimed by ``mkdir``, so two
-    processes saving at the same second (two chains, one ``output_dir``) get one each. Used
-    for the rescue saves on exit: a second session's scan replaced the first one's there."""
+    """``base``, made now, or where it exists already ``base_<UTC time>`` (then ``_2``,
+    ``_3`` ...): a folder no earlier run wrote into. Claimed by ``mkdir`` alone, so two
+    processes saving at the same second (two chains, one ``output_dir``) get one each (an
+    empty ``base`` taken for free was another process's, made and not yet written). Used for
+    the rescue saves on exit: a second session's scan replaced the first one's there."""
     import time
 
     base.parent.mkdir(parents=True, exist_ok=True)
-    with contextlib.suppress(OSError):
-        base.rmdir()  # an empty one (made by hand, or by a save that failed) is free
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     later = [f"{base.name}_{stamp}" + (f"_{n}" if n > 1 else "") for n in range(1, 100)]
     names = [base.name, *later]

@@ -436,6 +436,13 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
     )
     assert "--normal-radius must be >= 0" in capsys.readouterr().err
     assert cli_measure.main([str(tmp_path / "none.ply"), "--box-a", *box_a, "--box-b", *box_b]) == 2
+    # the same box twice (a copied --box-a) read "distance 0.00 +- 0.19 cm" with exit 0
+    wider = ["0.95", "0", "0", "2.15", "1", "1"]  # or one box reaching into the other's face
+    for other in (box_a, wider):
+        for axis in ([], ["--axis", "x"]):
+            capsys.readouterr()
+            assert cli_measure.main([str(ply), "--box-a", *box_a, "--box-b", *other, *axis]) == 2
+            assert "share" in capsys.readouterr().err
 
 
 def test_measure_standard_error_follows_the_points_scatter(tmp_path: Path, capsys) -> None:

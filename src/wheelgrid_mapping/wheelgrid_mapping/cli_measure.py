@@ -427,6 +427,13 @@ def measure(
     if axis is not None and along is not None:
         raise ValueError("--axis and --normal are two different readings: give one")
     given = None if along is None else unit_direction(along)
+    shared = int(np.count_nonzero(box_mask(points, box_a) & box_mask(points, box_b)))
+    if shared:
+        # the same box twice (a copied --box-a) read "distance 0.00 +- 0.19 cm", exit 0
+        raise ValueError(
+            f"--box-a and --box-b share {shared} point(s) of the map: each box must hold one "
+            "of the two surfaces, apart"
+        )
     if axis is not None:
         a, b = points_in_box(points, box_a), points_in_box(points, box_b)
         if a.shape[0] < 3 or b.shape[0] < 3:
