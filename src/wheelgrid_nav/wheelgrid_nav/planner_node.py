@@ -67,6 +67,9 @@ CHAIR_TURNED_RAD = math.radians(1.0)
 # The drive refuses a chair turned more than this from its plan's start heading
 # (wheelgrid_drive.actions.heading_from_yaw): a route for a guessed heading is refused there.
 HEADING_TOLERANCE_RAD = math.radians(20.0)
+# The drive's state (5 Hz by default) counts as current this long: a drive that died while
+# driving must not keep a goal sent again from being planned.
+DRIVE_STATE_FRESH_S = 2.0
 
 
 @dataclass
@@ -154,6 +157,7 @@ def path_poses(
 
 
 def _make_node_class() -> type:
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from nav_msgs.msg import OccupancyGrid, Odometry, Path
     from rclpy.node import Node
@@ -220,6 +224,12 @@ def _make_node_class() -> type:
                 PoseStamped, "wheelgrid/chair_pose", self._on_chair_pose, RELIABLE_QOS
             )
             self._last_chair: tuple[float, float, float] | None = None
+            # whether the drive is driving a plan (its state's job, and when that was heard):
+            # the same goal sent again leaves a route being driven alone
+            self._drive_job: tuple[str, float] = ("", -math.inf)
+            self.create_subscription(
+                DiagnosticArray, "wheelgrid/drive_state", self._on_drive_state, RELIABLE_QOS
+            )
             # An e-stop ends the goal: cleared, the chair drove on to it at the next grid change
             # (the map grows during a scan) with no new command. A goal during one is refused.
             self._estop = False
@@ -315,11 +325,16 @@ def _make_node_class() -> type:
                 self._publish_route(self.grid, [])
                 return
             goal = (float(msg.pose.position.x), float(msg.pose.position.y))
-            if (self.route or self._draining) and self._same_goal_cell(goal, msg.header.frame_id):
-                # RViz's goal tool pressed again: relearned, the same route went out anew and
-                # the drive stopped its running move for it (mid-turn, the heading check then
-                # refused the route and dropped the goal)
-                self.get_logger().info(f"goal {goal} again: the route to its cell stands")
+            same = self._same_goal_cell(goal, msg.header.frame_id)
+            if same and (self._draining or (self.route and self._drive_runs_a_plan())):
+                # RViz's goal tool pressed again while the chair drives there: relearned, the
+                # same route went out anew and the drive stopped its running move for it
+                # (mid-turn, the heading check then refused the route and dropped the goal).
+                # Where the drive is not driving it (it refused or dropped the plan, and says
+                # "send the goal again"), the goal is planned again from where the chair is.
+                self.get_logger().info(
+                    f"goal {goal} again: the drive is on its way there; the route stands"
+                )
                 return
             if self.route and not self._same_goal_cell(goal, msg.header.frame_id):
                 # The route to the goal of before is withdrawn while the new one is learned
@@ -336,6 +351,16 @@ def _make_node_class() -> type:
             if self._say_what_the_goal_waits_for():
                 self._goal_waits_since = time.monotonic()
             self._plan()
+
+        def _on_drive_state(self, msg: Any) -> None:
+            for status in msg.status:
+                for kv in status.values:
+                    if kv.key == "job":
+                        self._drive_job = (kv.value, time.monotonic())
+
+        def _drive_runs_a_plan(self) -> bool:
+            job, heard = self._drive_job
+            return job == "plan" and time.monotonic() - heard <= DRIVE_STATE_FRESH_S
 
         def _same_goal_cell(self, goal: tuple[float, float], frame: str) -> bool:
             """Whether ``goal`` lies in the cell of the goal being planned or driven to: a goal
