@@ -402,6 +402,28 @@ def test_a_plan_is_not_resumed_after_its_link_was_lost_and_reopened(
     assert moves(sims[0]) == [], "the plan went on on the reopened port"
 
 
+def test_a_plan_whose_start_checks_saw_the_old_port_does_not_start_on_the_reopened_one(
+    make_sim, make_link, wait, tmp_path
+):
+    """The drive asks the controller (its status, the start pose) before the run, and the run
+    took its connection count only as it began: a port lost and reopened in between (well
+    under a millisecond, but a real gap) let the first MOVE out on the reopened port. The
+    count the caller took before its questions now bounds the run."""
+    port = str(tmp_path / "ttyWG")
+    sim1 = make_sim(link=port, pose=(0.6, -3.0, YAW["down"]))
+    link = make_link(port, reconnect_period=0.1)
+    steps = plan_steps((2, 0), ["right"] * 2, "down")
+    connection = link.connection
+    link.status()  # the start checks, on the port as it was
+    sim1.vanish()
+    assert wait(lambda: link.stats.disconnects == 1, 10.0)
+    sim2 = make_sim(link=port, pose=(0.6, -3.0, YAW["down"]))
+    assert wait(lambda: link.stats.reconnects == 1 and not link.stop_owed, 10.0)
+    result = run_steps(link, steps, distance_m=1.2, speed_kmh=3.0, connection=connection)
+    assert not result.ok and result.done == 0 and "lost during the plan" in result.error
+    assert moves(sim2) == [], "the plan started on the reopened port"
+
+
 def test_a_reopened_port_takes_nothing_before_its_stop(make_sim, make_link, wait, tmp_path):
     """Host duty 5: the first frame on a reopened port is STOP. Another thread's request (a
     plan's status read, a new move) could go out between the reopening and that STOP; here it

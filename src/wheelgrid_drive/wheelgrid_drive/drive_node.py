@@ -702,6 +702,7 @@ class DriveNode(Node):
         total = len(steps)
         with self._lock:
             self._progress = (0, total)
+        connection = self.link.connection  # before the start checks ask the controller
         try:
             st = self.link.status()
             if st.moving:
@@ -739,6 +740,7 @@ class DriveNode(Node):
             pose_check=controller_pose_check(self.link, grid, self.cfg.pose_tolerance)
             if self.cfg.check_start_pose
             else None,
+            connection=connection,
         )
         self._entering = None
         if result.ok:
@@ -861,6 +863,7 @@ class DriveNode(Node):
     def _run_twist_step(self, action: str, twist: Twist, abort: threading.Event) -> None:
         grid = self._grid
         self._job_grid = grid
+        connection = self.link.connection  # before the checks ask the controller
         try:
             st = self.link.status()
             if grid is None:
@@ -897,6 +900,7 @@ class DriveNode(Node):
             abort=abort,
             on_step=lambda s, rec: self._publish_record(rec),
             on_start=self._on_step_start,
+            connection=connection,
         )
         self._entering = None
         if not result.ok and not result.aborted:

@@ -188,6 +188,7 @@ def run_steps(
     timeout: float | None = None,
     on_start: Callable[[Step], None] | None = None,
     pose_check: PoseCheck | None = None,
+    connection: int | None = None,
 ) -> RunResult:
     """Drive ``steps`` one by one; stops the chair and returns at the first problem.
 
@@ -202,10 +203,14 @@ def run_steps(
 
     A link lost at any time during the run ends it, even when the port is back before the next
     step: the reconnection's STOP is where the chair stays, and the next step's MOVE, sent on
-    the reopened port, drove on after a link fault with no new command.
+    the reopened port, drove on after a link fault with no new command. ``connection``: the
+    link's connection count when the caller first asked the controller (its status, the start
+    checks), so that a loss and reopen between those questions and the run ends it too; by
+    default the count as the run starts.
     """
     total = len(steps)
-    connection = link.connection
+    if connection is None:
+        connection = link.connection
     for i, step in enumerate(steps):
         if abort is not None and abort.is_set():
             link.stop()
