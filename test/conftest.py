@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from wheelgrid_common.testing import wheelgrid_command
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG_DIR = ROOT / "bags" / "paper_room"
@@ -16,14 +17,14 @@ BAG_DIR = ROOT / "bags" / "paper_room"
 
 def run_wheelgrid(args: list[str], timeout: float, **kw) -> subprocess.CompletedProcess:
     """Run ``wheelgrid ARGS`` with this interpreter (the venv) in its own process group."""
-    cmd = [
-        sys.executable,
-        "-c",
-        "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
-        *args,
-    ]
     return subprocess.run(
-        cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout, start_new_session=True, **kw
+        wheelgrid_command(*args),
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        start_new_session=True,
+        **kw,
     )
 
 

@@ -10,7 +10,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -130,24 +129,25 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
     import os
     import threading
 
-    import yaml
-
     from wheelgrid_bringup.chain import Monitor
     from wheelgrid_bringup.demo import heading_yaw
-    from wheelgrid_common.testing import rclpy_context, stop_process
+    from wheelgrid_common.testing import (
+        chain_params,
+        rclpy_context,
+        stop_process,
+        wheelgrid_command,
+    )
     from wheelgrid_drive.motor_sim import MotorSim
 
-    params = yaml.safe_load((repo_root / "src/wheelgrid_bringup/config/wheelgrid.yaml").read_text())
-    params["drive"]["ros__parameters"].update({"initial_heading": "down", "set_pose_on_plan": True})
-    params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "mapper_out")
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    params = chain_params(
+        tmp_path,
+        tmp_path / "mapper_out",
+        drive={"initial_heading": "down", "set_pose_on_plan": True},
+    )
     lines: list[str] = []
     with MotorSim() as sim, rclpy_context() as ctx:
         monitor = Monitor(ctx, "e2e_user")
-        cmd = [
-            sys.executable,
-            "-c",
-            "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
+        cmd = wheelgrid_command(
             "launch",
             "--bag",
             str(bag_dir / "scan"),
@@ -156,12 +156,12 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
             "--rate",
             "2",
             "--params",
-            str(tmp_path / "params.yaml"),
+            str(params),
             "--motor-port",
             sim.slave_path,
             "--log-dir",
             str(tmp_path / "logs"),
-        ]
+        )
         proc = subprocess.Popen(
             cmd,
             cwd=repo_root,

@@ -19,10 +19,8 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 
-from wheelgrid_bringup.supervisor import default_params_file
-from wheelgrid_common.testing import stop_process
+from wheelgrid_common.testing import chain_params, stop_process, wheelgrid_command
 
 pytestmark = [pytest.mark.ros]
 
@@ -42,21 +40,10 @@ def _launch(
 ) -> tuple[subprocess.Popen[str], dict[str, int], list[str]]:
     """The launcher with SIGHUP as a terminal's child has it (``hangup``; SIG_IGN: under
     ``nohup``), whatever the test run's own is: a run under nohup passed it on ignored."""
-    params = yaml.safe_load(default_params_file().read_text())
-    params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
-    params["grid"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-    cmd = [
-        sys.executable,
-        "-c",
-        "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
-        "launch",
-        "--no-drive",
-        "--params",
-        str(tmp_path / "params.yaml"),
-        "--log-dir",
-        str(tmp_path / "logs"),
-    ]
+    params = chain_params(tmp_path, tmp_path / "out")
+    cmd = wheelgrid_command(
+        "launch", "--no-drive", "--params", str(params), "--log-dir", str(tmp_path / "logs")
+    )
     proc = subprocess.Popen(
         cmd,
         stdout=subprocess.PIPE,

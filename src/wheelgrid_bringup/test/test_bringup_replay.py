@@ -152,13 +152,9 @@ def test_a_replay_that_fails_mid_bag_is_said_and_ends_the_launch_with_exit_1(
     its error showed only on the scrolling status line, and the launch ended with exit 0 on a
     map of half the bag."""
     import subprocess
-    import sys
 
-    import yaml
-
-    from wheelgrid_bringup.supervisor import default_params_file
     from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
-    from wheelgrid_common.testing import stop_process
+    from wheelgrid_common.testing import chain_params, stop_process, wheelgrid_command
 
     bag = tmp_path / "broken"
     with BagReader(SCAN) as r, BagWriter(bag, "mcap") as w:
@@ -174,26 +170,11 @@ def test_a_replay_that_fails_mid_bag_is_said_and_ends_the_launch_with_exit_1(
     with BagReader(bag) as r:  # it opens and counts its messages: the damage shows when read
         assert sum(t.count for t in r.topics()) == 12
 
-    params = yaml.safe_load(default_params_file().read_text())
-    params["mapper"]["ros__parameters"]["output_dir"] = str(tmp_path / "out")
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-    cmd = [
-        sys.executable,
-        "-c",
-        "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
-        "launch",
-        "--bag",
-        str(bag),
-        "--rate",
-        "4",
-        "--no-drive",
-        "--duration",
-        "8",
-        "--params",
-        str(tmp_path / "params.yaml"),
-        "--log-dir",
-        str(tmp_path / "logs"),
-    ]
+    params = chain_params(tmp_path, tmp_path / "out")
+    cmd = wheelgrid_command(
+        "launch", "--bag", str(bag), "--rate", "4", "--no-drive", "--duration", "8",
+        "--params", str(params), "--log-dir", str(tmp_path / "logs"),
+    )  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         out, err = proc.communicate(timeout=90)

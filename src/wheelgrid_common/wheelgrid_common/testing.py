@@ -200,6 +200,35 @@ def python_module(module: str, *args: str) -> list[str]:
     return [sys.executable, "-m", module, *args]
 
 
+def wheelgrid_command(*args: str) -> list[str]:
+    """argv that runs ``wheelgrid args`` with this interpreter (no console script needed)."""
+    return [
+        sys.executable,
+        "-c",
+        "import sys; from wheelgrid_bringup.cli import main; sys.exit(main())",
+        *args,
+    ]
+
+
+def chain_params(tmp_path: Path, output_dir: Path, **sections: dict[str, Any]) -> Path:
+    """The bundled params file (``wheelgrid launch``'s default) with the mapper's output_dir
+    (and here the grid's) set to ``output_dir`` and each ``sections`` node's parameters
+    updated, written to ``tmp_path/params.yaml``: a test's chain saves nothing in the
+    checkout."""
+    import yaml
+
+    from wheelgrid_bringup.supervisor import default_params_file
+
+    params = yaml.safe_load(default_params_file().read_text())
+    for node in ("mapper", "grid"):
+        params[node]["ros__parameters"]["output_dir"] = str(output_dir)
+    for node, values in sections.items():
+        params[node]["ros__parameters"].update(values)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
 def bag_cloud_odometry(bag: Any, n: int) -> list:
     """The first ``n`` (PointCloud2, Odometry) pairs of a bridge-like bag (``/iphone/points``,
     ``/iphone/odometry``) as rclpy messages, for tests that publish them to a live mapper."""

@@ -388,6 +388,14 @@ def test_cmd_vel_steps_and_watchdog_stop(make_sim):
         assert h.spin(lambda: any("no /cmd_vel" in s.message for s in h.states), 3.0)
 
 
+def hold_stick(h, tw, seconds):
+    """A joystick held at ``tw``: the Twist published every 50 ms for ``seconds``."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        h.pub_twist.publish(tw)
+        h.spin(lambda: False, 0.05)
+
+
 def test_a_cmd_vel_stream_that_goes_on_through_an_estop_does_not_drive_after_the_clear(make_sim):
     """Forward Twists kept coming through the e-stop, and the clear sent FORWARD at once: the
     stream must be zero (or silent) once after a clear before it drives again."""
@@ -395,20 +403,14 @@ def test_a_cmd_vel_stream_that_goes_on_through_an_estop_does_not_drive_after_the
         tw = h.Twist()
         tw.linear.x = 0.8
 
-        def stream(seconds):  # a joystick held forward
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                h.pub_twist.publish(tw)
-                h.spin(lambda: False, 0.05)
-
         h.pub_twist.publish(tw)
         assert h.spin(lambda: sim.state != proto.State.IDLE, 3.0)
         h.pub_estop.publish(h.Bool(data=True))
-        stream(0.3)
+        hold_stick(h, tw, 0.3)
         assert sim.state == proto.State.IDLE and h.drive._estop
         h.pub_estop.publish(h.Bool(data=False))
         assert h.spin(lambda: not h.drive._estop, 3.0)
-        stream(0.8)  # the same stream, on through the clear
+        hold_stick(h, tw, 0.8)  # the same stream, on through the clear
         assert sim_moves(sim) == ["FORWARD"] and sim.state == proto.State.IDLE
         h.pub_twist.publish(h.Twist())  # let go of the stick: armed again
         h.spin(lambda: False, 0.2)
@@ -433,19 +435,13 @@ def test_a_joystick_held_through_an_unplugged_controller_does_not_drive_after_th
         tw = h.Twist()
         tw.linear.x = 0.8
 
-        def stream(seconds):  # a joystick held forward
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                h.pub_twist.publish(tw)
-                h.spin(lambda: False, 0.05)
-
-        stream(0.5)
+        hold_stick(h, tw, 0.5)
         assert sim_moves(sim1) == ["FORWARD"]
         sim1.vanish()  # unplugged mid-step, the stick still held
-        stream(0.6)
+        hold_stick(h, tw, 0.6)
         sim2 = make_sim(time_scale=1.0, pose=(sim1.x, sim1.y, sim1.yaw), link=port)
         assert h.spin(lambda: h.drive.link.stats.reconnects == 1, 5.0)
-        stream(1.5)
+        hold_stick(h, tw, 1.5)
         assert sim_moves(sim2) == [] and sim2.state == proto.State.IDLE, sim_moves(sim2)
         h.pub_twist.publish(h.Twist())  # let go of the stick: armed again
         h.spin(lambda: False, 0.2)

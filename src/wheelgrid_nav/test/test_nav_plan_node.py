@@ -661,17 +661,11 @@ def test_a_goal_refused_or_reached_is_never_planned_to_again(tmp_path):
             h.close()
 
 
-def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_start_was_unknown():
-    """The chair's own cell may be unknown (a sensor on the chair never sees the floor under
-    it), and the route starts there. Every new grid -- the grid node republishes at each map
-    update -- found that cell "not free" and replanned: the same route went out again, and the
-    drive stopped the running move for it (then refused it, the chair between two cells). Only
-    an occupied start cell, or any other route cell not free, is a change under the route."""
+@contextlib.contextmanager
+def recording_planner():
+    """A planner node, in process, whose published routes are also kept: (node, published)."""
     from wheelgrid_nav.planner_node import make_node
 
-    data = np.zeros((6, 6), np.int8)
-    data[2, 0] = -1  # the chair's cell, never seen
-    grid = Grid(data, 1.0)
     with rclpy_context() as ctx:
         node = make_node(context=ctx)
         try:
@@ -683,18 +677,31 @@ def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_sta
                 publish(g, cells, heading)
 
             node._publish_route = record
-            node._on_grid(to_occupancy_grid(grid))
-            node._on_initialpose(start_msg(grid, (2, 0), 0.0))
-            node._on_goal(goal_msg(grid, (2, 4)))
-            assert published == [[(2, c) for c in range(5)]]
-            node._on_grid(to_occupancy_grid(grid))  # the same grid again
-            assert len(published) == 1 and node.plans == 1
-            occupied = data.copy()
-            occupied[2, 0] = 100  # the start cell turns occupied: that is a change
-            node._on_grid(to_occupancy_grid(Grid(occupied, 1.0)))
-            assert node.plans == 2 and published[-1] == []
+            yield node, published
         finally:
             node.destroy_node()
+
+
+def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_start_was_unknown():
+    """The chair's own cell may be unknown (a sensor on the chair never sees the floor under
+    it), and the route starts there. Every new grid -- the grid node republishes at each map
+    update -- found that cell "not free" and replanned: the same route went out again, and the
+    drive stopped the running move for it (then refused it, the chair between two cells). Only
+    an occupied start cell, or any other route cell not free, is a change under the route."""
+    data = np.zeros((6, 6), np.int8)
+    data[2, 0] = -1  # the chair's cell, never seen
+    grid = Grid(data, 1.0)
+    with recording_planner() as (node, published):
+        node._on_grid(to_occupancy_grid(grid))
+        node._on_initialpose(start_msg(grid, (2, 0), 0.0))
+        node._on_goal(goal_msg(grid, (2, 4)))
+        assert published == [[(2, c) for c in range(5)]]
+        node._on_grid(to_occupancy_grid(grid))  # the same grid again
+        assert len(published) == 1 and node.plans == 1
+        occupied = data.copy()
+        occupied[2, 0] = 100  # the start cell turns occupied: that is a change
+        node._on_grid(to_occupancy_grid(Grid(occupied, 1.0)))
+        assert node.plans == 2 and published[-1] == []
 
 
 def drive_state(job):
@@ -715,53 +722,39 @@ def test_the_same_goal_again_and_a_cell_behind_the_chair_leave_the_route_as_it_i
     turning unknown or occupied in a new grid (the chair's own trace); and a cell ahead that
     closed kept the old route published for the whole relearning. Now the first two change
     nothing, and the third withdraws the route at once, before the new one."""
-    from wheelgrid_nav.planner_node import make_node
-
     data = np.zeros((6, 6), np.int8)
     grid = Grid(data, 1.0)
-    with rclpy_context() as ctx:
-        node = make_node(context=ctx)
-        try:
-            published: list[list] = []
-            publish = node._publish_route
-
-            def record(g, cells, heading=None):
-                published.append(list(cells))
-                publish(g, cells, heading)
-
-            node._publish_route = record
-            node._on_grid(to_occupancy_grid(grid))
-            node._on_initialpose(start_msg(grid, (2, 0), 0.0))
-            node._on_goal(goal_msg(grid, (2, 4)))
-            route = [(2, c) for c in range(5)]
-            assert published == [route] and node.plans == 1
-            node._on_goal(goal_msg(grid, (2, 4)))  # again, no drive driving it: planned again
-            assert published == [route, route] and node.plans == 2
-            del published[1:]
-            node._on_drive_state(drive_state("plan"))  # the drive on its way there
-            node._on_goal(goal_msg(grid, (2, 4)))  # the same goal again: nothing
-            assert published == [route] and node.plans == 2
-            node._drive_job = ("plan", time.monotonic() - 10.0)  # a drive silent since: died
-            node._on_goal(goal_msg(grid, (2, 4)))
-            assert published == [route, route] and node.plans == 3
-            del published[1:]
-            node.plans = 2
-            node._on_drive_state(drive_state("plan"))
-            x, y = grid.cell_center(2, 2)
-            node.start = (float(x), float(y), 0.0)  # the chair drove on to (2, 2)
-            behind = data.copy()
-            behind[2, 0] = 100  # where the chair started: behind it now
-            behind[2, 1] = -1
-            node._on_grid(to_occupancy_grid(Grid(behind, 1.0)))
-            assert published == [route] and node.plans == 2
-            ahead = behind.copy()
-            ahead[2, 3] = 100  # ahead: withdrawn at once, then the way round
-            node._on_grid(to_occupancy_grid(Grid(ahead, 1.0)))
-            assert node.plans == 3 and published[1] == [], published
-            assert published[2][0] == (2, 2) and published[2][-1] == (2, 4)
-            assert (2, 3) not in published[2]
-        finally:
-            node.destroy_node()
+    with recording_planner() as (node, published):
+        node._on_grid(to_occupancy_grid(grid))
+        node._on_initialpose(start_msg(grid, (2, 0), 0.0))
+        node._on_goal(goal_msg(grid, (2, 4)))
+        route = [(2, c) for c in range(5)]
+        assert published == [route] and node.plans == 1
+        node._on_goal(goal_msg(grid, (2, 4)))  # again, no drive driving it: planned again
+        assert published == [route, route] and node.plans == 2
+        del published[1:]
+        node._on_drive_state(drive_state("plan"))  # the drive on its way there
+        node._on_goal(goal_msg(grid, (2, 4)))  # the same goal again: nothing
+        assert published == [route] and node.plans == 2
+        node._drive_job = ("plan", time.monotonic() - 10.0)  # a drive silent since: died
+        node._on_goal(goal_msg(grid, (2, 4)))
+        assert published == [route, route] and node.plans == 3
+        del published[1:]
+        node.plans = 2
+        node._on_drive_state(drive_state("plan"))
+        x, y = grid.cell_center(2, 2)
+        node.start = (float(x), float(y), 0.0)  # the chair drove on to (2, 2)
+        behind = data.copy()
+        behind[2, 0] = 100  # where the chair started: behind it now
+        behind[2, 1] = -1
+        node._on_grid(to_occupancy_grid(Grid(behind, 1.0)))
+        assert published == [route] and node.plans == 2
+        ahead = behind.copy()
+        ahead[2, 3] = 100  # ahead: withdrawn at once, then the way round
+        node._on_grid(to_occupancy_grid(Grid(ahead, 1.0)))
+        assert node.plans == 3 and published[1] == [], published
+        assert published[2][0] == (2, 2) and published[2][-1] == (2, 4)
+        assert (2, 3) not in published[2]
 
 
 def test_a_goal_that_cannot_be_planned_yet_says_what_it_waits_for():
