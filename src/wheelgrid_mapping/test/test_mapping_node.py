@@ -1100,3 +1100,39 @@ def test_a_frame_in_hand_at_a_reset_is_not_counted_after_it(tmp_path, monkeypatc
         node._on_cloud(new)
         assert poll_until(lambda: len(node.mapper.poses_odom) == 1, 60.0, 0.05)
         assert node.counts == {"received": 1, "skipped_busy": 0, "malformed": 0, "after_close": 0}
+
+
+def test_pose_priors_of_a_session_before_a_reset_or_a_clock_that_went_back_are_not_used(tmp_path):
+    """The priors kept (up to 2000) outlived ~/reset and a pose clock that started again (a bag
+    replayed again, a simulator restarted): a new frame took the old session's pose at the same
+    stamp, and 11 of 12 frames failed as a "prior jump". Of two poses as near, the one received
+    last is taken."""
+    from nav_msgs.msg import Odometry
+    from std_srvs.srv import Trigger
+
+    def odom(t: float, x: float) -> Odometry:
+        m = Odometry()
+        m.header.frame_id, m.child_frame_id = "arkit_world", "cam"
+        m.header.stamp.sec, m.header.stamp.nanosec = int(t), round((t - int(t)) * 1e9)
+        m.pose.pose.position.x = x
+        m.pose.pose.orientation.w = 1.0
+        return m
+
+    with rclpy_context() as ctx:
+        node = in_process_mapper_node(ctx, tmp_path, "/stale")
+        try:
+            for i in range(200):  # the first session stood at x = 0 for 20 s
+                node._on_prior(odom(i * 0.1, 0.0))
+            node._on_reset(Trigger.Request(), Trigger.Response())
+            for i in range(50):  # the next one, on a clock from 0 again, at x = 5
+                node._on_prior(odom(i * 0.1 + 0.03, 5.0))
+            assert [node._prior_for(t, "cam")[0, 3] for t in (1.0, 2.0, 3.0)] == [5.0] * 3
+            for i in range(50):  # the clock back again with no reset: the same
+                node._on_prior(odom(i * 0.1 + 0.03, 7.0))
+            assert node._prior_for(1.0, "cam")[0, 3] == 7.0 and len(node._priors) == 50
+            node._on_prior(odom(5.03, 9.0))  # stamped as a pose kept, received later: taken
+            node._on_prior(odom(4.93, 9.0))
+            assert node._prior_for(4.93, "cam")[0, 3] == 9.0
+        finally:
+            node.close()
+            node.destroy_node()

@@ -103,6 +103,10 @@ class MapperNodeConfig:
     )
 
 
+# A pose prior stamped this much before the newest one kept starts a new pose clock: the
+# poses kept are dropped (ARKit's poses arrive in order; a bag replayed again does not).
+PRIOR_CLOCK_BACK_S = 1.0
+
 # Loop-closure states in which the worker holds (or is about to take) the map, and those after
 # which the map is final until ~/reset.
 _CLOSING = ("requested", "running")
@@ -305,7 +309,13 @@ class MapperNode(Node):  # type: ignore[misc]
     def _on_prior(self, msg: Any) -> None:
         p = msg.pose.pose
         T = pose_or_nan(p.position, p.orientation)  # a NaN pose is refused and counted later
-        self._priors.append((_stamp_seconds(msg.header.stamp), T, str(msg.child_frame_id)))
+        stamp = _stamp_seconds(msg.header.stamp)
+        if self._priors and self._priors[-1][0] > stamp + PRIOR_CLOCK_BACK_S:
+            # the pose clock went back (a bag replayed again, a simulator restarted): the
+            # poses of before sat at the same stamps and seeded the new frames with another
+            # session's world (11 of 12 frames then failed as a "prior jump")
+            self._priors.clear()
+        self._priors.append((stamp, T, str(msg.child_frame_id)))
 
     def _no_prior_note(self, stamp: float) -> str:
         """Why a frame has no prior, with how far the nearest pose's stamp is: a pose topic on
@@ -327,7 +337,8 @@ class MapperNode(Node):  # type: ignore[misc]
         map by a wrong gravity. There is no tf here to chain them: it is not used."""
         if not self._priors:
             return None
-        best = min(list(self._priors), key=lambda sp: abs(sp[0] - stamp))
+        # newest first: of two poses as near, the one received last (min keeps the first)
+        best = min(reversed(list(self._priors)), key=lambda sp: abs(sp[0] - stamp))
         if abs(best[0] - stamp) > 0.1:
             return None
         if best[2] and frame_id and best[2] != frame_id:
@@ -676,6 +687,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self.counts["skipped_busy"] += len(self._queue)
         self._queue.clear()
         self._generation += 1  # a frame the worker has in hand must not map after the reset
+        self._priors.clear()  # the old session's poses: a new one may reuse their stamps
         for key in self.counts:  # "counters cleared" means the node's own too
             self.counts[key] = 0
         self._map_dirty = False
