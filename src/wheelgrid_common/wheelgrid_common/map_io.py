@@ -331,3 +331,19 @@ def from_occupancy_grid(msg: Any) -> Grid:
         origin=(float(msg.info.origin.position.x), float(msg.info.origin.position.y), yaw),
         frame_id=str(msg.header.frame_id) or "map",
     )
+
+
+def grid_identity(grid: Any) -> dict[str, Any]:
+    """What a plan's cell indices mean: the grid's shape, cell size, origin and a digest of
+    its cells. A plan holds indices only, and one made on 1.2 m cells was driven on a grid of
+    0.6 m cells (half of every step) with exit 0; `wheelgrid drive --grid` compares this."""
+    import hashlib
+
+    data = np.ascontiguousarray(grid.data, dtype=np.int8)
+    return {
+        "rows": int(data.shape[0]),
+        "cols": int(data.shape[1]),
+        "resolution": float(grid.resolution),
+        "origin": [float(v) for v in grid.origin],
+        "cells_sha256": hashlib.sha256(data.tobytes()).hexdigest(),
+    }

@@ -3,6 +3,7 @@
 import csv
 import itertools
 import json
+import math
 
 import numpy as np
 import pytest
@@ -333,10 +334,79 @@ def test_a_controller_elsewhere_than_the_plans_start_is_refused_before_any_move(
     assert rc == 0 and len(sim_moves(sim)) == 9, capsys.readouterr().err
 
 
-def test_sigterm_mid_move_stops_the_chair_as_ctrl_c_does(make_sim, tmp_path):
-    """`wheelgrid drive` killed with SIGTERM (a launcher, systemd, `timeout`) mid-move sent no
-    STOP: the chair drove on until the controller's own watchdog stopped it, half a second
-    later. It now stops the chair and says whether the controller heard it, as Ctrl-C does."""
+def test_a_plan_from_another_grid_or_not_verified_is_refused_and_a_wrong_heading_not_hinted_away(
+    make_sim, tmp_path, capsys
+):
+    """A plan holds cell indices only: one made on 1.2 m cells drove 9/9 steps of 0.6 m on a
+    0.6 m grid, exit 0, and one whose planner refused its route (reason, converged) was driven
+    as well. `wheelgrid plan --json` now names its grid, and the drive compares it. A chair on
+    its start cell but facing another way was told to use --set-pose, which would give the
+    controller a heading the chair does not have."""
+    from wheelgrid_nav.cli_plan import main as plan_main
+
+    free = Grid(np.zeros((8, 8), np.int8), 1.2, origin=(0.0, -9.6, 0.0))
+    grid_a = write_map(tmp_path / "a.yaml", free)
+    grid_b = write_map(tmp_path / "b.yaml", Grid(free.data, 0.6, origin=free.origin))
+    argv = [str(grid_a), "--start", "2,0", "--goal", "6,5", "--heading", "down", "--json"]
+    assert plan_main(argv) == 0
+    planned = json.loads(capsys.readouterr().out)
+    assert planned["grid"]["resolution"] == 1.2 and planned["grid"]["rows"] == 8
+    plan = write(tmp_path, planned)
+    sim = make_sim()
+    assert main([plan, "--port", sim.slave_path, "--grid", str(grid_b), "--set-pose"]) == 2
+    assert "the plan was made on another grid than" in capsys.readouterr().err
+    moved = {**planned, "grid": {**planned["grid"], "origin": [1.2, -9.6, 0.0]}}
+    assert (
+        main([write(tmp_path, moved, "m.json"), "--port", sim.slave_path, "--grid", str(grid_a)])
+        == 2
+    )
+    assert "origin" in capsys.readouterr().err
+    refused = {**planned, "reason": "verification failed: x", "converged": False}
+    assert main([write(tmp_path, refused, "r.json"), "--port", sim.slave_path, "--dry-run"]) == 2
+    assert "not a verified route (reason 'verification failed: x'" in capsys.readouterr().err
+    assert sim_moves(sim) == []
+    # without --grid: said, and the plan's own cell size (not 1.2 m by default)
+    assert main([plan, "--dry-run"]) == 0
+    captured = capsys.readouterr()
+    assert "no --grid: nothing checks" in captured.err and "1.2 m per cell" in captured.out
+    assert (
+        main(
+            [
+                write(
+                    tmp_path, {**planned, "grid": {**planned["grid"], "resolution": 0.9}}, "n.json"
+                ),
+                "--dry-run",
+            ]
+        )
+        == 0
+    )
+    assert "0.9 m per cell" in capsys.readouterr().out
+    # on its start cell, facing left where the plan starts facing down
+    x, y = free.cell_center(2, 0)
+    facing_left = make_sim(pose=(float(x), float(y), math.pi))
+    assert main([plan, "--port", facing_left.slave_path, "--grid", str(grid_a)]) == 1
+    err = capsys.readouterr().err
+    assert "does not face the plan's start heading" in err and "--set-pose tells" not in err, err
+    assert sim_moves(facing_left) == []
+
+
+@pytest.mark.parametrize(
+    ("sig", "code", "says", "ignored"),
+    [
+        ("SIGTERM", 143, "terminated (SIGTERM); chair stopped", False),
+        # a closed terminal or ssh session: the command died at once, no STOP, 0.4 m on
+        ("SIGHUP", 129, "terminated (SIGHUP); chair stopped", False),
+        # started in the background by a script (`&`), SIGINT comes ignored: it drove on
+        ("SIGINT", 130, "interrupted; chair stopped", True),
+    ],
+)
+def test_a_signal_mid_move_stops_the_chair_as_ctrl_c_does(
+    make_sim, tmp_path, sig, code, says, ignored
+):
+    """`wheelgrid drive` killed with SIGTERM (a launcher, systemd, `timeout`) or SIGHUP
+    mid-move sent no STOP: the chair drove on until the controller's own watchdog stopped it,
+    half a second later. It now stops the chair and says whether the controller heard it, as
+    Ctrl-C does, and Ctrl-C works however the command was started."""
     import signal
     import subprocess
 
@@ -347,10 +417,11 @@ def test_sigterm_mid_move_stops_the_chair_as_ctrl_c_does(make_sim, tmp_path):
     plan = write(tmp_path, {"cells": [[0, 0], [0, 1], [0, 2]]})
     argv = python_module("wheelgrid_drive.cli", plan, "--port", sim.slave_path)
     argv += ["--heading", "right", "--set-pose", "--cell-size", "1.2"]
-    with managed_process(argv, stderr=subprocess.PIPE, text=True) as proc:
+    kw = {"preexec_fn": lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)} if ignored else {}
+    with managed_process(argv, stderr=subprocess.PIPE, text=True, **kw) as proc:
         assert poll_until(lambda: sim.result == proto.Result.RUNNING, 20.0, 0.01)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(getattr(signal, sig))
         _, err = proc.communicate(timeout=20.0)
-    assert proc.returncode == 143, err
-    assert "terminated (SIGTERM); chair stopped" in err, err
+    assert proc.returncode == code, err
+    assert says in err, err
     assert sim.result == proto.Result.STOPPED  # not WATCHDOG: the host stopped it

@@ -22,7 +22,13 @@ from wheelgrid_common.params import DefaultsHelpFormatter
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
-from wheelgrid_drive.runner import CellCheck, controller_pose_check, grid_cell_check, run_steps
+from wheelgrid_drive.runner import (
+    OFF_CELL,
+    CellCheck,
+    controller_pose_check,
+    grid_cell_check,
+    run_steps,
+)
 
 
 class PlanError(ValueError):
@@ -46,6 +52,14 @@ def load_plan(
         )
     if not isinstance(cells_raw, list):
         raise PlanError("plan has no 'cells' list")
+    # `wheelgrid plan` writes cells only for a verified route; a file that says otherwise (a
+    # planner's refusal edited, another tool's output) was driven all the same
+    reason = doc.get("reason", "ok")
+    if reason != "ok" or doc.get("converged", True) is not True:
+        raise PlanError(
+            f"the plan is not a verified route (reason {reason!r}, converged "
+            f"{doc.get('converged', '?')}); nothing to drive"
+        )
     # Integers only: int() truncated [2.9, 0.7] to (2, 0) and took true and "3" as cells, and
     # a wheelchair must not guess which cell a plan meant.
     if not all(
@@ -89,6 +103,39 @@ def load_plan(
                         f"action {i + 1}: plan says {key}={given[key]!r}, Table II gives {value!r}"
                     )
     return steps, cells
+
+
+def plan_grid_problem(planned: Any, grid: Any) -> str | None:
+    """Why the grid a plan names (``wheelgrid plan --json``'s ``grid``) is not ``grid``, or
+    None (also for a plan that names none, from before it did or another tool). Cells that
+    changed with the same geometry are not a problem here: every cell of the route is
+    checked free on ``grid`` anyway."""
+    if not isinstance(planned, dict):
+        return None
+    shape = (int(grid.data.shape[0]), int(grid.data.shape[1]))
+    if (planned.get("rows"), planned.get("cols")) != shape:
+        return f"{planned.get('rows')} x {planned.get('cols')} cells, not {shape[0]} x {shape[1]}"
+    res = planned.get("resolution")
+    if not isinstance(res, int | float) or abs(res - grid.resolution) > 1e-9:
+        return f"cells of {res} m, not {grid.resolution:g} m"
+    origin = planned.get("origin")
+    if not (
+        isinstance(origin, list)
+        and len(origin) == 3
+        and all(
+            isinstance(v, int | float) and abs(v - o) <= 1e-6
+            for v, o in zip(origin, grid.origin, strict=True)
+        )
+    ):
+        return f"origin {origin}, not {[round(v, 6) for v in grid.origin]}"
+    return None
+
+
+def plan_grid_changed(planned: Any, grid: Any) -> bool:
+    from wheelgrid_common.map_io import grid_identity
+
+    digest = planned.get("cells_sha256") if isinstance(planned, dict) else None
+    return digest is not None and digest != grid_identity(grid)["cells_sha256"]
 
 
 def _norm(v: Any) -> Any:
@@ -181,6 +228,24 @@ def main(argv: list[str] | None = None) -> int:
             return _err(f"cannot read grid {args.grid}: {exc}")
         if args.cell_size is not None and abs(args.cell_size - grid.resolution) > 1e-6:
             return _err(f"--cell-size {args.cell_size} != grid resolution {grid.resolution}")
+        problem = plan_grid_problem(doc.get("grid"), grid)
+        if problem:
+            return _err(f"the plan was made on another grid than {args.grid}: {problem}")
+        if plan_grid_changed(doc.get("grid"), grid):
+            print(
+                f"wheelgrid drive: warning: cells of {args.grid} changed since the plan was made "
+                "on it; every cell of the route is checked free on it as it is now",
+                file=sys.stderr,
+            )
+    planned_on = doc.get("grid") if isinstance(doc.get("grid"), dict) else {}
+    if grid is None:
+        print(
+            "wheelgrid drive: warning: no --grid: nothing checks that the route's cells are "
+            "free (give the grid the plan was made on)",
+            file=sys.stderr,
+        )
+        if args.cell_size is None and isinstance(planned_on.get("resolution"), float):
+            args.cell_size = planned_on["resolution"]  # the plan's own cells, not 1.2 m
     cell_size = grid.resolution if grid is not None else args.cell_size
     if cell_size is None:
         cell_size = 1.2
@@ -264,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         line = f"  {counter['i']}/{total}: {_describe(step)} -> {rec['ack']}{extra}{reason}"
         print(line, flush=True)
 
-    on_term = _stop_on_sigterm()
+    replaced = _stop_on_signals()
     try:
         link.start_heartbeat()
         st = link.status()
@@ -297,19 +362,28 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"wheelgrid drive: interrupted; {_stopped(link)}", file=sys.stderr)
         return 130
-    except Terminated:
-        print(f"wheelgrid drive: terminated (SIGTERM); {_stopped(link)}", file=sys.stderr)
-        return 143
+    except Terminated as exc:
+        name = signal.Signals(exc.signum).name
+        print(f"wheelgrid drive: terminated ({name}); {_stopped(link)}", file=sys.stderr)
+        return 128 + exc.signum
     finally:
-        if on_term is not None:
-            signal.signal(signal.SIGTERM, on_term)
+        for sig, handler in replaced.items():
+            signal.signal(sig, handler)
         link.close()
     if not result.ok:
         hint = ""
-        if result.refused and result.done == 0 and "centre of cell" in result.error:
+        if result.refused and result.done == 0 and OFF_CELL in result.error:
             hint = (
                 " (the controller's pose is not on the plan's start cell: --set-pose tells it "
                 "the chair stands there; --no-pose-check drives without the check)"
+            )
+        elif result.refused and result.done == 0:
+            # the chair stands on its cell but faces another way: --set-pose would overwrite
+            # the controller's heading with the plan's, and every move would go astray
+            hint = (
+                " (the chair does not face the plan's start heading: turn it, or plan again "
+                "with --heading as it stands; --set-pose would tell the controller a heading "
+                "the chair does not have)"
             )
         print(
             f"wheelgrid drive: step {result.done + 1}/{result.total} failed: {result.error}"
@@ -333,23 +407,38 @@ STOP_UNCONFIRMED = (
 
 
 class Terminated(BaseException):
-    """SIGTERM (a launcher, systemd, ``timeout``) while the chair drives: raised where the run
-    is, as Ctrl-C's KeyboardInterrupt is, and a BaseException for the same reason (no
-    ``except Exception`` on the way swallows it)."""
+    """SIGTERM or SIGHUP (a launcher, systemd, ``timeout``, a closed terminal or ssh session)
+    while the chair drives: raised where the run is, as Ctrl-C's KeyboardInterrupt is, and a
+    BaseException for the same reason (no ``except Exception`` on the way swallows it)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
 
 
 def _raise_terminated(signum: int, frame: Any) -> None:
-    raise Terminated
+    raise Terminated(signum)
 
 
-def _stop_on_sigterm() -> Any:
-    """Make SIGTERM stop the chair as Ctrl-C does, and return the handler it replaces (None
-    where no handler can be set: not the main thread). SIGTERM killed the command outright
-    mid-move, with no STOP sent: the chair drove on until the controller's own watchdog."""
+STOPPING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+def _stop_on_signals() -> dict[int, Any]:
+    """Make SIGTERM, SIGHUP and SIGINT stop the chair, and return the handlers replaced ({}
+    where none can be set: not the main thread). SIGTERM, and then SIGHUP (the terminal
+    closed), killed the command outright mid-move with no STOP sent: the chair drove on until
+    the controller's own watchdog, 0.4 m. And a command started in the background by a
+    script (`&`) inherits SIGINT ignored: its Ctrl-C, or a launcher's SIGINT, drove on."""
     if threading.current_thread() is not threading.main_thread():
-        return None
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    return previous if previous is not None else signal.SIG_DFL  # None: one set from C
+        return {}
+    previous: dict[int, Any] = {}
+    for sig, handler in (
+        *((s, _raise_terminated) for s in STOPPING_SIGNALS),
+        (signal.SIGINT, signal.default_int_handler),
+    ):
+        old = signal.signal(sig, handler)
+        previous[sig] = old if old is not None else signal.SIG_DFL  # None: one set from C
+    return previous
 
 
 def _stopped(link: MotorLink) -> str:

@@ -100,6 +100,11 @@ def _line_to_centre(
     return (cx - x) * ux + (cy - y) * uy, abs((cy - y) * ux - (cx - x) * uy), res
 
 
+# How step_pose_problem's "not on its cell" begins (the other problem: a heading that would
+# end the move off the next cell); `wheelgrid drive` gives each its own advice.
+OFF_CELL = "the chair at"
+
+
 def step_pose_problem(
     grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
 ) -> str | None:
@@ -118,7 +123,7 @@ def step_pose_problem(
     off = math.hypot(x - sx, y - sy)
     if off > tolerance * res:
         return (
-            f"the chair at ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
+            f"{OFF_CELL} ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
             f"{step.src}, more than {tolerance:g} cell"
         )
     along, across, _ = _line_to_centre(grid, x, y, yaw, step)

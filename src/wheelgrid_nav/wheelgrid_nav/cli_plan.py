@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from wheelgrid_common.map_io import Grid, read_map
+from wheelgrid_common.map_io import Grid, grid_identity, read_map
 from wheelgrid_common.params import describe, load_yaml
 from wheelgrid_nav.actions import MOVES, moves_to_actions
 from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, PlanResult, plan
@@ -128,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def result_json(res: PlanResult, heading: str | None) -> dict[str, Any]:
+def result_json(res: PlanResult, heading: str | None, grid: Any = None) -> dict[str, Any]:
     """The ``--json`` object (also used by the planner node's logs and the benchmark)."""
     out: dict[str, Any] = {
         "cells": [[r, c] for r, c in res.cells],
@@ -144,6 +144,8 @@ def result_json(res: PlanResult, heading: str | None) -> dict[str, Any]:
     if heading is not None:
         out["heading"] = heading
         out["actions"] = moves_to_actions(res.cells, heading) if res.cells else []
+    if grid is not None:
+        out["grid"] = grid_identity(grid)
     return out
 
 
@@ -220,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"wheelgrid plan: cannot write --png {args.png}: {exc}", file=sys.stderr)
             return 2
     if args.json:
-        print(json.dumps(result_json(res, args.heading)))
+        print(json.dumps(result_json(res, args.heading, grid)))
     if res.reason == "unreachable":
         print(
             f"wheelgrid plan: goal {goal} cannot be reached from start {start} over free cells",
