@@ -65,3 +65,45 @@ def test_a_service_name_rclpy_refuses_is_one_line_and_exit_2(name: str, capsys) 
     err = capsys.readouterr().err
     assert err.startswith(f"wheelgrid call: {name!r}: ") and ", at /" not in err, err
     assert "topic" not in err, err  # it is a service name, whatever rcl's rules call it
+
+
+def test_a_service_slower_than_five_seconds_is_called_once() -> None:
+    """The request went out again every 5 s while no answer came: a Trigger service that took
+    6 s ran twice (a /mapper/reset would clear what was mapped between the two)."""
+    import threading
+    import time
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    from wheelgrid_common.testing import rclpy_context
+
+    calls: list[float] = []
+
+    def slow(_request, response):
+        calls.append(time.monotonic())
+        time.sleep(5.5)
+        response.success, response.message = True, f"handled request #{len(calls)}"
+        return response
+
+    with rclpy_context() as ctx:
+        node = Node("wg_call_slow", context=ctx)
+        node.create_service(Trigger, "/wg_test/slow", slow)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        spinner = threading.Thread(target=ex.spin, daemon=True)
+        spinner.start()
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-m", "wheelgrid_bringup.cli", "call", "/wg_test/slow",
+                 "--timeout", "30"],
+                env=child_env(), capture_output=True, text=True, timeout=60,
+            )  # fmt: skip
+            time.sleep(1.0)  # a second request, had one gone out, would be served meanwhile
+        finally:
+            ex.shutdown()
+            spinner.join(timeout=10.0)
+            node.destroy_node()
+    assert proc.returncode == 0 and "ok: handled request #1" in proc.stdout, proc.stderr
+    assert len(calls) == 1, calls
