@@ -416,12 +416,17 @@ def test_a_signal_mid_move_stops_the_chair_as_ctrl_c_does(
     sim = make_sim(time_scale=1.0)  # real time: a 1.2 m cell takes 1.4 s
     plan = write(tmp_path, {"cells": [[0, 0], [0, 1], [0, 2]]})
     argv = python_module("wheelgrid_drive.cli", plan, "--port", sim.slave_path)
-    argv += ["--heading", "right", "--set-pose", "--cell-size", "1.2"]
+    argv += ["--heading", "right", "--set-pose", "--cell-size", "1.2", "--jsonl"]
     kw = {"preexec_fn": lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)} if ignored else {}
-    with managed_process(argv, stderr=subprocess.PIPE, text=True, **kw) as proc:
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    with managed_process(argv, **pipes, **kw) as proc:
         assert poll_until(lambda: sim.result == proto.Result.RUNNING, 20.0, 0.01)
         proc.send_signal(getattr(signal, sig))
-        _, err = proc.communicate(timeout=20.0)
+        out, err = proc.communicate(timeout=20.0)
     assert proc.returncode == code, err
     assert says in err, err
     assert sim.result == proto.Result.STOPPED  # not WATCHDOG: the host stopped it
+    # the step under way has its record too (there was none), with where the chair stood
+    (rec,) = [json.loads(ln) for ln in out.splitlines()]  # --jsonl: JSON lines alone
+    assert rec["ack"] == "INTERRUPTED" and says in rec["reason"] and len(rec["pose"]) == 2
+    assert rec["from"] == [0, 0] and rec["to"] == [0, 1], rec

@@ -25,6 +25,7 @@ from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
 from wheelgrid_drive.runner import (
     OFF_CELL,
     CellCheck,
+    command_record,
     controller_pose_check,
     grid_cell_check,
     run_steps,
@@ -276,10 +277,13 @@ def main(argv: list[str] | None = None) -> int:
                     "the route is not free on this grid; plan again on it (nothing was sent)"
                 )
 
+    # with --jsonl, stdout is JSON lines alone (a reader parsed the header as a record)
+    notes = sys.stderr if args.jsonl else sys.stdout
     print(
         f"wheelgrid drive: {len(steps)} step(s) from {cells[0]} "
         f"heading {steps[0].heading if steps else '-'}"
-        f", {cell_size:g} m per cell at {speed:g} km/h"
+        f", {cell_size:g} m per cell at {speed:g} km/h",
+        file=notes,
     )
     if args.dry_run or not steps:
         for i, s in enumerate(steps, 1):
@@ -315,16 +319,21 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     total = len(steps)
     counter = {"i": 0}
+    current: list[actions.Step] = []  # the step whose checks or move are under way
+
+    def on_start(step: actions.Step) -> None:
+        current[:] = [step]
 
     def on_step(step: actions.Step, rec: dict[str, Any]) -> None:
+        current.clear()
         counter["i"] += 1
         if args.jsonl:
             print(json.dumps(rec), flush=True)
             return
-        extra = ""
-        if "seq" in rec:
+        extra = f" seq {rec['seq']}," if "seq" in rec else ""
+        if "pose" in rec:
             x, y = rec["pose"]
-            extra = f" seq {rec['seq']}, chair at x {x:.3f} m, y {y:.3f} m"
+            extra += f" chair at x {x:.3f} m, y {y:.3f} m"
         reason = f": {rec['reason']}" if "reason" in rec else ""
         line = f"  {counter['i']}/{total}: {_describe(step)} -> {rec['ack']}{extra}{reason}"
         print(line, flush=True)
@@ -353,19 +362,26 @@ def main(argv: list[str] | None = None) -> int:
             pose_check=None
             if args.no_pose_check
             else controller_pose_check(link, _Cells(cell_size, grid)),
+            on_start=on_start,
         )
         # the runner sent STOP already; once more, to learn whether the controller heard it
         stop_note = "" if result.ok else _stopped(link)
-    except LinkError as exc:
-        print(f"wheelgrid drive: {exc}; {_stopped(link)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"wheelgrid drive: interrupted; {_stopped(link)}", file=sys.stderr)
-        return 130
-    except Terminated as exc:
-        name = signal.Signals(exc.signum).name
-        print(f"wheelgrid drive: terminated ({name}); {_stopped(link)}", file=sys.stderr)
-        return 128 + exc.signum
+    except (LinkError, KeyboardInterrupt, Terminated) as exc:
+        stopped = _stopped(link)
+        if isinstance(exc, LinkError):
+            why, code = str(exc), 1
+        elif isinstance(exc, KeyboardInterrupt):
+            why, code = "interrupted", 130
+        else:
+            why, code = f"terminated ({signal.Signals(exc.signum).name})", 128 + exc.signum
+        if current:  # the step under way: the only one no record said anything of
+            rec = command_record(current[0], "INTERRUPTED", reason=f"{why}; {stopped}")
+            last = link.last_status
+            if last is not None:
+                rec["pose"] = [round(last.x, 3), round(last.y, 3)]
+            on_step(current[0], rec)
+        print(f"wheelgrid drive: {why}; {stopped}", file=sys.stderr)
+        return code
     finally:
         for sig, handler in replaced.items():
             signal.signal(sig, handler)
@@ -395,7 +411,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"wheelgrid drive: {result.done}/{result.total} steps done; link: {ls.sent} frames sent, "
         f"{ls.replies} replies, {ls.retries} retries, {ls.timeouts} timeouts, {ls.garbled} "
-        f"garbled, {ls.naks} NAKs"
+        f"garbled, {ls.naks} NAKs",
+        file=notes,
     )
     return 0
 
