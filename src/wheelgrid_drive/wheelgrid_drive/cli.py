@@ -24,6 +24,7 @@ from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
 from wheelgrid_drive.runner import (
     OFF_CELL,
+    WOULD_END,
     CellCheck,
     command_record,
     controller_pose_check,
@@ -245,8 +246,14 @@ def main(argv: list[str] | None = None) -> int:
             "free (give the grid the plan was made on)",
             file=sys.stderr,
         )
-        if args.cell_size is None and isinstance(planned_on.get("resolution"), float):
-            args.cell_size = planned_on["resolution"]  # the plan's own cells, not 1.2 m
+        planned_res = planned_on.get("resolution")
+        if isinstance(planned_res, float):
+            if args.cell_size is not None and abs(args.cell_size - planned_res) > 1e-6:
+                return _err(
+                    f"--cell-size {args.cell_size:g} m, but the plan was made on cells of "
+                    f"{planned_res:g} m: every step would drive the wrong length"
+                )
+            args.cell_size = planned_res  # the plan's own cells, not 1.2 m
     cell_size = grid.resolution if grid is not None else args.cell_size
     if cell_size is None:
         cell_size = 1.2
@@ -287,7 +294,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.dry_run or not steps:
         for i, s in enumerate(steps, 1):
-            print(f"  {i}: {_describe(s)}")
+            if args.jsonl:
+                print(json.dumps(s.to_json()))
+            else:
+                print(f"  {i}: {_describe(s)}")
         return 0
     if not args.port:
         return _err("--port is required (or --dry-run)")
@@ -393,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
                 " (the controller's pose is not on the plan's start cell: --set-pose tells it "
                 "the chair stands there; --no-pose-check drives without the check)"
             )
-        elif result.refused and result.done == 0:
+        elif result.refused and result.done == 0 and WOULD_END in result.error:
             # the chair stands on its cell but faces another way: --set-pose would overwrite
             # the controller's heading with the plan's, and every move would go astray
             hint = (

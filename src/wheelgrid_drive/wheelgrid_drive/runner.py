@@ -100,9 +100,11 @@ def _line_to_centre(
     return (cx - x) * ux + (cy - y) * uy, abs((cy - y) * ux - (cx - x) * uy), res
 
 
-# How step_pose_problem's "not on its cell" begins (the other problem: a heading that would
-# end the move off the next cell); `wheelgrid drive` gives each its own advice.
+# How step_pose_problem's two problems read: the chair not on its cell, and a heading that
+# would end the move off the next cell; `wheelgrid drive` gives each its own advice (and
+# none to a refusal of another kind, such as no pose from the controller).
 OFF_CELL = "the chair at"
+WOULD_END = "would end"
 
 
 def step_pose_problem(
@@ -130,7 +132,7 @@ def step_pose_problem(
     miss = math.hypot(along - res, across)  # where one cell's length ends, from the centre
     if miss > tolerance * res:
         return (
-            f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg would end "
+            f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg {WOULD_END} "
             f"{miss:.2f} m from the centre of cell {step.dst}, more than {tolerance:g} cell"
         )
     return None

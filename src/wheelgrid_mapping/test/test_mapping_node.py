@@ -1127,7 +1127,10 @@ def test_pose_priors_of_a_session_before_a_reset_or_a_clock_that_went_back_are_n
             for i in range(50):  # the next one, on a clock from 0 again, at x = 5
                 node._on_prior(odom(i * 0.1 + 0.03, 5.0))
             assert [node._prior_for(t, "cam")[0, 3] for t in (1.0, 2.0, 3.0)] == [5.0] * 3
-            for i in range(50):  # the clock back again with no reset: the same
+            node._on_prior(odom(0.0, 3.0))  # one stray stamp (a zero one): not a new clock
+            node._on_prior(odom(5.03, 5.0))  # and the stream goes on
+            assert node._prior_for(4.93, "cam")[0, 3] == 5.0 and len(node._priors) == 51
+            for i in range(50):  # the clock back again with no reset: a new clock
                 node._on_prior(odom(i * 0.1 + 0.03, 7.0))
             assert node._prior_for(1.0, "cam")[0, 3] == 7.0 and len(node._priors) == 50
             node._on_prior(odom(5.03, 9.0))  # stamped as a pose kept, received later: taken

@@ -106,6 +106,7 @@ class MapperNodeConfig:
 # A pose prior stamped this much before the newest one kept starts a new pose clock: the
 # poses kept are dropped (ARKit's poses arrive in order; a bag replayed again does not).
 PRIOR_CLOCK_BACK_S = 1.0
+PRIOR_CLOCK_BACK_POSES = 3
 
 # Loop-closure states in which the worker holds (or is about to take) the map, and those after
 # which the map is final until ~/reset.
@@ -167,6 +168,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self._stop = False
         # (stamp, pose, child frame) of each prior received
         self._priors: deque[tuple[float, np.ndarray, str]] = deque(maxlen=2000)
+        # poses stamped well before the newest kept, in a row: a new pose clock once there
+        # are PRIOR_CLOCK_BACK_POSES of them (see _on_prior)
+        self._priors_behind: list[tuple[float, np.ndarray, str]] = []
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
         self._logged: set[str] = set()
         self._map_dirty = False
@@ -310,12 +314,21 @@ class MapperNode(Node):  # type: ignore[misc]
         p = msg.pose.pose
         T = pose_or_nan(p.position, p.orientation)  # a NaN pose is refused and counted later
         stamp = _stamp_seconds(msg.header.stamp)
+        prior = (stamp, T, str(msg.child_frame_id))
         if self._priors and self._priors[-1][0] > stamp + PRIOR_CLOCK_BACK_S:
-            # the pose clock went back (a bag replayed again, a simulator restarted): the
+            # The pose clock went back (a bag replayed again, a simulator restarted): the
             # poses of before sat at the same stamps and seeded the new frames with another
-            # session's world (11 of 12 frames then failed as a "prior jump")
-            self._priors.clear()
-        self._priors.append((stamp, T, str(msg.child_frame_id)))
+            # session's world (11 of 12 frames then failed as a "prior jump"). Taken as a new
+            # clock once PRIOR_CLOCK_BACK_POSES come in a row; one stray (a zero stamp) alone
+            # wiped every pose the queued frames were waiting for.
+            self._priors_behind.append(prior)
+            if len(self._priors_behind) >= PRIOR_CLOCK_BACK_POSES:
+                self._priors.clear()
+                self._priors.extend(self._priors_behind)
+                self._priors_behind.clear()
+            return
+        self._priors_behind.clear()  # strays: not a new clock
+        self._priors.append(prior)
 
     def _no_prior_note(self, stamp: float) -> str:
         """Why a frame has no prior, with how far the nearest pose's stamp is: a pose topic on
@@ -688,6 +701,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._queue.clear()
         self._generation += 1  # a frame the worker has in hand must not map after the reset
         self._priors.clear()  # the old session's poses: a new one may reuse their stamps
+        self._priors_behind.clear()
         for key in self.counts:  # "counters cleared" means the node's own too
             self.counts[key] = 0
         self._map_dirty = False
