@@ -620,3 +620,47 @@ def test_a_rod_fixed_to_a_wall_is_measured_from_the_wall(seed):
     assert res.grid.data[1, 2] == OCCUPIED and res.guard[1, 2], res.grid.data
     assert np.count_nonzero(res.grid.data == OCCUPIED) == 1
     assert (build_grid(ROOM_3x3).grid.data == FREE).all()
+
+
+def test_a_cell_with_an_unseen_hole_in_its_middle_is_not_free():
+    """The observed fraction alone let a cell 84 % seen be free with a 68 x 68 cm hole in its
+    middle, right under the chair (a stairwell or pit), its bottom seen as a few sparse points
+    or not at all. A square of ``unobserved_patch`` (35 cm, after floor_fill) with neither
+    floor nor an obstacle seen now keeps the cell from free: a hole of 50 cm or more."""
+    from wheelgrid_nav.grid_synth import room_cloud
+
+    room = room_cloud([], size=(3.6, 3.6), spacing=0.02)
+    x, y, z = room.T
+    middle = (1, 1)
+
+    def hole(side: float) -> np.ndarray:
+        return (z == 0.0) & (np.abs(x - 1.8) < side / 2) & (np.abs(y - 1.8) < side / 2)
+
+    assert build_grid(room).grid.data[middle] == FREE
+    for side, bottom in ((0.68, False), (0.68, True), (0.5, False)):
+        pts = room[~hole(side)]
+        if bottom:  # the pit's bottom, 25 sparse returns 0.6 m down
+            g = np.mgrid[1.5:2.1:0.12, 1.5:2.1:0.12].reshape(2, -1).T
+            pts = np.vstack([pts, np.column_stack([g, np.full(len(g), -0.6)])])
+        res = build_grid(pts)
+        assert res.observed[middle] >= GridConfig().min_observed_fraction, side  # as before
+        assert res.grid.data[middle] != FREE, (side, bottom)
+        if not bottom:  # free before: 84-85 % observed
+            assert build_grid(pts, GridConfig(unobserved_patch=0)).grid.data[middle] == FREE
+    # a hole loses floor_fill's pixel on each side to the filled floor: 45 cm (an unseen 35 cm
+    # once filled) is as far as the rule lets a cell be free
+    assert build_grid(room[~hole(0.45)]).grid.data[middle] == FREE
+
+
+def test_a_floor_that_leans_is_warned_of():
+    """Heights are read against one level z = 0: a room leaning 2 deg hid a 9 cm box on its
+    low side in the floor's band, its cell free, with no word of why."""
+    from wheelgrid_nav.grid_synth import Box, room_cloud
+
+    room = room_cloud([Box(1.7, 1.9, 0.4, 0.6, 0.0, 0.09)], size=(3.6, 3.6), spacing=0.02)
+    assert not any("leans" in w for w in build_grid(room).stats["warnings"])
+    a = math.radians(2.0)
+    tilt = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    said = [w for w in build_grid(room @ tilt.T).stats["warnings"] if "leans" in w]
+    # the floor points' plane (those within floor_clearance of z = 0: a band across the lean)
+    assert said and re.search(r"leans (1\.[6-9]|2\.[0-2]) deg", said[0]) and "--level" in said[0]

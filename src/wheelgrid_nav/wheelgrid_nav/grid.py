@@ -94,6 +94,9 @@ MAX_FLOOR_CLEARANCE = 0.15  # m: above it, a step is an obstacle to a wheelchair
 # m: the deepest step down that may be read as floor. drop_depth 0 ("disables") or 0.7 m made
 # the bottom of a 60 cm pit observed floor, and its cell free.
 MAX_DROP_DEPTH = 0.15
+# A floor leaning more than this is warned of: heights are read against one level z = 0, and
+# at 0.5 deg the floor 3 m away is 2.6 cm off it (half of floor_clearance).
+MAX_FLOOR_TILT_DEG = 0.5
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
 # m: the boundary rule's strip may hide an obstacle this deep against a wall; (120 - 80) / 2 cm,
 # the chair's clearance along its width in its safe cell. "At most a cell" (1.2 m) emptied the
@@ -183,6 +186,13 @@ class GridConfig:
         "fraction of a cell's area where floor or obstacles were observed for it to be free; "
         "less makes it unknown",
         "fraction",
+    )
+    unobserved_patch: float = field(
+        0.35,
+        "a cell is not free where a square of this side inside it (off the wall strip) has "
+        "neither floor nor an obstacle seen: a hole, a drop, or floor hidden behind "
+        "something (0: off)",
+        "m",
     )
     floor_fill: int = field(
         1,
@@ -905,6 +915,37 @@ def map_warnings(z: np.ndarray, drops: int, drop_depth: float) -> list[str]:
     return out
 
 
+def floor_tilt_deg(pts: np.ndarray, cls: np.ndarray) -> float | None:
+    """How far the floor points' plane leans from level (deg), or None where they span
+    less than 2 m (too little to tell a lean from noise)."""
+    floor = pts[cls == 0]
+    floor = floor[:: max(1, math.ceil(floor.shape[0] / _EXTENT_MAX_POINTS))]
+    if floor.shape[0] < 100 or np.ptp(floor[:, :2], axis=0).max() < 2.0:
+        return None
+    xy = floor[:, :2] - floor[:, :2].mean(axis=0)
+    a = np.column_stack([xy, np.ones(len(xy))])
+    (gx, gy, _), *_ = np.linalg.lstsq(a, floor[:, 2], rcond=None)
+    return math.degrees(math.atan(math.hypot(gx, gy)))
+
+
+def unobserved_patches(
+    floor: np.ndarray, band: np.ndarray, ring: np.ndarray, cfg: GridConfig, k: int
+) -> np.ndarray:
+    """(rows, cols): cells holding a square of ``cfg.unobserved_patch`` side, off the wall
+    strip, where neither floor nor an obstacle in the band was seen. The observed fraction
+    alone let a cell 80 % seen be free with a 68 x 68 cm hole in its middle, right under the
+    chair (a stairwell or pit; points seen below the floor count as not floor here, as they
+    are: a few sparse returns off a pit's bottom had counted as observed)."""
+    if cfg.unobserved_patch <= 0:
+        return np.zeros((floor.shape[0] // k, floor.shape[1] // k), dtype=bool)
+    side = max(1, round(cfg.unobserved_patch / cfg.pixel_size))
+    hole = ~(floor | band | ring)
+    # erosion by a (2r+1)^2 square: a pixel stays where the whole square around it is a hole
+    radius = max(0, (side - 1) // 2)
+    inner = ~_dilate(~hole, radius) if radius else hole
+    return cell_density(inner, k, k) > 0
+
+
 def build_grid(
     points: np.ndarray, cfg: GridConfig | None = None, frame_id: str = "map"
 ) -> GridResult:
@@ -919,6 +960,15 @@ def build_grid(
     cfg.validate()
     pts, cls, class_counts = _check_input(points, cfg)
     warnings = map_warnings(pts[:, 2], int(class_counts[2]), cfg.drop_depth)
+    tilt = floor_tilt_deg(pts, cls)
+    if tilt is not None and tilt > MAX_FLOOR_TILT_DEG:
+        # heights are read against one z = 0: a 2 deg lean lowered a 9 cm box's top by 4.5 cm
+        # into the floor's band on the map's low side, and its cell read free, silently
+        warnings.append(
+            f"the floor leans {tilt:.1f} deg from level: on its low side low obstacles can "
+            "read as floor, on its high side floor as obstacles (`wheelgrid grid --level` "
+            "levels a map made elsewhere; a live map: check the mapper's levelling)"
+        )
     k = cfg.cell_pixels()
     ps = cfg.pixel_size
 
@@ -989,8 +1039,9 @@ def build_grid(
     guard_only = guard & ~occupied
     occupied |= guard
     observed = cell_density(floor | black, k, k)
+    patch = unobserved_patches(floor, counts[1] >= cfg.min_points_per_pixel, ring, cfg, k)
     data = np.full((rows, cols), UNKNOWN, dtype=np.int8)
-    data[observed >= cfg.min_observed_fraction] = FREE
+    data[(observed >= cfg.min_observed_fraction) & ~patch] = FREE
     data[occupied] = OCCUPIED
 
     c, s = math.cos(yaw), math.sin(yaw)
