@@ -97,6 +97,7 @@ MAX_DROP_DEPTH = 0.15
 # A floor leaning more than this is warned of: heights are read against one level z = 0, and
 # at 0.5 deg the floor 3 m away is 2.6 cm off it (half of floor_clearance).
 MAX_FLOOR_TILT_DEG = 0.5
+_TILT_SAMPLE = 20_000  # floor points a plane fit needs (a regular subsample)
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
 # m: the boundary rule's strip may hide an obstacle this deep against a wall; (120 - 80) / 2 cm,
 # the chair's clearance along its width in its safe cell. "At most a cell" (1.2 m) emptied the
@@ -918,8 +919,8 @@ def map_warnings(z: np.ndarray, drops: int, drop_depth: float) -> list[str]:
 def floor_tilt_deg(pts: np.ndarray, cls: np.ndarray) -> float | None:
     """How far the floor points' plane leans from level (deg), or None where they span
     less than 2 m (too little to tell a lean from noise)."""
-    floor = pts[cls == 0]
-    floor = floor[:: max(1, math.ceil(floor.shape[0] / _EXTENT_MAX_POINTS))]
+    idx = np.flatnonzero(cls == 0)
+    floor = pts.take(idx[:: max(1, math.ceil(idx.size / _TILT_SAMPLE))], axis=0)
     if floor.shape[0] < 100 or np.ptp(floor[:, :2], axis=0).max() < 2.0:
         return None
     xy = floor[:, :2] - floor[:, :2].mean(axis=0)
