@@ -650,6 +650,9 @@ def test_a_cell_with_an_unseen_hole_in_its_middle_is_not_free():
     # a hole loses floor_fill's pixel on each side to the filled floor: 45 cm (an unseen 35 cm
     # once filled) is as far as the rule lets a cell be free
     assert build_grid(room[~hole(0.45)]).grid.data[middle] == FREE
+    for bad in (-0.35, 0.9, math.nan):
+        with pytest.raises(ValueError, match="unobserved_patch must be"):
+            build_grid(room, GridConfig(unobserved_patch=bad))
 
 
 def test_a_floor_that_leans_is_warned_of():

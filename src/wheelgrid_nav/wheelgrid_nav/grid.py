@@ -97,6 +97,7 @@ MAX_DROP_DEPTH = 0.15
 # A floor leaning more than this is warned of: heights are read against one level z = 0, and
 # at 0.5 deg the floor 3 m away is 2.6 cm off it (half of floor_clearance).
 MAX_FLOOR_TILT_DEG = 0.5
+MAX_UNOBSERVED_PATCH = 0.8  # the chair's width: a wider unseen square is no hole under it
 _TILT_SAMPLE = 20_000  # floor points a plane fit needs (a regular subsample)
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
 # m: the boundary rule's strip may hide an obstacle this deep against a wall; (120 - 80) / 2 cm,
@@ -312,6 +313,15 @@ class GridConfig:
             )
         if not 0.0 <= self.density_threshold < 1.0:
             raise ValueError("density_threshold must be in [0, 1)")
+        if not (
+            self.unobserved_patch == 0.0 or 0.0 < self.unobserved_patch <= MAX_UNOBSERVED_PATCH
+        ):
+            # -0.35 (a typo) turned the rule off as 0 does, silently; a patch wider than the
+            # chair is no longer a hole under it
+            raise ValueError(
+                f"unobserved_patch must be 0 (off) or in (0, {MAX_UNOBSERVED_PATCH}] m, not "
+                f"{self.unobserved_patch}"
+            )
         if self.alignment not in ALIGNMENTS:
             raise ValueError(f"alignment must be one of {ALIGNMENTS}, not {self.alignment!r}")
         if not 0.0 <= self.extent_quantile < 0.25:
