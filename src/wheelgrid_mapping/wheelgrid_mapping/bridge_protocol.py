@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wheelgrid_mapping.depth import MAX_DEPTH_M, metres_to_millimetres
+from wheelgrid_mapping.depth import MAX_DEPTH_M, metres_to_millimetres, principal_point_problem
 
 MAGIC = b"WGIP"
 VERSION = 1
@@ -315,15 +315,9 @@ def decode_frame(body: bytes) -> Frame:
         and abs(cy) <= MAX_FOCAL_PX
     ):
         raise ProtocolError("bad_intrinsics", f"fx={fx} fy={fy} cx={cx} cy={cy}")
-    # ARKit's intrinsics are for the 1920x1440 RGB image; sent unscaled with a 256x192 depth,
-    # every cloud came out squashed and pushed to one side (a wall 2.7 m wide read 0.36 m).
-    # Any camera's principal point lies near its image's centre (the iPhone's within 0.5 %).
-    if abs(cx - w / 2) > w / 4 or abs(cy - h / 2) > h / 4:
-        raise ProtocolError(
-            "bad_intrinsics",
-            f"principal point ({cx:g}, {cy:g}) is not near the centre of the {w}x{h} depth "
-            "image: intrinsics not scaled to the depth resolution?",
-        )
+    problem = principal_point_problem(cx, cy, w, h)
+    if problem:
+        raise ProtocolError("bad_intrinsics", problem)
     if enc not in DEPTH_BYTES:
         raise ProtocolError("bad_depth_encoding", f"depth encoding {enc} (known: 1 f32, 2 u16)")
     if conf_enc not in (CONF_NONE, CONF_U8):
