@@ -361,6 +361,11 @@ def test_a_plan_from_another_grid_or_not_verified_is_refused_and_a_wrong_heading
         == 2
     )
     assert "origin" in capsys.readouterr().err
+    changed = free.data.copy()
+    changed[7, 7] = 100  # off the route: the same geometry, other cells
+    grid_c = write_map(tmp_path / "c.yaml", Grid(changed, 1.2, origin=free.origin))
+    assert main([plan, "--dry-run", "--grid", str(grid_c)]) == 0
+    assert "changed since the plan was made" in capsys.readouterr().err
     refused = {**planned, "reason": "verification failed: x", "converged": False}
     assert main([write(tmp_path, refused, "r.json"), "--port", sim.slave_path, "--dry-run"]) == 2
     assert "not a verified route (reason 'verification failed: x'" in capsys.readouterr().err

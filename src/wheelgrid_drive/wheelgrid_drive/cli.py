@@ -107,37 +107,35 @@ def load_plan(
     return steps, cells
 
 
-def plan_grid_problem(planned: Any, grid: Any) -> str | None:
-    """Why the grid a plan names (``wheelgrid plan --json``'s ``grid``) is not ``grid``, or
-    None (also for a plan that names none, from before it did or another tool). Cells that
-    changed with the same geometry are not a problem here: every cell of the route is
-    checked free on ``grid`` anyway."""
+def plan_grid_problem(planned: Any, grid: Any) -> tuple[str | None, bool]:
+    """Why the grid a plan names (``wheelgrid plan --json``'s ``grid``, made by
+    :func:`~wheelgrid_common.map_io.grid_identity`) is not ``grid`` (None: it is, or the plan
+    names none, from before it did or another tool), and whether the cells changed since.
+    Changed cells on the same geometry are no refusal: every cell of the route is checked
+    free on ``grid`` anyway."""
+    from wheelgrid_common.map_io import grid_identity
+
     if not isinstance(planned, dict):
-        return None
-    shape = (int(grid.data.shape[0]), int(grid.data.shape[1]))
-    if (planned.get("rows"), planned.get("cols")) != shape:
-        return f"{planned.get('rows')} x {planned.get('cols')} cells, not {shape[0]} x {shape[1]}"
+        return None, False
+    ours = grid_identity(grid)
+    rows, cols = ours["rows"], ours["cols"]
+    if (planned.get("rows"), planned.get("cols")) != (rows, cols):
+        return f"{planned.get('rows')} x {planned.get('cols')} cells, not {rows} x {cols}", False
     res = planned.get("resolution")
-    if not isinstance(res, int | float) or abs(res - grid.resolution) > 1e-9:
-        return f"cells of {res} m, not {grid.resolution:g} m"
+    if not isinstance(res, int | float) or abs(res - ours["resolution"]) > 1e-9:
+        return f"cells of {res} m, not {ours['resolution']:g} m", False
     origin = planned.get("origin")
     if not (
         isinstance(origin, list)
         and len(origin) == 3
         and all(
             isinstance(v, int | float) and abs(v - o) <= 1e-6
-            for v, o in zip(origin, grid.origin, strict=True)
+            for v, o in zip(origin, ours["origin"], strict=True)
         )
     ):
-        return f"origin {origin}, not {[round(v, 6) for v in grid.origin]}"
-    return None
-
-
-def plan_grid_changed(planned: Any, grid: Any) -> bool:
-    from wheelgrid_common.map_io import grid_identity
-
-    digest = planned.get("cells_sha256") if isinstance(planned, dict) else None
-    return digest is not None and digest != grid_identity(grid)["cells_sha256"]
+        return f"origin {origin}, not {[round(v, 6) for v in ours['origin']]}", False
+    digest = planned.get("cells_sha256")
+    return None, digest is not None and digest != ours["cells_sha256"]
 
 
 def _norm(v: Any) -> Any:
@@ -230,10 +228,10 @@ def main(argv: list[str] | None = None) -> int:
             return _err(f"cannot read grid {args.grid}: {exc}")
         if args.cell_size is not None and abs(args.cell_size - grid.resolution) > 1e-6:
             return _err(f"--cell-size {args.cell_size} != grid resolution {grid.resolution}")
-        problem = plan_grid_problem(doc.get("grid"), grid)
+        problem, changed = plan_grid_problem(doc.get("grid"), grid)
         if problem:
             return _err(f"the plan was made on another grid than {args.grid}: {problem}")
-        if plan_grid_changed(doc.get("grid"), grid):
+        if changed:
             print(
                 f"wheelgrid drive: warning: cells of {args.grid} changed since the plan was made "
                 "on it; every cell of the route is checked free on it as it is now",
