@@ -37,6 +37,14 @@ def make_export(root: Path, n: int = 3, *, odometry: bool = True) -> Path:
     return root
 
 
+def replace_odometry_rows(cap: Path, rows: dict[int, str]) -> None:
+    """Rewrite lines of ``cap``'s odometry.csv (line 0 is the header, line 1 frame 0)."""
+    lines = (cap / "odometry.csv").read_text().splitlines()
+    for i, text in rows.items():
+        lines[i] = text
+    (cap / "odometry.csv").write_text("\n".join(lines) + "\n")
+
+
 def test_hand_made_export(tmp_path: Path) -> None:
     exp = StrayExport(make_export(tmp_path / "cap"))
     assert len(exp) == 3 and exp.has_poses
@@ -190,10 +198,13 @@ def test_a_nan_or_zero_quaternion_pose_row_costs_its_frame_its_pose_only(tmp_pat
     its frame only. Such a row now gives its frame no pose, is counted with the frames lacking
     one, and keeps its timestamp; a row that is not numbers at all still refuses the file."""
     cap = make_export(tmp_path / "cap", 4)
-    rows = (cap / "odometry.csv").read_text().splitlines()
-    rows[2] = "100.016667, 000001, nan, 1.0, 0.0, 0, 0, 0, 1"
-    rows[3] = "100.033333, 000002, 0.2, 1.0, 0.0, 0, 0, 0, 0"
-    (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
+    replace_odometry_rows(
+        cap,
+        {
+            2: "100.016667, 000001, nan, 1.0, 0.0, 0, 0, 0, 1",
+            3: "100.033333, 000002, 0.2, 1.0, 0.0, 0, 0, 0, 0",
+        },
+    )
     exp = StrayExport(cap)
     assert exp.has_poses and exp.frames_without_pose == 2
     assert exp.missing_poses_note() == (
@@ -210,10 +221,13 @@ def test_a_timestamp_a_ros_stamp_cannot_hold_costs_its_frame_its_row(tmp_path: P
     wrap), where the live bridge refuses such a stamp. The row now counts as missing: the frame
     keeps its place between its neighbours, without a pose."""
     cap = make_export(tmp_path / "cap", 4)
-    rows = (cap / "odometry.csv").read_text().splitlines()
-    rows[2] = "3000000000.0, 000001, 0.1, 1.0, 0.0, 0, 0, 0, 1"
-    rows[3] = "-5.0, 000002, 0.2, 1.0, 0.0, 0, 0, 0, 1"
-    (cap / "odometry.csv").write_text("\n".join(rows) + "\n")
+    replace_odometry_rows(
+        cap,
+        {
+            2: "3000000000.0, 000001, 0.1, 1.0, 0.0, 0, 0, 0, 1",
+            3: "-5.0, 000002, 0.2, 1.0, 0.0, 0, 0, 0, 1",
+        },
+    )
     exp = StrayExport(cap)
     assert exp.frames_without_pose == 2
     stamps = [exp.frame(i).stamp for i in range(4)]
