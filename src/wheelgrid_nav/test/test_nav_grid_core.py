@@ -622,6 +622,42 @@ def test_a_rod_fixed_to_a_wall_is_measured_from_the_wall(seed):
     assert (build_grid(ROOM_3x3).grid.data == FREE).all()
 
 
+@pytest.mark.parametrize("spacing", [0.02, 0.04])
+def test_a_rod_out_of_a_densely_scanned_wall_is_measured_from_the_wall(spacing):
+    """Near a densely scanned wall the wall's points lift a rod's last pixels over the point
+    rule's count, so they were no links of its line: a rod 35-38 cm out of a wall scanned at 2
+    or 4 cm was measured from 10-15 cm out, under guard_line_length, and its cell read free
+    (as did a 40 cm rod at 45 deg). The line is now followed along its axis through the black
+    pixels that continue it to the wall strip; one along the wall is not, and a bracket under
+    the 30 cm stays free, as one standing alone does."""
+    room = room_cloud([], size=(3.6, 3.6), spacing=spacing)
+    centre = np.array([1.8, 1.8])
+    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])
+
+    def rod_out_of_wall(wall: int, length: float, slant_deg: float, seed: int) -> np.ndarray:
+        """From the east wall's middle (turned a quarter ``wall`` times), ``slant_deg`` off
+        its normal."""
+        a = math.radians(slant_deg)
+        p0 = np.array([3.6, 1.75 + 0.013 * seed])
+        p1 = p0 + length * np.array([-math.cos(a), math.sin(a)])
+        turn = np.linalg.matrix_power(quarter, wall)
+        p0, p1 = centre + turn @ (p0 - centre), centre + turn @ (p1 - centre)
+        return rope((*p0, 0.8), (*p1, 0.8), seed)
+
+    assert (build_grid(room).grid.data == FREE).all()
+    for wall in range(4):
+        for length, slant in ((0.35, 0.0), (0.38, 0.0), (0.40, 45.0)):
+            for seed in range(3):
+                res = build_grid(np.vstack([room, rod_out_of_wall(wall, length, slant, seed)]))
+                assert np.count_nonzero(res.grid.data == OCCUPIED) == 1, (wall, length, slant)
+                assert res.stats["guard_only_cells"] == 1
+        res = build_grid(np.vstack([room, rod_out_of_wall(wall, 0.2, 0.0, 0)]))
+        assert (res.grid.data == FREE).all(), wall
+    # along the wall 3 cm beyond the strip: its own length counts, nothing added
+    along = rope((3.42, 1.0, 0.8), (3.42, 1.26, 0.8), seed=0)
+    assert (build_grid(np.vstack([room, along])).grid.data == FREE).all()
+
+
 def test_a_cell_with_an_unseen_hole_in_its_middle_is_not_free():
     """The observed fraction alone let a cell 84 % seen be free with a 68 x 68 cm hole in its
     middle, right under the chair (a stairwell or pit), its bottom seen as a few sparse points

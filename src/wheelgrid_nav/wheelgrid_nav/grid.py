@@ -40,7 +40,8 @@ What the paper leaves out and a wheelchair needs (a person's body rides on this 
   grid's edge (the extent snapped down, no wall there) the strip shrinks by as much; no side's
   strip is ever deeper than ``MAX_BOUNDARY_MARGIN`` (:func:`boundary_widths`). Only obstacles
   lying *entirely* inside the strip are affected; anything reaching further in still occupies
-  its cell, and a rod or rope reaching in from a wall is measured from the wall. The cost: an
+  its cell, and a rod or rope reaching in from a wall is measured from the wall (through the
+  black pixels that continue it into the strip, :func:`linear_obstacles`). The cost: an
   obstacle no deeper than the strip standing against a wall (a radiator, a shelf) is not seen.
   The chair (100 x 80 cm) in its safe cell (120 x 120 cm) clears it by 10 cm along its length
   and 20 cm along its width; the default margin, 15 cm (measured on the mapped bundled bag: a
@@ -531,6 +532,7 @@ def linear_obstacles(
     solid_points: int | None = None,
     support: np.ndarray | None = None,
     boundary: np.ndarray | None = None,
+    wall_reach_px: int = 0,
 ) -> np.ndarray:
     """Black pixels that belong to a linear obstacle: a rod, a rope, a cable (the guard's
     second kind of evidence).
@@ -560,6 +562,13 @@ def linear_obstacles(
     its cell is: a 40 cm rod fixed to a wall lost its first 15 cm to the strip, measured 25 cm,
     under ``guard_line_length``, and its cell read free. Only the pixels beyond the strip are
     marked, so a sparse stretch of the wall itself occupies nothing.
+
+    ``wall_reach_px`` (> 0 with ``boundary``): a line that ends within that many pixels of the
+    image's edge it points at is measured on, along its axis, through the black pixels that
+    continue it, to where they reach the strip: the wall it is fixed to. Near a wall the wall's
+    own points lift a rod's last pixels over ``solid_points``, so they are no links, and a rod
+    35-38 cm out of a wall scanned at 2-4 cm read free (measured 25 cm from its first link). A
+    line running along a wall points at another edge and is not extended.
     """
     obs = np.asarray(obstacles, dtype=bool)
     edge = np.zeros_like(obs) if boundary is None else np.asarray(boundary, dtype=bool)
@@ -593,9 +602,47 @@ def linear_obstacles(
     inner = ~edge[rows, cols]
     if boundary is not None:
         long &= np.bincount(comp, inner, k) >= 2
+        if wall_reach_px > 0:
+            lo = np.minimum.reduceat(proj[order], starts)
+            hi = np.maximum.reduceat(proj[order], starts)
+            for i in np.flatnonzero(~long & (np.bincount(comp, inner, k) >= 2)):
+                axis = np.array([math.sin(theta[i]), math.cos(theta[i])])
+                centre = np.array([mr[i], mc[i]])
+                reach = sum(
+                    _steps_to_wall(obs, edge, centre + t * axis, sign * axis, wall_reach_px)
+                    for t, sign in ((lo[i], -1.0), (hi[i], 1.0))
+                )
+                long[i] = extent[i] + reach >= min_length_px - 1e-9
     keep = long[comp] & inner
     out[rows[keep], cols[keep]] = True
     return out
+
+
+def _steps_to_wall(
+    black: np.ndarray, edge: np.ndarray, end: np.ndarray, step: np.ndarray, max_steps: int
+) -> int:
+    """Whole pixel steps from a line's ``end`` (row, col) along ``step`` (a unit vector) through
+    black pixels (3x3 around each step) to the last that touches the wall strip ``edge``; 0
+    where the line does not point at an edge within ``max_steps`` or its black run ends first."""
+    h, w = black.shape
+    to_edge = min(
+        (end[a] if step[a] < 0 else size - 1 - end[a]) / abs(step[a])
+        for a, size in enumerate((h, w))
+        if abs(step[a]) > 1e-9
+    )
+    if to_edge > max_steps:
+        return 0  # along a wall, or into the room: not a line fixed to the wall ahead
+    last = 0
+    for j in range(1, max_steps + 1):
+        r, c = (round(float(x)) for x in end + j * step)
+        if not (0 <= r < h and 0 <= c < w):
+            break
+        window = (slice(max(r - 1, 0), r + 2), slice(max(c - 1, 0), c + 2))
+        if not black[window].any():
+            break
+        if edge[window].any():
+            last = j
+    return last
 
 
 def thin_obstacle_guard(
@@ -607,9 +654,11 @@ def thin_obstacle_guard(
     line_min_points: int = 0,
     line_min_length_px: float = 0.0,
     boundary: np.ndarray | None = None,
+    wall_reach_px: int = 0,
 ) -> np.ndarray:
     """(rows, cols) bool: cells holding any pixel of a continuous or (when
-    ``line_min_length_px`` > 0) a linear obstacle; ``boundary``: see :func:`linear_obstacles`."""
+    ``line_min_length_px`` > 0) a linear obstacle; ``boundary``, ``wall_reach_px``: see
+    :func:`linear_obstacles`."""
     support = obstacle_support(obstacles, counts)
     solid = continuous_obstacles(obstacles, counts, min_points, support)
     if line_min_length_px > 0:
@@ -627,6 +676,7 @@ def thin_obstacle_guard(
             solid_points=min_points,
             support=line_support,
             boundary=boundary,
+            wall_reach_px=wall_reach_px,
         )
     h, w = solid.shape
     return np.asarray(solid.reshape(h // m, m, w // n, n).any(axis=(1, 3)))
@@ -1044,6 +1094,7 @@ def build_grid(
             cfg.guard_line_min_points,
             cfg.guard_line_length / ps,
             boundary,
+            wall_reach_px=cap + 2,  # the deepest strip, and the wall's scanned thickness
         )
     else:
         guard = np.zeros_like(occupied)
