@@ -402,6 +402,32 @@ def test_a_plan_is_not_resumed_after_its_link_was_lost_and_reopened(
     assert moves(sims[0]) == [], "the plan went on on the reopened port"
 
 
+def test_a_port_lost_mid_move_records_the_move_the_controller_acknowledged(
+    make_sim, make_link, wait, tmp_path
+):
+    """A port lost while a move ran was recorded as FAILED "STATUS_REQ not sent" with no seq:
+    the record read as if the step had never started, though the controller had ACKed the
+    move and the chair had driven part of it. The record now carries that move's seq."""
+    port = str(tmp_path / "ttyWG")
+    sim = make_sim(link=port, pose=(0.6, -3.0, YAW["down"]))
+    link = make_link(port, reconnect_period=10.0)
+    steps = plan_steps((2, 0), ["right"], "down")
+    records: list[dict] = []
+
+    def vanish_once_moving() -> None:
+        assert wait(lambda: any(e.what == "move" for e in sim.events), 5.0)
+        sim.vanish()
+
+    threading.Thread(target=vanish_once_moving, daemon=True).start()
+    result = run_steps(
+        link, steps, distance_m=1.2, speed_kmh=3.0, on_step=lambda s, r: records.append(r)
+    )
+    assert not result.ok and result.done == 0
+    [(seq, action)] = moves(sim)
+    assert action == "LEFT_FORWARD"
+    assert records[0]["ack"] == "FAILED" and records[0]["seq"] == seq, records
+
+
 def test_a_plan_whose_start_checks_saw_the_old_port_does_not_start_on_the_reopened_one(
     make_sim, make_link, wait, tmp_path
 ):

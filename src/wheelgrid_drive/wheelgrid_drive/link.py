@@ -41,7 +41,13 @@ log = logging.getLogger("wheelgrid_drive.link")
 
 
 class LinkError(RuntimeError):
-    """The controller did not do what was asked (timeout, NAK, garbled reply, lost port)."""
+    """The controller did not do what was asked (timeout, NAK, garbled reply, lost port).
+
+    ``seq``: the sequence number of the move the controller had acknowledged when the error
+    came (the chair may have moved part of it), else None: a record of the failed step must
+    say that the move was under way, not only which request failed after it."""
+
+    seq: int | None = None
 
 
 class LinkAbortedError(LinkError):
@@ -554,7 +560,11 @@ class MotorLink:
         seq = self.move(action, distance_m, speed_kmh, abort)
         if timeout is None:
             timeout = move_timeout(distance_m, speed_kmh)
-        return seq, self.wait_done(seq, timeout, abort)
+        try:
+            return seq, self.wait_done(seq, timeout, abort)
+        except LinkError as exc:
+            exc.seq = seq
+            raise
 
     # ---- heartbeat ----------------------------------------------------------------------------
 

@@ -242,12 +242,12 @@ def run_steps(
             seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
         except LinkAbortedError as exc:
             if on_step is not None:
-                on_step(step, command_record(step, "ABORTED", reason=str(exc)))
+                on_step(step, command_record(step, "ABORTED", reason=str(exc), **_seq(exc)))
             return RunResult(False, i, total, str(exc), aborted=True)
         except LinkError as exc:
             link.stop()  # already sent by the link; again, cheap, in case it was lost
             if on_step is not None:
-                on_step(step, command_record(step, "FAILED", reason=str(exc)))
+                on_step(step, command_record(step, "FAILED", reason=str(exc), **_seq(exc)))
             return RunResult(False, i, total, str(exc))
         if on_step is not None:
             on_step(
@@ -255,6 +255,11 @@ def run_steps(
                 command_record(step, "ACK", seq=seq, pose=[round(st.x, 3), round(st.y, 3)]),
             )
     return RunResult(True, total, total)
+
+
+def _seq(exc: LinkError) -> dict[str, int]:
+    """``seq`` of the move the controller acknowledged before ``exc``: the chair moved."""
+    return {} if exc.seq is None else {"seq": exc.seq}
 
 
 def dumps_record(rec: dict[str, Any]) -> str:
