@@ -87,6 +87,30 @@ def with_message_info(callback: Callable[[Any, Any], None]) -> Callable[[Any], N
     return cast(Callable[[Any], None], callback)
 
 
+def received_ns(info: dict[str, Any] | None, key: str = "received_timestamp") -> int:
+    """The middleware's receive (or with ``key`` "source_timestamp", publication) time from
+    rclpy's message info, or 0 where it gives none."""
+    if not info:
+        return 0
+    try:
+        return int(info.get(key) or 0)
+    except (TypeError, ValueError):
+        return 0
+
+
+def sample_key(info: dict[str, Any] | None) -> tuple[int, int] | None:
+    """(publication time, publisher's sequence number) of a sample, the same on every
+    subscription that receives it; None where the middleware gives no publication time."""
+    published = received_ns(info, "source_timestamp")
+    if not published:
+        return None
+    assert info is not None
+    try:
+        return published, int(info.get("publication_sequence_number") or 0)
+    except (TypeError, ValueError):
+        return published, 0
+
+
 def tf2_available() -> bool:
     """True where tf2_msgs is importable (a full ROS install); the pip wheels lack it."""
     return find_spec("tf2_msgs") is not None

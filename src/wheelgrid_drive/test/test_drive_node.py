@@ -572,6 +572,40 @@ def test_a_best_effort_estop_latches_but_cannot_clear(make_sim):
         assert h.spin(lambda: not h.drive._estop, 3.0)
 
 
+def test_an_estop_held_by_a_latched_source_before_the_drive_started_latches_it(make_sim):
+    """A safety bridge or button that keeps its state (reliable + transient-local) published
+    true before the drive started: both e-stop subscriptions are volatile, neither heard it,
+    and the drive drove a plan while the e-stop was held. A transient-local copy hears the
+    kept state; the source's later clear and e-stop work as any reliable publisher's."""
+    from rclpy.node import Node
+    from std_msgs.msg import Bool
+
+    sim = make_sim()
+    grid = free_grid()
+    with rclpy_context() as ctx:
+        source = Node("wg_latched_estop", context=ctx)
+        pub = source.create_publisher(Bool, "/wheelgrid/estop", MAP_QOS)
+        pub.publish(Bool(data=True))
+        try:
+            with Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h:
+                assert h.matched()
+                assert h.spin(lambda: h.drive._estop, 5.0), "the held e-stop was not heard"
+                h.give_grid(grid)
+                h.publish_plan(grid, [(3, 0), (3, 1)])
+                assert h.spin(lambda: any("e-stop latched" in s.message for s in h.states), 5.0)
+                assert sim_moves(sim) == []
+                pub.publish(Bool(data=False))  # the source's clear
+                assert h.spin(lambda: not h.drive._estop, 5.0)
+                pub.publish(Bool(data=True))  # and its next e-stop, heard on three copies
+                assert h.spin(lambda: h.drive._estop, 5.0)
+                pub.publish(Bool(data=False))
+                assert h.spin(lambda: not h.drive._estop, 5.0)
+                h.spin(lambda: False, 0.3)  # no copy of the e-stop latches it again
+                assert not h.drive._estop
+        finally:
+            source.destroy_node()
+
+
 def test_the_best_effort_copy_of_a_cleared_estop_does_not_latch_it_again(make_sim):
     """A reliable e-stop reaches both e-stop subscriptions. The e-stop executor serves them in
     its own order: the reliable e-stop, the reliable clear, then the best-effort copy of that

@@ -41,7 +41,14 @@ from wheelgrid_common.fileio import quat_yaw
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
-from wheelgrid_common.ros_env import exit_logger, spin_node, steady_timer, with_message_info
+from wheelgrid_common.ros_env import (
+    exit_logger,
+    received_ns,
+    sample_key,
+    spin_node,
+    steady_timer,
+    with_message_info,
+)
 from wheelgrid_drive import actions
 from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkError, MotorLink
@@ -89,30 +96,6 @@ class Arrival:
 
     received_ns: int  # the middleware's receive time (system clock), or the callback's
     estops: int  # the node's e-stop count when the callback began
-
-
-def received_ns(info: dict[str, Any] | None, key: str = "received_timestamp") -> int:
-    """The middleware's receive (or with ``key`` "source_timestamp", publication) time from
-    rclpy's message info, or 0 where it gives none."""
-    if not info:
-        return 0
-    try:
-        return int(info.get(key) or 0)
-    except (TypeError, ValueError):
-        return 0
-
-
-def sample_key(info: dict[str, Any] | None) -> tuple[int, int] | None:
-    """(publication time, publisher's sequence number) of a sample, the same on every
-    subscription that receives it; None where the middleware gives no publication time."""
-    published = received_ns(info, "source_timestamp")
-    if not published:
-        return None
-    assert info is not None
-    try:
-        return published, int(info.get("publication_sequence_number") or 0)
-    except (TypeError, ValueError):
-        return published, 0
 
 
 @dataclass
@@ -297,6 +280,13 @@ class DriveNode(Node):
         # e-stop would not). A reliable publisher reaches both; the second copy is a no-op.
         estop.create_subscription(
             Bool, "wheelgrid/estop", with_message_info(self._on_estop_best_effort), SENSOR_QOS
+        )
+        # A latched e-stop source (reliable + transient-local, as a safety bridge or a button
+        # keeps its state): the two above are volatile and never hear the state it kept from
+        # before this node started, and an e-stop held through a (re)start was ignored while
+        # the chair drove. This third copy hears it on matching; it may only latch.
+        estop.create_subscription(
+            Bool, "wheelgrid/estop", with_message_info(self._on_estop_latched), MAP_QOS
         )
         steady_timer(estop, 0.05, self._cmd_vel_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
@@ -485,6 +475,8 @@ class DriveNode(Node):
         it only to callbacks that need two arguments.)"""
         key = sample_key(info)
         if key is not None:
+            if key in self._estop_samples:  # the latched copy latched it first
+                return
             self._estop_samples.append(key)
         self._handle_estop(msg, info)
 
@@ -503,6 +495,16 @@ class DriveNode(Node):
         # executor may serve it after the clear that followed it, which it undid (the chair
         # stayed stopped behind an e-stop the user had cleared).
         if msg.data and not self._estop and sample_key(info) not in self._estop_samples:
+            self._handle_estop(msg, info)
+
+    def _on_estop_latched(self, msg: Bool, info: dict[str, Any] | None) -> None:
+        # The kept state of a transient-local source, or a live sample's third copy: it may
+        # latch, never clear (a clear reaches the reliable subscription), and a sample either
+        # reliable subscription served is not handled again.
+        key = sample_key(info)
+        if msg.data and not self._estop and key not in self._estop_samples:
+            if key is not None:
+                self._estop_samples.append(key)
             self._handle_estop(msg, info)
 
     def _latch_estop(self, received: int = 0) -> None:

@@ -474,6 +474,44 @@ def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_pa
         assert cells_of(h.next_path(n), grid) == [(2, c) for c in range(6)]
 
 
+def test_an_estop_held_by_a_latched_source_before_the_planner_started_refuses_goals():
+    """A source that keeps its state (reliable + transient-local) published true before the
+    planner started: its volatile subscription never heard it, and a goal was planned while
+    the e-stop was held. The kept state is heard now; the source's clear lets a goal plan."""
+    from rclpy.node import Node
+    from std_msgs.msg import Bool
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        source = Node("wg_latched_estop", context=ctx)
+        pub = source.create_publisher(Bool, "/wheelgrid/estop", MAP_QOS)
+        pub.publish(Bool(data=True))
+        planner = make_node(context=ctx)
+        h = Harness(ctx)
+        h.ex.add_node(planner)
+        try:
+            assert h.wait_matched()
+            assert spin_until(h.ex, lambda: planner._estop, 10.0), "the held e-stop was not heard"
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
+            spin_until(h.ex, lambda: False, 0.3)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            assert h.next_path(n).poses == []
+            pub.publish(Bool(data=False))
+            assert spin_until(h.ex, lambda: not planner._estop, 10.0)
+            n = len(h.paths)
+            h.goal_pub.publish(goal_msg(grid, (6, 5)))
+            assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
+            assert planner._estop_presses == 1  # the kept e-stop, handled once
+        finally:
+            h.close()
+            planner.destroy_node()
+            source.destroy_node()
+
+
 def test_a_start_turned_between_two_grid_directions_gets_no_route(tmp_path):
     """A start facing 45 deg went to "right" by a tie: the route was published, and the drive
     (which accepts 20 deg at most) refused it. Now the planner says why, with an empty path;

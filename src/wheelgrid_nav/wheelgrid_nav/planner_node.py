@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,7 +55,7 @@ from wheelgrid_common.frames import CONVENTIONS, convention_for_frame
 from wheelgrid_common.map_io import Grid, from_occupancy_grid, same_geometry
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass
 from wheelgrid_common.params import field as pfield
-from wheelgrid_common.ros_env import spin_node, steady_timer
+from wheelgrid_common.ros_env import sample_key, spin_node, steady_timer, with_message_info
 from wheelgrid_nav.actions import cells_to_moves
 from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, check_config, plan
 
@@ -235,7 +236,14 @@ def _make_node_class() -> type:
             self._estop = False
             self._estop_presses = 0  # e-stops (true) received: a route learned across one is void
             self._estop_sub = self.create_subscription(
-                Bool, "wheelgrid/estop", self._on_estop, RELIABLE_QOS
+                Bool, "wheelgrid/estop", with_message_info(self._on_estop_reliable), RELIABLE_QOS
+            )
+            # A latched source's kept state (reliable + transient-local) reaches only a
+            # transient-local reader: an e-stop held before this node started was ignored and
+            # the goal planned. This copy may only latch; each sample is handled once.
+            self._estop_seen: deque[tuple[int, int]] = deque(maxlen=64)
+            self._estop_latched_sub = self.create_subscription(
+                Bool, "wheelgrid/estop", with_message_info(self._on_estop_latched), MAP_QOS
             )
             steady_timer(self, 0.5, self._drop_goal_waited_too_long)
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
@@ -294,6 +302,25 @@ def _make_node_class() -> type:
             first = int(grid.data[r0, c0])
             first_ok = first == 0 or (self.cfg.allow_unknown_start and first < 0)
             return not first_ok or any(grid.data[r, c] != 0 for r, c in rest)
+
+        def _first_time(self, info: dict[str, Any] | None) -> bool:
+            """Whether no e-stop subscription handled this sample before (a latched source's
+            live samples reach both)."""
+            key = sample_key(info)
+            if key is None:
+                return True
+            if key in self._estop_seen:
+                return False
+            self._estop_seen.append(key)
+            return True
+
+        def _on_estop_reliable(self, msg: Any, info: dict[str, Any] | None) -> None:
+            if self._first_time(info):
+                self._on_estop(msg)
+
+        def _on_estop_latched(self, msg: Any, info: dict[str, Any] | None) -> None:
+            if msg.data and not self._estop and self._first_time(info):
+                self._on_estop(msg)
 
         def _on_estop(self, msg: Any) -> None:
             if not msg.data:
@@ -589,14 +616,15 @@ def _make_node_class() -> type:
             self.goal = None
             self._publish_route(grid, [])
 
-        def _take_waiting(self, sub: Any, handler: Any) -> None:
-            """Hand ``handler`` the messages waiting on ``sub`` (see _take_waiting_estops)."""
+        def _take_waiting(self, sub: Any, handler: Any, with_info: bool = False) -> None:
+            """Hand ``handler`` the messages waiting on ``sub`` (see _take_waiting_estops),
+            and their info where it takes it."""
             with sub.handle:
                 while True:
                     taken = sub.handle.take_message(sub.msg_type, sub.raw)
                     if taken is None:
                         return
-                    handler(taken[0])
+                    handler(*taken) if with_info else handler(taken[0])
 
         def _take_waiting_estops(self) -> None:
             """Handle the e-stops that arrived while a route was learned, before it goes out.
@@ -607,7 +635,8 @@ def _make_node_class() -> type:
             no new command), and only then came the e-stop's empty path. ``take_message`` is
             what rclpy's own executor calls, but not public API: where it fails, the caller
             publishes no route rather than one an e-stop may have voided."""
-            self._take_waiting(self._estop_sub, self._on_estop)
+            self._take_waiting(self._estop_sub, self._on_estop_reliable, with_info=True)
+            self._take_waiting(self._estop_latched_sub, self._on_estop_latched, with_info=True)
 
         def _publish_route(
             self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
