@@ -74,6 +74,9 @@ _VERTICAL_STD = 0.08
 _ALIGN_MAX_POINTS = 80_000
 _ALIGN_REFINE_POINTS = 12_000
 _EXTENT_MAX_POINTS = 200_000
+# Share of a wall peak's points in the obstacle band below which it does not stand on the floor
+# (a room wall: ~60 %; one half behind furniture still ~30 %; a bulkhead over a drop: 0).
+_WALL_MIN_STANDING = 0.1
 # Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels, ~0.5 GB of rasters.
 _MAX_EXTENT = 200.0
 _MAX_COORDINATE = 50_000.0  # m from the origin: beyond it the float32 pass loses millimetres
@@ -820,15 +823,26 @@ def wall_yaw(points: np.ndarray, cfg: GridConfig) -> float | None:
     return yaw
 
 
-def wall_near(coord: np.ndarray, end: float, reach: float = 0.3, bin_size: float = 0.02) -> float:
+def wall_near(
+    coord: np.ndarray,
+    end: float,
+    reach: float = 0.3,
+    bin_size: float = 0.02,
+    standing: np.ndarray | None = None,
+) -> float:
     """Position of the wall closest to ``end`` along one grid axis, or NaN if none stands out.
 
     ``coord`` holds that axis' coordinate of the points above the floor (all heights: upper
     walls carry no furniture). A wall is a sharp peak of their histogram; the floor's own
     extent stops short of it (the floor at a wall's foot is often unseen), so the walls place
-    the cells more exactly than the floor does.
+    the cells more exactly than the floor does. ``standing`` (bool, per point): the points in
+    the obstacle band; a peak with under :data:`_WALL_MIN_STANDING` of its points there does
+    not stand on the floor (a bulkhead, a lintel or a sign over a stairwell) and is no wall:
+    taken for one, it stretched the grid over the drop beyond the floor's edge, where the
+    strip hid 18-28 cm of the drop in a free border cell.
     """
-    sel = coord[(coord > end - reach) & (coord < end + reach)]
+    inside = (coord > end - reach) & (coord < end + reach)
+    sel = coord[inside]
     if sel.size < 50:
         return math.nan
     edges = np.arange(end - reach, end + reach + bin_size, bin_size)
@@ -836,8 +850,10 @@ def wall_near(coord: np.ndarray, end: float, reach: float = 0.3, bin_size: float
     i = int(np.argmax(hist))
     if hist[i] < max(25, 4.0 * float(np.median(hist)) + 1.0):
         return math.nan
-    near = sel[np.abs(sel - (edges[i] + bin_size / 2)) <= 1.5 * bin_size]
-    return float(np.median(near))
+    at_peak = np.abs(sel - (edges[i] + bin_size / 2)) <= 1.5 * bin_size
+    if standing is not None and np.mean(standing[inside][at_peak]) < _WALL_MIN_STANDING:
+        return math.nan
+    return float(np.median(sel[at_peak]))
 
 
 def floor_extent(
@@ -846,6 +862,7 @@ def floor_extent(
     cfg: GridConfig,
     walls_u: np.ndarray | None = None,
     walls_v: np.ndarray | None = None,
+    walls_standing: np.ndarray | None = None,
 ) -> tuple[float, float, int, int, tuple[float, float], tuple[float, float]]:
     """Grid lower-left corner (u0, v0), size (rows, cols) and the floor's ends (m) along u, v.
 
@@ -853,6 +870,7 @@ def floor_extent(
     snapped to a whole number of cells (allowing ``extent_tolerance`` for floor points that stop
     short of the walls) and the grid is centred on it: with a 9.6 m room and 1.2 m cells the
     cells coincide with the room interior and the walls fall on the grid's outer edge.
+    ``walls_standing``: which of the wall points lie in the obstacle band (:func:`wall_near`).
     """
     q = cfg.extent_quantile
     qs = [q, 1.0 - q]
@@ -862,7 +880,8 @@ def floor_extent(
     for lo, hi, walls in ((umin, umax, walls_u), (vmin, vmax, walls_v)):
         if walls is not None and walls.size:
             # walls a little beyond the floor's ends (never inside by more than 10 cm) win
-            wl, wh = wall_near(walls, lo), wall_near(walls, hi)
+            wl = wall_near(walls, lo, standing=walls_standing)
+            wh = wall_near(walls, hi, standing=walls_standing)
             if wl <= lo + 0.1 and wh >= hi - 0.1:
                 lo, hi = wl, wh
         count = max(1, math.floor((hi - lo + cfg.extent_tolerance) / cfg.cell_size + 1e-9))
@@ -1041,6 +1060,7 @@ def build_grid(
     above = np.flatnonzero(cls % 2 == 1)  # classes 1 (band) and 3 (above the band)
     above = above[:: max(1, math.ceil(above.size / _EXTENT_MAX_POINTS))]
     wu, wv = _rotate(project(pts.take(above, axis=0)), yaw)
+    standing = cls.take(above) == 1
     if class_counts[3]:
         # Points above the safe height play no further part (often 30-45 % of a room's map:
         # ceiling and upper walls); dropping them once saves more than it costs.
@@ -1051,7 +1071,7 @@ def build_grid(
     step = max(1, math.ceil(int(class_counts[0]) / _EXTENT_MAX_POINTS))
     floor_pts = cls[::step] == 0
     u0, v0, rows, cols, floor_u, floor_v = floor_extent(
-        u[::step][floor_pts], v[::step][floor_pts], cfg, wu, wv
+        u[::step][floor_pts], v[::step][floor_pts], cfg, wu, wv, standing
     )
     h, w = rows * k, cols * k
     if max(rows, cols) * cfg.cell_size > _MAX_EXTENT:
@@ -1078,8 +1098,12 @@ def build_grid(
     cap = math.floor(MAX_BOUNDARY_MARGIN / ps + 1e-9)
     top, bottom, left, right = (min(round(x / ps), cap) for x in sides)
     ring = boundary_ring((h, w), (top, bottom, left, right))
-    boundary = black & ring
-    obstacles = black & ~ring
+    # A drop is never a wall: a pixel of the strip is taken for the wall only where its band
+    # points alone blacken it. Below-floor points there (a stairwell's seen bottom, a dock's
+    # edge) stay obstacles of the border cell: the strip, stretched to a bulkhead over the
+    # drop, hid 18 cm of a seen 1 m drop in a free border cell.
+    boundary = black & ring & (counts[1] >= cfg.min_points_per_pixel)
+    obstacles = black & ~boundary
     floor = _dilate(counts[0] > 0, cfg.floor_fill) & ~black
 
     density = cell_density(obstacles, k, k)
