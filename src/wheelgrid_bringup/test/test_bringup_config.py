@@ -373,6 +373,51 @@ def test_the_namespaced_copy_is_the_params_file_as_checked(tmp_path):
     }
 
 
+def test_a_node_set_in_two_sections_keeps_both_under_a_namespace(tmp_path, capsys):
+    """``grid:`` and ``/chair1/grid:`` both reach the grid under ``--namespace chair1``; the
+    namespaced copy made one dict key of them and kept only the later: the grid ran on its
+    default 1.5 m safe height where the file said 1.9, exit 0. They are merged now (the later
+    over the earlier, as rcl applies them); a node written twice under one key, which PyYAML
+    read as its last copy, is refused, and so is a key ending in '/', which rcl refuses."""
+    import pytest
+    import yaml
+
+    from wheelgrid_bringup.demo import main as demo_main
+    from wheelgrid_bringup.launcher import check_params_file, namespaced_params_file
+
+    params = tmp_path / "p.yaml"
+    params.write_text(
+        "grid:\n  ros__parameters: {safe_height: 1.9, density_threshold: 0.2}\n"
+        "mapper:\n  ros__parameters: {loop_closure: {enabled: false, min_overlap: 0.2}}\n"
+        "/chair1/grid:\n  ros__parameters: {density_threshold: 0.1}\n"
+        "/chair1/mapper:\n  ros__parameters: {loop_closure: {min_overlap: 0.3}}\n"
+    )
+    checked = check_params_file(params, "/chair1")
+    copy = namespaced_params_file(params, "/chair1", tmp_path / "out", checked)
+    assert yaml.safe_load(copy.read_text()) == {
+        "/chair1/grid": {"ros__parameters": {"safe_height": 1.9, "density_threshold": 0.1}},
+        "/chair1/mapper": {
+            "ros__parameters": {"loop_closure": {"enabled": False, "min_overlap": 0.3}}
+        },
+    }
+    for text, says in (
+        (
+            "grid:\n  ros__parameters: {safe_height: 1.9}\n"
+            "grid:\n  ros__parameters: {density_threshold: 0.1}\n",
+            "'grid' is written twice",
+        ),
+        ("/grid/:\n  ros__parameters: {safe_height: 1.9}\n", "must not end in '/'"),
+    ):
+        params.write_text(text)
+        with pytest.raises(ValueError, match=says):
+            check_params_file(params)
+    # the demo checks its --params as the launch does, before any node starts
+    params.write_text("gird:\n  ros__parameters: {safe_height: 1.7}\n")
+    assert demo_main(["--params", str(params), "--out", str(tmp_path / "demo")]) == 2
+    err = capsys.readouterr().err
+    assert "reaches no node of the chain" in err and "Traceback" not in err
+
+
 def test_a_replay_stopped_before_it_started_stops_cleanly():
     """``wheelgrid launch`` opens the bag before it starts the nodes, so a node that dies while
     the chain starts stops a player whose thread never ran: that must not raise (joining an

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from wheelgrid_bringup.chain import Chain, Monitor, NodeDiedError
+from wheelgrid_bringup.launcher import check_params_file
 from wheelgrid_bringup.route_png import draw_route
 from wheelgrid_bringup.supervisor import (
     REPLAY_MAX_QUEUE,
@@ -218,6 +219,13 @@ def main(argv: list[str] | None = None) -> int:
     inherited = os.environ.get("ROS_DOMAIN_ID")
     os.environ["ROS_DOMAIN_ID"] = str(demo_domain(inherited))
     params = args.params or default_params_file()
+    try:
+        # as `wheelgrid launch` does: a section that reaches no node (`gird:`) ran the chain on
+        # its defaults, a file rcl refuses killed every node after start
+        check_params_file(params)
+    except (OSError, ValueError) as exc:
+        print(f"wheelgrid demo: {exc}", file=sys.stderr)
+        return 2
     out = args.out.resolve()
     try:
         why = prepare_out(out)

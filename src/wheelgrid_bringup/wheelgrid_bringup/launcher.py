@@ -103,14 +103,33 @@ def namespaced_params_file(
 
     if data is None:
         data = read_yaml(path)
-    out = {}
+    out: dict[Any, Any] = {}
     for key, body in data.items():
         plain = isinstance(body, dict) and "ros__parameters" in body
-        out[f"{namespace}/{key}" if plain and not str(key).startswith("/") else key] = body
+        name = f"{namespace}/{key}" if plain and not str(key).startswith("/") else key
+        if name in out and plain and "ros__parameters" in out[name]:
+            # ``grid:`` and ``/chair1/grid:`` both: rcl applies both, the later over the
+            # earlier; one dict key for the two kept only the later, and the grid ran on its
+            # default safe height where the first section set another
+            body = {
+                **out[name],
+                **body,
+                "ros__parameters": _merged(out[name]["ros__parameters"], body["ros__parameters"]),
+            }
+        out[name] = body
     out_dir.mkdir(parents=True, exist_ok=True)
     copy = out_dir / f"params{namespace.replace('/', '_')}.yaml"
     copy.write_text(yaml.safe_dump(out, sort_keys=False))
     return copy
+
+
+def _merged(first: dict[str, Any], later: dict[str, Any]) -> dict[str, Any]:
+    """``later``'s parameters over ``first``'s, nested groups (``loop_closure:``) merged too."""
+    out = dict(first)
+    for key, value in later.items():
+        both = isinstance(out.get(key), dict) and isinstance(value, dict)
+        out[key] = _merged(out[key], value) if both else value
+    return out
 
 
 def node_overrides(name: str, args: argparse.Namespace) -> dict[str, object]:
@@ -168,6 +187,11 @@ def check_params_file(path: Path, namespace: str = "") -> dict[str, Any]:
         if isinstance(body, dict) and "ros__parameters" in body:
             if not isinstance(body["ros__parameters"], dict):
                 raise ValueError(f"{path}: {name}'s ros__parameters must be a mapping")
+            if name.endswith("/"):
+                raise ValueError(
+                    f"{path}: section {name!r}: a node's key must not end in '/' (rcl refuses "
+                    "the file in every node: node name must not be empty)"
+                )
             # a plain top-level key is the namespace's node; anything else is as written
             fqn = f"{namespace}/{name}" if "/" not in name else "/" + name.lstrip("/")
             if any("*" in t and t not in ("*", "**") for t in fqn.split("/")):

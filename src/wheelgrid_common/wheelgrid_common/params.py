@@ -107,7 +107,31 @@ class _Loader(yaml.SafeLoader):
     """PyYAML's safe loader, reading ``1e-4`` as the number rcl, yaml-cpp (Nav2's map_server)
     and YAML 1.2 read it as. PyYAML follows YAML 1.1, where a float needs a dot, and read it as
     a string: ``convergence: 1e-4`` ran in the mapper node from ``--params-file`` and was
-    refused by ``wheelgrid map --config`` from the same file ("expected a number")."""
+    refused by ``wheelgrid map --config`` from the same file ("expected a number").
+
+    A key written twice in one mapping is refused: PyYAML kept the last silently, where rcl
+    applies both sections of a node written twice, so the grid's ``safe_height`` in the first
+    ``grid:`` was lost from what ``wheelgrid launch --namespace`` and the CLIs read."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                twice = key in seen
+            except TypeError:  # an unhashable key: PyYAML's own error follows
+                continue
+            if twice:
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"{key!r} is written twice in one mapping (write its entries once, together)",
+                    key_node.start_mark,
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
 
 
 _SCIENTIFIC = "tag:wheelgrid,2026:scientific"
@@ -251,6 +275,10 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
         try:
             node.declare_parameter(name, default, descriptor)
         except ParameterException as exc:  # a value of the wrong type: one line, not a trace
-            raise ValueError(f"parameter {name}: {exc}") from None
+            hint = ""
+            if "'INTEGER', expecting type 'DOUBLE'" in str(exc):
+                # the CLIs' --config reads 2 as 2.0; rclpy refuses it: say how to write it
+                hint = " (write a decimal point: 2.0, not 2)"
+            raise ValueError(f"parameter {name}: {exc}{hint}") from None
         values[f.name] = node.get_parameter(name).value
     return from_mapping(type(cfg), values)

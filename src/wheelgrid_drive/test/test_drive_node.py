@@ -865,11 +865,13 @@ def test_link_settings_it_cannot_run_with_stop_the_node_with_exit_2():
         "state_rate:=0.0",
         "initial_heading:=north",
         "speed:=0.0",
+        "speed:=3",
     ],
 )
 def test_settings_that_would_drive_unsafely_stop_the_node_with_exit_2(param):
     """A NaN cmd_vel_timeout let one Twist drive on for ever; a negative deadband turned a
-    zero Twist into a move; a speed of 0 (or less) was replaced by the 3 km/h cap."""
+    zero Twist into a move; a speed of 0 (or less) was replaced by the 3 km/h cap. A value of
+    the wrong type (3 for 3.0) ended in a traceback and exit 1, not one FATAL line."""
     import subprocess
     import sys
 
@@ -879,6 +881,9 @@ def test_settings_that_would_drive_unsafely_stop_the_node_with_exit_2(param):
     done = subprocess.run(args, env=child_env(), capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stderr
     assert "invalid parameters" in done.stderr + done.stdout
+    assert "Traceback" not in done.stderr + done.stdout
+    if param == "speed:=3":
+        assert "write a decimal point" in done.stderr + done.stdout
 
 
 def test_a_grid_that_moves_under_a_running_plan_stops_it(make_sim):

@@ -174,7 +174,11 @@ def check_config(c: DriveConfig) -> None:
 class DriveNode(Node):
     def __init__(self, cfg: DriveConfig | None = None, **kwargs: Any) -> None:
         super().__init__("drive", **kwargs)
-        self.cfg = declare_dataclass(self, cfg or DriveConfig())
+        try:
+            self.cfg = declare_dataclass(self, cfg or DriveConfig())
+        except ValueError as exc:  # a value of the wrong type: one FATAL line, exit 2, too
+            self.get_logger().fatal(f"invalid parameters: {exc}")
+            raise SystemExit(2) from exc
         c = self.cfg
         self.speed = min(c.speed, proto.MAX_SPEED_KMH)  # check_config refuses too slow
         if c.speed > proto.MAX_SPEED_KMH:
