@@ -80,7 +80,7 @@ class Monitor:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from sensor_msgs.msg import PointCloud2
-        from std_msgs.msg import Bool, String
+        from std_msgs.msg import String
 
         self.state = ChainState()
         # in the chain's namespace: its topic names are relative, as the nodes' are
@@ -98,7 +98,6 @@ class Monitor:
         self.initial_pub = n.create_publisher(
             PoseWithCovarianceStamped, "initialpose", RELIABLE_QOS
         )
-        self.estop_pub = n.create_publisher(Bool, "wheelgrid/estop", RELIABLE_QOS)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(n)
         self._stop = threading.Event()

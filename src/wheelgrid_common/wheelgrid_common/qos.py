@@ -7,6 +7,8 @@ starts late (RViz, Nav2, the planner) still gets the current map at once.
 
 from __future__ import annotations
 
+from typing import Any
+
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -41,3 +43,13 @@ TF_QOS: QoSProfile = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+
+
+def volatile_writers_expected() -> Any:
+    """Subscription event callbacks for a transient-local reader beside a volatile one on the
+    same topic (the e-stop's latched copy): a volatile writer cannot match it, by DDS's rules,
+    and is served by the other reader, so rclpy's default "offering incompatible QoS" warning
+    at each such writer is noise, not a fault."""
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
+    return SubscriptionEventCallbacks(incompatible_qos=lambda _status: None)

@@ -606,6 +606,57 @@ def test_an_estop_held_by_a_latched_source_before_the_drive_started_latches_it(m
             source.destroy_node()
 
 
+def test_a_grid_node_gone_silent_stops_the_chair_and_refuses_steps(make_sim):
+    """A hung grid node (SIGSTOPped in a review) kept its last grid published while the newer
+    map, with a crate in a route cell, went ungridded: the drive drove the route through the
+    crate. Once heard, the grid node's state falling silent for grid_state_timeout now stops
+    a running move and refuses steps; its return lets a new plan drive. A drive that never
+    heard one (a static grid from map_server) drives as before: every other test."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    sim = make_sim(time_scale=1.0)
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(
+            ctx,
+            sim.slave_path,
+            initial_heading="right",
+            set_pose_on_plan=True,
+            grid_state_timeout=1.0,
+        ) as h,
+    ):
+        state_pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
+        beating = {"on": True}
+
+        def beat() -> None:
+            if beating["on"]:
+                state_pub.publish(DiagnosticArray(status=[DiagnosticStatus(message="grid")]))
+
+        h.node.create_timer(0.2, beat)
+        assert h.matched()
+        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
+        h.give_grid(grid)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+        beating["on"] = False  # the grid node hangs mid-move
+        t0 = time.monotonic()
+        assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
+        assert time.monotonic() - t0 < 1.0 + 0.5
+        assert h.spin(lambda: any("grid node has been silent" in s.message for s in h.states), 3)
+        n = len(sim_moves(sim))
+        here = grid.cell_of(sim.status().x, sim.status().y)
+        h.publish_plan(grid, [here, (here[0], here[1] + 1)])  # refused while it is silent
+        assert h.spin(
+            lambda: any(c.get("ack") == "REFUSED" and "silent" in c["reason"] for c in h.cmds), 5
+        )
+        assert len(sim_moves(sim)) == n
+        beating["on"] = True  # it is back: a new plan drives
+        assert h.spin(lambda: h.drive._grid_silence() is None, 3.0)
+        h.publish_plan(grid, [here, (here[0], here[1] + 1)])
+        assert h.spin(lambda: len(sim_moves(sim)) == n + 1, 5.0)
+
+
 def test_the_best_effort_copy_of_a_cleared_estop_does_not_latch_it_again(make_sim):
     """A reliable e-stop reaches both e-stop subscriptions. The e-stop executor serves them in
     its own order: the reliable e-stop, the reliable clear, then the best-effort copy of that

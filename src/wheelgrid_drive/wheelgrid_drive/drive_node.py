@@ -40,7 +40,7 @@ from std_msgs.msg import Bool, String
 from wheelgrid_common.fileio import quat_yaw
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
-from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS, volatile_writers_expected
 from wheelgrid_common.ros_env import (
     exit_logger,
     received_ns,
@@ -67,6 +67,9 @@ from wheelgrid_drive.runner import (
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
+
+# The grid node's heartbeat (DiagnosticArray, 2 Hz): see DriveConfig.grid_state_timeout.
+GRID_STATE_TOPIC = "wheelgrid/grid_state"
 
 # Reliable like the plan's publisher, but never the plan kept for late joiners (see __init__).
 PLAN_QOS = QoSProfile(
@@ -141,6 +144,13 @@ class DriveConfig:
     linear_deadband: float = field(0.05, "|linear.x| below this is no motion", "m/s")
     angular_deadband: float = field(0.3, "|angular.z| above this is a turn", "rad/s")
     state_rate: float = field(5.0, "drive_state publishing rate", "Hz")
+    grid_state_timeout: float = field(
+        2.0,
+        "once the grid node's state (wheelgrid/grid_state, 2 Hz) has been heard, a silence "
+        "this long stops a running move and refuses steps: a hung grid node leaves its last "
+        "grid published while newer maps go ungridded; 0 = off (a static grid: map_server)",
+        "s",
+    )
 
 
 def check_config(c: DriveConfig) -> None:
@@ -159,6 +169,11 @@ def check_config(c: DriveConfig) -> None:
         raise ValueError(f"cmd_vel_timeout must be in (0, 5] s, not {c.cmd_vel_timeout}")
     if c.linear_deadband < 0 or c.angular_deadband < 0:
         raise ValueError("linear_deadband and angular_deadband must be >= 0")
+    if c.grid_state_timeout != 0.0 and not 1.0 <= c.grid_state_timeout <= 60.0:
+        raise ValueError(
+            f"grid_state_timeout must be 0 (off) or in [1, 60] s (the grid node reports every "
+            f"0.5 s), not {c.grid_state_timeout}"
+        )
     if not 0.0 < c.state_rate <= 100.0:
         raise ValueError(f"state_rate must be in (0, 100] Hz, not {c.state_rate}")
     if not 0.001 <= c.cell_size <= proto.MAX_DISTANCE_MM / 1000:
@@ -195,6 +210,7 @@ class DriveNode(Node):
         self._estops = 0
         self._estop_received_ns = 0  # when the last e-stop reached this process (system clock)
         self._estop_failed = False  # the e-stop thread died: nothing can clear the latch
+        self._grid_state_heard: float | None = None  # the grid node's last state (monotonic)
         # the last samples the reliable e-stop subscription served (see _on_estop_best_effort)
         self._estop_samples: deque[tuple[int, int]] = deque(maxlen=64)
         self._abort = threading.Event()
@@ -290,9 +306,19 @@ class DriveNode(Node):
         # before this node started, and an e-stop held through a (re)start was ignored while
         # the chair drove. This third copy hears it on matching; it may only latch.
         estop.create_subscription(
-            Bool, "wheelgrid/estop", with_message_info(self._on_estop_latched), MAP_QOS
+            Bool,
+            "wheelgrid/estop",
+            with_message_info(self._on_estop_latched),
+            MAP_QOS,
+            event_callbacks=volatile_writers_expected(),
+        )
+        # The grid node's heartbeat, on this thread too: a silence stops the chair even while
+        # the node's executor is held up.
+        estop.create_subscription(
+            DiagnosticArray, GRID_STATE_TOPIC, self._on_grid_state, RELIABLE_QOS
         )
         steady_timer(estop, 0.05, self._cmd_vel_guard)
+        steady_timer(estop, 0.1, self._grid_state_guard)
         self._estop_executor = SingleThreadedExecutor(context=self.context)
         self._estop_executor.add_node(estop)
         self._estop_thread = threading.Thread(
@@ -739,7 +765,7 @@ class DriveNode(Node):
             steps,
             distance_m=grid.resolution,
             speed_kmh=self.speed,
-            cell_check=planned_grid_check(lambda: self._grid, grid),
+            cell_check=self._cell_check(grid),
             abort=abort,
             on_step=on_step,
             on_start=self._on_step_start,
@@ -843,6 +869,38 @@ class DriveNode(Node):
     def _twist_stale(self) -> bool:
         return time.monotonic() - self._last_twist_t > self.cfg.cmd_vel_timeout
 
+    def _on_grid_state(self, _msg: DiagnosticArray) -> None:
+        self._grid_state_heard = time.monotonic()
+
+    def _grid_silence(self) -> str | None:
+        """Why no step may start now on the grid node's say (it went silent), else None."""
+        heard, timeout = self._grid_state_heard, self.cfg.grid_state_timeout
+        if heard is None or timeout <= 0.0:
+            return None  # never heard: a static grid (map_server, a test) has no heartbeat
+        silent = time.monotonic() - heard
+        if silent <= timeout:
+            return None
+        return (
+            f"the grid node has been silent for {silent:.1f} s: its grid may be stale (a hung "
+            "node leaves the last grid published while newer maps go ungridded)"
+        )
+
+    def _grid_state_guard(self) -> None:
+        """On the e-stop thread: a running move stops when the grid node goes silent."""
+        why = self._grid_silence()
+        if why is not None:
+            self._abort_if_moving(why)
+
+    def _cell_check(self, planned_on: Grid) -> Callable[[tuple[int, int]], str | None]:
+        """The check of each step's cell: the grid node alive, then the cell free on the
+        latest grid of the geometry the job was planned on."""
+        on_grid = planned_grid_check(lambda: self._grid, planned_on)
+
+        def check(cell: tuple[int, int]) -> str | None:
+            return self._grid_silence() or on_grid(cell)
+
+        return check
+
     def _cmd_vel_guard(self) -> None:
         """On the e-stop thread: a /cmd_vel step whose stream went stale is stopped even while
         the executor is held up (reading a long plan), where _cmd_vel_tick cannot run and the
@@ -902,7 +960,7 @@ class DriveNode(Node):
             [step],
             distance_m=distance,
             speed_kmh=speed,
-            cell_check=planned_grid_check(lambda: self._grid, grid),
+            cell_check=self._cell_check(grid),
             abort=abort,
             on_step=lambda s, rec: self._publish_record(rec),
             on_start=self._on_step_start,

@@ -237,6 +237,39 @@ def in_process_grid(**params: Any) -> Iterator[SimpleNamespace]:
             node.destroy_node()
 
 
+def test_the_grid_node_reports_its_state_twice_a_second_from_its_own_executor():
+    """The drive stops the chair when this heartbeat falls silent (a hung grid node kept its
+    last grid published and the chair drove into an obstacle of a newer map): it must come
+    from the node's executor, at GRID_STATE_PERIOD_S, and say whether a grid is published."""
+    import time
+
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from wheelgrid_common.qos import RELIABLE_QOS
+    from wheelgrid_nav.grid_node import GRID_STATE_PERIOD_S
+
+    with in_process_grid(max_rate_hz=100.0) as t:
+        states: list[tuple[float, DiagnosticArray]] = []
+        t.grid_node.create_subscription(
+            DiagnosticArray,
+            "/wheelgrid/grid_state",
+            lambda m: states.append((time.monotonic(), m)),
+            RELIABLE_QOS,
+        )
+        assert spin_until(t.ex, lambda: len(states) >= 2, 5.0)
+        assert states[-1][1].status[0].message.startswith("no grid: nothing received")
+        t.pub.publish(to_pointcloud2(room_cloud(paper_like_boxes(), spacing=0.05), "map"))
+        assert spin_until(t.ex, lambda: states[-1][1].status[0].message.startswith("grid "), 20.0)
+        n = len(states)
+        assert spin_until(t.ex, lambda: len(states) >= n + 4, 5.0)
+        gaps = np.diff([at for at, _ in states[n - 1 :]])
+        assert gaps.max() < 4 * GRID_STATE_PERIOD_S, gaps
+        # nothing spins the node: nothing is reported (a hung node goes silent)
+        n = len(states)
+        time.sleep(3 * GRID_STATE_PERIOD_S)
+        assert len(states) == n
+
+
 def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_it_back():
     """The mapper's ~/reset publishes an empty map cloud and starts a new map whose frame is
     placed under the next pose: the running grid node kept the old grid, so the planner and the

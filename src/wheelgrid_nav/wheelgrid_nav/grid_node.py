@@ -25,6 +25,7 @@ from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -35,7 +36,7 @@ from wheelgrid_common import params
 from wheelgrid_common.fileio import user_folder
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
-from wheelgrid_common.qos import MAP_QOS
+from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
 from wheelgrid_common.ros_env import spin_node, steady_timer
 from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
 
@@ -44,6 +45,10 @@ from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid
 MAP_CLOUD_TOPIC = "wheelgrid/map_cloud"
 SAFE_GRID_TOPIC = "wheelgrid/safe_grid"
 FINE_MAP_TOPIC = "map"
+# The node's heartbeat: the drive stops the chair when it falls silent (a hung node keeps its
+# last grid published while newer maps go ungridded, and the chair drove into a new obstacle).
+GRID_STATE_TOPIC = "wheelgrid/grid_state"
+GRID_STATE_PERIOD_S = 0.5
 
 
 def check_rate(hz: float) -> None:
@@ -84,12 +89,32 @@ class GridNode(Node):
         self._no_grid = f"nothing received on {self.resolve_topic_name(MAP_CLOUD_TOPIC)}"
         self.create_service(Trigger, "~/save", self._on_save)
         self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
+        # on this node's executor, so a hung callback silences it
+        self.state_pub = self.create_publisher(DiagnosticArray, GRID_STATE_TOPIC, RELIABLE_QOS)
+        steady_timer(self, GRID_STATE_PERIOD_S, self._publish_state)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f"waiting for {self.resolve_topic_name(MAP_CLOUD_TOPIC)}; safe_height "
             f"{self.cfg.safe_height} m, cell {self.cfg.cell_size} m, density_threshold "
             f"{self.cfg.density_threshold}"
         )
+
+    def _publish_state(self) -> None:
+        st = DiagnosticStatus(name="grid", hardware_id="wheelgrid")
+        if self.result is not None:
+            g = self.result.stats
+            st.level = DiagnosticStatus.OK
+            st.message = (
+                f"grid {self.result.grid.rows}x{self.result.grid.cols} ({g['free']} free, "
+                f"{g['occupied']} occ, {g['unknown']} unk)"
+            )
+        else:
+            st.level, st.message = DiagnosticStatus.WARN, f"no grid: {self._no_grid}"
+        st.values = [KeyValue(key="map_waiting", value=str(self._pending is not None).lower())]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.state_pub.publish(arr)
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         try:

@@ -165,7 +165,12 @@ def _make_node_class() -> type:
     from std_msgs.msg import Bool
     from visualization_msgs.msg import Marker, MarkerArray
 
-    from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS
+    from wheelgrid_common.qos import (
+        MAP_QOS,
+        RELIABLE_QOS,
+        SENSOR_QOS,
+        volatile_writers_expected,
+    )
 
     class PlannerNode(Node):
         """Thin ROS wrapper around :func:`wheelgrid_nav.planner.plan`."""
@@ -243,7 +248,11 @@ def _make_node_class() -> type:
             # the goal planned. This copy may only latch; each sample is handled once.
             self._estop_seen: deque[tuple[int, int]] = deque(maxlen=64)
             self._estop_latched_sub = self.create_subscription(
-                Bool, "wheelgrid/estop", with_message_info(self._on_estop_latched), MAP_QOS
+                Bool,
+                "wheelgrid/estop",
+                with_message_info(self._on_estop_latched),
+                MAP_QOS,
+                event_callbacks=volatile_writers_expected(),
             )
             steady_timer(self, 0.5, self._drop_goal_waited_too_long)
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
