@@ -281,4 +281,25 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
                 hint = " (write a decimal point: 2.0, not 2)"
             raise ValueError(f"parameter {name}: {exc}{hint}") from None
         values[f.name] = node.get_parameter(name).value
+    _fix_use_sim_time(node)
     return from_mapping(type(cfg), values)
+
+
+def _fix_use_sim_time(node: Any) -> None:
+    """Describe rclpy's own ``use_sim_time`` and make it read-only, in every node: the one
+    parameter a running node still took, with no description, and its stamps (the drive's
+    state and pose, the bridge's receive times, the mapper's arrival check) fell to 0 at once
+    where no /clock ran."""
+    from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+
+    if node.describe_parameter("use_sim_time").read_only:
+        return  # a node that declares two configs (the planner, the mapper): done once
+    node.set_descriptor(
+        "use_sim_time",
+        ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description="stamp with the /clock topic's time (a bag's); set at start: -p, a "
+            "params file, or `wheelgrid launch --clock`",
+            read_only=True,
+        ),
+    )

@@ -270,6 +270,22 @@ def test_the_grid_node_reports_its_state_twice_a_second_from_its_own_executor():
         assert len(states) == n
 
 
+def test_use_sim_time_is_described_and_cannot_change_live():
+    """rclpy's own use_sim_time was the one parameter a running node still took (every other
+    is read-only or checked), with no description: set live with no /clock, the node's stamps
+    fell to 0 at once. It is set at start only now, in every node (declare_dataclass)."""
+    from rclpy.parameter import Parameter
+
+    with in_process_grid(max_rate_hz=100.0) as t:
+        [result] = t.grid_node.set_parameters([Parameter("use_sim_time", value=True)])
+        assert not result.successful and "read-only" in result.reason
+        assert t.grid_node.get_parameter("use_sim_time").value is False
+        assert "/clock" in t.grid_node.describe_parameter("use_sim_time").description
+        # the node's own parameters still change live
+        [result] = t.grid_node.set_parameters([Parameter("safe_height", value=1.6)])
+        assert result.successful
+
+
 def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_it_back():
     """The mapper's ~/reset publishes an empty map cloud and starts a new map whose frame is
     placed under the next pose: the running grid node kept the old grid, so the planner and the
