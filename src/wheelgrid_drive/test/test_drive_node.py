@@ -1148,3 +1148,155 @@ def test_a_plan_that_took_over_from_a_cmd_vel_step_is_not_stopped_when_the_strea
         assert h.spin(lambda: len(sim_moves(sim)) == 3 and sim.state == proto.State.IDLE, 15.0)
         assert sim.result == proto.Result.DONE, sim.result
         assert not any("no /cmd_vel" in s.message for s in h.states)
+
+
+# --- the drive's jobs among themselves (a review's findings) -------------------------------
+
+
+def test_a_stick_moved_during_a_plan_stops_it_and_drives_only_after_a_release(make_sim):
+    """A stick pulled back while a plan ran was ignored, then drove the chair backwards two
+    cells the instant the plan ended, never released. It stops the plan now, and drives
+    only after a release."""
+    with driving_along_row_3(make_sim) as (h, sim, _grid):
+        back = h.Twist()
+        back.linear.x = -0.5
+        hold_stick(h, back, 0.3)
+        assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
+        assert h.spin(lambda: any("moved while a plan ran" in s.message for s in h.states), 3)
+        hold_stick(h, back, 1.5)  # still held after the plan: nothing
+        assert sim_moves(sim) == ["FORWARD"]
+        assert not h.drive._twist_armed
+        assert h.armed()  # released: it drives again
+
+
+def test_a_non_finite_twist_stops_but_never_arms(make_sim):
+    """A stick held through an e-stop and its clear does not drive (a release must come
+    first); one NaN sample in the stream was taken for that release, and the next forward
+    Twist drove the chair."""
+    with chair_in_cell_3_3(make_sim) as (h, sim, _x):
+        fwd, nan = h.Twist(), h.Twist()
+        fwd.linear.x = 0.5
+        nan.linear.x = math.nan
+        h.pub_estop.publish(h.Bool(data=True))
+        assert h.spin(lambda: h.drive._estop, 3.0)
+        hold_stick(h, fwd, 0.2)
+        h.pub_estop.publish(h.Bool(data=False))
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+        hold_stick(h, fwd, 0.2)
+        hold_stick(h, nan, 0.1)
+        hold_stick(h, fwd, 0.6)
+        assert sim_moves(sim) == [] and not h.drive._twist_armed
+
+
+@pytest.mark.parametrize("linear, angular", [(0.0, 0.6), (-0.4, 0.6), (-0.4, -0.6)])
+def test_a_turn_without_forward_speed_is_no_move(make_sim, linear, angular):
+    """A turn is a quarter turn and a cell forward (Table II): with no forward speed (Nav2's
+    spin, a stick twisted in place) the chair drove a loop of cells, and with the stick pulled
+    back and to a side it drove forward into the cell on that side. Both are no move now; with
+    forward speed the turn drives."""
+    with chair_in_cell_3_3(make_sim) as (h, sim, _x):
+        tw = h.Twist()
+        tw.linear.x, tw.angular.z = linear, angular
+        hold_stick(h, tw, 0.6)
+        assert sim_moves(sim) == []
+        assert h.armed()
+        tw.linear.x = 0.4
+        hold_stick(h, tw, 0.3)
+        assert h.spin(lambda: sim_moves(sim) != [], 3.0)
+        assert sim_moves(sim) == ["LEFT_FORWARD" if angular > 0 else "RIGHT_FORWARD"]
+
+
+def test_a_plan_parked_for_the_grid_expires_and_a_stick_voids_it(make_sim, monkeypatch):
+    """A plan parked while the grid was withdrawn drove, with no new command, whenever a grid
+    came back (15 s later in a review). It is dropped after PARKED_PLAN_MAX_S, and at once
+    when the stick moves."""
+    from wheelgrid_drive import drive_node
+
+    monkeypatch.setattr(drive_node, "PARKED_PLAN_MAX_S", 0.5)
+    with a_plan_parked_for_the_grid(make_sim) as (h, sim, grid):
+        time.sleep(0.8)
+        h.give_grid(grid)
+        assert h.spin(lambda: any("waited" in s.message for s in h.states), 3.0)
+        h.spin(lambda: False, 0.5)
+        assert sim_moves(sim) == []
+    with a_plan_parked_for_the_grid(make_sim) as (h, sim, grid):
+        fwd = h.Twist()
+        fwd.linear.x = 0.5
+        hold_stick(h, fwd, 0.2)
+        assert h.drive._pending_plan is None
+        h.give_grid(grid)
+        h.spin(lambda: False, 0.5)
+        assert sim_moves(sim) == []
+
+
+def test_a_plan_whose_last_move_ends_short_is_not_done(make_sim):
+    """A controller reporting DONE with the chair 0.7 m short of the last cell (a slipping
+    wheel) gave "plan done", level OK: no next step's check reads the last one's end."""
+    from wheelgrid_drive.motor_sim import MotorSim, MotorSimConfig
+
+    class SlippingSim(MotorSim):
+        def _move(self, f, now):  # the second move stops 0.7 m early and reports DONE
+            super()._move(f, now)
+            if sim_moves(self).count("FORWARD") == 2 and not getattr(self, "slipped", False):
+                self.slipped = True
+                self._segments[-1].remaining -= 0.7
+
+    sim = SlippingSim(MotorSimConfig(time_scale=4.0)).start()
+    grid = free_grid()
+    try:
+        with (
+            rclpy_context() as ctx,
+            Harness(ctx, sim.slave_path, initial_heading="right", set_pose_on_plan=True) as h,
+        ):
+            assert h.matched()
+            h.give_grid(grid)
+            h.publish_plan(grid, [(3, 0), (3, 1), (3, 2)])
+            assert h.spin(lambda: any("plan ended short" in s.message for s in h.states), 20.0)
+            assert not any("plan done" in s.message for s in h.states)
+    finally:
+        sim.stop()
+
+
+def test_set_pose_on_plan_never_moves_a_chair_that_has_driven_out_of_the_start_cell(make_sim):
+    """The same plan re-sent after an e-stop mid-route set the controller's pose back on its
+    start cell though the chair stood a cell and a half on: a real chair would have driven the
+    route from there, into an occupied cell. Once the chair has moved, the pose is set only
+    within the cell the controller reports."""
+    with driving_along_row_3(make_sim) as (h, sim, grid):
+        assert h.spin(lambda: grid.cell_of(sim.x, sim.y) == (3, 1), 5.0)
+        h.pub_estop.publish(h.Bool(data=True))
+        assert h.spin(lambda: h.drive._estop and sim.state == proto.State.IDLE, 3.0)
+        h.pub_estop.publish(h.Bool(data=False))
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+        moves = len(sim_moves(sim))
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: any("is not overwritten" in s.message for s in h.states), 5.0)
+        assert len(sim_moves(sim)) == moves and grid.cell_of(sim.x, sim.y) != (3, 0)
+
+
+def test_a_stick_held_against_a_refused_cell_is_refused_once_and_a_release_is_no_fault(
+    make_sim,
+):
+    """A stick held against a cell the grid refuses started a new step every 50 ms: a status
+    request, a STOP, an ERROR line and a REFUSED record each time (45 in 2 s). It is refused
+    once until the move or the grid changes. A released stick after a step no longer gets
+    a STOP and "no /cmd_vel for too long" half a second later."""
+    with chair_in_cell_3_3(make_sim) as (h, sim, x):
+        blocked = free_grid()
+        blocked.data[3, 4] = 100  # the cell ahead (facing +x)
+        h.give_grid(blocked)
+        assert h.spin(lambda: h.drive._grid is not None and h.drive._grid.data[3, 4] == 100, 3)
+        fwd = h.Twist()
+        fwd.linear.x = 0.5
+        hold_stick(h, fwd, 1.0)
+        refused = [c for c in h.cmds if c.get("ack") == "REFUSED"]
+        assert len(refused) == 1, refused
+        assert sim_moves(sim) == []
+        h.give_grid(free_grid())  # the cell is free again: the held stick drives
+        hold_stick(h, fwd, 0.3)
+        assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 3.0)
+        h.pub_twist.publish(h.Twist())  # released
+        assert h.spin(lambda: sim.state == proto.State.IDLE, 3.0)
+        states = len(h.states)
+        h.spin(lambda: False, 1.0)
+        assert not any("no /cmd_vel for too long" in s.message for s in h.states[states:])

@@ -86,6 +86,10 @@ MAX_PATH_POSES = 10_000  # a plan's poses: a route across a building is a few hu
 # power-on for the same reason. 2 s covers DDS discovery on loopback, so a stream that is
 # already running is heard within it.
 STARTUP_QUIET_S = 2.0
+# A plan parked until the safe grid comes (they arrive in any order at start-up) is kept this
+# long: kept for ever, a plan parked while the grid was withdrawn drove, with no new command,
+# whenever a grid came back, however much later.
+PARKED_PLAN_MAX_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -221,6 +225,14 @@ class DriveNode(Node):
         self._message = "waiting for a plan or /cmd_vel"
         self._last_twist: Twist | None = None
         self._last_twist_t = 0.0
+        # the last Twist was a non-finite one, taken as a stop: a stop, but no release of the
+        # stick (a glitch in a stream held through an e-stop armed /cmd_vel, and it drove)
+        self._twist_glitch = False
+        # the /cmd_vel move last refused and the grid it was refused on (see _cmd_vel_tick)
+        self._twist_refused: tuple[str, Grid | None] | None = None
+        # a move has been sent (ACKed) since this node started: from then on, set_pose_on_plan
+        # may not move the controller's pose out of the cell it reports
+        self._moved = False
         self._link_note = ""
         self._entering: tuple[int, int] | None = None  # destination of the running command
         self._job_grid: Grid | None = None  # the grid the running job's cells were read on
@@ -450,6 +462,8 @@ class DriveNode(Node):
             logger.info(self._link_note)
 
     def _publish_record(self, rec: dict[str, Any]) -> None:
+        if "seq" in rec:  # a move the controller took: the chair has moved
+            self._moved = True
         self._publish(self.pub_cmds, String(data=dumps_record(rec)))
 
     def _publish(self, pub: Any, msg: Any) -> None:
@@ -479,7 +493,14 @@ class DriveNode(Node):
         with self._gate:
             pending, self._pending_plan = self._pending_plan, None
         if pending is not None:
-            if not self._busy():
+            waited = (time.time_ns() - pending[1].received_ns) / 1e9
+            if waited > PARKED_PLAN_MAX_S:
+                self._set_state(
+                    WARN,
+                    f"plan dropped: it waited {waited:.0f} s for the safe grid (more than "
+                    f"{PARKED_PLAN_MAX_S:g} s); send the goal again",
+                )
+            elif not self._busy():
                 self._plan_arrived(*pending)
             else:  # the move a bad grid stopped is still ending: never queued behind it
                 self._set_state(
@@ -666,6 +687,7 @@ class DriveNode(Node):
         return actions.plan_steps(cells[0], moves, heading), cells, grid
 
     def _on_twist(self, msg: Twist, info: dict[str, Any] | None) -> None:
+        original = msg
         if not all(math.isfinite(v) for v in (msg.linear.x, msg.angular.z)):
             # inf drove full speed, NaN turned: a commander this broken gets a stop
             self.get_logger().warning(
@@ -674,6 +696,7 @@ class DriveNode(Node):
                 throttle_duration_sec=2.0,
             )
             msg = Twist()
+        self._twist_glitch = msg is not original
         # Its age counts from when it reached this process, not from now: Twists that came
         # while the executor was held up (a long plan read, an old job joined) were read as
         # fresh afterwards, and the chair drove a step on a stream that had already ended.
@@ -741,6 +764,14 @@ class DriveNode(Node):
                 self.link.stop()
                 raise LinkError("controller reports a move in progress")
             if self.cfg.set_pose_on_plan:
+                if self._moved and grid.cell_of(st.x, st.y) != tuple(cells[0]):
+                    # a plan re-sent after the chair drove on: the chair is not where the
+                    # pose would be set, and its moves would be driven from elsewhere
+                    raise ValueError(
+                        f"set_pose_on_plan: the controller reports the chair in cell "
+                        f"{grid.cell_of(st.x, st.y)}, not the plan's start {cells[0]}, and it "
+                        "has moved since this drive started: its pose is not overwritten"
+                    )
                 x, y = grid.cell_center(*cells[0])
                 yaw = actions.YAW[steps[0].heading] + grid.origin[2]
                 self.link.set_pose(float(x), float(y), yaw)
@@ -775,12 +806,34 @@ class DriveNode(Node):
             connection=connection,
         )
         self._entering = None
+        if result.ok and self.cfg.check_start_pose:
+            short = self._end_problem(grid, cells[-1])
+            if short:
+                self._set_state(ERROR, f"plan ended short of its goal: {short}")
+                return
         if result.ok:
             self._set_state(OK, f"plan done: {result.done}/{result.total} steps")
         elif result.aborted:
             self._set_state(WARN if not self._estop else ERROR, f"plan aborted: {result.error}")
         else:
             self._set_state(ERROR, f"plan stopped at step {result.done + 1}: {result.error}")
+
+    def _end_problem(self, grid: Grid, goal: tuple[int, int]) -> str | None:
+        """Where the controller says the chair ended, if not within ``pose_tolerance`` of the
+        goal cell's centre: a move reported DONE short of its cell (a slipping wheel) was
+        "plan done", level OK, on the last step, which no next step's check reads."""
+        try:
+            st = self.link.status()
+        except LinkError as exc:
+            return f"no controller pose after the last step: {exc}"
+        cx, cy = (float(v) for v in grid.cell_center(*goal))
+        off = math.hypot(st.x - cx, st.y - cy)
+        if off > self.cfg.pose_tolerance * grid.resolution:
+            return (
+                f"the controller reports the chair at ({st.x:.2f}, {st.y:.2f}), {off:.2f} m from "
+                f"the centre of cell {goal} (cell {grid.cell_of(st.x, st.y)})"
+            )
+        return None
 
     def _on_step_start(self, step: actions.Step) -> None:
         self._entering = step.dst
@@ -835,8 +888,21 @@ class DriveNode(Node):
         if self._estop:
             return
         action = self._twist_action(twist)
+        if action is not None or not self._twist_released(twist):
+            with self._gate:  # the stick overrides a plan still waiting for its grid
+                self._pending_plan = None
+            if self._busy() and self._job == "plan":
+                # The stick moved while a plan ran: ignored, it drove the chair the instant
+                # the plan ended (two cells backwards, the stick never released). It stops
+                # the plan now, armed or not, and drives only after a release.
+                self._disarm_cmd_vel()
+                self._abort_if_moving(
+                    "/cmd_vel moved while a plan ran (the stick overrides a plan; release it, "
+                    "then send the goal again or drive by hand)"
+                )
+                return
         if not self._twist_armed:
-            if action is not None:
+            if action is not None or not self._twist_released(twist):
                 self.get_logger().warning(
                     "/cmd_vel ignored: it was already moving when the drive started, or it "
                     "went on through the e-stop or a loss of the controller's link; send a "
@@ -850,18 +916,22 @@ class DriveNode(Node):
             if not self._twist_armed:
                 return
         if self._busy():
-            if self._job == "plan":
-                self.get_logger().warning(
-                    "/cmd_vel ignored while a plan runs", throttle_duration_sec=2.0
-                )
-            elif action != self._twist_running:
-                # zero velocity, or another direction (the joystick reversed): stop now, not
-                # at the end of the cell; the next tick starts the new direction
+            # a released stick leaves a plan alone (a moved one stopped it above); a /cmd_vel
+            # step stops at zero velocity or another direction (the joystick reversed), not at
+            # the end of the cell, and the next tick starts the new direction
+            if self._job != "plan" and action != self._twist_running:
                 self._abort.set()
                 self.link.stop()
             return
         if action is None:
+            # the step is over and the stick let go: nothing is running for the watchdog to
+            # stop (it sent a STOP and said "no /cmd_vel for too long" after every release)
+            self._twist_running = None
+            self._twist_refused = None
             return
+        refused = self._twist_refused
+        if refused is not None and refused[0] == action and refused[1] is self._grid:
+            return  # refused on this grid: asked again only for another move or grid
         self._twist_running = action
         if not self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort)):
             self._twist_running = None
@@ -916,13 +986,33 @@ class DriveNode(Node):
             self.link.stop()
 
     def _twist_action(self, t: Twist) -> str | None:
-        if abs(t.angular.z) > self.cfg.angular_deadband:
-            return "LEFT_FORWARD" if t.angular.z > 0 else "RIGHT_FORWARD"
+        """The Table II move of a Twist, or None: no move (released, or one Table II has not).
+
+        A turn is a quarter turn and then a cell forward, so it needs forward speed: a turn
+        with none (Nav2's spin, a stick twisted in place) drove a loop of cells, and one with
+        the stick pulled back drove forward into the cell on that side. Those are no move."""
+        turn = abs(t.angular.z) > self.cfg.angular_deadband
         if t.linear.x > self.cfg.linear_deadband:
+            if turn:
+                return "LEFT_FORWARD" if t.angular.z > 0 else "RIGHT_FORWARD"
             return "FORWARD"
-        if t.linear.x < -self.cfg.linear_deadband:
+        if t.linear.x < -self.cfg.linear_deadband and not turn:
             return "BACKWARD"
+        if turn or t.linear.x < -self.cfg.linear_deadband:
+            self.get_logger().warning(
+                f"/cmd_vel ({t.linear.x:g} m/s, {t.angular.z:g} rad/s) is no move the chair "
+                "makes (a turn needs forward speed: Table II turns drive forward): chair stays",
+                throttle_duration_sec=2.0,
+            )
         return None
+
+    def _twist_released(self, t: Twist) -> bool:
+        """A finite Twist inside both deadbands: the stick let go (what arms /cmd_vel)."""
+        return (
+            not self._twist_glitch
+            and abs(t.linear.x) <= self.cfg.linear_deadband
+            and abs(t.angular.z) <= self.cfg.angular_deadband
+        )
 
     def _run_twist_step(self, action: str, twist: Twist, abort: threading.Event) -> None:
         grid = self._grid
@@ -949,6 +1039,8 @@ class DriveNode(Node):
         except (LinkError, ValueError) as exc:
             if isinstance(exc, LinkError):  # no controller: not a step a tick later either
                 self._disarm_cmd_vel()
+            else:  # a stick held against it asked again every 50 ms: 45 refusals in 2 s
+                self._twist_refused = (action, grid)
             self._set_state(ERROR, f"/cmd_vel {action} refused: {exc}")
             self._publish_record(
                 {"action": action, "ack": "REFUSED", "reason": str(exc), "t": time.time()}
@@ -970,6 +1062,8 @@ class DriveNode(Node):
         if not result.ok and not result.aborted:
             if not result.refused:  # the link failed under the step: as a loss of it
                 self._disarm_cmd_vel()
+            else:
+                self._twist_refused = (action, grid)
             self._set_state(ERROR, f"/cmd_vel {action}: {result.error}")
 
     # ---- shutdown -----------------------------------------------------------------------------
