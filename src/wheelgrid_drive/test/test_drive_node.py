@@ -1281,7 +1281,7 @@ def test_a_stick_held_against_a_refused_cell_is_refused_once_and_a_release_is_no
     request, a STOP, an ERROR line and a REFUSED record each time (45 in 2 s). It is refused
     once until the move or the grid changes. A released stick after a step no longer gets
     a STOP and "no /cmd_vel for too long" half a second later."""
-    with chair_in_cell_3_3(make_sim) as (h, sim, x):
+    with chair_in_cell_3_3(make_sim) as (h, sim, _x):
         blocked = free_grid()
         blocked.data[3, 4] = 100  # the cell ahead (facing +x)
         h.give_grid(blocked)
@@ -1300,3 +1300,16 @@ def test_a_stick_held_against_a_refused_cell_is_refused_once_and_a_release_is_no
         states = len(h.states)
         h.spin(lambda: False, 1.0)
         assert not any("no /cmd_vel for too long" in s.message for s in h.states[states:])
+
+
+def test_a_cmd_vel_step_done_says_so_in_its_own_words(make_sim):
+    """A /cmd_vel step set no state of its own: after a plan the state read "cmd_vel: plan
+    done: 2/2 steps" while the stick drove."""
+    with chair_in_cell_3_3(make_sim) as (h, _sim, _x):
+        fwd = h.Twist()
+        fwd.linear.x = 0.8
+        hold_stick(h, fwd, 2.0)  # a 1.2 m cell at 2.9 km/h: 1.5 s
+        h.pub_twist.publish(h.Twist())
+        assert h.spin(
+            lambda: any("/cmd_vel FORWARD: in cell (3, 4)" in s.message for s in h.states), 3
+        )

@@ -1059,6 +1059,8 @@ class DriveNode(Node):
             connection=connection,
         )
         self._entering = None
+        if result.ok:  # its own word: the state read "cmd_vel: plan done" after a plan
+            self._set_state(OK, f"/cmd_vel {action}: in cell {step.dst}")
         if not result.ok and not result.aborted:
             if not result.refused:  # the link failed under the step: as a loss of it
                 self._disarm_cmd_vel()
