@@ -276,9 +276,9 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
             node.declare_parameter(name, default, descriptor)
         except ParameterException as exc:  # a value of the wrong type: one line, not a trace
             hint = ""
-            if "'INTEGER', expecting type 'DOUBLE'" in str(exc):
-                # the CLIs' --config reads 2 as 2.0; rclpy refuses it: say how to write it
-                hint = " (write a decimal point: 2.0, not 2)"
+            whole = re.search(r"to '(-?\d+)' of type 'INTEGER', expecting type 'DOUBLE'", str(exc))
+            if whole:  # the CLIs' --config reads 2 as 2.0; rclpy refuses it: say how to write it
+                hint = f" (write a decimal point: {whole[1]}.0, not {whole[1]})"
             raise ValueError(f"parameter {name}: {exc}{hint}") from None
         values[f.name] = node.get_parameter(name).value
     _fix_use_sim_time(node)

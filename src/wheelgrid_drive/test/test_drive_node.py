@@ -815,8 +815,14 @@ def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim, 
         ), "the remapped e-stop did not stop the chair"
         # STOP goes out before the e-stop is logged and published: a SIGINT sent on the STOP
         # alone could shut the node's context down between the two (CI, stop 65), and the log
-        # line then failed to reach /rosout. The state comes after the log line.
+        # line then failed to reach /rosout. The periodic state says "e-stop latched" from the
+        # latch itself, before the log line too (a loaded machine, 2026-11-30): the line is
+        # waited for where it is written.
         assert spin_until(ex, lambda: any("e-stop latched" in s for s in states), 5.0), states
+        assert spin_until(
+            ex, lambda: "e-stop: chair stopped" in log.read_text(errors="replace"), 5.0
+        )
+        spin_until(ex, lambda: False, 0.2)  # the console is written before /rosout
         node.destroy_node()
         assert stop_process(proc) == 0
     # Shutting the node down sends STOP before the port closes.
@@ -934,7 +940,7 @@ def test_settings_that_would_drive_unsafely_stop_the_node_with_exit_2(param):
     assert "invalid parameters" in done.stderr + done.stdout
     assert "Traceback" not in done.stderr + done.stdout
     if param == "speed:=3":
-        assert "write a decimal point" in done.stderr + done.stdout
+        assert "write a decimal point: 3.0, not 3" in done.stderr + done.stdout
 
 
 def test_a_grid_that_moves_under_a_running_plan_stops_it(make_sim):
@@ -1313,3 +1319,46 @@ def test_a_cmd_vel_step_done_says_so_in_its_own_words(make_sim):
         assert h.spin(
             lambda: any("/cmd_vel FORWARD: in cell (3, 4)" in s.message for s in h.states), 3
         )
+
+
+def test_a_grid_node_that_says_its_executor_stalled_stops_the_chair_and_a_long_grid_does_not(
+    make_sim,
+):
+    """The grid node's heartbeat comes from a thread of its own: a long grid (a 144 m floor:
+    2-3 s, and ~/save) silenced it on the node's executor, and stopped the chair for nothing.
+    It says how long the executor has not run outside a grid (a hung node) and how long the
+    grid under way has taken; the first beyond grid_state_timeout stops the chair, the second
+    not until GRID_BUSY_MAX_S."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    sim = make_sim(time_scale=1.0)
+    grid = free_grid()
+    with (
+        rclpy_context() as ctx,
+        Harness(
+            ctx,
+            sim.slave_path,
+            initial_heading="right",
+            set_pose_on_plan=True,
+            grid_state_timeout=1.0,
+        ) as h,
+    ):
+        state_pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
+        said = {"stalled_s": "0.00", "busy_s": "0.00"}
+
+        def beat() -> None:
+            values = [KeyValue(key=k, value=v) for k, v in said.items()]
+            state_pub.publish(DiagnosticArray(status=[DiagnosticStatus(values=values)]))
+
+        h.node.create_timer(0.2, beat)
+        assert h.matched()
+        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
+        h.give_grid(grid)
+        h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
+        assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
+        said.update(stalled_s="3.00", busy_s="3.00")  # a long grid under way: drives on
+        h.spin(lambda: False, 0.6)
+        assert sim.state == proto.State.DRIVING and h.drive._grid_silence() is None
+        said.update(busy_s="0.00")  # stalled outside a grid: hung
+        assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
+        assert h.spin(lambda: any("has not run for" in s.message for s in h.states), 3.0)

@@ -70,6 +70,9 @@ OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.E
 
 # The grid node's heartbeat (DiagnosticArray, 2 Hz): see DriveConfig.grid_state_timeout.
 GRID_STATE_TOPIC = "wheelgrid/grid_state"
+# One grid (or ~/save) taking longer than this is a node stuck in it: 200 m floors, the grid's
+# largest, took 2-3 s on two cores.
+GRID_BUSY_MAX_S = 30.0
 
 # Reliable like the plan's publisher, but never the plan kept for late joiners (see __init__).
 PLAN_QOS = QoSProfile(
@@ -151,8 +154,9 @@ class DriveConfig:
     grid_state_timeout: float = field(
         2.0,
         "once the grid node's state (wheelgrid/grid_state, 2 Hz) has been heard, a silence "
-        "this long stops a running move and refuses steps: a hung grid node leaves its last "
-        "grid published while newer maps go ungridded; 0 = off (a static grid: map_server)",
+        "this long, or its executor reported stalled this long outside a grid, stops a running "
+        "move and refuses steps: a hung grid node leaves its last grid published while newer "
+        "maps go ungridded; 0 = off (a static grid: map_server)",
         "s",
     )
 
@@ -215,6 +219,7 @@ class DriveNode(Node):
         self._estop_received_ns = 0  # when the last e-stop reached this process (system clock)
         self._estop_failed = False  # the e-stop thread died: nothing can clear the latch
         self._grid_state_heard: float | None = None  # the grid node's last state (monotonic)
+        self._grid_state = (0.0, 0.0)  # what it said: stalled_s, busy_s
         # the last samples the reliable e-stop subscription served (see _on_estop_best_effort)
         self._estop_samples: deque[tuple[int, int]] = deque(maxlen=64)
         self._abort = threading.Event()
@@ -228,8 +233,9 @@ class DriveNode(Node):
         # the last Twist was a non-finite one, taken as a stop: a stop, but no release of the
         # stick (a glitch in a stream held through an e-stop armed /cmd_vel, and it drove)
         self._twist_glitch = False
-        # the /cmd_vel move last refused and the grid it was refused on (see _cmd_vel_tick)
-        self._twist_refused: tuple[str, Grid | None] | None = None
+        # the /cmd_vel move last refused, the grid it was refused on and whether the grid
+        # node was heard then (see _cmd_vel_tick)
+        self._twist_refused: tuple[str, Grid | None, bool] | None = None
         # a move has been sent (ACKed) since this node started: from then on, set_pose_on_plan
         # may not move the controller's pose out of the cell it reports
         self._moved = False
@@ -242,6 +248,7 @@ class DriveNode(Node):
         # through the e-stop drove the chair the moment it was cleared. False at start too,
         # until a zero Twist or STARTUP_QUIET_S without one (see there).
         self._twist_armed = False
+        self._disarmed_why = "it was already moving when the drive started"  # for the warning
         self._started_mono = time.monotonic()
 
         pub = self.create_publisher
@@ -453,7 +460,7 @@ class DriveNode(Node):
             # (serial-protocol.md, host duty 5). A joystick held through the unplug drove the
             # chair 1.5 m off the reopened port, 50 ms after its STOP; it must go zero (or
             # silent) first, as after an e-stop.
-            self._disarm_cmd_vel()
+            self._disarm_cmd_vel("it went on through a loss of the controller's link")
         self._link_note = f"{kind}: {message}"
         logger = exit_logger(self)  # close() stops the chair after the context is shut down
         if kind in ("vanished", "stop", "nak", "garbled", "unexpected"):
@@ -564,6 +571,7 @@ class DriveNode(Node):
         with self._gate:
             self._estop = True
             self._twist_armed = False
+            self._disarmed_why = "it went on through the e-stop"
             self._estops += 1
             stamp = received or time.time_ns()
             self._estop_received_ns = max(self._estop_received_ns, stamp)
@@ -852,9 +860,11 @@ class DriveNode(Node):
 
     # ---- /cmd_vel -----------------------------------------------------------------------------
 
-    def _disarm_cmd_vel(self) -> None:
+    def _disarm_cmd_vel(self, why: str) -> None:
+        """/cmd_vel drives again only after a release; ``why`` is said when it is ignored."""
         with self._gate:
             self._twist_armed = False
+            self._disarmed_why = why
 
     def _arm_if_quiet(self) -> None:
         """/cmd_vel is silent: it may drive again, unless an e-stop is latched or the node is
@@ -871,6 +881,7 @@ class DriveNode(Node):
             return
         if self._twist_stale():
             self._last_twist = None
+            self._twist_refused = None  # silence is a release: the next push is asked again
             self._arm_if_quiet()
             if self._twist_running is not None:
                 self._twist_running = None
@@ -895,7 +906,7 @@ class DriveNode(Node):
                 # The stick moved while a plan ran: ignored, it drove the chair the instant
                 # the plan ended (two cells backwards, the stick never released). It stops
                 # the plan now, armed or not, and drives only after a release.
-                self._disarm_cmd_vel()
+                self._disarm_cmd_vel("it moved while a plan ran, which it stopped")
                 self._abort_if_moving(
                     "/cmd_vel moved while a plan ran (the stick overrides a plan; release it, "
                     "then send the goal again or drive by hand)"
@@ -904,9 +915,7 @@ class DriveNode(Node):
         if not self._twist_armed:
             if action is not None or not self._twist_released(twist):
                 self.get_logger().warning(
-                    "/cmd_vel ignored: it was already moving when the drive started, or it "
-                    "went on through the e-stop or a loss of the controller's link; send a "
-                    "zero Twist (or none for "
+                    f"/cmd_vel ignored: {self._disarmed_why}; send a zero Twist (or none for "
                     f"{max(self.cfg.cmd_vel_timeout, STARTUP_QUIET_S):g} s) to drive with it",
                     throttle_duration_sec=2.0,
                 )
@@ -930,30 +939,57 @@ class DriveNode(Node):
             self._twist_refused = None
             return
         refused = self._twist_refused
-        if refused is not None and refused[0] == action and refused[1] is self._grid:
-            return  # refused on this grid: asked again only for another move or grid
+        if (
+            refused is not None
+            and refused[0] == action
+            and refused[1] is self._grid  # the same grid object (a Grid's == compares arrays)
+            and refused[2] == (self._grid_silence() is None)
+        ):
+            return  # refused as things stand: asked again for another move, grid or grid state
         self._twist_running = action
         if not self._start_job("cmd_vel", lambda abort: self._run_twist_step(action, twist, abort)):
             self._twist_running = None
 
+    def _refuse_twist(self, action: str, grid: Grid | None) -> None:
+        """Not asked again while the stick holds ``action`` and the grid and its node's state
+        stay as they are; the step is over (nothing for the watchdog to stop)."""
+        self._twist_refused = (action, grid, self._grid_silence() is None)
+        self._twist_running = None
+
     def _twist_stale(self) -> bool:
         return time.monotonic() - self._last_twist_t > self.cfg.cmd_vel_timeout
 
-    def _on_grid_state(self, _msg: DiagnosticArray) -> None:
+    def _on_grid_state(self, msg: DiagnosticArray) -> None:
+        stalled = busy = 0.0
+        for status in msg.status[:1]:
+            for kv in status.values:
+                try:
+                    if kv.key == "stalled_s":
+                        stalled = float(kv.value)
+                    elif kv.key == "busy_s":
+                        busy = float(kv.value)
+                except ValueError:
+                    pass  # an unreadable figure is no evidence either way
+        self._grid_state = (stalled, busy)
         self._grid_state_heard = time.monotonic()
 
     def _grid_silence(self) -> str | None:
-        """Why no step may start now on the grid node's say (it went silent), else None."""
+        """Why no step may start now on the grid node's say, else None: it went silent (dead,
+        or stopped), its executor has not run for ``grid_state_timeout`` outside a grid or a
+        save (hung), or one grid or save has taken over GRID_BUSY_MAX_S (stuck in it)."""
         heard, timeout = self._grid_state_heard, self.cfg.grid_state_timeout
         if heard is None or timeout <= 0.0:
             return None  # never heard: a static grid (map_server, a test) has no heartbeat
+        stale = "its grid may be stale (newer maps go ungridded)"
         silent = time.monotonic() - heard
-        if silent <= timeout:
-            return None
-        return (
-            f"the grid node has been silent for {silent:.1f} s: its grid may be stale (a hung "
-            "node leaves the last grid published while newer maps go ungridded)"
-        )
+        if silent > timeout:
+            return f"the grid node has been silent for {silent:.1f} s: {stale}"
+        stalled, busy = self._grid_state
+        if busy > GRID_BUSY_MAX_S:
+            return f"the grid node has been computing one grid for {busy:.0f} s: {stale}"
+        if busy == 0.0 and stalled > timeout:
+            return f"the grid node's executor has not run for {stalled:.1f} s (hung): {stale}"
+        return None
 
     def _grid_state_guard(self) -> None:
         """On the e-stop thread: a running move stops when the grid node goes silent."""
@@ -1038,9 +1074,9 @@ class DriveNode(Node):
                 raise ValueError(problem)
         except (LinkError, ValueError) as exc:
             if isinstance(exc, LinkError):  # no controller: not a step a tick later either
-                self._disarm_cmd_vel()
+                self._disarm_cmd_vel("the controller's link failed under it")
             else:  # a stick held against it asked again every 50 ms: 45 refusals in 2 s
-                self._twist_refused = (action, grid)
+                self._refuse_twist(action, grid)
             self._set_state(ERROR, f"/cmd_vel {action} refused: {exc}")
             self._publish_record(
                 {"action": action, "ack": "REFUSED", "reason": str(exc), "t": time.time()}
@@ -1063,9 +1099,9 @@ class DriveNode(Node):
             self._set_state(OK, f"/cmd_vel {action}: in cell {step.dst}")
         if not result.ok and not result.aborted:
             if not result.refused:  # the link failed under the step: as a loss of it
-                self._disarm_cmd_vel()
+                self._disarm_cmd_vel("the controller's link failed under it")
             else:
-                self._twist_refused = (action, grid)
+                self._refuse_twist(action, grid)
             self._set_state(ERROR, f"/cmd_vel {action}: {result.error}")
 
     # ---- shutdown -----------------------------------------------------------------------------

@@ -20,7 +20,10 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from dataclasses import fields, replace
 from typing import Any
 
@@ -28,6 +31,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -45,10 +49,14 @@ from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid
 MAP_CLOUD_TOPIC = "wheelgrid/map_cloud"
 SAFE_GRID_TOPIC = "wheelgrid/safe_grid"
 FINE_MAP_TOPIC = "map"
-# The node's heartbeat: the drive stops the chair when it falls silent (a hung node keeps its
-# last grid published while newer maps go ungridded, and the chair drove into a new obstacle).
+# The node's heartbeat: the drive stops the chair when it falls silent or says the node is
+# stuck (a hung node keeps its last grid published while newer maps go ungridded, and the
+# chair drove into a new obstacle). It is sent from a thread of its own, so that a long grid
+# (a 144 m floor: 2-3 s) or a ~/save does not silence it; it says how long the node's executor
+# has not run (stalled_s) and how long its current grid or save has taken (busy_s).
 GRID_STATE_TOPIC = "wheelgrid/grid_state"
 GRID_STATE_PERIOD_S = 0.5
+_TICK_S = 0.1
 
 
 def check_rate(hz: float) -> None:
@@ -89,9 +97,10 @@ class GridNode(Node):
         self._no_grid = f"nothing received on {self.resolve_topic_name(MAP_CLOUD_TOPIC)}"
         self.create_service(Trigger, "~/save", self._on_save)
         self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
-        # on this node's executor, so a hung callback silences it
-        self.state_pub = self.create_publisher(DiagnosticArray, GRID_STATE_TOPIC, RELIABLE_QOS)
-        steady_timer(self, GRID_STATE_PERIOD_S, self._publish_state)
+        self._tick = time.monotonic()  # the executor's last run (a timer on it)
+        self._busy_since: float | None = None  # a grid or a save under way since
+        steady_timer(self, _TICK_S, self._on_tick)
+        self._start_heartbeat()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f"waiting for {self.resolve_topic_name(MAP_CLOUD_TOPIC)}; safe_height "
@@ -99,7 +108,60 @@ class GridNode(Node):
             f"{self.cfg.density_threshold}"
         )
 
+    def _start_heartbeat(self) -> None:
+        """The heartbeat's node, on an executor and a thread of its own (named as the drive's
+        e-stop node is: a launcher's global ``__node:=grid`` would rename it too)."""
+        name = f"{self.get_name()}_heartbeat"
+        beat = Node(
+            name,
+            namespace=self.get_namespace(),
+            context=self.context,
+            cli_args=["--ros-args", "-r", f"__node:={name}"],
+            start_parameter_services=False,
+        )
+        self._beat_node: Node | None = beat
+        self.state_pub = beat.create_publisher(DiagnosticArray, GRID_STATE_TOPIC, RELIABLE_QOS)
+        steady_timer(beat, GRID_STATE_PERIOD_S, self._publish_state)
+        self._beat_executor = SingleThreadedExecutor(context=self.context)
+        self._beat_executor.add_node(beat)
+        self._beat_thread = threading.Thread(
+            target=self._spin_heartbeat, name="grid-heartbeat", daemon=True
+        )
+        self._beat_thread.start()
+
+    def _spin_heartbeat(self) -> None:
+        # at shutdown it falls silent, which is what the drive reads as a dead node
+        with suppress(ExternalShutdownException):
+            self._beat_executor.spin()
+
+    def _on_tick(self) -> None:
+        self._tick = time.monotonic()
+
+    @contextmanager
+    def _working(self) -> Iterator[None]:
+        """A grid or a save under way: the heartbeat says so, so a long one is not a hang."""
+        self._busy_since = time.monotonic()
+        try:
+            yield
+        finally:
+            self._busy_since = None
+
+    def close(self) -> None:
+        """Stop the heartbeat's thread (spin_node calls it before destroying the node)."""
+        beat = getattr(self, "_beat_node", None)
+        if beat is not None:
+            self._beat_executor.shutdown(timeout_sec=1.0)
+            self._beat_thread.join(timeout=1.0)
+            beat.destroy_node()
+            self._beat_node = None
+
+    def destroy_node(self) -> None:
+        self.close()  # a caller that only destroys the node stops its heartbeat's thread too
+        super().destroy_node()
+
     def _publish_state(self) -> None:
+        now = time.monotonic()
+        busy_since = self._busy_since
         st = DiagnosticStatus(name="grid", hardware_id="wheelgrid")
         if self.result is not None:
             g = self.result.stats
@@ -110,7 +172,11 @@ class GridNode(Node):
             )
         else:
             st.level, st.message = DiagnosticStatus.WARN, f"no grid: {self._no_grid}"
-        st.values = [KeyValue(key="map_waiting", value=str(self._pending is not None).lower())]
+        st.values = [
+            KeyValue(key="map_waiting", value=str(self._pending is not None).lower()),
+            KeyValue(key="stalled_s", value=f"{now - self._tick:.2f}"),
+            KeyValue(key="busy_s", value=f"{0.0 if busy_since is None else now - busy_since:.2f}"),
+        ]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
@@ -145,17 +211,18 @@ class GridNode(Node):
         points, frame_id = self._pending
         self._pending = None
         self._last_compute = time.monotonic()
-        try:
-            result = build_grid(points, self.grid_cfg, frame_id=frame_id)
-        except GridError as exc:
-            if exc.cause == "empty":  # no finite point: a cleared map as well
-                self._withdraw(exc)
+        with self._working():
+            try:
+                result = build_grid(points, self.grid_cfg, frame_id=frame_id)
+            except GridError as exc:
+                if exc.cause == "empty":  # no finite point: a cleared map as well
+                    self._withdraw(exc)
+                    return
+                self._refused = (points, frame_id)
+                self._reject(f"bad map ({exc.cause}): {exc}")
                 return
-            self._refused = (points, frame_id)
-            self._reject(f"bad map ({exc.cause}): {exc}")
-            return
-        self._refused = None
-        self._publish(result, points, frame_id)
+            self._refused = None
+            self._publish(result, points, frame_id)
 
     def _publish(self, result: GridResult, points: Any, frame_id: str) -> None:
         """Make ``result`` (built from ``points``) the node's grid and publish both grids."""
@@ -215,6 +282,11 @@ class GridNode(Node):
             check_rate(cfg.max_rate_hz)  # 1e-12 killed the node: its timer went first
         except (TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        with self._working():
+            return self._apply(changed, cfg, grid_cfg)
+
+    def _apply(self, changed: list[Any], cfg: GridNodeConfig, grid_cfg: Any) -> SetParametersResult:
+        """The grid built with checked new values (see _on_set_parameters), then theirs."""
         result, held, still = None, None, None
         if self._refused is not None:
             # the newest map, refused with the old values, may give a grid with the new ones
@@ -254,7 +326,8 @@ class GridNode(Node):
         try:
             from wheelgrid_nav.grid_png import write_outputs
 
-            files = write_outputs(self.result, user_folder(self.cfg.output_dir))
+            with self._working():
+                files = write_outputs(self.result, user_folder(self.cfg.output_dir))
         except OSError as exc:
             resp.success = False
             resp.message = f"cannot write {self.cfg.output_dir}: {exc}"
