@@ -1362,3 +1362,42 @@ def test_a_grid_node_that_says_its_executor_stalled_stops_the_chair_and_a_long_g
         said.update(busy_s="0.00")  # stalled outside a grid: hung
         assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
         assert h.spin(lambda: any("has not run for" in s.message for s in h.states), 3.0)
+
+
+def test_a_stick_refused_while_the_grid_node_was_silent_drives_once_it_is_back(make_sim):
+    """A /cmd_vel move refused while the grid node was silent stayed refused, with no word,
+    after the heartbeat came back (the refusal was kept for the same grid object), and even
+    after the stick fell silent, which is a release."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    grid = free_grid()
+    x, y = grid.cell_center(3, 3)
+    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, grid_state_timeout=1.0) as h,
+    ):
+        state_pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
+        beating = {"on": True}
+        h.node.create_timer(
+            0.2,
+            lambda: (
+                beating["on"] and state_pub.publish(DiagnosticArray(status=[DiagnosticStatus()]))
+            ),
+        )
+        assert h.matched()
+        h.give_grid(grid)
+        assert h.armed()
+        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
+        beating["on"] = False
+        assert h.spin(lambda: h.drive._grid_silence() is not None, 3.0)
+        fwd = h.Twist()
+        fwd.linear.x = 0.5
+        assert h.armed()  # (a node under STARTUP_QUIET_S old disarms when /cmd_vel goes quiet)
+        hold_stick(h, fwd, 0.5)
+        refused = [c for c in h.cmds if c.get("ack") == "REFUSED"]
+        assert len(refused) == 1 and "silent" in refused[0]["reason"], refused
+        beating["on"] = True
+        assert h.spin(lambda: h.drive._grid_silence() is None, 3.0)
+        hold_stick(h, fwd, 0.3)  # the same stick, still held: asked again, and driven
+        assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 3.0)
