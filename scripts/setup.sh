@@ -35,7 +35,10 @@ fi
 # tf2_msgs (the /tf message), which the ROS wheels lack, from vendor/tf2_msgs into .venv: only
 # where it is not importable (a full ROS install has its own) and once. Without CMake or a
 # compiler the set-up goes on and says so: the mapper then publishes no /tf, as before.
-if ! .venv/bin/python -c "import tf2_msgs" 2>/dev/null; then
+# importable is not enough: a partial build without its C type support imports, and the
+# mapper's /tf publisher then fails; the check loads the type support too
+TF2_CHECK="import tf2_msgs.msg; tf2_msgs.msg.TFMessage.__class__.__import_type_support__()"
+if ! .venv/bin/python -c "$TF2_CHECK" 2>/dev/null; then
   echo "setup: building tf2_msgs (the /tf message) from vendor/tf2_msgs into .venv" >&2
   if (
     export PATH="$ROOT/.venv/bin:$PATH" AMENT_PREFIX_PATH="$ROOT/.venv"
@@ -44,7 +47,7 @@ if ! .venv/bin/python -c "import tf2_msgs" 2>/dev/null; then
       -DBUILD_TESTING=OFF -DCMAKE_PREFIX_PATH="$ROOT/.venv" -DCMAKE_INSTALL_PREFIX="$ROOT/.venv" \
       -DPython3_EXECUTABLE="$ROOT/.venv/bin/python" \
       && cmake --build build/vendor_tf2_msgs -j 2 && cmake --install build/vendor_tf2_msgs
-  ) >log/tf2_msgs-build.log 2>&1 && .venv/bin/python -c "import tf2_msgs.msg" 2>/dev/null; then
+  ) >log/tf2_msgs-build.log 2>&1 && .venv/bin/python -c "$TF2_CHECK" 2>/dev/null; then
     echo "setup: tf2_msgs built: the mapper publishes /tf" >&2
   else
     echo "setup: WARNING: tf2_msgs could not be built (see log/tf2_msgs-build.log; it needs" \

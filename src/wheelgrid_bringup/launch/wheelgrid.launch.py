@@ -12,8 +12,8 @@ overrides the parameter file's drive ``port``; left out, the file's port stands.
 ``namespace:=NS`` runs the chain in NS, as `wheelgrid launch --namespace NS` does: the nodes
 are pushed into it, the parameter file's plain node keys (``mapper:``) are applied to them
 through a copy of the file (rcl matches a plain key to ``/mapper`` only), and a bag's topics
-are replayed under it (``/clock`` and ``/tf`` stay global). NS is absolute: an including
-launch file's own ``PushRosNamespace`` does not nest it.
+are replayed under it (``/clock`` stays global; ``/tf`` goes under it, as the mapper's
+does). NS is absolute: an including launch file's own ``PushRosNamespace`` does not nest it.
 A node that exits ends the launch, as `wheelgrid launch` stops the chain when any node dies:
 a drive node went on driving its plan with its grid node or planner dead.
 """

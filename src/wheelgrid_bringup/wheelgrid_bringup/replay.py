@@ -37,9 +37,10 @@ CLOCK_QOS = QoSProfile(
 )
 
 
-# Topics a chain in a namespace still shares with the rest of the system, as its nodes do:
-# the bag's time and the transform tree (the nodes publish /tf under its absolute name too).
-GLOBAL_TOPICS = ("/clock", "/tf", "/tf_static")
+# Topics a chain in a namespace still shares with the rest of the system: the bag's time.
+# The transform tree is the chain's own, as the mapper's `tf` is (Nav2's multi-robot
+# convention): a bag's /tf and /tf_static go out under the namespace too.
+GLOBAL_TOPICS = ("/clock",)
 
 
 def replayed_name(topic: str, namespace: str) -> str:

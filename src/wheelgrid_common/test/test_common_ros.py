@@ -229,3 +229,20 @@ def test_a_number_written_1e_4_reads_as_rcl_reads_it(tmp_path):
         f: str = field("", "f")
 
     assert load_yaml(Cfg, tmp_path / "p.yaml") == Cfg(**by_rcl)
+
+
+def test_tf2_is_available_only_where_its_type_support_loads(monkeypatch):
+    """A tf2_msgs that imports but whose C type support does not load (a partial build) was
+    taken for available, and the mapper died creating its /tf publisher; set-up said "the
+    mapper publishes /tf". It is unavailable now, and the mapper runs on without /tf."""
+    from wheelgrid_common.ros_env import tf2_available
+
+    if not tf2_available():
+        pytest.skip("tf2_msgs not importable here")
+    from tf2_msgs.msg import TFMessage
+
+    def broken(cls):
+        raise ImportError("Could not import 'rosidl_typesupport_c' for package 'tf2_msgs'")
+
+    monkeypatch.setattr(TFMessage.__class__, "__import_type_support__", classmethod(broken))
+    assert not tf2_available()

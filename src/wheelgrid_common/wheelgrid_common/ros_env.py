@@ -112,8 +112,18 @@ def sample_key(info: dict[str, Any] | None) -> tuple[int, int] | None:
 
 
 def tf2_available() -> bool:
-    """True where tf2_msgs is importable (a full ROS install); the pip wheels lack it."""
-    return find_spec("tf2_msgs") is not None
+    """True where tf2_msgs is importable (a full ROS install, or set-up built it; the pip
+    wheels lack it) and its type support loads: a partial build without its C libraries
+    imported, and the mapper died creating its /tf publisher."""
+    if find_spec("tf2_msgs") is None:
+        return False
+    try:
+        from tf2_msgs.msg import TFMessage
+
+        TFMessage.__class__.__import_type_support__()  # type: ignore[attr-defined]
+    except Exception:
+        return False
+    return True
 
 
 def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:

@@ -767,7 +767,7 @@ def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
         pytest.skip("bags/paper_room: not present")
     from nav_msgs.msg import Odometry
 
-    from wheelgrid_common.qos import SENSOR_QOS
+    from wheelgrid_common.qos import RELIABLE_QOS, SENSOR_QOS
 
     pairs = bag_clouds(8)
     # the same camera, its driver restarted under another name (an optical frame still, by
@@ -780,6 +780,9 @@ def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
     with running_mapper(tmp_path, "frames_test", "max_queue:=100", "save_on_exit:=false") as t:
         poses: list = []
         t.node.create_subscription(Odometry, "/wheelgrid/odometry", poses.append, SENSOR_QOS)
+        # RViz's and Nav2's default reader is reliable: on sensor-data QoS it got nothing
+        reliable: list = []
+        t.node.create_subscription(Odometry, "/wheelgrid/odometry", reliable.append, RELIABLE_QOS)
         spin_until(t.ex, lambda: False, 0.5)
         for cloud, odom in pairs:  # faster than they are mapped: frames wait in the queue
             t.odom_pub.publish(odom)
@@ -791,6 +794,11 @@ def test_each_pose_names_the_frame_of_its_own_cloud(tmp_path: Path) -> None:
 
         assert spin_until(t.ex, both_frames, 30.0), [p.child_frame_id for p in poses]
         spin_until(t.ex, lambda: False, 2.0)
+        assert len(reliable) == len(poses)
+        # zeros told a fusing reader the pose was exact and the chair at rest
+        assert poses[0].pose.covariance[0] == pytest.approx(0.05**2)
+        assert poses[0].pose.covariance[35] == pytest.approx(np.radians(2.0) ** 2)
+        assert poses[0].twist.covariance[0] == 1e6
         for p in poses:
             stamp = min(sent, key=lambda s: abs(s - _sec(p.header.stamp)))
             assert abs(stamp - _sec(p.header.stamp)) < 1e-6
@@ -850,6 +858,31 @@ def test_each_pose_goes_out_on_tf_as_map_to_its_clouds_frame(tmp_path: Path) -> 
             pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w
         ]  # fmt: skip
         assert abs(q.x**2 + q.y**2 + q.z**2 + q.w**2 - 1.0) < 1e-9
+
+
+def test_tf_follows_the_namespace_as_nav2s_multi_robot_launch_remaps_it(tmp_path: Path) -> None:
+    """Two chairs' mappers in /chair1 and /chair2 sent different `map -> sensor` transforms on
+    the one absolute /tf at the same stamps. The mapper's `tf` is relative now: /tf in the
+    root namespace, /chair1/tf in /chair1 (a Nav2 stack there remaps /tf to tf)."""
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_common.ros_env import tf2_available
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    if not tf2_available():
+        pytest.skip("tf2_msgs not importable: scripts/setup.sh could not build vendor/tf2_msgs")
+    with rclpy_context() as ctx:
+        values = {"output_dir": str(tmp_path), "save_on_exit": False, "topic": "points"}
+        node = MapperNode(
+            context=ctx,
+            namespace="/chair1",
+            parameter_overrides=[Parameter(k, value=v) for k, v in values.items()],
+        )
+        try:
+            assert node.tf_pub is not None and node.tf_pub.topic_name == "/chair1/tf"
+        finally:
+            node.close()
+            node.destroy_node()
 
 
 def test_publish_tf_off_leaves_tf_to_the_robots_own_tree(tmp_path: Path, capfd) -> None:

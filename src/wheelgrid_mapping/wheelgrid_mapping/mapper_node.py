@@ -25,6 +25,7 @@ loop closure, so memory stays bounded on a scan that never ends.
 
 from __future__ import annotations
 
+import math
 import tempfile
 import threading
 import time
@@ -106,6 +107,14 @@ class MapperNodeConfig:
 # A pose prior stamped this much before the newest one kept starts a new pose clock: the
 # poses kept are dropped (ARKit's poses arrive in order; a bag replayed again does not).
 PRIOR_CLOCK_BACK_S = 1.0
+# /wheelgrid/odometry's covariances (row-major 6 x 6, x y z roll pitch yaw): the pose to 5 cm
+# and 2 deg (the map-frame targets of issue #3; registration gives no covariance of its own),
+# the twist not estimated at all (1e6: a fusing reader must not take its zeros as a stop).
+_POSE_SIGMA = (0.05, 0.05, 0.05, *(math.radians(2.0),) * 3)
+ODOM_POSE_COVARIANCE = [
+    s * s if i == j else 0.0 for i, s in enumerate(_POSE_SIGMA) for j in range(6)
+]
+ODOM_TWIST_COVARIANCE = [1e6 if i == j else 0.0 for i in range(6) for j in range(6)]
 PRIOR_CLOCK_BACK_POSES = 3
 
 # Loop-closure states in which the worker holds (or is about to take) the map, and those after
@@ -194,7 +203,9 @@ class MapperNode(Node):  # type: ignore[misc]
         self._frame_ids: deque[tuple[float, str, Any]] = deque()
 
         self.map_pub = self.create_publisher(PointCloud2, "wheelgrid/map_cloud", MAP_QOS)
-        self.odom_pub = self.create_publisher(Odometry, "wheelgrid/odometry", SENSOR_QOS)
+        # reliable, keep last 10: best-effort readers (the planner) still match, and RViz's
+        # and Nav2's default reliable readers do too (on sensor-data QoS they got nothing)
+        self.odom_pub = self.create_publisher(Odometry, "wheelgrid/odometry", RELIABLE_QOS)
         self.status_pub = self.create_publisher(
             DiagnosticArray, "wheelgrid/mapper_status", RELIABLE_QOS
         )
@@ -202,7 +213,16 @@ class MapperNode(Node):  # type: ignore[misc]
         if node_cfg.publish_tf and tf2_available():
             from tf2_msgs.msg import TFMessage
 
-            self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS)
+            # relative, as Nav2's multi-robot launch files remap it: /tf in the root
+            # namespace, /chair1/tf under /chair1. Absolute, two chairs' mappers sent
+            # different `map -> sensor` transforms on one /tf at the same stamps.
+            try:
+                self.tf_pub = self.create_publisher(TFMessage, "tf", TF_QOS)
+            except Exception as exc:  # its C type support missing (a partial build)
+                self.get_logger().warning(
+                    f"publish_tf: tf2_msgs is importable but its type support does not load "
+                    f"({exc}), so no /tf; the poses are on /wheelgrid/odometry"
+                )
         elif node_cfg.publish_tf:
             self.get_logger().warning(
                 "publish_tf: tf2_msgs is not importable, so no /tf (scripts/setup.sh builds it "
@@ -563,6 +583,11 @@ class MapperNode(Node):  # type: ignore[misc]
         )
         msg.pose.pose.orientation.x, msg.pose.pose.orientation.y = qx, qy
         msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = qz, qw
+        # Zeros said "exactly known" to a fusing reader (robot_localization): the pose gets
+        # a fixed, conservative covariance, and the twist, which the mapper does not
+        # estimate, one that says so.
+        msg.pose.covariance = ODOM_POSE_COVARIANCE
+        msg.twist.covariance = ODOM_TWIST_COVARIANCE
         if not self._publish(self.odom_pub, msg):
             return
         if self.tf_pub is not None:
