@@ -514,3 +514,17 @@ def test_a_new_folder_is_never_one_an_earlier_run_wrote_into(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(OSError):
         new_folder(tmp_path / "file" / "on_exit")
+
+
+def test_in_scale_mode_a_shade_just_past_free_thresh_is_not_free(tmp_path):
+    """map_server's scale mode rounds a shade just past free_thresh to 0: wheelgrid's own
+    unknown gray 205 (occupancy 0.19608 against free_thresh 0.196) read free in a grid whose
+    YAML said ``mode: scale``, and the planner routed through it. Between the thresholds is
+    never free (1 at least); below free_thresh still is, and the rest is scaled as before."""
+    (tmp_path / "g.pgm").write_bytes(b"P2\n3 1\n255\n205 254 0\n")
+    (tmp_path / "g.yaml").write_text(
+        "image: g.pgm\nmode: scale\nresolution: 1.2\norigin: [0, 0, 0]\nnegate: 0\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    data = read_map(tmp_path / "g.yaml").data.tolist()
+    assert data == [[1, 0, 100]], data

@@ -272,7 +272,11 @@ def read_map(yaml_path: str | Path) -> Grid:
         data[occ < free_t] = FREE
         if mode == "scale":
             mid = (occ >= free_t) & (occ <= occ_t)
-            data[mid] = np.rint(100.0 * (occ[mid] - free_t) / (occ_t - free_t)).astype(np.int8)
+            scaled = np.rint(100.0 * (occ[mid] - free_t) / (occ_t - free_t))
+            # map_server rounds a shade just past free_thresh to 0, free: the unknown gray 205
+            # (occ 0.19608 against 0.196) read free, and the planner routed through it. Between
+            # the thresholds is never free here (1 at least: not free, to every reader).
+            data[mid] = np.maximum(scaled, 1.0).astype(np.int8)
             if alpha is not None:  # map_saver's scale mode writes unknown as transparent
                 data[alpha < 255.0] = UNKNOWN
         else:

@@ -365,3 +365,45 @@ def test_node_helpers_headings_and_path_poses():
     assert path_poses(grid, PAPER_ROUTE)[0][2] == pytest.approx(0.0)  # no heading: first move
     turned = Grid(paper_grid(), 0.5, (0.0, 0.0, math.pi / 2))
     assert path_poses(turned, PAPER_ROUTE)[1][2] == pytest.approx(math.pi / 2)
+
+
+def test_the_replay_pass_and_the_mdp_stop_at_the_deadline_and_agents_are_bounded(monkeypatch):
+    """The newest-first replay pass ran its replay - 1 updates past the deadline (2.7 s over
+    on a 300 x 300 grid), and the heading MDP was built after the search had used the budget;
+    agents 2**28 passed the memory check with replay 1 and died allocating 8 GiB (exit 1)."""
+    import time
+
+    import wheelgrid_nav.planner as planner_mod
+
+    g = np.zeros((40, 40), dtype=np.int8)
+    cfg = PlannerConfig(replay=50, agents=64, max_seconds=30.0)
+    mdp = _build_mdp(g == 0, (0, 0), (39, 39), cfg, None)
+    calls = {"n": 0}
+    real = time.perf_counter
+
+    class Clock:  # the deadline passes a few updates into the first replay pass (step 50)
+        @staticmethod
+        def perf_counter() -> float:
+            calls["n"] += 1
+            return real() + (1e6 if calls["n"] > 55 else 0.0)
+
+    monkeypatch.setattr(planner_mod, "time", Clock)
+    out = planner_mod._learn(mdp, cfg, 78.0, deadline=real() + 30.0)
+    assert out["steps"] == 50 and not out["converged"], out
+    assert out["updates"] < (50 + 49) * 64, out["updates"]  # the pass stopped within it
+    monkeypatch.undo()
+    with pytest.raises(PlanInputError, match="agents"):
+        plan(g, (0, 0), (39, 39), PlannerConfig(agents=2**28, replay=1))
+
+
+def test_json_says_null_for_a_shortest_length_the_budget_cut_off():
+    """--json gave shortest_moves -1, which means unreachable, for a search that the time
+    budget cut off before it found any length (a 700 x 700 grid, max_seconds 0.005)."""
+    from wheelgrid_nav.cli_plan import result_json
+
+    cut = plan(np.zeros((700, 700), np.int8), (0, 0), (699, 699), PlannerConfig(max_seconds=1e-9))
+    assert cut.reason == "not converged" and result_json(cut, None)["shortest_moves"] is None
+    walled = np.zeros((3, 3), np.int8)
+    walled[:, 1] = 100
+    gone = plan(walled, (0, 0), (0, 2))
+    assert gone.reason == "unreachable" and result_json(gone, None)["shortest_moves"] == -1

@@ -139,7 +139,10 @@ def result_json(res: PlanResult, heading: str | None, grid: Any = None) -> dict[
         "method": res.method,
         "reason": res.reason,
         "cost": None if res.cost != res.cost else res.cost,
-        "shortest_moves": res.bfs_length,
+        # -1 is "unreachable"; a search the time budget cut off found no length: null
+        "shortest_moves": res.bfs_length
+        if res.bfs_length >= 0 or res.reason == "unreachable"
+        else None,
     }
     if heading is not None:
         out["heading"] = heading

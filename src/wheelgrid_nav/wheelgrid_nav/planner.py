@@ -453,6 +453,9 @@ def _manoeuvre_lower_bound(mdp: _Mdp, goal_rc: np.ndarray, cfg: PlannerConfig) -
 
 # The replay history is (replay x agents) int64: at most this many entries (2 GiB)
 MAX_HISTORY = 2**28
+# Each agent also holds a few (agents x 4) float64 arrays a step: 2**24 agents is ~2 GiB of
+# them; 2**28 passed the history check with replay 1 and died allocating 8 GiB (exit 1)
+MAX_AGENTS = 2**24
 
 
 def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> dict[str, Any]:
@@ -468,6 +471,8 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
     S = len(mdp.terminal)
     nonterminal = np.nonzero(~mdp.terminal)[0]
     B = cfg.agents if cfg.agents > 0 else len(nonterminal)
+    if B > MAX_AGENTS:
+        raise PlanInputError(f"agents {B} is more than {MAX_AGENTS} (memory): lower agents")
     if max(cfg.replay, 1) * B > MAX_HISTORY:
         # replay 1e8 (or agents 1e9) passed the settings check and ended in a 38.7 GiB
         # allocation error, a traceback, exit 1
@@ -527,8 +532,10 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
             history[(steps - 1) % H] = idx
             if steps % H == 0:
                 for k in range(H - 2, -1, -1):  # newest first; the newest was just applied
+                    if time.perf_counter() > deadline:  # a pass overran max_seconds by 2.7 s
+                        break
                     update(history[k])
-                updates += (H - 1) * B
+                    updates += B
         age += 1
         restart = terminal[s2] | (age >= max_ep_steps)
         k = int(restart.sum())
@@ -621,6 +628,10 @@ def plan(
         res.seconds = time.perf_counter() - t0
         return res
     heading_aware = method == "qlearning-heading"
+    if time.perf_counter() > deadline:  # the search used the budget: no MDP built past it
+        res.reason = "not converged"
+        res.seconds = time.perf_counter() - t0
+        return res
     # A heading-aware route may come back into a cell (a three-point turn), but not into an
     # unknown start: the drive enters only cells known to be free, and stopped there.
     mdp = _build_mdp(
