@@ -246,3 +246,7 @@ def test_tf2_is_available_only_where_its_type_support_loads(monkeypatch):
 
     monkeypatch.setattr(TFMessage.__class__, "__import_type_support__", classmethod(broken))
     assert not tf2_available()
+    from wheelgrid_common.ros_env import tf2_problem
+
+    problem = tf2_problem()  # what the mapper says: not "not importable", which it is
+    assert problem is not None and "importable but its type support does not load" in problem

@@ -111,19 +111,24 @@ def sample_key(info: dict[str, Any] | None) -> tuple[int, int] | None:
         return published, 0
 
 
-def tf2_available() -> bool:
-    """True where tf2_msgs is importable (a full ROS install, or set-up built it; the pip
-    wheels lack it) and its type support loads: a partial build without its C libraries
-    imported, and the mapper died creating its /tf publisher."""
+def tf2_problem() -> str | None:
+    """Why /tf cannot be published here, or None: tf2_msgs not importable (the pip wheels lack
+    it; a full ROS install, or set-up, brings it), or importable without its type support (a
+    partial build without its C libraries, where the mapper died creating its publisher)."""
     if find_spec("tf2_msgs") is None:
-        return False
+        return "tf2_msgs is not importable"
     try:
         from tf2_msgs.msg import TFMessage
 
         TFMessage.__class__.__import_type_support__()  # type: ignore[attr-defined]
-    except Exception:
-        return False
-    return True
+    except Exception as exc:
+        return f"tf2_msgs is importable but its type support does not load ({exc})"
+    return None
+
+
+def tf2_available() -> bool:
+    """True where the mapper can publish /tf (see :func:`tf2_problem`)."""
+    return tf2_problem() is None
 
 
 def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:

@@ -45,7 +45,13 @@ from wheelgrid_common.pointcloud2 import (
     read_fields,
     to_pointcloud2,
 )
-from wheelgrid_common.ros_env import exit_logger, spin_node, steady_timer, tf2_available
+from wheelgrid_common.ros_env import (
+    exit_logger,
+    spin_node,
+    steady_timer,
+    tf2_available,
+    tf2_problem,
+)
 
 from .loop_closure import LoopClosureConfig, closed_note
 from .pipeline import DEFAULT_FRAME_ID, FrameOutcome, Mapper, MapperConfig
@@ -225,9 +231,9 @@ class MapperNode(Node):  # type: ignore[misc]
                 )
         elif node_cfg.publish_tf:
             self.get_logger().warning(
-                "publish_tf: tf2_msgs is not importable, so no /tf (scripts/setup.sh builds it "
-                "into the venv where CMake and a compiler exist; log/tf2_msgs-build.log says why "
-                "it did not); the poses are on /wheelgrid/odometry"
+                f"publish_tf: {tf2_problem()}, so no /tf (scripts/setup.sh builds it into the "
+                "venv where CMake and a compiler exist; log/tf2_msgs-build.log says why it did "
+                "not); the poses are on /wheelgrid/odometry"
             )
         # Sensor-data QoS (best effort, volatile); its history grows with max_queue so that a
         # replay or a 60 Hz phone stream is not dropped by DDS while the worker holds the GIL.

@@ -291,6 +291,39 @@ def test_the_grid_node_reports_its_state_twice_a_second_and_how_long_its_executo
             listener.destroy_node()
 
 
+def test_a_heartbeat_that_fails_once_beats_on_and_a_long_grid_ends_with_a_fresh_tick():
+    """A beat that raised (the grid withdrawn by a ~/reset between two of its reads) ended the
+    heartbeat's thread for good, and the drive refused every step from then on; and a beat
+    between a long grid's end and the executor's next tick said "not busy, stalled for the
+    whole grid", which the drive reads as a hung node."""
+    import time
+
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from wheelgrid_common.qos import RELIABLE_QOS
+
+    with in_process_grid(max_rate_hz=100.0) as t:
+        node = t.grid_node
+        real, calls = node._publish_state, {"n": 0}
+
+        def flaky() -> None:
+            calls["n"] += 1
+            if calls["n"] == 1:
+                raise AttributeError("'NoneType' object has no attribute 'stats'")
+            real()
+
+        node._publish_state = flaky
+        heard: list[DiagnosticArray] = []
+        node.create_subscription(
+            DiagnosticArray, "/wheelgrid/grid_state", heard.append, RELIABLE_QOS
+        )
+        assert spin_until(t.ex, lambda: calls["n"] >= 1 and len(heard) >= 2, 10.0)
+        assert node._beat_thread.is_alive()
+        with node._working():
+            time.sleep(0.3)  # the executor's tick cannot run meanwhile
+        assert time.monotonic() - node._tick < 0.1 and node._busy_since is None
+
+
 def test_use_sim_time_is_described_and_cannot_change_live():
     """rclpy's own use_sim_time was the one parameter a running node still took (every other
     is read-only or checked), with no description: set live with no /clock, the node's stamps

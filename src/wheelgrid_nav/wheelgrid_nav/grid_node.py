@@ -121,7 +121,7 @@ class GridNode(Node):
         )
         self._beat_node: Node | None = beat
         self.state_pub = beat.create_publisher(DiagnosticArray, GRID_STATE_TOPIC, RELIABLE_QOS)
-        steady_timer(beat, GRID_STATE_PERIOD_S, self._publish_state)
+        steady_timer(beat, GRID_STATE_PERIOD_S, self._beat)
         self._beat_executor = SingleThreadedExecutor(context=self.context)
         self._beat_executor.add_node(beat)
         self._beat_thread = threading.Thread(
@@ -144,6 +144,9 @@ class GridNode(Node):
         try:
             yield
         finally:
+            # the executor runs again from now: set before the busy flag is cleared, or a beat
+            # between the two sent "not busy, stalled for the whole grid", read as a hang
+            self._tick = time.monotonic()
             self._busy_since = None
 
     def close(self) -> None:
@@ -159,22 +162,36 @@ class GridNode(Node):
         self.close()  # a caller that only destroys the node stops its heartbeat's thread too
         super().destroy_node()
 
+    def _beat(self) -> None:
+        """One heartbeat. Nothing may end the heartbeat's thread: a beat that raised (the
+        grid withdrawn by a ~/reset between two reads of it) ended it for good, and the drive
+        then refused every step for the rest of the session."""
+        try:
+            self._publish_state()
+        except Exception as exc:
+            if self.context.ok():  # at shutdown a publish fails: not worth a word
+                self.get_logger().error(f"grid_state not sent: {exc!r}", throttle_duration_sec=10.0)
+
     def _publish_state(self) -> None:
+        # each field read once: the executor's thread changes them meanwhile (busy first, then
+        # the tick: see _working)
         now = time.monotonic()
         busy_since = self._busy_since
+        tick = self._tick
+        result = self.result
         st = DiagnosticStatus(name="grid", hardware_id="wheelgrid")
-        if self.result is not None:
-            g = self.result.stats
+        if result is not None:
+            g = result.stats
             st.level = DiagnosticStatus.OK
             st.message = (
-                f"grid {self.result.grid.rows}x{self.result.grid.cols} ({g['free']} free, "
+                f"grid {result.grid.rows}x{result.grid.cols} ({g['free']} free, "
                 f"{g['occupied']} occ, {g['unknown']} unk)"
             )
         else:
             st.level, st.message = DiagnosticStatus.WARN, f"no grid: {self._no_grid}"
         st.values = [
             KeyValue(key="map_waiting", value=str(self._pending is not None).lower()),
-            KeyValue(key="stalled_s", value=f"{now - self._tick:.2f}"),
+            KeyValue(key="stalled_s", value=f"{now - tick:.2f}"),
             KeyValue(key="busy_s", value=f"{0.0 if busy_since is None else now - busy_since:.2f}"),
         ]
         arr = DiagnosticArray()
