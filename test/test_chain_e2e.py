@@ -65,6 +65,13 @@ def test_demo_drives_the_chair_to_the_goal_through_free_cells_only(live_demo, ba
     ]
     actions = [c["action"].lower().replace("_", "-") for c in s["commands"]]
     assert actions == ["left-forward"] + ["forward"] * 4 + ["right-forward"] + ["forward"] * 3
+    # ... and the demo says so itself ("OK" alone said only that the goal was reached)
+    assert s["paper"] == {
+        "grid_cells_as_expected": 64,
+        "grid_cells": 64,
+        "actions_as_table_ii": True,
+    }
+    assert "paper     grid 64/64 cells as expected; actions = Table II" in live_demo["stdout"]
     for r, c in s["driven_cells"][1:]:
         assert grid.data[r, c] == 0
 

@@ -111,11 +111,39 @@ def test_the_summary_names_the_out_folder_given_and_a_map_saved_on_exit(tmp_path
     out = tmp_path / "run1"
     (out / "on_exit").mkdir(parents=True)
     write_ply(out / "on_exit" / "map.ply", np.zeros((7, 3)))
+    (out / "grid.png").write_bytes(b"")  # (a file not written is named as such)
     summary = {"map_points_saved": None, "map_saved_on_exit": str(out / "on_exit" / "map.ply"),
                "map_points_saved_on_exit": 7, "error": "interrupted"}  # fmt: skip
     print_summary(summary, out, 130)
     text = capsys.readouterr().out
     assert "the mapper saved 7 points on exit in " + str(out / "on_exit" / "map.ply") in text
     assert "out/" not in text.replace(str(out), "") and f"{out / 'grid.png'}" in text, text
+    (out / "map.ply").write_bytes(b"")
     print_summary({"map_points_saved": 1234}, out, 0)
     assert f"1,234 points in {out / 'map.ply'}" in capsys.readouterr().out
+
+
+def test_demo_arguments_say_what_they_expect_and_the_summary_names_only_files_written(
+    tmp_path, capsys
+):
+    """`--start 2` said "invalid parse_cell value"; `--timeout nan` or `-5` ran (and the replay
+    was never bounded by it); a failed run listed grid.png, route.png and commands.csv,
+    which it never wrote."""
+    import pytest
+
+    from wheelgrid_bringup.demo import build_parser, paper_line, shown
+
+    for argv, says in (
+        (["--start", "2"], "expected a cell R,C such as 2,0"),
+        (["--timeout", "nan"], "must be a number of seconds > 0"),
+        (["--timeout", "-5"], "must be a number of seconds > 0"),
+    ):
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args(argv)
+        assert info.value.code == 2 and says in capsys.readouterr().err, argv
+    assert shown(tmp_path, "route.png") == "no route.png written"
+    (tmp_path / "route.png").write_bytes(b"")
+    assert shown(tmp_path, "route.png") == str(tmp_path / "route.png")
+    assert paper_line({}) is None
+    line = paper_line({"paper": {"grid_cells_as_expected": 63, "grid_cells": 64}})
+    assert line == "  paper     grid 63/64 cells as expected"

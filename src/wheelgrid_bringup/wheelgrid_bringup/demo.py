@@ -123,8 +123,52 @@ def prepare_out(out: Path) -> str | None:
 
 
 def parse_cell(text: str) -> tuple[int, int]:
-    r, c = (int(v) for v in text.split(","))
+    """``R,C`` as a cell; argparse says "invalid parse_cell value" for a ValueError, so the
+    error is an ArgumentTypeError that says what is expected."""
+    try:
+        r, c = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a cell R,C such as 2,0, not {text!r}") from None
     return r, c
+
+
+def positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, not {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, not {text!r}")
+    return value
+
+
+# The paper's Table II: the chair's actions for its route (2,0) -> (6,5), facing down.
+PAPER_ACTIONS = ["LEFT_FORWARD"] + ["FORWARD"] * 4 + ["RIGHT_FORWARD"] + ["FORWARD"] * 3
+
+
+def paper_check(
+    sim_dir: Path, truth: dict[str, Any], grid: Grid, actions: list[str], default_route: bool
+) -> dict[str, Any]:
+    """How the run compares with the paper: the grid, cell by cell, with the scene's expected
+    grid (its room cells placed in this grid's frame), and, for the paper's own route, the
+    actions driven with Table II's. "OK" says only that the chair reached its goal through
+    free cells: a grid or a route other than the paper's was OK too, without a word."""
+    import numpy as np
+
+    from wheelgrid_common.map_io import read_map
+
+    room = read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+    m = np.asarray(truth["map_from_room"], dtype=float)
+    same = 0
+    for r in range(room.rows):
+        for c in range(room.cols):
+            x, y = room.cell_center(r, c)
+            here = grid.cell_of(*(m @ np.array([x, y, 0.0, 1.0]))[:2])
+            same += int(grid.inside(*here) and int(grid.data[here]) == int(room.data[r, c]))
+    out: dict[str, Any] = {"grid_cells_as_expected": same, "grid_cells": room.rows * room.cols}
+    if default_route and truth.get("scene") == "paper":
+        out["actions_as_table_ii"] = actions == PAPER_ACTIONS
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -152,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--timeout",
-        type=float,
+        type=positive_seconds,
         default=170.0,
         metavar="S",
         help="the replay may take S seconds; the drive gets what is left of S since the start, "
@@ -276,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
                 over = {}
             sup.start_node(name, params, over)
         n_frames = sum(t.count for t in topics if t.msgtype.endswith("PointCloud2"))
+        summary["frames"] = n_frames  # a run that fails later said "? replayed"
         # The first frame defines the map frame: start only once the mapper listens to every
         # replayed topic (its start-up, importing Open3D and KISS-ICP, takes seconds).
         if not chain.wait(lambda: not player.unsubscribed(), 60.0, "nodes"):
@@ -283,7 +328,12 @@ def main(argv: list[str] | None = None) -> int:
         player.start(delay=0.5)
         t_map = time.monotonic()
         print(f"demo: replaying {player.total} messages at {args.rate:g}x ...", flush=True)
-        chain.wait(player.done.is_set, args.timeout, "replay", status_every=3.0)
+        if not chain.wait(player.done.is_set, args.timeout, "replay", status_every=3.0):
+            # it went on replaying past the limit, without a word
+            raise RuntimeError(
+                f"the replay took more than --timeout {args.timeout:g} s "
+                f"({player.published}/{player.total} messages sent)"
+            )
         if player.error:
             raise RuntimeError(f"replay failed: {player.error}")
 
@@ -501,6 +551,14 @@ def main(argv: list[str] | None = None) -> int:
                 },
             }
         )
+        if truth:
+            summary["paper"] = paper_check(
+                sim_dir,
+                truth,
+                grid,
+                [str(c.get("action")) for c in commands if c.get("ack") == "ACK"],
+                default_route=not (args.start or args.goal) and args.heading == "down",
+            )
         code = 0 if reached and not non_free and ok_map and ok_grid else 1
     except NodeDiedError as exc:
         print(
@@ -601,12 +659,26 @@ def saved_points(path: Path) -> int | None:
 
 
 def shown(out: Path, name: str) -> str:
-    """``out/name`` as a user would type it from here (it printed "out/" whatever --out was)."""
+    """``out/name`` as a user would type it from here (it printed "out/" whatever --out was),
+    or that it was not written (a failed run named files it never wrote)."""
     path = out / name
+    if not path.exists():
+        return f"no {name} written"
     try:
         return str(path.relative_to(Path.cwd()))
     except ValueError:
         return str(path)
+
+
+def paper_line(s: dict[str, Any]) -> str | None:
+    """The summary's comparison with the paper, where the run has a scene to compare with."""
+    p = s.get("paper")
+    if not p:
+        return None
+    line = f"  paper     grid {p['grid_cells_as_expected']}/{p['grid_cells']} cells as expected"
+    if "actions_as_table_ii" in p:
+        line += "; actions " + ("= Table II" if p["actions_as_table_ii"] else "NOT Table II's")
+    return line
 
 
 def map_points_line(s: dict[str, Any], out: Path) -> str:
@@ -649,6 +721,7 @@ def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
         + f" ({shown(out, 'commands.csv')})",
         f"  chair     reached goal: {s.get('reached_goal')}; entered non-free cells: "
         f"{s.get('entered_non_free', '?')}",
+        *([line] if (line := paper_line(s)) else []),
         f"  time      mapping {secs.get('mapping', '?')} s, loop closure "
         f"{secs.get('loop_closure', '?')} s, drive {secs.get('drive', '?')} s, "
         f"total {secs.get('total', '?')} s",
