@@ -131,6 +131,25 @@ def tf2_available() -> bool:
     return tf2_problem() is None
 
 
+def side_node(parent: Any, suffix: str) -> Any:
+    """A second node of ``parent``'s process, ``<name>_<suffix>`` in its namespace, for work
+    that must go on while the parent's executor is held up (the drive's e-stop, the grid's
+    heartbeat), on an executor and a thread of the caller's. A launcher names its node with a
+    global ``-r __node:=drive``, which renames every node of the process: the side node was a
+    second "drive", whose rosout publisher rcl shares and drops with it. A node-local rename
+    wins over a global one, and global topic remaps still apply to it."""
+    from rclpy.node import Node
+
+    name = f"{parent.get_name()}_{suffix}"
+    return Node(
+        name,
+        namespace=parent.get_namespace(),
+        context=parent.context,
+        cli_args=["--ros-args", "-r", f"__node:={name}"],
+        start_parameter_services=False,
+    )
+
+
 def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:
     """A timer of ``node`` on steady time, for its housekeeping (publishing at a bounded rate,
     status, watchdogs). On the node's own clock, ``use_sim_time`` (a Nav2 params file's

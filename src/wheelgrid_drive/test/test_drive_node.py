@@ -606,40 +606,49 @@ def test_an_estop_held_by_a_latched_source_before_the_drive_started_latches_it(m
             source.destroy_node()
 
 
+@contextlib.contextmanager
+def hearing_a_grid_node(make_sim, pose=None, **params):
+    """A drive (``grid_state_timeout`` 1 s, a real-time controller at ``pose``) that has heard a
+    grid node's heartbeat, sent every 0.2 s: yields ``(harness, sim, grid, beat)``, where
+    ``beat["on"]`` pauses it and ``beat["values"]`` are the KeyValues it says."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    grid = free_grid()
+    sim = make_sim(time_scale=1.0, **({} if pose is None else {"pose": pose}))
+    beat = {"on": True, "values": {}}
+    with (
+        rclpy_context() as ctx,
+        Harness(ctx, sim.slave_path, grid_state_timeout=1.0, **params) as h,
+    ):
+        pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
+
+        def send() -> None:
+            if beat["on"]:
+                values = [KeyValue(key=k, value=v) for k, v in beat["values"].items()]
+                pub.publish(DiagnosticArray(status=[DiagnosticStatus(values=values)]))
+
+        h.node.create_timer(0.2, send)
+        assert h.matched()
+        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
+        h.give_grid(grid)
+        yield h, sim, grid, beat
+
+
 def test_a_grid_node_gone_silent_stops_the_chair_and_refuses_steps(make_sim):
     """A hung grid node (SIGSTOPped in a review) kept its last grid published while the newer
     map, with a crate in a route cell, went ungridded: the drive drove the route through the
     crate. Once heard, the grid node's state falling silent for grid_state_timeout now stops
     a running move and refuses steps; its return lets a new plan drive. A drive that never
     heard one (a static grid from map_server) drives as before: every other test."""
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-
-    sim = make_sim(time_scale=1.0)
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(
-            ctx,
-            sim.slave_path,
-            initial_heading="right",
-            set_pose_on_plan=True,
-            grid_state_timeout=1.0,
-        ) as h,
+    with hearing_a_grid_node(make_sim, initial_heading="right", set_pose_on_plan=True) as (
+        h,
+        sim,
+        grid,
+        beat,
     ):
-        state_pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
-        beating = {"on": True}
-
-        def beat() -> None:
-            if beating["on"]:
-                state_pub.publish(DiagnosticArray(status=[DiagnosticStatus(message="grid")]))
-
-        h.node.create_timer(0.2, beat)
-        assert h.matched()
-        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
-        h.give_grid(grid)
         h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
         assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
-        beating["on"] = False  # the grid node hangs mid-move
+        beat["on"] = False  # the grid node hangs mid-move
         t0 = time.monotonic()
         assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
         assert time.monotonic() - t0 < 1.0 + 0.5
@@ -651,7 +660,7 @@ def test_a_grid_node_gone_silent_stops_the_chair_and_refuses_steps(make_sim):
             lambda: any(c.get("ack") == "REFUSED" and "silent" in c["reason"] for c in h.cmds), 5
         )
         assert len(sim_moves(sim)) == n
-        beating["on"] = True  # it is back: a new plan drives
+        beat["on"] = True  # it is back: a new plan drives
         assert h.spin(lambda: h.drive._grid_silence() is None, 3.0)
         h.publish_plan(grid, [here, (here[0], here[1] + 1)])
         assert h.spin(lambda: len(sim_moves(sim)) == n + 1, 5.0)
@@ -1329,37 +1338,19 @@ def test_a_grid_node_that_says_its_executor_stalled_stops_the_chair_and_a_long_g
     It says how long the executor has not run outside a grid (a hung node) and how long the
     grid under way has taken; the first beyond grid_state_timeout stops the chair, the second
     not until GRID_BUSY_MAX_S."""
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
-    sim = make_sim(time_scale=1.0)
-    grid = free_grid()
-    with (
-        rclpy_context() as ctx,
-        Harness(
-            ctx,
-            sim.slave_path,
-            initial_heading="right",
-            set_pose_on_plan=True,
-            grid_state_timeout=1.0,
-        ) as h,
+    with hearing_a_grid_node(make_sim, initial_heading="right", set_pose_on_plan=True) as (
+        h,
+        sim,
+        grid,
+        beat,
     ):
-        state_pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
-        said = {"stalled_s": "0.00", "busy_s": "0.00"}
-
-        def beat() -> None:
-            values = [KeyValue(key=k, value=v) for k, v in said.items()]
-            state_pub.publish(DiagnosticArray(status=[DiagnosticStatus(values=values)]))
-
-        h.node.create_timer(0.2, beat)
-        assert h.matched()
-        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
-        h.give_grid(grid)
+        beat["values"].update(stalled_s="0.00", busy_s="0.00")
         h.publish_plan(grid, [(3, 0), (3, 1), (3, 2), (3, 3)])
         assert h.spin(lambda: sim.state == proto.State.DRIVING, 5.0)
-        said.update(stalled_s="3.00", busy_s="3.00")  # a long grid under way: drives on
+        beat["values"].update(stalled_s="3.00", busy_s="3.00")  # a long grid under way: drives on
         h.spin(lambda: False, 0.6)
         assert sim.state == proto.State.DRIVING and h.drive._grid_silence() is None
-        said.update(busy_s="0.00")  # stalled outside a grid: hung
+        beat["values"].update(busy_s="0.00")  # stalled outside a grid: hung
         assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
         assert h.spin(lambda: any("has not run for" in s.message for s in h.states), 3.0)
 
@@ -1368,28 +1359,10 @@ def test_a_stick_refused_while_the_grid_node_was_silent_drives_once_it_is_back(m
     """A /cmd_vel move refused while the grid node was silent stayed refused, with no word,
     after the heartbeat came back (the refusal was kept for the same grid object), and even
     after the stick fell silent, which is a release."""
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-
-    grid = free_grid()
-    x, y = grid.cell_center(3, 3)
-    sim = make_sim(time_scale=1.0, pose=(float(x), float(y), 0.0))
-    with (
-        rclpy_context() as ctx,
-        Harness(ctx, sim.slave_path, grid_state_timeout=1.0) as h,
-    ):
-        state_pub = h.node.create_publisher(DiagnosticArray, "/wheelgrid/grid_state", RELIABLE_QOS)
-        beating = {"on": True}
-        h.node.create_timer(
-            0.2,
-            lambda: (
-                beating["on"] and state_pub.publish(DiagnosticArray(status=[DiagnosticStatus()]))
-            ),
-        )
-        assert h.matched()
-        h.give_grid(grid)
+    x, y = free_grid().cell_center(3, 3)
+    with hearing_a_grid_node(make_sim, pose=(float(x), float(y), 0.0)) as (h, sim, _grid, beat):
         assert h.armed()
-        assert h.spin(lambda: h.drive._grid_state_heard is not None, 5.0)
-        beating["on"] = False
+        beat["on"] = False
         assert h.spin(lambda: h.drive._grid_silence() is not None, 3.0)
         fwd = h.Twist()
         fwd.linear.x = 0.5
@@ -1397,7 +1370,7 @@ def test_a_stick_refused_while_the_grid_node_was_silent_drives_once_it_is_back(m
         hold_stick(h, fwd, 0.5)
         refused = [c for c in h.cmds if c.get("ack") == "REFUSED"]
         assert len(refused) == 1 and "silent" in refused[0]["reason"], refused
-        beating["on"] = True
+        beat["on"] = True
         assert h.spin(lambda: h.drive._grid_silence() is None, 3.0)
         hold_stick(h, fwd, 0.3)  # the same stick, still held: asked again, and driven
         assert h.spin(lambda: sim_moves(sim) == ["FORWARD"], 3.0)

@@ -45,6 +45,7 @@ from wheelgrid_common.ros_env import (
     exit_logger,
     received_ns,
     sample_key,
+    side_node,
     spin_node,
     steady_timer,
     with_message_info,
@@ -297,18 +298,7 @@ class DriveNode(Node):
         steady_timer(self, 0.05, self._cmd_vel_tick)
         steady_timer(self, 1.0 / max(c.state_rate, 0.1), self._publish_state)
 
-        # A launcher names its node with a global ``-r __node:=drive``, which renames every
-        # node of the process: the e-stop node was a second "drive", whose rosout publisher
-        # rcl shares and drops with it. A node-local rename wins over a global one, and the
-        # global topic remaps (a remapped e-stop topic) still apply to this node.
-        estop_name = f"{self.get_name()}_estop"
-        estop = Node(
-            estop_name,
-            namespace=self.get_namespace(),
-            context=self.context,
-            cli_args=["--ros-args", "-r", f"__node:={estop_name}"],
-            start_parameter_services=False,
-        )
+        estop = side_node(self, "estop")  # a remapped e-stop topic still applies to it
         self._estop_node: Node | None = estop
         estop.create_subscription(
             Bool, "wheelgrid/estop", with_message_info(self._on_estop_message), RELIABLE_QOS

@@ -41,7 +41,7 @@ from wheelgrid_common.fileio import user_folder
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
-from wheelgrid_common.ros_env import spin_node, steady_timer
+from wheelgrid_common.ros_env import side_node, spin_node, steady_timer
 from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
 
 # Relative names: in the root namespace they are /wheelgrid/..., and a node started
@@ -109,16 +109,8 @@ class GridNode(Node):
         )
 
     def _start_heartbeat(self) -> None:
-        """The heartbeat's node, on an executor and a thread of its own (named as the drive's
-        e-stop node is: a launcher's global ``__node:=grid`` would rename it too)."""
-        name = f"{self.get_name()}_heartbeat"
-        beat = Node(
-            name,
-            namespace=self.get_namespace(),
-            context=self.context,
-            cli_args=["--ros-args", "-r", f"__node:={name}"],
-            start_parameter_services=False,
-        )
+        """The heartbeat's node, on an executor and a thread of its own."""
+        beat = side_node(self, "heartbeat")
         self._beat_node: Node | None = beat
         self.state_pub = beat.create_publisher(DiagnosticArray, GRID_STATE_TOPIC, RELIABLE_QOS)
         steady_timer(beat, GRID_STATE_PERIOD_S, self._beat)
