@@ -145,5 +145,11 @@ def test_demo_arguments_say_what_they_expect_and_the_summary_names_only_files_wr
     (tmp_path / "route.png").write_bytes(b"")
     assert shown(tmp_path, "route.png") == str(tmp_path / "route.png")
     assert paper_line({}) is None
+    from wheelgrid_bringup.demo import shared_domain_warning
+
+    mixed = {"frames": 210, "mapper": {"frames_used": "243", "frames_failed": "27"}}
+    assert "another demo or chain shares this ROS domain" in shared_domain_warning(mixed)
+    alone = {"frames": 210, "mapper": {"frames_used": "210", "frames_failed": "0"}}
+    assert shared_domain_warning(alone) == "" and shared_domain_warning({}) == ""
     line = paper_line({"paper": {"grid_cells_as_expected": 63, "grid_cells": 64}})
     assert line == "  paper     grid 63/64 cells as expected"

@@ -199,16 +199,17 @@ def build_parser() -> argparse.ArgumentParser:
         type=positive_seconds,
         default=170.0,
         metavar="S",
-        help="the replay may take S seconds; the drive gets what is left of S since the start, "
-        "and never less than 10 s + 4 s a move (the other stages keep their own limits: nodes "
-        "60 s, mapping 60 s, loop closure 300 s, grid 20 s, motor link 10 s)",
+        help="the replay may take S seconds (default 170); the drive gets what is left of S "
+        "since the start, and never less than 10 s + 4 s a move (the other stages keep their "
+        "own limits: nodes 60 s, mapping 60 s, loop closure 300 s, grid 20 s, motor link 10 s)",
     )
     p.add_argument(
         "--close-loops",
         action=argparse.BooleanOptionalAction,
         default=True,
         help="end the scan with the mapper's ~/close_loops before the grid is used, as "
-        "`wheelgrid map` ends a bag (default on; --no-close-loops: the online map, ~45 s less)",
+        "`wheelgrid map` ends a bag (default on; --no-close-loops: the online map, ~40-65 s "
+        "less)",
     )
     return p
 
@@ -670,6 +671,23 @@ def shown(out: Path, name: str) -> str:
         return str(path)
 
 
+def shared_domain_warning(s: dict[str, Any]) -> str:
+    """A warning where the mapper took more frames than the demo replayed: another demo or
+    chain shares the domain (its frames mixed in: 243 used of 210 in a review's run)."""
+    m = s.get("mapper", {})
+    try:
+        taken = int(m.get("frames_used", 0)) + int(m.get("frames_failed", 0))
+        replayed = int(s.get("frames", 0))
+    except (TypeError, ValueError):
+        return ""
+    if replayed and taken > replayed:
+        return (
+            f"\n  WARNING   the mapper took {taken} frames of {replayed} replayed: another demo "
+            "or chain shares this ROS domain and its frames mixed in (run one at a time)"
+        )
+    return ""
+
+
 def paper_line(s: dict[str, Any]) -> str | None:
     """The summary's comparison with the paper, where the run has a scene to compare with."""
     p = s.get("paper")
@@ -704,7 +722,7 @@ def print_summary(s: dict[str, Any], out: Path, code: int) -> None:
         f"wheelgrid demo: {'OK' if code == 0 else 'FAILED'}"
         + (f" ({s['error']})" if s.get("error") else ""),
         f"  frames    {s.get('frames', '?')} replayed; mapper used {m.get('frames_used', '?')}, "
-        f"failed {m.get('frames_failed', '?')}",
+        f"failed {m.get('frames_failed', '?')}" + shared_domain_warning(s),
         f"  map       {map_points_line(s, out)}; "
         + (
             f"loops closed: {m.get('loop_closure_note')}"
