@@ -153,3 +153,4 @@ def test_demo_arguments_say_what_they_expect_and_the_summary_names_only_files_wr
     assert shared_domain_warning(alone) == "" and shared_domain_warning({}) == ""
     line = paper_line({"paper": {"grid_cells_as_expected": 63, "grid_cells": 64}})
     assert line == "  paper     grid 63/64 cells as expected"
+    assert paper_line({"paper": {"error": "cannot compare"}}) == "  paper     cannot compare"
