@@ -59,6 +59,7 @@ from wheelgrid_drive.runner import (
     controller_pose_check,
     dumps_record,
     grid_cell_check,
+    off_centre_problem,
     planned_grid_check,
     run_steps,
     same_geometry,
@@ -824,14 +825,7 @@ class DriveNode(Node):
             st = self.link.status()
         except LinkError as exc:
             return f"no controller pose after the last step: {exc}"
-        cx, cy = (float(v) for v in grid.cell_center(*goal))
-        off = math.hypot(st.x - cx, st.y - cy)
-        if off > self.cfg.pose_tolerance * grid.resolution:
-            return (
-                f"the controller reports the chair at ({st.x:.2f}, {st.y:.2f}), {off:.2f} m from "
-                f"the centre of cell {goal} (cell {grid.cell_of(st.x, st.y)})"
-            )
-        return None
+        return off_centre_problem(grid, st.x, st.y, goal, self.cfg.pose_tolerance)
 
     def _on_step_start(self, step: actions.Step) -> None:
         self._entering = step.dst
@@ -889,7 +883,8 @@ class DriveNode(Node):
         if self._estop:
             return
         action = self._twist_action(twist)
-        if action is not None or not self._twist_released(twist):
+        moved = action is not None or not self._twist_released(twist)
+        if moved:
             with self._gate:  # the stick overrides a plan still waiting for its grid
                 self._pending_plan = None
             if self._busy() and self._job == "plan":
@@ -903,7 +898,7 @@ class DriveNode(Node):
                 )
                 return
         if not self._twist_armed:
-            if action is not None or not self._twist_released(twist):
+            if moved:
                 self.get_logger().warning(
                     f"/cmd_vel ignored: {self._disarmed_why}; send a zero Twist (or none for "
                     f"{max(self.cfg.cmd_vel_timeout, STARTUP_QUIET_S):g} s) to drive with it",

@@ -107,6 +107,23 @@ OFF_CELL = "the chair at"
 WOULD_END = "would end"
 
 
+def off_centre_problem(
+    grid: Any, x: float, y: float, cell: tuple[int, int], tolerance: float = 0.25
+) -> str | None:
+    """Why a chair at (``x``, ``y``) does not stand in ``cell`` (more than ``tolerance`` cells
+    from its centre), or None: before a step (the chair must start there) and after a plan's
+    last one (a move reported done short of its cell)."""
+    res = float(grid.resolution)
+    cx, cy = (float(v) for v in grid.cell_center(*cell))
+    off = math.hypot(x - cx, y - cy)
+    if off > tolerance * res:
+        return (
+            f"{OFF_CELL} ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
+            f"{tuple(cell)}, more than {tolerance:g} cell"
+        )
+    return None
+
+
 def step_pose_problem(
     grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
 ) -> str | None:
@@ -120,14 +137,10 @@ def step_pose_problem(
     ``tolerance`` cells of the next cell's centre; a straight move between two such points
     stays inside those two cells.
     """
+    off_centre = off_centre_problem(grid, x, y, step.src, tolerance)
+    if off_centre:
+        return off_centre
     res = float(grid.resolution)
-    sx, sy = (float(v) for v in grid.cell_center(*step.src))
-    off = math.hypot(x - sx, y - sy)
-    if off > tolerance * res:
-        return (
-            f"{OFF_CELL} ({x:.2f}, {y:.2f}) is {off:.2f} m from the centre of cell "
-            f"{step.src}, more than {tolerance:g} cell"
-        )
     along, across, _ = _line_to_centre(grid, x, y, yaw, step)
     miss = math.hypot(along - res, across)  # where one cell's length ends, from the centre
     if miss > tolerance * res:

@@ -598,17 +598,16 @@ def linear_obstacles(
     proj = dc * np.cos(theta)[comp] + dr * np.sin(theta)[comp]
     order = np.argsort(comp, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
-    extent = (
-        np.maximum.reduceat(proj[order], starts) - np.minimum.reduceat(proj[order], starts) + 1.0
-    )
+    lo = np.minimum.reduceat(proj[order], starts)
+    hi = np.maximum.reduceat(proj[order], starts)
+    extent = hi - lo + 1.0
     long = extent >= min_length_px - 1e-9
     inner = ~edge[rows, cols]
     if boundary is not None:
-        long &= np.bincount(comp, inner, k) >= 2
+        beyond = np.bincount(comp, inner, k) >= 2  # two links past the strip, where the cell is
+        long &= beyond
         if wall_reach_px > 0:
-            lo = np.minimum.reduceat(proj[order], starts)
-            hi = np.maximum.reduceat(proj[order], starts)
-            for i in np.flatnonzero(~long & (np.bincount(comp, inner, k) >= 2)):
+            for i in np.flatnonzero(~long & beyond):
                 axis = np.array([math.sin(theta[i]), math.cos(theta[i])])
                 centre = np.array([mr[i], mc[i]])
                 reach = sum(
@@ -1102,7 +1101,8 @@ def build_grid(
     # points alone blacken it. Below-floor points there (a stairwell's seen bottom, a dock's
     # edge) stay obstacles of the border cell: the strip, stretched to a bulkhead over the
     # drop, hid 18 cm of a seen 1 m drop in a free border cell.
-    boundary = black & ring & (counts[1] >= cfg.min_points_per_pixel)
+    band_black = counts[1] >= cfg.min_points_per_pixel
+    boundary = black & ring & band_black
     obstacles = black & ~boundary
     floor = _dilate(counts[0] > 0, cfg.floor_fill) & ~black
 
@@ -1125,7 +1125,7 @@ def build_grid(
     guard_only = guard & ~occupied
     occupied |= guard
     observed = cell_density(floor | black, k, k)
-    patch = unobserved_patches(floor, counts[1] >= cfg.min_points_per_pixel, ring, cfg, k)
+    patch = unobserved_patches(floor, band_black, ring, cfg, k)
     data = np.full((rows, cols), UNKNOWN, dtype=np.int8)
     data[(observed >= cfg.min_observed_fraction) & ~patch] = FREE
     data[occupied] = OCCUPIED
