@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable, Mapping, MutableMapping
 from importlib.util import find_spec
 from pathlib import Path
@@ -148,6 +149,31 @@ def side_node(parent: Any, suffix: str) -> Any:
         cli_args=["--ros-args", "-r", f"__node:={name}"],
         start_parameter_services=False,
     )
+
+
+class SideSpinner:
+    """A :func:`side_node` spun on an executor and a daemon thread of its own, and stopped
+    with it: the drive's e-stop and the grid's heartbeat must go on while their parent's
+    executor is held up. ``run(executor)`` is the thread's body (it calls ``executor.spin()``
+    and decides what an exception there means); the executor is passed in so the thread never
+    reads an attribute its starter has not yet set."""
+
+    def __init__(self, node: Any, thread_name: str, run: Callable[[Any], None]) -> None:
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.node = node
+        self.executor = SingleThreadedExecutor(context=node.context)
+        self.executor.add_node(node)
+        self.thread = threading.Thread(
+            target=run, args=(self.executor,), name=thread_name, daemon=True
+        )
+        self.thread.start()
+
+    def close(self) -> None:
+        """Stop the executor, wait for the thread (1 s at most) and destroy the node."""
+        self.executor.shutdown(timeout_sec=1.0)
+        self.thread.join(timeout=1.0)
+        self.node.destroy_node()
 
 
 def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:

@@ -274,9 +274,9 @@ def test_a_failed_estop_thread_stops_the_chair_for_good(make_sim):
             raise RuntimeError("executor broke")
 
         t0 = time.monotonic()
-        h.drive._estop_executor.spin_once = broken  # its spin loop calls this next
+        h.drive._estop_side.executor.spin_once = broken  # its spin loop calls this next
         assert h.spin(lambda: any(e.what == "stop" and e.t > t0 for e in sim.events), 3.0)
-        assert h.spin(lambda: not h.drive._estop_thread.is_alive(), 3.0)
+        assert h.spin(lambda: not h.drive._estop_side.thread.is_alive(), 3.0)
         assert h.spin(lambda: any("restart the node" in s.message for s in h.states), 3.0)
         n_moves = len(sim_moves(sim))
         h.publish_plan(grid, [(3, 1), (3, 2)])

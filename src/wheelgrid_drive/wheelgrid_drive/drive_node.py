@@ -32,7 +32,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Path
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Bool, String
@@ -42,6 +42,7 @@ from wheelgrid_common.map_io import Grid, from_occupancy_grid
 from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS, volatile_writers_expected
 from wheelgrid_common.ros_env import (
+    SideSpinner,
     exit_logger,
     received_ns,
     sample_key,
@@ -300,7 +301,6 @@ class DriveNode(Node):
         steady_timer(self, 1.0 / max(c.state_rate, 0.1), self._publish_state)
 
         estop = side_node(self, "estop")  # a remapped e-stop topic still applies to it
-        self._estop_node: Node | None = estop
         estop.create_subscription(
             Bool, "wheelgrid/estop", with_message_info(self._on_estop_message), RELIABLE_QOS
         )
@@ -329,18 +329,13 @@ class DriveNode(Node):
         )
         steady_timer(estop, 0.05, self._cmd_vel_guard)
         steady_timer(estop, 0.1, self._grid_state_guard)
-        self._estop_executor = SingleThreadedExecutor(context=self.context)
-        self._estop_executor.add_node(estop)
-        self._estop_thread = threading.Thread(
-            target=self._spin_estop, name="drive-estop", daemon=True
-        )
-        self._estop_thread.start()
+        self._estop_side: SideSpinner | None = SideSpinner(estop, "drive-estop", self._spin_estop)
 
-    def _spin_estop(self) -> None:
+    def _spin_estop(self, executor: Any) -> None:
         """The e-stop thread. Should its executor ever fail, nothing could stop the chair from
         ROS any more: it stops it and latches the e-stop for good."""
         try:
-            self._estop_executor.spin()
+            executor.spin()
         except ExternalShutdownException:
             pass  # Ctrl-C or rclpy.shutdown(): close() stops the chair
         except Exception as exc:
@@ -1098,12 +1093,10 @@ class DriveNode(Node):
         if self._worker is not None:
             self._worker.join(timeout=3.0)
         self.link.close(stop=True)
-        estop_node = getattr(self, "_estop_node", None)
-        if estop_node is not None:
-            self._estop_executor.shutdown(timeout_sec=1.0)
-            self._estop_thread.join(timeout=1.0)
-            estop_node.destroy_node()
-            self._estop_node = None
+        side = getattr(self, "_estop_side", None)
+        if side is not None:
+            side.close()
+            self._estop_side = None
 
 
 def main(argv: list[str] | None = None) -> int:

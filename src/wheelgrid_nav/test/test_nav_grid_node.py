@@ -318,7 +318,7 @@ def test_a_heartbeat_that_fails_once_beats_on_and_a_long_grid_ends_with_a_fresh_
             DiagnosticArray, "/wheelgrid/grid_state", heard.append, RELIABLE_QOS
         )
         assert spin_until(t.ex, lambda: calls["n"] >= 1 and len(heard) >= 2, 10.0)
-        assert node._beat_thread.is_alive()
+        assert node._heartbeat is not None and node._heartbeat.thread.is_alive()
         with node._working():
             time.sleep(0.3)  # the executor's tick cannot run meanwhile
         assert time.monotonic() - node._tick < 0.1 and node._busy_since is None

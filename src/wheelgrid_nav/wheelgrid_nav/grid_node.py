@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import math
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
@@ -31,7 +30,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -41,7 +40,7 @@ from wheelgrid_common.fileio import user_folder
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
-from wheelgrid_common.ros_env import side_node, spin_node, steady_timer
+from wheelgrid_common.ros_env import SideSpinner, side_node, spin_node, steady_timer
 from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
 
 # Relative names: in the root namespace they are /wheelgrid/..., and a node started
@@ -111,20 +110,17 @@ class GridNode(Node):
     def _start_heartbeat(self) -> None:
         """The heartbeat's node, on an executor and a thread of its own."""
         beat = side_node(self, "heartbeat")
-        self._beat_node: Node | None = beat
         self.state_pub = beat.create_publisher(DiagnosticArray, GRID_STATE_TOPIC, RELIABLE_QOS)
         steady_timer(beat, GRID_STATE_PERIOD_S, self._beat)
-        self._beat_executor = SingleThreadedExecutor(context=self.context)
-        self._beat_executor.add_node(beat)
-        self._beat_thread = threading.Thread(
-            target=self._spin_heartbeat, name="grid-heartbeat", daemon=True
+        self._heartbeat: SideSpinner | None = SideSpinner(
+            beat, "grid-heartbeat", self._spin_heartbeat
         )
-        self._beat_thread.start()
 
-    def _spin_heartbeat(self) -> None:
+    @staticmethod
+    def _spin_heartbeat(executor: Any) -> None:
         # at shutdown it falls silent, which is what the drive reads as a dead node
         with suppress(ExternalShutdownException):
-            self._beat_executor.spin()
+            executor.spin()
 
     def _on_tick(self) -> None:
         self._tick = time.monotonic()
@@ -143,12 +139,10 @@ class GridNode(Node):
 
     def close(self) -> None:
         """Stop the heartbeat's thread (spin_node calls it before destroying the node)."""
-        beat = getattr(self, "_beat_node", None)
-        if beat is not None:
-            self._beat_executor.shutdown(timeout_sec=1.0)
-            self._beat_thread.join(timeout=1.0)
-            beat.destroy_node()
-            self._beat_node = None
+        heartbeat = getattr(self, "_heartbeat", None)
+        if heartbeat is not None:
+            heartbeat.close()
+            self._heartbeat = None
 
     def destroy_node(self) -> None:
         self.close()  # a caller that only destroys the node stops its heartbeat's thread too
