@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from wheelgrid_mapping.cli_map import mount_check_line
 from wheelgrid_mapping.levelling import (
     FloorNotFoundError,
     convention_for_frame,
@@ -45,7 +46,9 @@ def sensor_pose(yaw: float, pitch: float, roll: float, conv: str, height: float)
 
 @pytest.mark.parametrize("conv", ["optical", "body"])
 @pytest.mark.parametrize(
-    ("pitch_deg", "roll_deg"), [(0.0, 0.0), (25.0, 0.0), (-20.0, 10.0), (10.0, -30.0)]
+    ("pitch_deg", "roll_deg"),
+    # 30 and 30 at once tilt the sensor 41.4 deg: refused while the limit was 40 deg
+    [(0.0, 0.0), (25.0, 0.0), (-20.0, 10.0), (10.0, -30.0), (30.0, 30.0), (-30.0, -30.0)],
 )
 def test_floor_levelling_meets_the_convention(conv: str, pitch_deg: float, roll_deg: float) -> None:
     rng = np.random.default_rng(5)
@@ -308,3 +311,39 @@ def test_a_prior_that_begins_later_and_is_no_vertical_does_not_tilt_the_floor() 
     assert info["prior_not_gravity_deg"] == pytest.approx(90.0, abs=0.5)
     assert "prior_gravity_deg" not in info
     assert np.mean(np.abs(pts[:, 2]) < 0.03) > 0.3  # the floor is still at z = 0
+
+
+@pytest.mark.parametrize(
+    ("height_off", "pitch_off_deg", "warned"), [(0.0, 0.0, False), (0.3, 8.0, True)]
+)
+def test_a_mount_transform_the_seen_floor_contradicts_is_used_and_said(
+    height_off: float, pitch_off_deg: float, warned: bool
+) -> None:
+    """An explicit mount is taken as given (the floor may be hidden from the sensor), but a
+    floor the first frames plainly show 30 cm and 8 deg off it made a map leaning 3.4 deg,
+    with exit 0 and nothing said: the report now carries the floor against the mount, and a
+    warning where they disagree."""
+    rng = np.random.default_rng(41)
+    T = sensor_pose(0.0, math.radians(15), 0.0, "body", 1.0)
+    inv = np.linalg.inv(T)
+    pts = room_points(rng) @ inv[:3, :3].T + inv[:3, 3]
+    mount = [0.3, -0.2, 1.0 + height_off, 0.0, math.radians(15 + pitch_off_deg), 0.0]
+    m = Mapper(cfg=MapperConfig(level_min_frames=2, mount_xyz_rpy=mount))
+    for i in range(2):
+        assert m.add_frame(pts, i * 0.2, "base_link", prior=np.eye(4)).status == "used"
+    assert m.T_map_odom is not None
+    level = m.report()["levelling"]
+    check = level["mount_floor_check"]
+    assert check["floor_seen"]
+    line = mount_check_line(level)  # what wheelgrid map prints, and the node logs
+    assert (line is not None and line.startswith("levelling: warning: ")) == warned
+    if warned:
+        assert check["tilt_deg"] == pytest.approx(pitch_off_deg, abs=0.3)
+        assert check["height_off_m"] == pytest.approx(-height_off, abs=0.05)
+        assert "check the mount transform" in check["warning"]
+        assert "above the floor mount_xyz_rpy gives" in check["warning"]
+    else:
+        assert check["tilt_deg"] < 0.3 and abs(check["height_off_m"]) < 0.01
+        assert "warning" not in check
+    # the map frame is the mount's either way
+    assert np.allclose(m.T_map_odom, map_from_mount(mount, "body"))

@@ -411,6 +411,13 @@ def floor_refound_line(level: dict[str, Any]) -> str | None:
     )
 
 
+def mount_check_line(level: dict[str, Any]) -> str | None:
+    """One line when the floor the frames show disagrees with an explicit mount transform
+    (:meth:`Mapper._mount_floor_check`); None when it agrees or nothing was checked."""
+    warning = (level.get("mount_floor_check") or {}).get("warning")
+    return f"levelling: warning: {warning}" if warning else None
+
+
 # A run where this share of the frames failed registration says so as a whole: each failure
 # is a warning line of its own, and hundreds of them (a scan KISS-ICP lost) drowned the fact
 # that the map as a whole is not to be trusted.
@@ -655,9 +662,9 @@ def _run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"wheelgrid map: cannot write the map to {args.out}: {exc}", file=sys.stderr)
         return 1
-    refound = floor_refound_line(rep["levelling"])
-    if refound:
-        print(refound, file=sys.stderr)
+    for line in (floor_refound_line(rep["levelling"]), mount_check_line(rep["levelling"])):
+        if line:
+            print(line, file=sys.stderr)
     fr = rep["frames"]
     wall = time.perf_counter() - t0
     skipped = f", {len(bad)} unreadable skipped" if bad else ""

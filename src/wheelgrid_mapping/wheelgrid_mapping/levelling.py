@@ -40,7 +40,7 @@ def find_floor(
     points: np.ndarray,
     down: np.ndarray,
     sensor_origin: np.ndarray | None = None,
-    max_tilt_deg: float = 40.0,
+    max_tilt_deg: float = 45.0,
     distance: float = 0.03,
     min_fraction: float = 0.03,
     min_points: int = 200,

@@ -187,6 +187,7 @@ class MapperNode(Node):  # type: ignore[misc]
         # are PRIOR_CLOCK_BACK_POSES of them (see _on_prior)
         self._priors_behind: list[tuple[float, np.ndarray, str]] = []
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
+        self._mount_check_seen: dict[str, Any] | None = None  # the mount check last warned of
         self._logged: set[str] = set()
         self._map_dirty = False
         self._saved: tuple[int, int, str] | None = None  # what ~/save_map last wrote
@@ -632,12 +633,18 @@ class MapperNode(Node):  # type: ignore[misc]
     def _warn_floor_refound(self) -> None:
         """Say so when the map frame jumped to the floor found on the whole map: the map, the
         poses and any grid made from an earlier map cloud move with it."""
-        from .cli_map import floor_refound_line
+        from .cli_map import floor_refound_line, mount_check_line
 
         got = self.mapper.level_info.get("floor_refound")
         if got and got is not self._floor_refound_seen:
             self._floor_refound_seen = got
             self.get_logger().warning(f"mapper: {floor_refound_line(self.mapper.level_info)}")
+        check = self.mapper.level_info.get("mount_floor_check")
+        if check and check is not self._mount_check_seen:
+            self._mount_check_seen = check
+            line = mount_check_line(self.mapper.level_info)
+            if line:
+                self.get_logger().warning(f"mapper: {line}")
 
     def _publish_status(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue

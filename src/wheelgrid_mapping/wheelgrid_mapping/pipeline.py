@@ -61,7 +61,12 @@ class MapperConfig:
     mount_xyz_rpy: list[float] = field(  # noqa: RUF009 (params.field copies list defaults)
         [], "sensor pose on a levelled base (z=0 floor): x y z roll pitch yaw; [] = from floor", ""
     )
-    floor_max_tilt_deg: float = field(40.0, "the floor normal may differ this much from up", "deg")
+    floor_max_tilt_deg: float = field(
+        45.0,
+        "the floor normal may differ this much from the sensor's up (pitched and rolled 30 deg "
+        "at once: 41.4 deg)",
+        "deg",
+    )
     prior_gravity: bool = field(
         True,
         "a pose prior's frame has z up along gravity (REP-105 odom; ARKit through the Stray "
@@ -158,6 +163,12 @@ FLOOR_CHECK_GROWTH = 2.0
 # The floor found on the whole map holding this many times the map points within 3 cm that
 # z = 0 holds: z = 0 misses part of the floor, and the map frame is taken from the floor found.
 FLOOR_CHECK_GAIN = 1.1
+# A floor the first frames show this far from the one an explicit mount transform gives
+# (deg between the normals, m along them under the first pose) makes a warning: the mount is
+# then wrong (a mount measured 30 cm high and 8 deg pitched off put the map's floor 3.4 deg
+# off level and the run said nothing), and the grid's floor band would cut through the floor.
+MOUNT_FLOOR_TILT_DEG = 2.0
+MOUNT_FLOOR_HEIGHT_M = 0.05
 # A frame stamped at most this long before the last keyframe (or at its very stamp) is a repeat
 # or a late frame, skipped; farther back, a bad stamp or a clock jump (BEHIND_CONFIRM) (s).
 LATE_FRAME_WINDOW = 1.0
@@ -791,6 +802,7 @@ class Mapper:
                 self.T_map_odom = map_from_mount(self.cfg.mount_xyz_rpy, conv)
                 self._dirty = 1
                 self.level_info = {"method": "mount", "mount_xyz_rpy": list(self.cfg.mount_xyz_rpy)}
+                self.level_info["mount_floor_check"] = self._mount_floor_check(conv)
             else:
                 pts = self.map_odom()
                 first = self.poses_odom[0] if self.poses_odom else np.eye(4)
@@ -822,6 +834,36 @@ class Mapper:
         finally:
             self.timings["levelling_s"] += time.perf_counter() - t0
         return self.T_map_odom is not None
+
+    def _mount_floor_check(self, conv: str) -> dict[str, Any]:
+        """The floor the first frames show against the floor the mount transform puts at
+        z = 0: the mount is taken as given (the floor may be hidden), but a floor that is
+        plainly seen elsewhere is said, with a ``warning``."""
+        assert self.T_map_odom is not None
+        up = self.T_map_odom[2, :3]  # the mount's floor, z = 0, in odom: up . p + d = 0
+        d_mount = float(self.T_map_odom[2, 3])
+        first = self.poses_odom[0] if self.poses_odom else np.eye(4)
+        try:
+            n, d = find_floor(self.map_odom(), -up, first[:3, 3], self.cfg.floor_max_tilt_deg)
+        except FloorNotFoundError as exc:
+            return {"floor_seen": False, "why": str(exc)}
+        tilt = math.degrees(math.acos(float(np.clip(n @ up, -1.0, 1.0))))
+        # the first pose's height above each floor, along each floor's own normal
+        off = float(n @ first[:3, 3] + d) - float(up @ first[:3, 3] + d_mount)
+        out: dict[str, Any] = {
+            "floor_seen": True,
+            "tilt_deg": round(tilt, 2),
+            "height_off_m": round(off, 3),
+        }
+        if tilt > MOUNT_FLOOR_TILT_DEG or abs(off) > MOUNT_FLOOR_HEIGHT_M:
+            out["warning"] = (
+                f"the floor the first frames show is {tilt:.1f} deg and {100 * abs(off):.1f} cm "
+                f"{'above' if off < 0 else 'below'} the floor mount_xyz_rpy gives "
+                f"({MOUNT_FLOOR_TILT_DEG:g} deg / {100 * MOUNT_FLOOR_HEIGHT_M:g} cm allowed): "
+                "check the mount transform (and the sensor convention); the map frame follows "
+                "the mount as given"
+            )
+        return out
 
     def pose_in_map(self, pose_odom: np.ndarray) -> np.ndarray | None:
         return None if self.T_map_odom is None else self.T_map_odom @ pose_odom
