@@ -714,3 +714,39 @@ def test_the_report_says_registration_was_lost_at_the_end_and_counts_add_up(
     assert rep["registration"] == {"state": "relocalising", "failed_since_used": 2}
     assert "still lost at the end: the last 2 frame(s)" in lost_at_end(rep["registration"])
     assert lost_at_end({"state": "ok", "failed_since_used": 0}) == ""
+
+
+def test_a_map_begun_without_the_prior_begins_again_with_it() -> None:
+    """The first cloud came before the first odometry message (or its prior was refused):
+    registration takes the prior's step from the last accepted frame's prior, which the first
+    frame never had, so every later prior was ignored, ICP alone could not place the bag's
+    views and the map stayed at one frame (1 used, 19 failed). Now the map begins again on the
+    first frame with a prior, the one frame before it dropped and counted."""
+    from wheelgrid_common.fileio import pose_or_nan, read_tum
+    from wheelgrid_common.pointcloud2 import read_fields
+    from wheelgrid_common.testing import bag_cloud_odometry
+
+    room = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
+    if not (room / "scan" / "metadata.yaml").exists():
+        pytest.skip("bags/paper_room: not present")
+    m = Mapper()
+    stamps = []
+    for i, (cloud, odom) in enumerate(bag_cloud_odometry(room / "scan", 20)):
+        prior = pose_or_nan(odom.pose.pose.position, odom.pose.pose.orientation)
+        stamp = cloud.header.stamp.sec + cloud.header.stamp.nanosec * 1e-9
+        stamps.append(stamp)
+        out = m.add_frame(
+            read_fields(cloud), stamp, cloud.header.frame_id, prior=None if i == 0 else prior
+        )
+        assert out.status == "used", (i, out.reason)
+    frames = m.report()["frames"]
+    assert frames["used"] == 19 and frames["failed"] == 0 and frames["dropped_before_prior"] == 1
+    # the map's poses follow the truth from frame 1 on (the map's first pose is frame 1's)
+    t_true, true = read_tum(room / "poses.tum")
+    t_map, poses = m.trajectory()
+    assert np.allclose(t_map, stamps[1:])
+    first = true[int(np.argmin(np.abs(t_true - t_map[0])))]
+    for t, pose in zip(t_map, poses, strict=True):
+        truth = np.linalg.inv(first) @ true[int(np.argmin(np.abs(t_true - t)))]
+        err = np.linalg.inv(truth) @ (np.linalg.inv(poses[0]) @ pose)
+        assert np.linalg.norm(err[:3, 3]) < 0.05

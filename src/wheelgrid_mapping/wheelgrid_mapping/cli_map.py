@@ -681,6 +681,12 @@ def _run(args: argparse.Namespace) -> int:
             "it could place them, the others failed",
             file=sys.stderr,
         )
+    if fr.get("dropped_before_prior"):
+        print(
+            f"wheelgrid map: note: the map began again at the first frame with a pose prior; "
+            f"{fr['dropped_before_prior']} frame mapped before it was dropped",
+            file=sys.stderr,
+        )
     if fr.get("after_gap"):
         print(
             f"wheelgrid map: warning: {fr['after_gap']} frame(s) came more than "

@@ -664,6 +664,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_failed": c.failed,
             "frames_relocalised": c.relocalised,
             "frames_after_gap": c.gaps,
+            "frames_dropped_before_prior": self.mapper.dropped_before_prior,
             "frames_skipped_busy": self.counts["skipped_busy"],
             "frames_between_keyframes": self.mapper.frames_skipped,
             "clock_jumps": self.mapper.clock_jumps,

@@ -360,30 +360,12 @@ class Mapper:
 
     def reset(self) -> None:
         """Forget everything (the node's ~/reset)."""
-        self.registrar = Registrar(self.reg_cfg)
         self.convention: str | None = None
-        self.T_map_odom: np.ndarray | None = None
-        self.level_info: dict[str, Any] = {}
-        self._evidence = self.cfg.evidence_map()
-        self._map_odom = np.empty((0, 3))
-        self._dirty = 0
-        self._relevelled_at = -1
-        self._lower_floor_tried = 0  # points below the floor at the last search that found none
-        self._floor_checked_at = 0  # map points when the floor was last found or checked
-        self.stamps: list[float] = []
-        self.poses_odom: list[np.ndarray] = []
-        self._frames: list[np.ndarray] = []
-        self._map_keep: list[np.ndarray | None] = []  # per kept frame: PreparedFrame.map_keep
-        self._priors: list[np.ndarray | None] = []  # the pose prior of each kept frame
-        # per kept frame: whether it came after a dropout (registered again, it must be told:
-        # without the frames that failed before it, its stamp would make gaps of their time)
-        self._after_gap: list[bool] = []
-        # sum over the registered frames with a prior of the prior's up (its z) in odom
-        self._prior_up_sum = np.zeros(3)
-        self._prior_not_vertical = False  # its z is no up an upright sensor could have
-        self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
-        self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
+        self._clear_map()
         self.frames_read = 0
+        # frames mapped before a pose prior arrived and dropped when the map began again on
+        # the first frame with one (:meth:`_begin_again_with_prior`)
+        self.dropped_before_prior = 0
         self.frames_skipped = 0
         # frames on a new time base: stamped before the last keyframe (the clock went back) or
         # confirmed ahead (:mod:`.frame_clock`); the mapping time goes on across them
@@ -423,6 +405,45 @@ class Mapper:
         # (index, stamp, mapping time) admitted, not yet added
         self._admitted: list[tuple[int, float, float]] = []
         self.clock = FrameClock()
+
+    def _begin_again_with_prior(self) -> None:
+        """Begin the map again on this frame, the first with a pose prior, where it holds one
+        frame mapped without one (a cloud before the first odometry message, a first prior
+        refused). Registration takes the prior's step from the last accepted frame's prior,
+        and that frame had none: every later prior was ignored, and where ICP alone could not
+        place a view (a chair's floor and one wall) no frame after the first was mapped (live:
+        1 used, 29 failed, state relocalising for good). The frame dropped is counted."""
+        counters = self.registrar.counters
+        self._clear_map()
+        counters.accepted -= 1
+        self.registrar.counters = counters
+        self.dropped_before_prior += 1
+
+    def _clear_map(self) -> None:
+        """Forget the map, its frames and its frame (not what was read, nor the axis
+        convention the first frame's frame_id fixed)."""
+        self.registrar = Registrar(self.reg_cfg)
+        self.T_map_odom: np.ndarray | None = None
+        self.level_info: dict[str, Any] = {}
+        self._evidence = self.cfg.evidence_map()
+        self._map_odom = np.empty((0, 3))
+        self._dirty = 0
+        self._relevelled_at = -1
+        self._lower_floor_tried = 0  # points below the floor at the last search that found none
+        self._floor_checked_at = 0  # map points when the floor was last found or checked
+        self.stamps: list[float] = []
+        self.poses_odom: list[np.ndarray] = []
+        self._frames: list[np.ndarray] = []
+        self._map_keep: list[np.ndarray | None] = []  # per kept frame: PreparedFrame.map_keep
+        self._priors: list[np.ndarray | None] = []  # the pose prior of each kept frame
+        # per kept frame: whether it came after a dropout (registered again, it must be told:
+        # without the frames that failed before it, its stamp would make gaps of their time)
+        self._after_gap: list[bool] = []
+        # sum over the registered frames with a prior of the prior's up (its z) in odom
+        self._prior_up_sum = np.zeros(3)
+        self._prior_not_vertical = False  # its z is no up an upright sensor could have
+        self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
+        self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
 
     def release_frames(self) -> None:
         """Stop keeping frames and free those kept: the map goes on, :meth:`close_loops` cannot.
@@ -592,6 +613,8 @@ class Mapper:
             self.frames_empty += 1
             self._note_failure({"frame": index, "stamp": stamp, "reason": EMPTY_REASON})
             return FrameOutcome("empty", "no valid points (all NaN or out of range)")
+        if prior is not None and len(self.poses_odom) == 1 and self.registrar.last_prior is None:
+            self._begin_again_with_prior()
         res = self.registrar.register(pts, t_map, prior, prep.inputs)
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
@@ -1059,6 +1082,8 @@ class Mapper:
                 "after_gap": c.gaps,
                 "prior_frozen": c.prior_frozen,
                 "priors_refused": self.priors_refused,
+                # mapped before the first pose prior, dropped as the map began again with it
+                "dropped_before_prior": self.dropped_before_prior,
                 "errors": self.frames_errored,
             },
             # where registration stood when the report was made: "relocalising" means the
