@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import tempfile
 import threading
 from collections.abc import Callable, Mapping, MutableMapping
+from contextlib import suppress
 from importlib.util import find_spec
 from pathlib import Path
 from typing import Any, cast
@@ -206,6 +208,11 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         reason = (str(exc).splitlines() or [""])[0].split(", at /")[0]  # rcl's first line
         print(f"[FATAL] cannot start: {reason}", file=sys.stderr)
         return 2
+    # A closed terminal or ssh session (SIGHUP) ended a node at once, without its close(): a
+    # mapper's scan was not saved, though save_on_exit promises it. It is SIGTERM now, which
+    # rclpy turns into a shutdown of the context. (Not from another thread: signals are the
+    # main thread's, and its caller's.)
+    old = _set_signal(signal.SIGHUP, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
     node = None
     code = 0
     try:
@@ -222,14 +229,32 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         if node is None or node.context.ok():
             raise
     finally:
-        if node is not None:
-            close = getattr(node, "close", None)
-            if callable(close):
-                close()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        # A second Ctrl-C while the node closes (a mapper waits for its worker and saves the
+        # map) raised KeyboardInterrupt out of close(): a traceback, and the save could be
+        # skipped. Ignored now; SIGKILL still stops at once.
+        old_int = _set_signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            if node is not None:
+                close = getattr(node, "close", None)
+                if callable(close):
+                    close()
+                node.destroy_node()
+            # after SIGTERM (or SIGHUP) rclpy's handler has shut the context down, and
+            # rclpy.shutdown() was skipped: its default context stayed, and a later
+            # rclpy.init() in the same process (a test) raised "must only be called once"
+            rclpy.try_shutdown()
+        finally:
+            for sig, handler in ((signal.SIGINT, old_int), (signal.SIGHUP, old)):
+                if handler is not None:
+                    _set_signal(sig, handler)
     return code
+
+
+def _set_signal(sig: signal.Signals, handler: Any) -> Any:
+    """``signal.signal``, or None (and nothing set) outside the main thread."""
+    with suppress(ValueError):
+        return signal.signal(sig, handler)
+    return None
 
 
 def exit_logger(node: Any) -> Any:

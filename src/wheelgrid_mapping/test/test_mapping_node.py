@@ -1132,7 +1132,13 @@ def test_a_frame_in_hand_at_a_reset_is_not_counted_after_it(tmp_path, monkeypatc
         node._on_prior(new_odom)  # the worker maps it after it let go of the old one
         node._on_cloud(new)
         assert poll_until(lambda: len(node.mapper.poses_odom) == 1, 60.0, 0.05)
-        assert node.counts == {"received": 1, "skipped_busy": 0, "malformed": 0, "after_close": 0}
+        assert node.counts == {
+            "received": 1,
+            "skipped_busy": 0,
+            "malformed": 0,
+            "after_close": 0,
+            "unmapped_at_exit": 0,
+        }
 
 
 def test_pose_priors_of_a_session_before_a_reset_or_a_clock_that_went_back_are_not_used(tmp_path):

@@ -191,7 +191,15 @@ class MapperNode(Node):  # type: ignore[misc]
         self._logged: set[str] = set()
         self._map_dirty = False
         self._saved: tuple[int, int, str] | None = None  # what ~/save_map last wrote
-        self.counts = {"received": 0, "skipped_busy": 0, "malformed": 0, "after_close": 0}
+        # unmapped_at_exit: frames still queued when the node stopped (a bag replayed faster
+        # than it maps, max_queue large): not mapped, and counted so that the report adds up
+        self.counts = {
+            "received": 0,
+            "skipped_busy": 0,
+            "malformed": 0,
+            "after_close": 0,
+            "unmapped_at_exit": 0,
+        }
         # Loop closure: "off" | "ready" | "requested" | "running" | "closed" | "failed"; the
         # service sets "requested", the worker runs it, ~/reset cancels it.
         self._loop_state = "ready" if self.loop_cfg.enabled else "off"
@@ -488,7 +496,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     "paused, relocalising"
                 )
             elif out.status == "empty":
-                self._log_once("empty", f"frame without valid points ({out.reason})")
+                self._log_once("no_valid_points", f"frame without valid points ({out.reason})")
             elif out.cause:
                 self._log_once(
                     out.cause, f"skipping clouds like the one at {stamp:.3f} s: {out.reason}"
@@ -840,6 +848,15 @@ class MapperNode(Node):  # type: ignore[misc]
             self._stop = True
             self._slot_lock.notify()
         self._worker.join(timeout=10.0)
+        with self._slot_lock:
+            left = len(self._queue)
+            self._queue.clear()
+        if left:
+            self.counts["unmapped_at_exit"] += left
+            exit_logger(self).warning(
+                f"{left} frame(s) still queued at exit were not mapped (node_counts "
+                "unmapped_at_exit in the report saved on exit)"
+            )
         try:
             if self._lock.acquire(timeout=5.0):
                 try:  # the frame taken last is mapped, so that the map saved below has it
