@@ -212,7 +212,10 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     # mapper's scan was not saved, though save_on_exit promises it. It is SIGTERM now, which
     # rclpy turns into a shutdown of the context. (Not from another thread: signals are the
     # main thread's, and its caller's.)
-    old = _set_signal(signal.SIGHUP, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
+    # `nohup mapper` ignores it, and goes on doing so.
+    old = None
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+        old = _set_signal(signal.SIGHUP, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
     node = None
     code = 0
     try:
