@@ -28,6 +28,19 @@ def test_write_read_round_trip_is_reproducible(tmp_path, storage):
     np.testing.assert_allclose(read_xyz(msgs[0][2]), pts)
 
 
+def test_a_bag_without_the_type_asked_for_lists_what_it_holds(tmp_path):
+    """It said "0 sensor_msgs/msg/PointCloud2 topics (none)": the user who recorded a depth
+    image topic was not told what the bag does hold."""
+    from std_msgs.msg import String
+
+    with BagWriter(tmp_path / "b") as w:
+        w.write("/camera/depth_text", "std_msgs/msg/String", 10, String(data="hi"))
+    with BagReader(tmp_path / "b") as r, pytest.raises(BagError) as err:
+        r.pick_topic(None)
+    assert "no sensor_msgs/msg/PointCloud2 topic" in str(err.value)
+    assert "/camera/depth_text (std_msgs/msg/String)" in str(err.value)
+
+
 def test_unusable_bags_raise_bag_error(tmp_path):
     with pytest.raises(BagError, match="no such bag"):
         BagReader(tmp_path / "missing").__enter__()

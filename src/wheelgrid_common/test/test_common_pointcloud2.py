@@ -18,6 +18,12 @@ def _field(name, offset, datatype=7):
     return PointField(name=name, offset=offset, datatype=datatype, count=1)
 
 
+def _counted(name, offset, count):
+    field = _field(name, offset)
+    field.count = count
+    return field
+
+
 def _cloud(n=12, height=3):
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(n, 3))
@@ -93,6 +99,12 @@ def test_big_endian_and_row_padding_are_honoured():
         ),
         # z starting inside y
         (lambda m: setattr(m, "fields", [*m.fields[:2], _field("z", 6)]), "overlapping_fields"),
+        # x of count 3 runs over y and z, z of count 2 past point_step: the count was ignored
+        (
+            lambda m: setattr(m, "fields", [_counted("x", 0, 3), *m.fields[1:]]),
+            "overlapping_fields",
+        ),
+        (lambda m: setattr(m, "fields", [*m.fields[:2], _counted("z", 8, 2)]), "bad_point_step"),
         # one row more than the header says: the header does not describe the data
         (lambda m: setattr(m, "data", bytes(m.data) + bytes(m.row_step)), "excess_data"),
     ],

@@ -195,10 +195,12 @@ class BagReader:
         cands = [t for t in infos if t.msgtype == msgtype]
         if len(cands) == 1:
             return cands[0].name
-        listing = ", ".join(f"{t.name} ({t.count} msgs)" for t in cands) or "none"
+        if not cands:  # say what the bag holds instead: a user who recorded the wrong topic
+            others = ", ".join(f"{t.name} ({t.msgtype})" for t in infos) or "none"
+            raise BagError(f"{self.path}: no {msgtype} topic; the bag's topics: {others}")
+        listing = ", ".join(f"{t.name} ({t.count} msgs)" for t in cands)
         raise BagError(
-            f"{self.path}: {len(cands)} {msgtype} topics ({listing})"
-            + ("; choose one with " + flag if cands else "")
+            f"{self.path}: {len(cands)} {msgtype} topics ({listing}); choose one with {flag}"
         )
 
     def count(self, topics: Iterable[str]) -> int:

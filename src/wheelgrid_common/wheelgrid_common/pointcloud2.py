@@ -99,7 +99,9 @@ def read_fields(msg: Any, names: Iterable[str] = ("x", "y", "z")) -> np.ndarray:
         spec = specs[n]
         if spec.datatype not in _DTYPES:
             raise CloudError("bad_datatype", f"field {n!r} has unknown datatype {spec.datatype}")
-        size = np.dtype(_DTYPES[spec.datatype]).itemsize
+        # a field of count N takes N elements (the first is read): x of count 3 over y and
+        # z, or z of count 2 past point_step, is a header that does not describe its data
+        size = np.dtype(_DTYPES[spec.datatype]).itemsize * max(int(spec.count), 1)
         if spec.count < 1 or spec.offset < 0 or spec.offset + size > point_step:
             raise CloudError(
                 "bad_point_step",

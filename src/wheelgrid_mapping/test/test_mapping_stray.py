@@ -289,6 +289,18 @@ def test_an_odometry_csv_cut_off_mid_row_or_empty_costs_only_those_poses(tmp_pat
         StrayExport(cap)
 
 
+@pytest.mark.parametrize("frame", ["1.5", "-1"])
+def test_an_odometry_row_whose_frame_number_is_no_frame_s_is_refused(
+    tmp_path: Path, frame: str
+) -> None:
+    """A frame number 1.5 was cut to 1: frame 1 took that row's pose, silently (exit 0)."""
+    cap = make_export(tmp_path / "cap", 3)
+    text = (cap / "odometry.csv").read_text()
+    (cap / "odometry.csv").write_text(text.replace(", 000001,", f", {frame},"))
+    with pytest.raises(ValueError, match=r"odometry\.csv:3: bad odometry row .*no frame's"):
+        StrayExport(cap)
+
+
 @pytest.mark.parametrize("name", ["odometry.csv", "camera_matrix.csv"])
 def test_an_unreadable_odometry_or_camera_matrix_is_a_clear_error(
     tmp_path: Path, name: str

@@ -140,6 +140,8 @@ def _read_odometry(
             t, frame, *v = (float(x) for x in row)
             if len(v) != 7 or not math.isfinite(frame):
                 raise ValueError("need 9 numbers and a frame number")
+            if frame != int(frame) or frame < 0:  # 1.5 was cut to frame 1's pose, silently
+                raise ValueError(f"frame number {frame:g} is no frame's (0, 1, 2, ...)")
         except ValueError as exc:
             if lineno == cut_off:
                 break
