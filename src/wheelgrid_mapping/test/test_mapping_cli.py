@@ -600,9 +600,28 @@ def test_measure_along_an_axis_for_a_thin_bar(tmp_path: Path, capsys) -> None:
     argv = [str(ply), "--box-a", "0", "0", "-0.1", "2", "2", "0.1",
             "--box-b", "0", "0.9", "1.4", "2", "1.1", "1.6", "--axis", "z", "--json"]  # fmt: skip
     assert cli_measure.main(argv) == 0
-    assert json.loads(capsys.readouterr().out)["distance"] == pytest.approx(1.525, abs=0.005)
+    out = json.loads(capsys.readouterr().out)
+    assert out["distance"] == pytest.approx(1.525, abs=0.005)
+    assert out["angle_deg"] is None  # no planes fitted: it read 0.0 for faces at any angle
     assert cli_measure.main(argv[:-1]) == 0  # the line: no word of plane fits for an axis
-    assert "face the plane" not in capsys.readouterr().out
+    line = capsys.readouterr().out
+    assert "face the plane" not in line and "planes" not in line and "fit rms" not in line
+    assert "along z (median coordinates" in line
+
+
+def test_a_reading_no_room_has_asks_whether_the_map_is_in_metres(tmp_path: Path, capsys) -> None:
+    """A map in millimetres read 100001 cm with exit 0 and no hint."""
+    rng = np.random.default_rng(4)
+
+    def wall(x: float) -> np.ndarray:
+        return np.column_stack([x + rng.normal(0, 0.003, 3000), rng.random(3000), rng.random(3000)])
+
+    ply = tmp_path / "mm.ply"
+    write_ply(ply, np.vstack([wall(0.0), wall(1.0)]) * 1000.0)
+    argv = [str(ply), "--box-a", "-50", "0", "0", "50", "1000", "1000",
+            "--box-b", "950", "0", "0", "1050", "1000", "1000"]  # fmt: skip
+    assert cli_measure.main(argv) == 0
+    assert "are the map's coordinates in metres" in capsys.readouterr().out
 
 
 def _leg_face(x: float, y0: float, yaw_deg: float, rng: np.random.Generator) -> np.ndarray:

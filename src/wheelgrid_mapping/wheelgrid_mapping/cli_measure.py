@@ -404,6 +404,11 @@ def unit_direction(v: list[float] | np.ndarray) -> np.ndarray:
     return n / norm
 
 
+# A reading longer than this (m) is no gap between two surfaces of a room or a building: the
+# map is likely not in metres (a map in millimetres read 1000.01 m, exit 0, with no hint)
+ROOM_SIZE_M = 100.0
+
+
 def measure(
     points: np.ndarray,
     box_a: list[float],
@@ -748,6 +753,8 @@ def main(argv: list[str] | None = None) -> int:
     out = asdict(m)
     # one surface per box: the keys are there only to say otherwise (the output is unchanged)
     del out["second_a"], out["second_b"], out["behind_a"], out["behind_b"]
+    if axis is not None:  # no planes fitted: no angle between them (it read 0.0)
+        out["angle_deg"] = None
     if ref is not None:
         out["normal_box"] = {"points": ref.points, "rms": ref.rms}
     if args.true is not None:
@@ -764,12 +771,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    line = (
-        f"distance {m.distance * 100:.2f} +- {m.stderr * 100:.2f} cm "
-        f"(planes {m.angle_deg:.1f} deg apart; "
-        f"{m.points_a} + {m.points_b} points, fit rms {m.rms_a * 1000:.1f} / "
-        f"{m.rms_b * 1000:.1f} mm)"
-    )
+    if axis is None:
+        line = (
+            f"distance {m.distance * 100:.2f} +- {m.stderr * 100:.2f} cm "
+            f"(planes {m.angle_deg:.1f} deg apart; "
+            f"{m.points_a} + {m.points_b} points, fit rms {m.rms_a * 1000:.1f} / "
+            f"{m.rms_b * 1000:.1f} mm)"
+        )
+    else:  # no plane is fitted: no angle between planes, and the spread is along the axis
+        line = (
+            f"distance {m.distance * 100:.2f} +- {m.stderr * 100:.2f} cm along {args.axis} "
+            f"(median coordinates; {m.points_a} + {m.points_b} points, spread along it "
+            f"{m.rms_a * 1000:.1f} / {m.rms_b * 1000:.1f} mm)"
+        )
     if args.true is not None:
         line += f"; true {args.true * 100:.2f} cm, deviation {out['deviation_pct']:.2f} %"
     if m.along is not None:
@@ -791,9 +805,16 @@ def main(argv: list[str] | None = None) -> int:
     if axis is None and args.normal_radius > 0 and unfaced:
         line += f"; box {' and '.join(unfaced)}: < {MIN_FACING} points face the plane, fit on all"
     if m.unstable_pct >= 1.0:
+        why = "the faces' normal" if axis is None else "the medians"
         line += (
             f"; UNSTABLE: {m.unstable_pct:.0f} % of resamples of its points read it more than "
-            f"{UNSTABLE_SIGMAS:.0f}x that away (too few points to fix the faces' normal)"
+            f"{UNSTABLE_SIGMAS:.0f}x that away (too few points to fix {why})"
+        )
+    if m.distance > ROOM_SIZE_M:
+        line += (
+            f"; WARNING: {m.distance:.0f} m is no gap within a room: are the map's coordinates "
+            "in metres (a map in millimetres reads 1000x, its surfaces' points mostly outside "
+            "the fits' centimetre gates)?"
         )
     if m.angle_deg > 10.0:
         reading = not_parallel_reading(m.along is not None, args.normal_radius)
