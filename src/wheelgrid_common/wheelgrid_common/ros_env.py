@@ -189,6 +189,10 @@ def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:
     return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
+# how often spin_node wakes a node's executor so that a signal handled in Python runs (s)
+SIGNAL_POLL_S = 0.5
+
+
 def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, clean up; return an exit code.
 
@@ -220,6 +224,10 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     code = 0
     try:
         node = factory()
+        # Python runs a signal handler only once the main thread is back in Python: a node
+        # with no timer of its own (depth_to_cloud with its stream stopped) waited in rcl for
+        # ever, and SIGHUP, handled in Python above, never stopped it. This wakes it.
+        steady_timer(node, SIGNAL_POLL_S, lambda: None)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

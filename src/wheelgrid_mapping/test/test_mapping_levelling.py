@@ -347,3 +347,37 @@ def test_a_mount_transform_the_seen_floor_contradicts_is_used_and_said(
         assert "warning" not in check
     # the map frame is the mount's either way
     assert np.allclose(m.T_map_odom, map_from_mount(mount, "body"))
+
+
+def _mount_check(world: np.ndarray, T: np.ndarray, mount: list[float]) -> dict:
+    inv = np.linalg.inv(T)
+    pts = world @ inv[:3, :3].T + inv[:3, 3]
+    m = Mapper(cfg=MapperConfig(level_min_frames=2, mount_xyz_rpy=mount))
+    for i in range(2):
+        assert m.add_frame(pts, i * 0.2, "base_link", prior=np.eye(4)).status == "used"
+    return m.report()["levelling"]["mount_floor_check"]
+
+
+def test_the_mount_check_is_not_fooled_by_a_ramp_and_sees_a_mount_far_off() -> None:
+    """A correct mount at the foot of a ramp rising 6 deg ahead was warned of: the floor search
+    takes the lowest level plane, and the ramp, extended back under the chair, is lower. A
+    mount 50 deg off (a pitch of the wrong sign) was not: the search about its vertical found
+    nothing within 45 deg, and said nothing."""
+    rng = np.random.default_rng(41)
+    room = room_points(rng)
+    pitch = math.radians(15)
+    T = sensor_pose(0.0, pitch, 0.0, "body", 1.0)
+    n = 5000
+    x = rng.random(n) * 1.8 + 1.0
+    ramp = np.column_stack([x, rng.random(n) * 1.2 - 1.5, (x - 1.0) * math.tan(math.radians(6))])
+    flat = room[:, 2] < 0.05
+    under = flat & (room[:, 0] > 1.0) & (room[:, 0] < 2.8) & (room[:, 1] > -1.5)
+    under &= room[:, 1] < -0.3
+    ramped = np.vstack([room[~under], ramp + rng.normal(0, 0.004, (n, 3))])
+    check = _mount_check(ramped, T, [0.3, -0.2, 1.0, 0.0, pitch, 0.0])
+    assert check["tilt_deg"] > 5.0  # the ramp was found ...
+    assert check["points_on_mount_floor"] > 2 * check["points_on_floor_found"]
+    assert "warning" not in check  # ... and the mount's floor holds more: no warning
+    T25 = sensor_pose(0.0, math.radians(25), 0.0, "body", 1.0)
+    check = _mount_check(room, T25, [0.3, -0.2, 1.0, 0.0, math.radians(-25), 0.0])
+    assert check["tilt_deg"] == pytest.approx(50.0, abs=0.5) and "warning" in check

@@ -258,3 +258,26 @@ def test_an_empty_cloud_does_not_silence_the_warning_for_frames_without_valid_po
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+
+
+@pytest.mark.ros
+def test_a_node_with_no_timer_of_its_own_stops_on_sighup():
+    """SIGHUP is handled in Python, which runs a handler only once the main thread is back in
+    Python: depth_to_cloud, waiting in rcl for a stream that had stopped, never was, and went
+    on running after its terminal closed."""
+    import os
+    import signal
+    import subprocess
+
+    from wheelgrid_common.testing import child_env, managed_process, python_module
+
+    args = python_module("wheelgrid_mapping.depth_to_cloud_node")
+    with managed_process(
+        args, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    ) as proc:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # its start-up line: spinning from here on
+        assert "depth_to_cloud" in line, line
+        time.sleep(1.5)  # idle in rcl, no message to wake it
+        os.kill(proc.pid, signal.SIGHUP)
+        assert proc.wait(timeout=10.0) == 0

@@ -750,3 +750,27 @@ def test_a_map_begun_without_the_prior_begins_again_with_it() -> None:
         truth = np.linalg.inv(first) @ true[int(np.argmin(np.abs(t_true - t)))]
         err = np.linalg.inv(truth) @ (np.linalg.inv(poses[0]) @ pose)
         assert np.linalg.norm(err[:3, 3]) < 0.05
+
+
+def test_a_first_frame_with_a_prior_that_cannot_begin_a_map_leaves_the_map_as_it_was() -> None:
+    """The map was cleared before the first frame with a prior was registered, and that frame
+    then failed (too few points): 0 poses, and the node's ~/save_map had nothing to save."""
+    from wheelgrid_common.fileio import pose_or_nan
+    from wheelgrid_common.pointcloud2 import read_fields
+    from wheelgrid_common.testing import bag_cloud_odometry
+
+    room = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
+    if not (room / "scan" / "metadata.yaml").exists():
+        pytest.skip("bags/paper_room: not present")
+    (c0, _), (c1, o1), (c2, o2) = bag_cloud_odometry(room / "scan", 3)
+    m = Mapper()
+    assert m.add_frame(read_fields(c0), 0.0, c0.header.frame_id).status == "used"
+    p1 = pose_or_nan(o1.pose.pose.position, o1.pose.pose.orientation)
+    out = m.add_frame(read_fields(c1)[::60], 0.2, c1.header.frame_id, prior=p1)
+    assert out.status == "failed" and "too few points" in out.reason
+    assert len(m.poses_odom) == 1 and m.report()["frames"]["dropped_before_prior"] == 0
+    p2 = pose_or_nan(o2.pose.pose.position, o2.pose.pose.orientation)
+    assert m.add_frame(read_fields(c2), 0.4, c2.header.frame_id, prior=p2).status == "used"
+    frames = m.report()["frames"]
+    assert frames["dropped_before_prior"] == 1 and frames["used"] == 1 and frames["failed"] == 1
+    assert frames["read"] == 3

@@ -190,7 +190,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._mount_check_seen: dict[str, Any] | None = None  # the mount check last warned of
         self._logged: set[str] = set()
         self._map_dirty = False
-        self._saved: tuple[int, int, str] | None = None  # what ~/save_map last wrote
+        self._saved: tuple[int, int, str, int] | None = None  # what ~/save_map last wrote
         # unmapped_at_exit: frames still queued when the node stopped (a bag replayed faster
         # than it maps, max_queue large): not mapped, and counted so that the report adds up
         self.counts = {
@@ -836,9 +836,15 @@ class MapperNode(Node):  # type: ignore[misc]
                 )
         return response
 
-    def _map_state(self) -> tuple[int, int, str]:
-        """Changes whenever the map does: a frame mapped, loops closed, a ~/reset."""
-        return (self._generation, len(self.mapper.poses_odom), self._loop_state)
+    def _map_state(self) -> tuple[int, int, str, int]:
+        """Changes whenever the map does: a frame mapped, loops closed, a ~/reset, the map
+        begun again on the first frame with a pose prior (one frame for another)."""
+        return (
+            self._generation,
+            len(self.mapper.poses_odom),
+            self._loop_state,
+            self.mapper.dropped_before_prior,
+        )
 
     def close(self) -> None:
         # A loop closure in progress is cancelled (it is all or nothing: the online map stays)

@@ -43,7 +43,14 @@ from .preprocess import (
     preprocess_for_map,
     voxel_downsample,
 )
-from .registration import FrameInputs, Registrar, RegistrationConfig, frame_inputs, transform
+from .registration import (
+    FrameInputs,
+    Registrar,
+    RegistrationConfig,
+    RegResult,
+    frame_inputs,
+    transform,
+)
 from .se3 import is_rigid
 
 
@@ -169,6 +176,9 @@ FLOOR_CHECK_GAIN = 1.1
 # off level and the run said nothing), and the grid's floor band would cut through the floor.
 MOUNT_FLOOR_TILT_DEG = 2.0
 MOUNT_FLOOR_HEIGHT_M = 0.05
+# ... unless the mount's floor holds this share of the points within 3 cm that the floor found
+# holds: the search takes the lowest level plane, and a ramp ahead can be lower than the floor
+MOUNT_FLOOR_SUPPORT = 0.5
 # A frame stamped at most this long before the last keyframe (or at its very stamp) is a repeat
 # or a late frame, skipped; farther back, a bad stamp or a clock jump (BEHIND_CONFIRM) (s).
 LATE_FRAME_WINDOW = 1.0
@@ -406,23 +416,33 @@ class Mapper:
         self._admitted: list[tuple[int, float, float]] = []
         self.clock = FrameClock()
 
-    def _begin_again_with_prior(self) -> None:
-        """Begin the map again on this frame, the first with a pose prior, where it holds one
-        frame mapped without one (a cloud before the first odometry message, a first prior
-        refused). Registration takes the prior's step from the last accepted frame's prior,
-        and that frame had none: every later prior was ignored, and where ICP alone could not
-        place a view (a chair's floor and one wall) no frame after the first was mapped (live:
-        1 used, 29 failed, state relocalising for good). The frame dropped is counted."""
-        counters = self.registrar.counters
-        self._clear_map()
-        counters.accepted -= 1
-        self.registrar.counters = counters
-        self.dropped_before_prior += 1
+    def _begin_again_with_prior(
+        self, pts: np.ndarray, t_map: float, prior: np.ndarray, inputs: FrameInputs | None
+    ) -> RegResult | None:
+        """This frame, the first with a pose prior, registered as the first of a map begun
+        again, where the map holds one frame mapped without one (a cloud before the first
+        odometry message, a first prior refused); None (the map as it was) where this frame
+        cannot begin a map either (too few points).
 
-    def _clear_map(self) -> None:
+        Registration takes the prior's step from the last accepted frame's prior, and that
+        frame had none: every later prior was ignored, and where ICP alone could not place a
+        view (a chair's floor and one wall) no frame after the first was mapped (live: 1 used,
+        29 failed, state relocalising for good). The frame dropped is counted."""
+        fresh = Registrar(self.reg_cfg)
+        res = fresh.register(pts, t_map, prior, inputs)
+        if not res.accepted:
+            return None
+        counters = self.registrar.counters
+        counters.frames += 1  # this one; "accepted" stays: one frame dropped, this one mapped
+        self._clear_map(fresh)
+        fresh.counters = counters
+        self.dropped_before_prior += 1
+        return res
+
+    def _clear_map(self, registrar: Registrar | None = None) -> None:
         """Forget the map, its frames and its frame (not what was read, nor the axis
-        convention the first frame's frame_id fixed)."""
-        self.registrar = Registrar(self.reg_cfg)
+        convention the first frame's frame_id fixed); ``registrar``: the one to go on with."""
+        self.registrar = registrar or Registrar(self.reg_cfg)
         self.T_map_odom: np.ndarray | None = None
         self.level_info: dict[str, Any] = {}
         self._evidence = self.cfg.evidence_map()
@@ -613,9 +633,11 @@ class Mapper:
             self.frames_empty += 1
             self._note_failure({"frame": index, "stamp": stamp, "reason": EMPTY_REASON})
             return FrameOutcome("empty", "no valid points (all NaN or out of range)")
+        res = None
         if prior is not None and len(self.poses_odom) == 1 and self.registrar.last_prior is None:
-            self._begin_again_with_prior()
-        res = self.registrar.register(pts, t_map, prior, prep.inputs)
+            res = self._begin_again_with_prior(pts, t_map, prior, prep.inputs)
+        if res is None:
+            res = self.registrar.register(pts, t_map, prior, prep.inputs)
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
             self._note_failure({"frame": index, "stamp": stamp, "reason": res.reason})
@@ -860,28 +882,49 @@ class Mapper:
 
     def _mount_floor_check(self, conv: str) -> dict[str, Any]:
         """The floor the first frames show against the floor the mount transform puts at
-        z = 0: the mount is taken as given (the floor may be hidden), but a floor that is
-        plainly seen elsewhere is said, with a ``warning``."""
+        z = 0: the mount is taken as given (the floor may be hidden), but where a floor is
+        plainly seen elsewhere, and the mount's own floor holds far fewer of the points, it is
+        said, with a ``warning``.
+
+        The floor is looked for about the mount's vertical, then (a mount off by more than
+        ``floor_max_tilt_deg``: a sign, a convention) about the sensor's own axes. The lowest
+        level plane wins that search, so a ramp going up ahead, extended back under the chair,
+        can be it: the points each plane holds within 3 cm decide, and a mount whose floor
+        holds MOUNT_FLOOR_SUPPORT of what the plane found holds is a mount on a real floor.
+        """
         assert self.T_map_odom is not None
         up = self.T_map_odom[2, :3]  # the mount's floor, z = 0, in odom: up . p + d = 0
         d_mount = float(self.T_map_odom[2, 3])
         first = self.poses_odom[0] if self.poses_odom else np.eye(4)
-        try:
-            n, d = find_floor(self.map_odom(), -up, first[:3, 3], self.cfg.floor_max_tilt_deg)
-        except FloorNotFoundError as exc:
-            return {"floor_seen": False, "why": str(exc)}
+        pts = self.map_odom()
+        found = None
+        for down in (-up, first[:3, :3] @ DOWN_HINT[conv]):
+            try:
+                found = find_floor(pts, down, first[:3, 3], self.cfg.floor_max_tilt_deg)
+                break
+            except FloorNotFoundError as exc:
+                why = str(exc)
+        if found is None:
+            return {"floor_seen": False, "why": why}
+        n, d = found
         tilt = math.degrees(math.acos(float(np.clip(n @ up, -1.0, 1.0))))
         # the first pose's height above each floor, along each floor's own normal
         off = float(n @ first[:3, 3] + d) - float(up @ first[:3, 3] + d_mount)
+        on_mount = int(np.count_nonzero(np.abs(pts @ up + d_mount) < 0.03))
+        on_found = int(np.count_nonzero(np.abs(pts @ n + d) < 0.03))
         out: dict[str, Any] = {
             "floor_seen": True,
             "tilt_deg": round(tilt, 2),
             "height_off_m": round(off, 3),
+            "points_on_mount_floor": on_mount,
+            "points_on_floor_found": on_found,
         }
-        if tilt > MOUNT_FLOOR_TILT_DEG or abs(off) > MOUNT_FLOOR_HEIGHT_M:
+        off_plane = tilt > MOUNT_FLOOR_TILT_DEG or abs(off) > MOUNT_FLOOR_HEIGHT_M
+        if off_plane and on_mount < MOUNT_FLOOR_SUPPORT * on_found:
             out["warning"] = (
                 f"the floor the first frames show is {tilt:.1f} deg and {100 * abs(off):.1f} cm "
-                f"{'above' if off < 0 else 'below'} the floor mount_xyz_rpy gives "
+                f"{'above' if off < 0 else 'below'} the floor mount_xyz_rpy gives, which holds "
+                f"{on_mount} of the points against its {on_found} "
                 f"({MOUNT_FLOOR_TILT_DEG:g} deg / {100 * MOUNT_FLOOR_HEIGHT_M:g} cm allowed): "
                 "check the mount transform (and the sensor convention); the map frame follows "
                 "the mount as given"
