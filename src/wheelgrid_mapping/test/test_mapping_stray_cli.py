@@ -146,6 +146,30 @@ def test_poses_missing_from_odometry_csv_are_said_by_import_and_map(
     )
 
 
+def test_frames_without_confidence_are_said_by_import_and_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """An export without its confidence images was mapped with ARKit's confidence filter off,
+    silently: 2.65x the map points on the real capture's first 20 frames, with report.json
+    still giving min_confidence 1. import-stray took --min-confidence 2 and ignored it."""
+    import json
+    import shutil
+
+    from wheelgrid_mapping import cli_map
+
+    cap = _first_frames(stray_capture, tmp_path / "cap", 4)
+    (cap / "confidence" / "000001.png").unlink()
+    assert cli_map.main([str(cap), "--out", str(tmp_path / "map")]) == 0
+    assert "1 of 4 frames had no ARKit confidence" in capsys.readouterr().err
+    frames = json.loads((tmp_path / "map" / "report.json").read_text())["frames"]
+    assert frames["without_confidence"] == 1 and frames["with_confidence"] == 3
+    shutil.rmtree(cap / "confidence")
+    out = tmp_path / "bag"
+    assert import_main([str(cap), "--out", str(out), "--min-confidence", "2"]) == 0
+    err = capsys.readouterr().err
+    assert "4 of 4 frames have no confidence image" in err and "--min-confidence 2" in err
+
+
 def test_stream_stray_exit_codes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
 ) -> None:

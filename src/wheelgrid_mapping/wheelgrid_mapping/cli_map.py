@@ -668,6 +668,17 @@ def _run(args: argparse.Namespace) -> int:
     fr = rep["frames"]
     wall = time.perf_counter() - t0
     skipped = f", {len(bad)} unreadable skipped" if bad else ""
+    missing = int(fr.get("without_confidence", 0))
+    if missing and (is_stray(Path(args.input)) or fr.get("with_confidence")):
+        # an ARKit capture is expected to carry it, in every frame (a bag of another sensor,
+        # none at all, is not warned of: report.json counts it)
+        print(
+            f"wheelgrid map: warning: {missing} of {fr['read']} frames had no ARKit confidence "
+            f"(a Stray export's confidence/ images missing?): preprocess.min_confidence "
+            f"({mapper.pre.min_confidence}) was not applied to them, and their low-confidence "
+            "returns (most of them far, grazing or below the floor) are in the map",
+            file=sys.stderr,
+        )
     if fr.get("priors_refused"):
         print(
             f"wheelgrid map: warning: {fr['priors_refused']} pose priors were no rigid transform "

@@ -279,6 +279,7 @@ def import_main(argv: list[str]) -> int:
         )
     counts: dict[str, int] = {}
     skipped = 0
+    unfiltered = 0  # frames with no confidence image: --min-confidence cannot apply
     t0 = time.monotonic()
     try:
         with BagWriter(args.out, args.storage) as bag, Progress(len(idx), "import-stray") as bar:
@@ -288,6 +289,7 @@ def import_main(argv: list[str]) -> int:
                     skipped += 1
                     bar.update()
                     continue
+                unfiltered += int(sf.confidence is None and args.min_confidence > 0)
                 frame = stray_to_frame(sf, seq)
                 log_ns = round(exp.captured_by(i) * 1e9)
                 for topic, msgtype, msg in frame_messages(
@@ -308,6 +310,13 @@ def import_main(argv: list[str]) -> int:
         return _fail(
             130 if isinstance(exc, KeyboardInterrupt) else 1,
             f"{what}{detail}; the part of {args.out} written is removed, no bag was made",
+        )
+    if unfiltered:
+        print(
+            f"wheelgrid import-stray: warning: {unfiltered} of {len(idx) - skipped} frames have "
+            f"no confidence image (confidence/): --min-confidence {args.min_confidence} was not "
+            "applied to their clouds, and their low-confidence returns are in them",
+            file=sys.stderr,
         )
     listing = ", ".join(f"{t} {n}" for t, n in sorted(counts.items()))
     size = sum(f.stat().st_size for f in Path(args.out).rglob("*") if f.is_file())

@@ -340,7 +340,10 @@ def prepare_frame(
 ) -> PreparedFrame:
     """:class:`PreparedFrame` of one sensor-frame cloud (``(N, 3)``, NaN allowed)."""
     t0 = time.perf_counter()
-    st = PreprocessStats()
+    st = PreprocessStats(
+        no_confidence=confidence is None and pre.min_confidence > 0,
+        has_confidence=confidence is not None,
+    )
     pts, map_keep = preprocess_for_map(points, pre, confidence, st)
     inputs = frame_inputs(pts, reg) if st.valid else None
     return PreparedFrame(pts, st, inputs, time.perf_counter() - t0, map_keep)
@@ -388,6 +391,10 @@ class Mapper:
         self.failed_since_used = 0  # registration failures since the last frame mapped
         self.frames_empty = 0
         self.priors_refused = 0  # pose priors that were no rigid transform (NaN, scaled, ...)
+        # frames with no confidence channel while min_confidence asked for one: ARKit's filter
+        # was not applied to them (a Stray export without confidence/, a sensor without one)
+        self.frames_without_confidence = 0
+        self.frames_with_confidence = 0
         # the first MAX_LISTED_FAILURES registration failures, as report.json lists them, and
         # how many there were: all of them kept, a sensor covered for hours on a live node grew
         # the list by some 9 MB an hour
@@ -625,6 +632,8 @@ class Mapper:
             prior = None
         st = prep.stats
         pts = prep.points
+        self.frames_without_confidence += int(st.no_confidence)
+        self.frames_with_confidence += int(st.has_confidence)
         for k in self.points:
             self.points[k] += int(getattr(st, k))
         self.timings["preprocess_s"] += prep.seconds
@@ -1125,6 +1134,9 @@ class Mapper:
                 "after_gap": c.gaps,
                 "prior_frozen": c.prior_frozen,
                 "priors_refused": self.priors_refused,
+                # min_confidence not applied: the frame had no confidence channel
+                "without_confidence": self.frames_without_confidence,
+                "with_confidence": self.frames_with_confidence,
                 # mapped before the first pose prior, dropped as the map began again with it
                 "dropped_before_prior": self.dropped_before_prior,
                 "errors": self.frames_errored,
