@@ -232,6 +232,29 @@ def test_progress_finish_gives_the_count_known_after_the_last_update():
     assert sum(line.endswith("used 2") for line in lines) == 1
 
 
+def test_progress_on_a_terminal_clears_what_a_shorter_line_leaves():
+    """The bar redraws with "\r", which goes back but writes over only as far as the new line
+    reaches: on a terminal "... used 194" stayed where the line had become "... used 19"."""
+    import io
+
+    from wheelgrid_common.progress import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    out = Tty()
+    bar = Progress(20, "mapping", "frames", stream=out)
+    bar.postfix = "used 194 of a long postfix"
+    bar._draw(bar.start + 1.0, end="\r")
+    bar.postfix = "used 19"
+    bar._draw(bar.start + 1.0, end="\r")
+    screen = ""
+    for part in out.getvalue().split("\r")[:-1]:  # a terminal: each part over the last
+        screen = part + screen[len(part) :]
+    assert screen.rstrip().endswith("used 19"), screen
+
+
 def test_files_written_together_keep_the_old_set_when_one_fails(tmp_path):
     """A map_server YAML and its PGM (a map and its report) are replaced together or not at
     all: a write that failed mid-way left a cut-off file beside its old partner."""

@@ -24,6 +24,7 @@ class Progress:
         self.start = time.monotonic()
         self._last_draw = 0.0
         self._last_decile = -1
+        self._drawn = 0  # the length of the line last drawn over with "\r"
         self.postfix = ""
 
     def update(self, n: int = 1, postfix: str | None = None) -> None:
@@ -53,6 +54,10 @@ class Progress:
         text += f" {rate:.1f} {self.unit}/s {elapsed:.1f} s"
         if self.postfix:
             text += f" {self.postfix}"
+        if self.tty:
+            # "\r" goes back, but writes over only as far as the new line reaches: a shorter
+            # one ("9.9 frames/s" after "10.1") left the old tail on screen ("used 194")
+            text, self._drawn = text.ljust(self._drawn), len(text) if end == "\r" else 0
         self.stream.write(text + end)
         self.stream.flush()
 

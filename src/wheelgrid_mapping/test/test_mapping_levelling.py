@@ -258,6 +258,10 @@ def test_the_mapper_takes_its_first_vertical_from_a_gravity_aligned_prior(prior:
         m.map_points()
         info = m.report()["levelling"]
         assert info["relevelled_tilt_deg"] > 1.0
+        # the height reported is the map frame's as written (it stayed the first fit's)
+        first_z = float(m.trajectory()[1][0][2, 3])
+        assert info["sensor_height_m"] == pytest.approx(first_z, abs=1e-9)
+        assert info["first_fit_sensor_height_m"] == pytest.approx(height, abs=1e-9)
         assert info["prior_gravity_deg"] == pytest.approx(PRIOR_FLOOR_LEAN_DEG, abs=0.01)
     else:
         assert info["vertical"] == "floor plane" and abs(height - 1.6) > 0.12

@@ -547,6 +547,12 @@ def test_a_prior_scale_error_is_measured_where_the_view_sees_ahead_and_removed_w
     assert f"({fit.steps} stretches of >= 2 cm that see ahead)" in line
     assert f"frames registered again with its horizontal steps / {scale['prior_scale']:.4f}" in line
 
+    # with too few stretches for a standard error it says it measured nothing (it read
+    # "0.00 +- ? % longer ..., within 3 standard errors of 0")
+    none = {"measured_pct": 0.0, "stderr_pct": None, "steps": 0, "applied": False}
+    assert prior_scale_line(none).endswith("scale was not measured (0 stretches of >= 2 cm "
+                                           "that see ahead); kept")  # fmt: skip
+
     # off: the same loop closure leaves the prior's scale where it was
     m_off, _, info_off = run(0.0)
     assert "prior_scale" not in info_off

@@ -378,7 +378,12 @@ def right_angle_line(lc: dict[str, Any]) -> str:
 
 def prior_scale_line(ps: dict[str, Any]) -> str:
     """One line on the pose prior's scale as online ICP measured it, and what was done."""
-    se = "?" if ps["stderr_pct"] is None else f"{ps['stderr_pct']:.2f}"
+    if ps["stderr_pct"] is None:  # "0.00 +- ? % ..., within 3 standard errors": none known
+        return (
+            f"loop closure: the pose prior's scale was not measured ({ps['steps']} stretches "
+            f"of >= {PRIOR_SCALE_MIN_STEP * 100:g} cm that see ahead); kept"
+        )
+    se = f"{ps['stderr_pct']:.2f}"
     longer = "longer" if ps["measured_pct"] >= 0 else "shorter"
     line = (
         f"loop closure: the pose prior's steps are {abs(ps['measured_pct']):.2f} +- {se} % "
