@@ -255,6 +255,13 @@ def test_progress_on_a_terminal_clears_what_a_shorter_line_leaves():
     assert screen.rstrip().endswith("used 19"), screen
 
 
+def test_a_map_image_given_for_its_yaml_says_which_to_give(tmp_path):
+    """grid.pgm given where grid.yaml belongs read as YAML: "unacceptable character #x0000"."""
+    write_map(tmp_path / "g.yaml", Grid(np.zeros((2, 3), dtype=np.int8), 1.0, (0.0, 0.0, 0.0)))
+    with pytest.raises(ValueError, match=r"g\.pgm: an image, not a map_server YAML: give"):
+        read_map(tmp_path / "g.pgm")
+
+
 def test_files_written_together_keep_the_old_set_when_one_fails(tmp_path):
     """A map_server YAML and its PGM (a map and its report) are replaced together or not at
     all: a write that failed mid-way left a cut-off file beside its old partner."""

@@ -280,6 +280,10 @@ def read_cloud(path: str | Path) -> np.ndarray:
     """A map's points from a PLY (``wheelgrid map``'s, or any with x y z vertices) or a PCD
     file (PCL's, as laser scanners and other mappers export them), by its suffix."""
     path = Path(path)
+    if path.is_dir():  # "[Errno 21] Is a directory" said nothing of what to give
+        raise ValueError(
+            f"{path}: a folder, not a map file (a .ply or .pcd; wheelgrid map writes OUT/map.ply)"
+        )
     if path.suffix.lower() == ".pcd":
         return read_pcd(path)
     return read_ply(path)
@@ -470,6 +474,8 @@ def folder_problem(folder: Path) -> str | None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
+        if folder.is_file():  # "(File exists)" said it less plainly
+            return f"cannot make the folder {folder}: it is a file"
         return f"cannot make the folder {folder} ({exc.strerror})"
     if not os.access(folder, os.W_OK):
         return f"the folder {folder} is not writable"

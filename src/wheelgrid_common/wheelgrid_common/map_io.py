@@ -222,6 +222,14 @@ def read_map(yaml_path: str | Path) -> Grid:
     ``free_thresh`` above 0.196 (Nav2 map_saver's default is 0.25) reads as free, stays
     unknown here."""
     yaml_path = Path(yaml_path)
+    if yaml_path.is_file():
+        with yaml_path.open("rb") as f:
+            head = f.read(8)
+        if head.startswith((b"P5", b"P2", b"\x89PNG")):  # read as YAML: "#x0000", "binary"
+            raise ValueError(
+                f"{yaml_path}: an image, not a map_server YAML: give the .yaml that names it "
+                "(wheelgrid grid writes grid.yaml beside grid.pgm)"
+            )
     doc = read_yaml(yaml_path)
     if not isinstance(doc, dict) or "image" not in doc or "resolution" not in doc:
         raise ValueError(f"{yaml_path}: not a map_server YAML (needs image and resolution)")

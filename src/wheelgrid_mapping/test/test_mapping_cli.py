@@ -194,6 +194,27 @@ def test_bad_inputs_exit_2_without_traceback(sim_dir: Path, tmp_path: Path, caps
         assert "Traceback" not in err and says in err, err
 
 
+def test_inputs_of_neither_kind_say_what_each_kind_is(tmp_path: Path, capsys) -> None:
+    """A mistyped export path said "no such bag (a rosbag2 folder or a ROS 1 .bag)", and a
+    Stray export's depth/ folder "not a rosbag2 bag": a Stray export, which the command also
+    takes, went unmentioned. A folder given to measure said "[Errno 21] Is a directory"."""
+    from PIL import Image
+
+    depth = tmp_path / "export" / "depth"
+    depth.mkdir(parents=True)
+    Image.fromarray(np.full((6, 8), 1000, dtype=np.uint16)).save(depth / "000000.png")
+    for given, says in (
+        (tmp_path / "nothing", "no such input (a rosbag2 folder, a ROS 1 .bag file or a Stray"),
+        (depth, "a Stray export is the folder above its depth/"),
+    ):
+        assert cli_map.main([str(given), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err, err
+    boxes = ["--box-a", "0", "0", "0", "1", "1", "1", "--box-b", "1", "1", "1", "2", "2", "2"]
+    assert cli_measure.main([str(tmp_path), *boxes]) == 2
+    assert "a folder, not a map file" in capsys.readouterr().err
+
+
 def test_a_config_whose_filters_erase_a_thin_obstacle_is_refused(
     sim_dir: Path, tmp_path: Path, capsys
 ) -> None:

@@ -48,6 +48,27 @@ def is_stray(path: Path) -> bool:
     return path.is_dir() and (path / "depth").is_dir() and not (path / "metadata.yaml").exists()
 
 
+def _not_a_bag_hint(path: Path) -> None:
+    """``InputError`` for an input that is neither kind this command reads, where the bag
+    reader's own message would speak of bags only (a Stray export's depth/ folder given, or
+    the export's path mistyped)."""
+    if not path.exists():
+        raise InputError(
+            f"{path}: no such input (a rosbag2 folder, a ROS 1 .bag file or a Stray Scanner "
+            "export folder)"
+        )
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        if any(path.glob("*.mcap")) or any(path.glob("*.db3")):
+            return  # a bag cut off before its metadata.yaml: the reader names the fix
+        hint = ""
+        if any(path.glob("[0-9]*.png")) or any(path.glob("[0-9]*.npy")):
+            hint = ": it holds frame images; a Stray export is the folder above its depth/"
+        raise InputError(
+            f"{path}: neither a rosbag2 bag (no metadata.yaml) nor a Stray Scanner export "
+            f"(no depth/ folder){hint}"
+        )
+
+
 class FrameNumbers:
     """A frame's number in the input by its stamp, for the warnings about it, which come back
     from the pipeline with the stamp only. Frames that share a stamp (a recorder that stamped
@@ -493,6 +514,8 @@ def _run(args: argparse.Namespace) -> int:
     bad: list[str] = []
     damage: list[str] = []
     match = PriorMatch()
+    if not is_stray(path):
+        _not_a_bag_hint(path)
     if is_stray(path):
         if args.topic or args.prior_topic:
             raise InputError("--topic and --prior-topic apply to bags, not to a Stray export")
