@@ -213,13 +213,14 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         print(f"[FATAL] cannot start: {reason}", file=sys.stderr)
         return 2
     # A closed terminal or ssh session (SIGHUP) ended a node at once, without its close(): a
-    # mapper's scan was not saved, though save_on_exit promises it. It is SIGTERM now, which
-    # rclpy turns into a shutdown of the context. (Not from another thread: signals are the
-    # main thread's, and its caller's.)
-    # `nohup mapper` ignores it, and goes on doing so.
+    # mapper's scan was not saved, though save_on_exit promises it. It now ends the spin as
+    # Ctrl-C does, with KeyboardInterrupt (re-sent as SIGTERM, it hung wherever SIGTERM was
+    # no longer rclpy's: a test process whose earlier test had taken it). Not from another
+    # thread: signals are the main thread's, and its caller's. `nohup mapper` ignores it, and
+    # goes on doing so.
     old = None
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
-        old = _set_signal(signal.SIGHUP, lambda *_: os.kill(os.getpid(), signal.SIGTERM))
+        old = _set_signal(signal.SIGHUP, _hang_up)
     node = None
     code = 0
     try:
@@ -244,13 +245,15 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         # map) raised KeyboardInterrupt out of close(): a traceback, and the save could be
         # skipped. Ignored now; SIGKILL still stops at once.
         old_int = _set_signal(signal.SIGINT, signal.SIG_IGN)
+        if old is not None:
+            _set_signal(signal.SIGHUP, signal.SIG_IGN)  # a second one, as a second Ctrl-C
         try:
             if node is not None:
                 close = getattr(node, "close", None)
                 if callable(close):
                     close()
                 node.destroy_node()
-            # after SIGTERM (or SIGHUP) rclpy's handler has shut the context down, and
+            # after SIGTERM rclpy's handler has shut the context down, and
             # rclpy.shutdown() was skipped: its default context stayed, and a later
             # rclpy.init() in the same process (a test) raised "must only be called once"
             rclpy.try_shutdown()
@@ -259,6 +262,10 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
                 if handler is not None:
                     _set_signal(sig, handler)
     return code
+
+
+def _hang_up(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum} (SIGHUP: the terminal closed)")
 
 
 def _set_signal(sig: signal.Signals, handler: Any) -> Any:
