@@ -514,13 +514,13 @@ def _run(args: argparse.Namespace) -> int:
     bad: list[str] = []
     damage: list[str] = []
     match = PriorMatch()
-    if not is_stray(path):
-        _not_a_bag_hint(path)
-    if is_stray(path):
+    stray = is_stray(path)
+    if stray:
         if args.topic or args.prior_topic:
             raise InputError("--topic and --prior-topic apply to bags, not to a Stray export")
         total, frames = stray_frames(path, args.prior == "arkit", bad)
     else:
+        _not_a_bag_hint(path)
         total, frames, bad = bag_frames(
             path,
             args.topic,
@@ -697,7 +697,7 @@ def _run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     skipped = f", {len(bad)} unreadable skipped" if bad else ""
     missing = int(fr.get("without_confidence", 0))
-    if missing and (is_stray(Path(args.input)) or fr.get("with_confidence")):
+    if missing and (stray or fr.get("with_confidence")):
         # an ARKit capture is expected to carry it, in every frame (a bag of another sensor,
         # none at all, is not warned of: report.json counts it)
         print(

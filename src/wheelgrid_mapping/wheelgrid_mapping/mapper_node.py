@@ -632,15 +632,16 @@ class MapperNode(Node):  # type: ignore[misc]
                     self._log_once("nolevel", f"map not published yet: {exc}")
             if pts is not None:
                 self._map_dirty = False
-                self._warn_floor_refound()
+                self._warn_levelling()
                 msg = to_pointcloud2(pts.astype(np.float32), self.map_frame)
                 msg.header.stamp = self.get_clock().now().to_msg()
                 self._publish(self.map_pub, msg)
         self._publish_status()
 
-    def _warn_floor_refound(self) -> None:
-        """Say so when the map frame jumped to the floor found on the whole map: the map, the
-        poses and any grid made from an earlier map cloud move with it."""
+    def _warn_levelling(self) -> None:
+        """Say so, once each, when the map frame jumped to the floor found on the whole map
+        (the map, the poses and any grid made from an earlier map cloud move with it), and
+        when the floor in view contradicts an explicit mount transform."""
         from .cli_map import floor_refound_line, mount_check_line
 
         got = self.mapper.level_info.get("floor_refound")

@@ -340,10 +340,7 @@ def prepare_frame(
 ) -> PreparedFrame:
     """:class:`PreparedFrame` of one sensor-frame cloud (``(N, 3)``, NaN allowed)."""
     t0 = time.perf_counter()
-    st = PreprocessStats(
-        no_confidence=confidence is None and pre.min_confidence > 0,
-        has_confidence=confidence is not None,
-    )
+    st = PreprocessStats(has_confidence=confidence is not None)
     pts, map_keep = preprocess_for_map(points, pre, confidence, st)
     inputs = frame_inputs(pts, reg) if st.valid else None
     return PreparedFrame(pts, st, inputs, time.perf_counter() - t0, map_keep)
@@ -632,8 +629,8 @@ class Mapper:
             prior = None
         st = prep.stats
         pts = prep.points
-        self.frames_without_confidence += int(st.no_confidence)
         self.frames_with_confidence += int(st.has_confidence)
+        self.frames_without_confidence += int(not st.has_confidence and self.pre.min_confidence > 0)
         for k in self.points:
             self.points[k] += int(getattr(st, k))
         self.timings["preprocess_s"] += prep.seconds

@@ -680,9 +680,7 @@ class PreprocessStats:
     after_pfc: int = 0
     mixed_out_of_map: int = 0  # of after_pfc, left out of the map (map_mixed_pixels)
     sor_kept_on_lines: int = 0  # of after_sor, flagged by eq. 4 but inside a line of cells
-    # the frame had no confidence channel while min_confidence asked for one: not filtered
-    no_confidence: bool = False
-    has_confidence: bool = False  # it had one
+    has_confidence: bool = False  # the frame had a confidence channel (min_confidence applies)
 
 
 def filter_cloud(
