@@ -155,6 +155,9 @@ def test_spin_node_closes_a_node_on_sighup_and_a_ctrl_c_while_it_closes_is_ignor
 
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signals are delivered to the main thread only")
+    # run under nohup (CI's runner may be), SIGHUP is inherited ignored, and spin_node keeps
+    # ignoring it by design: the test sets the default a terminal gives
+    hup = signal.signal(signal.SIGHUP, signal.SIG_DFL)
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGHUP)
     closed: list[str] = []
 
@@ -184,6 +187,7 @@ def test_spin_node_closes_a_node_on_sighup_and_a_ctrl_c_while_it_closes_is_ignor
         signal.signal(signal.SIGTERM, term)
     assert closed == ["done"]
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGHUP)) == before
+    signal.signal(signal.SIGHUP, hup)
 
 
 @pytest.mark.ros
@@ -285,7 +289,13 @@ def test_a_node_with_no_timer_of_its_own_stops_on_sighup():
 
     args = python_module("wheelgrid_mapping.depth_to_cloud_node")
     with managed_process(
-        args, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        args,
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        # a terminal's default, where the runner itself was started under nohup
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),  # type: ignore[arg-type]
     ) as proc:
         assert proc.stdout is not None
         line = proc.stdout.readline()  # its start-up line: spinning from here on
