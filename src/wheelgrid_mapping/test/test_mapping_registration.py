@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from wheelgrid_mapping.registration import (
     Registrar,
     RegistrationConfig,
     blend_correction,
+    frame_inputs,
     rotation_angle_deg,
     transform,
 )
@@ -542,6 +544,8 @@ def test_the_dropout_rule_is_checked() -> None:
         {"prior_check_turn": float("inf")},
         {"prior_check_gain": 1.5},
         {"prior_check_gain": 0.0},
+        {"relocalise_ambiguity": -0.1},
+        {"relocalise_ambiguity": float("nan")},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             RegistrationConfig(**bad)  # type: ignore[arg-type]
@@ -757,3 +761,47 @@ def test_keyframes_further_apart_than_a_dropout_are_refused() -> None:
 
     with pytest.raises(ValueError, match="must be under registration max_gap"):
         Mapper(cfg=MapperConfig(min_frame_interval=0.5))
+
+
+def _fence(posts: np.ndarray) -> np.ndarray:
+    """A floor, a wall behind and a row of 10 cm square posts at ``posts`` (x, m) in front of
+    it, sampled every 2 cm: only the posts' sides fix a slide along the wall."""
+    g = np.arange(0.0, 1.0, 0.02)
+    side = np.arange(0.0, 0.1, 0.02)
+    xs = np.arange(-2.0, 2.0, 0.02)
+    floor = np.array([[x, y, 0.0] for x in xs for y in np.arange(0.5, 2.0, 0.02)])
+    wall = np.array([[x, 2.0, z] for x in xs for z in g])
+    sides = [[x0 + dx, 1.4 + t, z] for x0 in posts for dx in (0.0, 0.1) for t in side for z in g]
+    return np.vstack([floor, wall, np.array(sides)])
+
+
+@pytest.mark.parametrize(
+    ("posts", "ambiguous"),
+    [
+        (np.arange(-1.8, 1.8, 0.3), True),  # a fence of 30 cm pitch: a slide of 30 cm fits
+        (np.array([-1.7, -1.25, -0.5, 0.05, 0.8, 1.15]), False),  # posts that fix the slide
+    ],
+)
+def test_a_view_that_fits_the_map_as_well_elsewhere_is_ambiguous(
+    posts: np.ndarray, ambiguous: bool
+) -> None:
+    """After a gap the prior's guess is in doubt, so its placing must be the view's own: the
+    frame is aligned again from ``relocalise_ambiguity`` (30 cm here) along its two least
+    constrained directions, and a placing that stays away and passes the relocalisation
+    checks makes it ambiguous. Without this, the bundled bag's frames after a dropout were
+    mapped 14-39 cm off where the prior had re-anchored across it
+    (test_mapping_prior_reanchor)."""
+    cfg = RegistrationConfig(threads=1, relocalise_ambiguity=0.3)
+    reg = Registrar(cfg)
+    pts = _fence(posts)
+    reg._integrate(pts, np.eye(4))
+    inputs = frame_inputs(pts, cfg)
+    reason = reg._ambiguous(inputs, np.eye(4))
+    if ambiguous:
+        assert reason.startswith("relocalisation ambiguous (a placing "), reason
+        apart = float(reason.split("a placing ")[1].split(" m")[0])
+        assert apart == pytest.approx(0.3, abs=0.04), reason  # the next post along
+    else:
+        assert reason == "", reason
+    reg.cfg = replace(cfg, relocalise_ambiguity=0.0)  # off
+    assert reg._ambiguous(inputs, np.eye(4)) == ""

@@ -204,6 +204,15 @@ class RegistrationConfig:
         "fewer the view leaves a direction unfixed)",
         "points",
     )
+    relocalise_ambiguity: float = field(
+        0.1,
+        "after a gap, a frame's placing is aligned again from this far along each of the two "
+        "directions its view constrains least; where one of those alignments stays 90 % as far "
+        "away and passes the same checks, the view cannot tell the two apart and the frame "
+        "fails (0 = off). A floor and one wall slide along the wall: the checks, with their "
+        "cell or two of tolerance, passed placings 14-39 cm off on the bundled bag",
+        "m",
+    )
     max_gap: float = field(
         0.5,
         "a frame this long after the frame before it is registered as a relocalisation "
@@ -240,7 +249,10 @@ class RegistrationConfig:
         ):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ValueError(f"registration {name} must be > 0, not {getattr(self, name)}")
-        for name in ("fixed_threshold", "min_motion_th", "prior_check_step", "prior_check_turn"):
+        for name in (
+            "fixed_threshold", "min_motion_th", "prior_check_step", "prior_check_turn",
+            "relocalise_ambiguity",
+        ):  # fmt: skip
             if getattr(self, name) < 0:
                 raise ValueError(f"registration {name} must be >= 0, not {getattr(self, name)}")
         for name in (
@@ -702,6 +714,46 @@ class Registrar:
                 )
         return ""
 
+    def _ambiguous(self, inputs: FrameInputs, pose: np.ndarray) -> str:
+        """Why the view cannot tell ``pose`` from another placing, or "" (after a gap only).
+
+        The frame is aligned again from ``relocalise_ambiguity`` away along each of the two
+        directions its view constrains least (the weakest of its point-to-plane information's
+        translation axes), with the search a relocalisation from the prior uses. Where the map
+        pulls such an alignment back toward ``pose``, the view holds it there; where one stays
+        as far away (90 % or more) and passes the checks of ICP alone (:meth:`_unconfirmed`),
+        either placing is a guess, and after a gap the prior that chose this one may have
+        re-anchored its world unseen. The checks alone, with their cell or two of tolerance
+        and the map's clutter, had passed placings 14-39 cm off (the bundled bag with three
+        frames dropped and the prior re-anchored across them, 15 to 30 cm).
+        """
+        cfg = self.cfg
+        if cfg.relocalise_ambiguity <= 0:
+            return ""
+        info = inputs.info
+        if info is None:
+            info = point_to_plane_information(inputs.down, 0.5 * cfg.voxel_size)
+            if info is None:
+                return ""
+        _, axes = np.linalg.eigh(info[:3, :3])  # ascending: the least constrained first
+        kernel = cfg.prior_threshold * cfg.relocalise_scale
+        for axis in axes[:, :2].T:
+            for sign in (1.0, -1.0):
+                seed = pose.copy()
+                seed[:3, 3] += sign * cfg.relocalise_ambiguity * (pose[:3, :3] @ axis)
+                other = np.asarray(self._align(inputs.source, seed, 3.0 * kernel, kernel))
+                off = np.linalg.inv(pose) @ other
+                apart = float(np.linalg.norm(off[:3, 3]))
+                if apart < 0.9 * cfg.relocalise_ambiguity:
+                    continue
+                hits = self._hits(transform(inputs.down, other))
+                if not self._unconfirmed(inputs, hits, with_prior=False):
+                    return (
+                        f"relocalisation ambiguous (a placing {apart:.2f} m, "
+                        f"{rotation_angle_deg(off):.1f} deg away fits the map as well)"
+                    )
+        return ""
+
     def _integrate(self, pts_sensor: np.ndarray, pose: np.ndarray) -> None:
         # KISS-ICP's update() transforms the sensor-frame points by ``pose`` itself.
         self._map.update(pts_sensor, pose)
@@ -856,11 +908,23 @@ class Registrar:
                 # re-anchor it took the refuted world back, and the map went on 10.5 cm off)
                 self._fix_at_accept = self._prior_fix.copy()
                 return self._fail(f"pose prior jumped ({judged})", t0)
-        if relocalising and virtual is not None and not repeat and not passed:
-            # The map refutes every guess the prior gives (its world re-anchored over a gap,
-            # say): ICP alone from the last pose, under the same checks. Taken only where the
-            # prior's guesses fail, because a right prior is the better guess; its pose then
-            # re-anchors the prior's steps, which go on from the frame it places.
+        if (
+            relocalising
+            and virtual is not None
+            and not repeat
+            and not passed
+            and (gap or not self._after_gap)
+        ):
+            # The map refutes every guess the prior gives (a 2 m jump, say): ICP alone from
+            # the last pose, under the same checks. Taken only where the prior's guesses fail,
+            # because a right prior is the better guess; its pose then re-anchors the prior's
+            # steps, which go on from the frame it places. After a gap, on the gap's first
+            # frame only: ICP alone's guess (the last pose, one frame's motion on) knows nothing
+            # of the motion over the gap, and every frame that fails after it makes it staler.
+            # On the bundled bag with clouds 130-132 lost and the prior re-anchored 28 cm, it
+            # placed the gap's first frame 51 cm off (which :meth:`_ambiguous` now refuses),
+            # the prior was re-anchored to it, and the map ran on to 2.2 m off, none failed;
+            # with the gap at 170, a later frame's placing 1.7 m off.
             alone = self._attempt(inputs, stamp, None, True)
             if not alone.reason:
                 tries.append(replace(alone, prior=virtual))
@@ -1116,6 +1180,8 @@ class Registrar:
                 reason = f"disagrees with pose prior by {rotation_angle_deg(dev):.0f} deg"
         if relocalising and not reason:
             reason = self._unconfirmed(inputs, hits, with_prior and not self._after_gap)
+            if not reason and self._after_gap:
+                reason = self._ambiguous(inputs, pose)
         return _Attempt(pose, fitness, reason, guess, corr, info, prior_step, step, prior)
 
     def _map_prefers(
