@@ -616,9 +616,13 @@ class Mapper:
         if len(self.failures) < MAX_LISTED_FAILURES:
             self.failures.append(entry)
 
-    def add_prepared(self, prep: PreparedFrame, prior: np.ndarray | None = None) -> FrameOutcome:
+    def add_prepared(
+        self, prep: PreparedFrame, prior: np.ndarray | None = None, after_gap: bool | None = None
+    ) -> FrameOutcome:
         """The second half of :meth:`add_frame`: register and integrate the oldest admitted frame,
-        ``prep`` its :func:`prepare_frame`."""
+        ``prep`` its :func:`prepare_frame`. ``after_gap``: whether the frame follows a dropout of
+        the stream, where the caller knows better than the frames mapped (a live node's frames
+        dropped while busy are none); None: registration reads it from their stamps."""
         if not self._admitted:
             raise RuntimeError("Mapper.add_prepared without a frame admitted before it")
         index, stamp, t_map = self._admitted.pop(0)
@@ -643,7 +647,7 @@ class Mapper:
         if prior is not None and len(self.poses_odom) == 1 and self.registrar.last_prior is None:
             res = self._begin_again_with_prior(pts, t_map, prior, prep.inputs)
         if res is None:
-            res = self.registrar.register(pts, t_map, prior, prep.inputs)
+            res = self.registrar.register(pts, t_map, prior, prep.inputs, after_gap)
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
             self._note_failure({"frame": index, "stamp": stamp, "reason": res.reason})

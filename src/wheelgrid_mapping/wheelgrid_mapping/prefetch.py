@@ -94,6 +94,7 @@ class _Pending:
     prior: np.ndarray | None
     stamp: float
     sent: bool  # to the worker (else it is prepared here when its turn comes)
+    after_gap: bool | None = None  # Mapper.add_prepared's
 
 
 class FramePipeline:
@@ -134,16 +135,18 @@ class FramePipeline:
         confidence: np.ndarray | None = None,
         prior: np.ndarray | None = None,
         received: float | None = None,
+        after_gap: bool | None = None,
     ) -> list[tuple[float, FrameOutcome]]:
         """Admit this frame and add the one before it: the ``(stamp, outcome)`` of every frame
         finished by this call. A frame skipped between keyframes is finished at once, so its
-        outcome can come before that of the frame still in preparation."""
+        outcome can come before that of the frame still in preparation. ``after_gap``: as
+        :meth:`Mapper.add_prepared`'s."""
         skipped = self.mapper.admit(stamp, frame_id, received)
         if skipped is not None:
             return [(stamp, skipped)]
         previous = self._pending
         prepared = self._collect(previous) if previous is not None else None
-        self._pending = _Pending(points, confidence, prior, float(stamp), False)
+        self._pending = _Pending(points, confidence, prior, float(stamp), False, after_gap)
         if self._worker is not None:
             try:
                 self._worker.send(points, confidence, self.mapper.pre, self.mapper.reg_cfg)
@@ -175,7 +178,7 @@ class FramePipeline:
             self.mapper.drop_admitted()
             return frame.stamp, FrameOutcome("error", repr(prepared))
         try:
-            return frame.stamp, self.mapper.add_prepared(prepared, frame.prior)
+            return frame.stamp, self.mapper.add_prepared(prepared, frame.prior, frame.after_gap)
         except Exception as exc:
             self.mapper.frames_errored += 1  # read, and neither used, failed nor skipped
             return frame.stamp, FrameOutcome("error", repr(exc))
