@@ -1210,11 +1210,26 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path):
     from the frames it saw, so two frames dropped at the bag's 5 Hz made a 0.6 s "gap": the next
     frame was held to the rule for a relocalisation after a dropout, and on the unedited
     bundled bag 30 frames (6 s of map, odometry and /tf) failed it (a review, live, on a loaded
-    machine). The worker is held here while three frames arrive, so two are dropped."""
+    machine). The worker is held on frame 40 while three more arrive, so two are dropped."""
+    import threading
+
+    from wheelgrid_mapping.mapper_node import _stamp_seconds
+
     if not BAG.exists():
         pytest.skip("bags/paper_room: not present")
     with rclpy_context() as ctx:
         node = in_process_mapper_node(ctx, tmp_path, "/busy", max_queue=1)
+        holding, release = threading.Event(), threading.Event()
+        held_stamp: list[float] = []
+        real_prior_for = node._prior_for
+
+        def prior_for(stamp: float, frame_id: str) -> Any:
+            if held_stamp and stamp == held_stamp[0]:  # the worker has taken the frame
+                holding.set()
+                release.wait(60.0)
+            return real_prior_for(stamp, frame_id)
+
+        node._prior_for = prior_for
         try:
 
             def taken() -> bool:
@@ -1224,12 +1239,13 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path):
             for k, (msg, odom) in enumerate(bag_cloud_odometry(BAG, 60)):
                 node._on_prior(odom)
                 if k == 40:
-                    node._lock.acquire()
+                    held_stamp.append(_stamp_seconds(msg.header.stamp))
                 node._on_cloud(msg)
-                if k in (41, 42):  # the worker holds frame 40 and waits for the map
+                if k == 40:
+                    assert holding.wait(60.0), "the worker never took frame 40"
+                if k in (40, 41, 42):
                     continue
-                if k == 43:
-                    node._lock.release()
+                release.set()
                 assert poll_until(taken, 60.0, 0.01), "the mapper's worker took no frame"
             wait_settled(node)
             counters = node.mapper.registrar.counters
@@ -1237,5 +1253,6 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path):
             assert counters.gaps == 0 and counters.failed == 0, counters
             assert counters.accepted == 58
         finally:
+            release.set()
             node.close()
             node.destroy_node()
