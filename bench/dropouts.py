@@ -35,8 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import read_tum
-from wheelgrid_common.testing import edit_bag
+from wheelgrid_common.testing import dropout_bag, poses_by_stamp
 from wheelgrid_mapping import cli_map
 
 ROOM = Path(__file__).resolve().parents[1] / "bags" / "paper_room"
@@ -53,11 +52,6 @@ SETS: dict[str, tuple[list[int], list[tuple[float, float]]]] = {
 }
 
 
-def _poses(path: Path) -> dict[float, np.ndarray]:
-    stamps, poses = read_tum(path)
-    return {round(float(t), 2): p for t, p in zip(stamps, poses, strict=True)}
-
-
 def run(job: tuple[int, tuple[float, float], str, str]) -> dict[str, Any]:
     """One edited bag mapped: what failed, what was mapped after the gap, how far off."""
     first, (dx, dy), root, config = job
@@ -65,19 +59,7 @@ def run(job: tuple[int, tuple[float, float], str, str]) -> dict[str, Any]:
     out = Path(root) / f"gap{first}_{dx:+.2f}_{dy:+.2f}"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-
-    def move(k: int, msg: Any) -> None:
-        if k > last:
-            msg.pose.pose.position.x += dx
-            msg.pose.pose.position.y += dy
-
-    bag = edit_bag(
-        ROOM / "scan",
-        out / "bag",
-        topics=["/iphone/points", "/iphone/odometry"],
-        keep=lambda topic, k: not (topic == "/iphone/points" and first <= k <= last),
-        edits={"/iphone/odometry": move},
-    )
+    bag = dropout_bag(ROOM / "scan", out / "bag", first, last, (dx, dy))
     argv = [str(bag), "--out", str(out / "map"), "--prior", "arkit", "--no-loop-closure"]
     if config:
         argv += ["--config", config]
@@ -87,7 +69,10 @@ def run(job: tuple[int, tuple[float, float], str, str]) -> dict[str, Any]:
     if rc != 0:
         return row
     report = json.loads((out / "map" / "report.json").read_text())
-    est, truth = _poses(out / "map" / "trajectory.tum"), _poses(ROOM / "poses_map.tum")
+    est, truth = (
+        poses_by_stamp(out / "map" / "trajectory.tum"),
+        poses_by_stamp(ROOM / "poses_map.tum"),
+    )
     gap_end = sorted(truth)[last]
     row["failed"] = report["frames"]["failed"]
     row["mapped_after"] = sum(t > gap_end for t in est)

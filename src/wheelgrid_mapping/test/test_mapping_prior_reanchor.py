@@ -15,19 +15,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix, read_tum
-from wheelgrid_common.testing import edit_bag
+from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
+from wheelgrid_common.testing import dropout_bag, edit_bag, poses_by_stamp
 from wheelgrid_mapping import cli_map
 from wheelgrid_mapping.levelling import rpy_matrix
 
 ROOM = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
 FRAMES, AT = 130, 110  # the bag's first 130 frames; the odometry re-anchors from frame 110
-
-
-def _tum(path: Path) -> dict[float, np.ndarray]:
-    """A TUM file's poses by stamp, to the 10 ms that tell the bag's 5 Hz frames apart."""
-    stamps, poses = read_tum(path)
-    return {round(float(t), 2): pose for t, pose in zip(stamps, poses, strict=True)}
 
 
 def _reanchored_bag(out: Path, shift: np.ndarray) -> Path:
@@ -86,32 +80,12 @@ def test_a_prior_that_re_anchors_between_two_frames_leaves_the_map_right(
     report = json.loads((out / "report.json").read_text())
     assert report["frames"]["failed"] == 1 and report["frames"]["relocalised"] == 1
     assert report["failure_reasons"] == {"pose prior jumped": 1}
-    est, truth = _tum(out / "trajectory.tum"), _tum(ROOM / "poses_map.tum")
+    est, truth = poses_by_stamp(out / "trajectory.tum"), poses_by_stamp(ROOM / "poses_map.tum")
     stamps = sorted(est)
     assert len(stamps) == FRAMES - 1
     after = [np.linalg.norm(est[t][:3, 3] - truth[t][:3, 3]) for t in stamps[AT:]]
     # the untouched bag's trajectory lies 2-3 cm from the truth here; before, 10-32 cm
     assert max(after) < 0.05, np.round(after, 3)
-
-
-def _dropout_bag(out: Path, first: int, last: int, shift: tuple[float, float]) -> Path:
-    """The whole bundled bag with clouds ``first``-``last`` lost (the odometry goes on) and the
-    odometry's world moved by ``shift`` (x, y in metres) from the message after them."""
-    if not (ROOM / "scan" / "metadata.yaml").exists():
-        pytest.skip("bags/paper_room: not present")
-
-    def move(k: int, msg: Any) -> None:
-        if k > last:
-            msg.pose.pose.position.x += shift[0]
-            msg.pose.pose.position.y += shift[1]
-
-    return edit_bag(
-        ROOM / "scan",
-        out,
-        topics=["/iphone/points", "/iphone/odometry"],
-        keep=lambda topic, k: not (topic == "/iphone/points" and first <= k <= last),
-        edits={"/iphone/odometry": move},
-    )
 
 
 @pytest.mark.parametrize(
@@ -132,13 +106,15 @@ def test_a_prior_that_re_anchors_during_a_dropout_does_not_move_the_map(
 ) -> None:
     """Three clouds lost (0.6 s at the bag's 5 Hz) while the prior's world moves 28-30 cm: no
     frame may be mapped off by more than the online drift (8-9 cm on the untouched bag)."""
-    bag = _dropout_bag(tmp_path / "bag", first, first + 2, shift)
+    if not (ROOM / "scan" / "metadata.yaml").exists():
+        pytest.skip("bags/paper_room: not present")
+    bag = dropout_bag(ROOM / "scan", tmp_path / "bag", first, first + 2, shift)
     out = tmp_path / "map"
     argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
     assert cli_map.main(argv) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["frames"]["after_gap"] == 1
-    est, truth = _tum(out / "trajectory.tum"), _tum(ROOM / "poses_map.tum")
+    est, truth = poses_by_stamp(out / "trajectory.tum"), poses_by_stamp(ROOM / "poses_map.tum")
     errors = {t: float(np.linalg.norm(est[t][:3, 3] - truth[t][:3, 3])) for t in est}
     assert max(errors.values()) < 0.1, max(errors.items(), key=lambda kv: kv[1])
     gap_end = sorted(truth)[first + 2]
