@@ -635,22 +635,65 @@ def test_a_chair_that_speeds_up_is_no_jump_to_the_map(
     assert answers == ["", ""]  # asked at the speed-up and at the turn's end: the prior is right
 
 
-def test_a_frame_without_a_prior_after_a_checked_step_is_registered(
+def test_a_frame_without_a_prior_after_a_checked_step_fails_and_the_prior_goes_on(
     world: np.ndarray, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Frame 2's step changed by 10 cm (the chair sped up): the map was asked. Frame 3 comes
-    without a prior (the pose topic fell silent) and is registered by ICP alone, not judged on
-    frame 2's question; frame 4's prior changes its step again, but the frame before it was
-    registered without one, so there is no step of the prior to judge."""
+    without a prior (the pose topic fell silent): in a run with a prior it fails, loudly,
+    rather than being placed by ICP alone (on the bundled bag with ten odometry messages lost
+    that put the map 3.2 m off). Frame 4's prior is back 0.4 s after the last one, within
+    max_gap: it goes on from frame 2 as if frame 3 had been dropped, not as a relocalisation,
+    and its step is not judged on frame 2's question."""
     answers = _asked(monkeypatch)
     rng = np.random.default_rng(45)
-    truth = [pose(1.5 + x, 2.0, 0.0) for x in (0.0, 0.05, 0.2, 0.35, 0.62)]
+    truth = [pose(1.5 + x, 2.0, 0.0) for x in (0.0, 0.05, 0.2, 0.35, 0.5)]
     reg = Registrar(RegistrationConfig())
     for i, T in enumerate(truth):
         res = reg.register(view(world, T, rng), 0.2 * i, prior=None if i == 3 else T)
-        assert res.accepted, (i, res.reason)
+        if i == 3:
+            assert not res.accepted and res.reason == "no pose prior (0.2 s since the last)"
+            assert reg.state == "relocalising"  # integration paused
+        else:
+            assert res.accepted and not res.relocalised, (i, res.reason)
+            err = np.linalg.inv(np.linalg.inv(truth[0]) @ T) @ res.pose
+            assert np.linalg.norm(err[:3, 3]) < 0.03, (i, err[:3, 3])
         assert len(answers) == (0 if i < 2 else 1), (i, answers)  # asked at frame 2 only
     assert answers == [""]
+    assert reg.state == "ok" and reg.counters.relocalised == 0 and reg.counters.prior_gaps == 0
+
+
+def test_a_prior_back_after_a_pause_longer_than_max_gap_is_judged_as_after_a_dropout(
+    world: np.ndarray,
+) -> None:
+    """The prior is missing for three frames (0.8 s between the frames that have it, over
+    max_gap 0.5 s) while the clouds go on: those frames fail, and the frame it comes back with
+    is registered as after a dropout (its world may have re-anchored meanwhile: ARKit
+    relocalising is one reason it pauses), counted as such."""
+    rng = np.random.default_rng(46)
+    truth = [pose(1.5 + 0.05 * i, 2.0, 0.01 * i) for i in range(8)]
+    reg = Registrar(RegistrationConfig())
+    results = [
+        reg.register(view(world, T, rng), 0.2 * i, prior=None if i in (3, 4, 5) else T)
+        for i, T in enumerate(truth)
+    ]
+    assert [r.accepted for r in results] == [True, True, True, False, False, False, True, True]
+    assert [r.reason for r in results[3:6]] == [
+        f"no pose prior ({s} s since the last)" for s in ("0.2", "0.4", "0.6")
+    ]
+    assert results[6].relocalised and results[6].after_gap
+    assert reg.counters.prior_gaps == 1 and reg.counters.gaps == 0
+    assert not results[7].relocalised and not results[7].after_gap
+
+
+def test_a_run_without_a_prior_from_its_start_registers_by_icp_alone(world: np.ndarray) -> None:
+    """The rule is for runs with a prior: where no frame has had one (``--prior none``, a pose
+    topic on another clock), ICP alone registers every frame, as before."""
+    rng = np.random.default_rng(47)
+    reg = Registrar(RegistrationConfig())
+    for i in range(4):
+        res = reg.register(view(world, pose(1.5 + 0.05 * i, 2.0, 0.0), rng), 0.2 * i)
+        assert res.accepted, (i, res.reason)
+    assert reg.counters.failed == 0
 
 
 def test_a_caught_jump_is_re_anchored_on_the_step_before(world: np.ndarray) -> None:

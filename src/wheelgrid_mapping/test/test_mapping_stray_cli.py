@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import time
 from pathlib import Path
@@ -129,7 +130,9 @@ def test_poses_missing_from_odometry_csv_are_said_by_import_and_map(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
 ) -> None:
     """A capture cut short writes depth first: import-stray was silent about the frames with no
-    pose, where wheelgrid map warned; both now say so, and lose no frame."""
+    pose, where wheelgrid map warned; both now say so. The bag keeps every frame; the map fails
+    those without a pose once a frame has had one (a run with a prior places none by ICP
+    alone)."""
     from wheelgrid_mapping import cli_map
 
     cap = _first_frames(stray_capture, tmp_path / "cap", 4)
@@ -141,9 +144,11 @@ def test_poses_missing_from_odometry_csv_are_said_by_import_and_map(
     assert f"import-stray: warning: {want}; the bag has no /iphone/odometry" in captured.err
     assert "wrote 4 frames" in captured.out
     cli_map.main([str(cap), "--out", str(tmp_path / "map"), "--prior", "arkit"])
-    assert f"wheelgrid map: warning: {want}; those register without the prior" in (
+    assert f"wheelgrid map: warning: {want}; once a frame has had its prior, those fail" in (
         capsys.readouterr().err
     )
+    report = json.loads((tmp_path / "map" / "report.json").read_text())
+    assert report["failure_reasons"].get("no pose prior") == 2, report["failure_reasons"]
 
 
 def test_frames_without_confidence_are_said_by_import_and_map(

@@ -118,8 +118,8 @@ def stray_frames(
     note = export.missing_poses_note() if use_prior else ""
     if note:
         print(
-            f"wheelgrid map: warning: {note}; those register without the prior, and the loop "
-            "closure does without it",
+            f"wheelgrid map: warning: {note}; once a frame has had its prior, those "
+            "fail (a run with a prior places no frame by ICP alone)",
             file=sys.stderr,
         )
 
@@ -177,7 +177,7 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
     if unreadable:
         print(
             f"wheelgrid map: warning: {unreadable} message(s) on {topic} do not deserialise; "
-            "frames without a prior pose within 0.1 s register without it",
+            "frames without a prior pose within 0.1 s fail once one frame has had it",
             file=sys.stderr,
         )
     return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
@@ -185,7 +185,8 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
 
 class PriorMatch:
     """Which frames found no odometry message within 0.1 s of their stamp (``--prior arkit``
-    on a bag): such a frame registers without a prior, and when that is every frame (clouds
+    on a bag): such a frame fails once a frame before it had a prior (before that it
+    registers without one), and when that is every frame (clouds
     and odometry stamped on different clocks) the map was made geometry-only, without a word."""
 
     def __init__(self) -> None:
@@ -199,7 +200,8 @@ class PriorMatch:
             return ""
         line = (
             f"{len(self.missing)} of {self.frames} frames had no odometry message within 0.1 s "
-            "of their stamp and registered without a prior"
+            "of their stamp: those after the first with a prior failed (no pose prior), those "
+            "before it registered without one"
         )
         if len(self.missing) == self.frames and self.frames:
             stamps = self.odom_stamps
@@ -718,6 +720,14 @@ def _run(args: argparse.Namespace) -> int:
             f"wheelgrid map: warning: the pose prior stood still to the bit on "
             f"{fr['prior_frozen']} frames (its tracking lost?); ICP alone registered them where "
             "it could place them, the others failed",
+            file=sys.stderr,
+        )
+    if fr.get("after_prior_gap"):
+        print(
+            f"wheelgrid map: warning: the pose prior came back after a pause of more than "
+            f"{mapper.reg_cfg.max_gap:g} s {fr['after_prior_gap']} time(s); each frame it came "
+            "back with was registered as after a dropout, every surface of it checked against "
+            "the map",
             file=sys.stderr,
         )
     if fr.get("dropped_before_prior"):

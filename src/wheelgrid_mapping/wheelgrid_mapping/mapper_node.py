@@ -380,7 +380,8 @@ class MapperNode(Node):  # type: ignore[misc]
         gap = min((s - stamp for s, _, _ in list(self._priors)), key=abs)
         return (
             f"{note}: the nearest is {gap:+.3f} s from the frame's stamp (a pose topic on "
-            "another clock?); frames register without a prior"
+            "another clock?); frames register without a prior until one has had it, and "
+            "fail after that"
         )
 
     def _prior_for(self, stamp: float, frame_id: str) -> np.ndarray | bool | None:
@@ -452,7 +453,7 @@ class MapperNode(Node):  # type: ignore[misc]
             found = self._prior_for(stamp, frame_id)
             if self.prior_topic and found is None:
                 # The pose may arrive just after its cloud: wait a moment rather than register
-                # without it (a frame without its prior is judged by the stricter rules).
+                # without it (once frames have had one, a frame without it fails).
                 deadline = time.monotonic() + 0.25
                 while found is None and time.monotonic() < deadline and not self._stop:
                     time.sleep(0.01)
@@ -687,6 +688,7 @@ class MapperNode(Node):  # type: ignore[misc]
             "frames_failed": c.failed,
             "frames_relocalised": c.relocalised,
             "frames_after_gap": c.gaps,
+            "frames_after_prior_gap": c.prior_gaps,
             "frames_dropped_before_prior": self.mapper.dropped_before_prior,
             "frames_skipped_busy": self.counts["skipped_busy"],
             "frames_between_keyframes": self.mapper.frames_skipped,

@@ -628,7 +628,9 @@ class Mapper:
         index, stamp, t_map = self._admitted.pop(0)
         if prior is not None and not is_rigid(prior):
             # A NaN pose from a bridge or bag would abort KISS-ICP (Sophus) and poison the loop
-            # closure's prior drift: the frame is registered without it, and it is counted.
+            # closure's prior drift: the frame is registered without it (it fails where frames
+            # before it had a prior: registration places no frame of such a run by ICP alone),
+            # and it is counted.
             self.priors_refused += 1
             prior = None
         st = prep.stats
@@ -1142,6 +1144,9 @@ class Mapper:
                 # frames more than registration.max_gap after the frame before them (a
                 # dropout): each registered as a relocalisation (relocalised where it passed)
                 "after_gap": c.gaps,
+                # frames whose pose prior came back more than max_gap after the last frame
+                # that had one (frames between failed, "no pose prior"): as after a dropout
+                "after_prior_gap": c.prior_gaps,
                 "prior_frozen": c.prior_frozen,
                 "priors_refused": self.priors_refused,
                 # min_confidence not applied: the frame had no confidence channel

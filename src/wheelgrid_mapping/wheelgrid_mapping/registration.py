@@ -585,6 +585,9 @@ class RegCounters:
     # frames that came more than max_gap after the frame before them (a dropout, a stalled
     # stream): each was registered as a relocalisation, and counts as relocalised if it passed
     gaps: int = 0
+    # frames whose pose prior came back more than max_gap after the last frame that had one
+    # (frames between came without): each was registered as after a dropout
+    prior_gaps: int = 0
     failure_reasons: dict[str, int] = dc_field(default_factory=dict)
 
 
@@ -644,6 +647,16 @@ class Registrar:
         # Relocalising since a gap (max_gap): the prior's world may have re-anchored across it
         # unseen, so its guesses are held to ICP alone's standard until a frame is accepted.
         self._after_gap = False
+        # The stamp of the last frame that came with a pose prior (None: none has yet), and
+        # whether frames have come without one since. A run with a prior places no frame by
+        # ICP alone where the prior is missing, and a prior back after a pause longer than
+        # max_gap is judged as after a dropout (its world may have re-anchored meanwhile).
+        self._prior_seen: float | None = None
+        self._prior_missing = False
+        # whether registration was "ok" when the prior went missing, and only its absence
+        # failed frames since: a prior back within max_gap then goes on as if those frames
+        # had been dropped (its step since the last accepted frame spans them)
+        self._paused_ok = False
         self.counters = RegCounters()
         self.prior_scale_fit = PriorScaleEstimate()
         # the steps joined so far into one scale measurement: the chain of the prior's steps
@@ -850,6 +863,36 @@ class Registrar:
         # A frozen prior's continuity is not updated: its catch-up is measured from where it
         # froze, and its step is taken from the pose of the last frame that followed it.
         repeat, frozen = self._repeat(prior, stamp)
+        if prior is None and self._prior_seen is not None and self.last_stamp is not None:
+            # A run with a prior whose prior is missing for this frame (the pose topic paused,
+            # a message lost or refused): the frame fails rather than being placed by ICP
+            # alone. The views a prior is needed for are the views ICP alone cannot place:
+            # the bundled bag with two odometry messages lost (0.4 s) mapped 1.06 m off, with
+            # ten (2 s) 3.2 m off, no failure but the first frame's, and the map followed.
+            paused_ok = self.state == "ok" if not self._prior_missing else self._paused_ok
+            self._prior_missing = True
+            since = float(stamp - self._prior_seen)
+            failed = self._fail(f"no pose prior ({since:.1f} s since the last){gap}", t0)
+            self._paused_ok = paused_ok and not gap
+            return failed
+        if prior is not None:
+            paused = float(stamp - self._prior_seen) if self._prior_seen is not None else 0.0
+            if self._prior_missing and not gap:
+                if paused > cfg.max_gap:
+                    # The prior paused for longer than a dropout while the clouds went on: its
+                    # world may have re-anchored meanwhile (ARKit relocalising is one reason it
+                    # pauses), which the speed rules cannot tell from the motion over it.
+                    relocalising = True
+                    self._after_gap = True
+                    self.counters.prior_gaps += 1
+                    gap = f" (the pose prior back after {paused:.1f} s)"
+                elif self._paused_ok:
+                    # A short pause in a run registered "ok": the frames without a prior are
+                    # as if dropped, and the prior's step spans them. Registered as a
+                    # relocalisation, two odometry messages lost cost 24 frames of the
+                    # bundled bag (22 of them "relocalisation unconfirmed").
+                    relocalising = False
+            self._prior_seen, self._prior_missing, self._paused_ok = float(stamp), False, False
         virtual: np.ndarray | None
         # where the prior's step changed enough for the map to judge it: the step before,
         # continued (:meth:`_continuous_prior`)
@@ -985,7 +1028,7 @@ class Registrar:
         self._after_gap = False
         if relocalising:
             self.counters.relocalised += 1
-            self.state = "ok"
+        self.state = "ok"  # (also after frames that failed only for a missing prior)
         return RegResult(
             pose,
             True,
@@ -1306,6 +1349,7 @@ class Registrar:
     ) -> RegResult:
         self.counters.failed += 1
         self._scale_window = None
+        self._paused_ok = False  # a frame failed for another reason than a missing prior
         key = reason.split(" (")[0].split(" by ")[0]
         self.counters.failure_reasons[key] = self.counters.failure_reasons.get(key, 0) + 1
         if self.last_stamp is not None:

@@ -230,7 +230,7 @@ class StrayExport:
     def frames_without_pose(self) -> int:
         """Depth frames that odometry.csv has no usable pose for (no row: a capture cut short
         writes depth first; or a NaN / zero-quaternion row): with ``--prior arkit`` those
-        frames register without a prior."""
+        frames fail once a frame before them had a prior (before that, register without one)."""
         return sum(
             self._odometry.get(int(p.stem), (0.0, None))[1] is None for p in self._depth_files
         )
