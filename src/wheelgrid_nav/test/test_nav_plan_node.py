@@ -267,6 +267,85 @@ def test_odometry_start_and_console_entry(tmp_path, child, params):
         assert math.atan2(2 * q.w * q.z, 1 - 2 * q.z * q.z) == pytest.approx(0.0, abs=1e-6)
 
 
+def odom_msg(grid, cell):
+    """An Odometry pose on ``cell``'s centre in the iPhone's optical frame, looking along the
+    grid's "right" (map +x)."""
+    from nav_msgs.msg import Odometry
+
+    odom = Odometry()
+    odom.header.frame_id = "map"
+    odom.child_frame_id = "camera_optical_frame"
+    x, y = grid.cell_center(*cell)
+    odom.pose.pose.position.x, odom.pose.pose.position.y = float(x), float(y)
+    q = odom.pose.pose.orientation
+    q.x, q.y, q.z, q.w = -0.5, 0.5, -0.5, 0.5  # optical z along map +x
+    return odom
+
+
+def test_a_start_from_odometry_that_stopped_coming_is_not_planned_from():
+    """The mapper publishes /wheelgrid/odometry for each frame it maps and none while it is
+    lost or stopped. The planner planned from the last pose it had, wherever the chair had gone
+    since. A start from the odometry older than ``odometry_max_age_s`` now gives no route (an
+    empty path, the goal dropped, said why); a fresh pose plans again, and a start from
+    /initialpose (the user's word) does not age."""
+    from types import SimpleNamespace as Ns
+
+    from rclpy.parameter import Parameter
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        node = make_node(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("odometry_max_age_s", value=0.3),
+                Parameter("method", value="qlearning"),
+            ],
+        )
+        try:
+            said: list[str] = []
+            logger = Ns(warning=lambda text, **_: said.append(text), info=lambda text, **_: None)
+            node.get_logger = lambda: logger
+            paths: list = []
+            node._publish_route = lambda grid, cells, *a: paths.append(cells)
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_odom(odom_msg(grid, (6, 0)))
+            node._on_goal(goal_msg(grid, (6, 4)))
+            assert node.plans == 1 and paths[-1] == [(6, c) for c in range(5)]
+            time.sleep(0.4)  # the odometry stops: the mapper lost its way
+            node._on_goal(goal_msg(grid, (6, 3)))
+            assert node.plans == 1 and paths[-1] == [] and node.goal is None
+            assert "/wheelgrid/odometry is 0.4 s old (odometry_max_age_s 0.3)" in said[-1], said
+            assert "goal dropped" in said[-1]
+            node._on_odom(odom_msg(grid, (6, 1)))  # mapping again
+            node._on_goal(goal_msg(grid, (6, 3)))
+            assert node.plans == 2 and paths[-1] == [(6, c) for c in range(1, 4)]
+            node._on_initialpose(start_msg(grid, (6, 0), 0.0))  # plans to (6, 3) at once
+            assert node.plans == 3
+            time.sleep(0.4)
+            node._on_goal(goal_msg(grid, (6, 2)))
+            assert node.plans == 4 and paths[-1] == [(6, 0), (6, 1), (6, 2)]
+        finally:
+            node.destroy_node()
+        node = make_node(
+            context=ctx, parameter_overrides=[Parameter("odometry_max_age_s", value=0.0)]
+        )
+        try:
+            node._publish_route = lambda grid, cells, *a: None
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_odom(odom_msg(grid, (6, 0)))
+            time.sleep(0.1)
+            node._on_goal(goal_msg(grid, (6, 2)))
+            assert node.plans == 1  # 0: no limit
+        finally:
+            node.destroy_node()
+        with pytest.raises(SystemExit):
+            make_node(
+                context=ctx, parameter_overrides=[Parameter("odometry_max_age_s", value=-1.0)]
+            )
+
+
 def chair_msg(grid, cell, yaw):
     from geometry_msgs.msg import PoseStamped
 

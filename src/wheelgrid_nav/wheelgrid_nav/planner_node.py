@@ -94,6 +94,14 @@ class PlannerNodeConfig:
         "*_optical or *_optical_frame looks along +z, any other along +x, as the mapper reads "
         "it), optical or body; set it as the mapper's mapper.sensor_convention where that is set",
     )
+    odometry_max_age_s: float = pfield(
+        2.0,
+        "a start pose from /wheelgrid/odometry received longer ago than this is not planned "
+        "from (no route): the mapper publishes a pose for each frame it maps and none while it "
+        "is lost or stopped, so an old one is where the chair was; 0 = no limit (a start from "
+        "/initialpose or the chair's pose does not age)",
+        "s",
+    )
 
 
 def heading_from_yaw(yaw: float, grid_yaw: float) -> str:
@@ -189,6 +197,10 @@ def _make_node_class() -> type:
             if not (math.isfinite(wait) and wait > 0):
                 self.get_logger().fatal(f"goal_wait_s must be > 0 s, not {wait}")
                 raise SystemExit(2)
+            age = self.node_cfg.odometry_max_age_s
+            if not (math.isfinite(age) and age >= 0):
+                self.get_logger().fatal(f"odometry_max_age_s must be >= 0 s, not {age}")
+                raise SystemExit(2)
             if self.node_cfg.odometry_convention not in CONVENTIONS:
                 self.get_logger().fatal(
                     f"odometry_convention must be one of {', '.join(CONVENTIONS)}, not "
@@ -209,6 +221,9 @@ def _make_node_class() -> type:
             # another frame must not turn their coordinates into cells
             self.start_frame = ""
             self.goal_frame = ""
+            # monotonic time the start came from /wheelgrid/odometry (None: it came from
+            # /initialpose or the chair's pose, which do not age)
+            self._start_from_odometry_at: float | None = None
             self.route: list[tuple[int, int]] = []
             self.plans = 0  # planning attempts (for tests and diagnostics)
             self.path_pub = self.create_publisher(Path, "wheelgrid/plan", MAP_QOS)
@@ -466,6 +481,7 @@ def _make_node_class() -> type:
                 forward_yaw(pose.orientation, child, convention),
             )
             self.start_frame = frame
+            self._start_from_odometry_at = None  # the odometry's own call sets it after this
             self._drop_if_reached()
             return True
 
@@ -483,13 +499,20 @@ def _make_node_class() -> type:
                 self.goal = None
 
         def _follow_start(
-            self, pose: Any, frame: str, child: str, convention: str = "auto"
+            self,
+            pose: Any,
+            frame: str,
+            child: str,
+            convention: str = "auto",
+            from_odometry: bool = False,
         ) -> None:
             """A start from a stream (odometry, the chair's pose): planned from at once only
             when it is the first start and a goal waits; later ones move the start that the
             next goal or grid change plans from."""
             had_start = self.start is not None
             started = self._set_start(pose, frame, child, convention)
+            if started and from_odometry:
+                self._start_from_odometry_at = time.monotonic()
             if started and not had_start and self.goal is not None:
                 self._plan()
 
@@ -499,6 +522,26 @@ def _make_node_class() -> type:
                 msg.header.frame_id,
                 msg.child_frame_id,
                 self.node_cfg.odometry_convention,
+                from_odometry=True,
+            )
+
+        def _stale_start(self) -> str:
+            """Why the start cannot be planned from now, or "": one from the mapper's odometry
+            that has not come again for odometry_max_age_s. The mapper publishes no pose while
+            it is lost (relocalising) or stopped; before, the planner planned from the last
+            one, wherever the chair had gone since, and only the drive's pose check (30 cm)
+            stood between that route and the chair."""
+            limit, at = self.node_cfg.odometry_max_age_s, self._start_from_odometry_at
+            if limit <= 0 or at is None:
+                return ""
+            age = time.monotonic() - at
+            if age <= limit:
+                return ""
+            topic = self.resolve_topic_name("wheelgrid/odometry")
+            return (
+                f"no route: the start pose from {topic} is {age:.1f} s old (odometry_max_age_s "
+                f"{limit:g}): the mapper has placed no frame since (lost, or stopped); send "
+                "the goal again once it maps, or give the start on /initialpose"
             )
 
         def _on_chair_pose(self, msg: Any) -> None:
@@ -547,6 +590,10 @@ def _make_node_class() -> type:
                         "no route (no tf)",
                     )
                     return
+            stale = self._stale_start()
+            if stale:
+                self._no_route(grid, stale)
+                return
             self.plans += 1
             start = grid.cell_of(self.start[0], self.start[1])
             goal = grid.cell_of(self.goal[0], self.goal[1])
