@@ -1028,11 +1028,13 @@ def test_the_status_counts_a_frame_that_raised_and_the_counts_add_up(tmp_path, m
     real = Mapper.add_prepared
     calls = {"n": 0}
 
-    def second_raises(self: Any, prep: Any, prior: Any = None, after_gap: Any = None) -> Any:
+    def second_raises(
+        self: Any, prep: Any, prior: Any = None, after_gap: Any = None, prior_since: Any = None
+    ) -> Any:
         calls["n"] += 1
         if calls["n"] == 2:
             raise ValueError("a frame that breaks registration")
-        return real(self, prep, prior, after_gap)
+        return real(self, prep, prior, after_gap, prior_since)
 
     monkeypatch.setattr(Mapper, "add_prepared", second_raises)
     with mapper_in_process(tmp_path, 4) as node:
@@ -1204,13 +1206,19 @@ def test_a_map_begun_again_with_the_first_prior_is_a_new_map_to_save(tmp_path):
             node.destroy_node()
 
 
-def test_frames_dropped_while_busy_are_no_dropout(tmp_path):
+@pytest.mark.parametrize("lost_odometry", [False, True])
+def test_frames_dropped_while_busy_are_no_dropout(tmp_path, lost_odometry):
     """With ``max_queue: 1`` (the live setting) a frame that arrives while the worker is busy
     replaces the one waiting, which is dropped and counted. Registration measured a dropout
     from the frames it saw, so two frames dropped at the bag's 5 Hz made a 0.6 s "gap": the next
     frame was held to the rule for a relocalisation after a dropout, and on the unedited
     bundled bag 30 frames (6 s of map, odometry and /tf) failed it (a review, live, on a loaded
-    machine). The worker is held on frame 40 while three more arrive, so two are dropped."""
+    machine). The worker is held on frame 40 while three more arrive, so two are dropped.
+
+    ``lost_odometry``: frame 40's odometry message is lost too, so it fails (``no pose
+    prior``). The pause of the prior was measured from the frames registration saw (39 to 43,
+    0.8 s) and the frame after it was judged as after a dropout: 22 frames failed (a review);
+    the node now says that the dropped frame 42 had its prior (without: 17 more failed here)."""
     import threading
 
     from wheelgrid_mapping.mapper_node import _stamp_seconds
@@ -1237,7 +1245,8 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path):
                     return not node._queue
 
             for k, (msg, odom) in enumerate(bag_cloud_odometry(BAG, 60)):
-                node._on_prior(odom)
+                if not (lost_odometry and k == 40):
+                    node._on_prior(odom)
                 if k == 40:
                     held_stamp.append(_stamp_seconds(msg.header.stamp))
                 node._on_cloud(msg)
@@ -1250,8 +1259,12 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path):
             wait_settled(node)
             counters = node.mapper.registrar.counters
             assert node.counts["skipped_busy"] == 2, node.counts
-            assert counters.gaps == 0 and counters.failed == 0, counters
-            assert counters.accepted == 58
+            assert counters.gaps == 0 and counters.prior_gaps == 0, counters
+            if lost_odometry:
+                assert counters.failure_reasons == {"no pose prior": 1}, counters
+                assert counters.accepted == 57 and counters.relocalised == 0
+            else:
+                assert counters.failed == 0 and counters.accepted == 58, counters
         finally:
             release.set()
             node.close()

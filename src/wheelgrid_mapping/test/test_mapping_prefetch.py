@@ -141,10 +141,14 @@ def test_a_frame_is_pending_until_its_outcome_is_counted(
     with FramePipeline(m, ahead) as pipe:
 
         def watched(
-            self: Mapper, prep: object, prior: object = None, after_gap: object = None
+            self: Mapper,
+            prep: object,
+            prior: object = None,
+            after_gap: object = None,
+            prior_since: object = None,
         ) -> FrameOutcome:
             seen_pending.append(pipe.pending)
-            return real(self, prep, prior, after_gap)  # type: ignore[arg-type]
+            return real(self, prep, prior, after_gap, prior_since)  # type: ignore[arg-type]
 
         monkeypatch.setattr(Mapper, "add_prepared", watched)
         run(pipe, frames(3))

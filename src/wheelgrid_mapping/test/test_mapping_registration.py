@@ -685,6 +685,24 @@ def test_a_prior_back_after_a_pause_longer_than_max_gap_is_judged_as_after_a_dro
     assert not results[7].relocalised and not results[7].after_gap
 
 
+def test_a_dropout_whose_first_frame_has_no_prior_is_one_dropout(world: np.ndarray) -> None:
+    """Clouds lost for 0.6 s, and the first frame after them without a prior: the prior's pause
+    spans the clouds' dropout, which is counted already (a review: both were counted, and
+    `wheelgrid map` warned of a pause of the prior where one message was missing)."""
+    rng = np.random.default_rng(48)
+    truth = [pose(1.5 + 0.05 * i, 2.0, 0.01 * i) for i in range(10)]
+    reg = Registrar(RegistrationConfig())
+    results = [
+        reg.register(view(world, T, rng), 0.2 * i, prior=None if i == 5 else T)
+        for i, T in enumerate(truth)
+        if i not in (2, 3, 4)
+    ]
+    assert not results[2].accepted and results[2].reason.startswith("no pose prior (0.8 s")
+    assert "after the frame before" in results[2].reason  # the dropout, said
+    assert reg.counters.gaps == 1 and reg.counters.prior_gaps == 0, reg.counters
+    assert results[3].accepted and results[3].relocalised, results[3].reason
+
+
 def test_a_run_without_a_prior_from_its_start_registers_by_icp_alone(world: np.ndarray) -> None:
     """The rule is for runs with a prior: where no frame has had one (``--prior none``, a pose
     topic on another clock), ICP alone registers every frame, as before."""

@@ -461,6 +461,15 @@ class MapperNode(Node):  # type: ignore[misc]
                 if found is None:
                     self._log_once("noprior", self._no_prior_note(stamp))
             prior = found if isinstance(found, np.ndarray) else None
+            # and where the cloud before (maybe dropped while busy) had a pose, how long ago:
+            # registration measures a pause of the prior from it, not from the frames it saw
+            prior_since = (
+                stamp - before
+                if no_gap
+                and before is not None
+                and isinstance(self._prior_for(before, frame_id), np.ndarray)
+                else None
+            )
             with self._lock:
                 if generation != self._generation:
                     # ~/reset came while it was in hand: dropped with the map, and not counted,
@@ -470,7 +479,14 @@ class MapperNode(Node):  # type: ignore[misc]
                 # this frame goes to the second process; the one before it to the map
                 self._frame_ids.append((stamp, frame_id or self._sensor_frame, header_stamp))
                 done = self._pipe.push(
-                    pts, stamp, frame_id, conf, prior, received, False if no_gap else None
+                    pts,
+                    stamp,
+                    frame_id,
+                    conf,
+                    prior,
+                    received,
+                    False if no_gap else None,
+                    prior_since,
                 )
             self._report(done, generation)
 
