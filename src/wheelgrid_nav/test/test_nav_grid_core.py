@@ -691,6 +691,33 @@ def test_a_cell_with_an_unseen_hole_in_its_middle_is_not_free():
             build_grid(room, GridConfig(unobserved_patch=bad))
 
 
+def test_an_unseen_hole_across_cell_borders_keeps_every_cell_it_reaches_from_free():
+    """A 60 cm hole 10 cm off the corner of four cells: a 35 cm square fits in it, but its
+    centres (where the square may sit) all lie in one cell. Only that cell was kept from free,
+    and the three others, 15 cm of the hole in each, read free: on synthetic rooms with 1 cm of
+    noise a 60 cm hole on a four-cell corner left a touching cell free on 3 of 5 draws, a 56 cm
+    trench along a border on 3 of 5 (bench/grid_holes.py). Every cell the squares reach is now
+    kept from free."""
+    from wheelgrid_nav.grid_synth import room_cloud
+
+    room = room_cloud([], size=(3.6, 3.6), spacing=0.02)
+    x, y, z = room.T
+
+    def without(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
+        return room[~((z == 0.0) & (x > x0) & (x < x1) & (y > y0) & (y < y1))]
+
+    grid = build_grid(without(1.0, 1.6, 1.0, 1.6)).grid  # the cells meet at (1.2, 1.2)
+    corner = grid.data
+    touched = {grid.cell_of(a, b) for a in (1.1, 1.3) for b in (1.1, 1.3)}
+    assert len(touched) == 4 and all(corner[rc] != FREE for rc in touched), corner
+    assert np.count_nonzero(corner != FREE) == 4, corner  # no other cell
+    trench = build_grid(without(0.95, 1.45, -0.1, 3.7)).grid.data  # 50 cm across x = 1.2
+    assert (trench[:, :2] != FREE).all() and (trench[:, 2] == FREE).all(), trench
+    # a hole no 35 cm square fits in (45 cm, less floor_fill's 5 cm a side) reaches nothing
+    small = build_grid(without(0.95, 1.4, 0.95, 1.4)).grid.data
+    assert (small == FREE).all(), small
+
+
 def test_a_floor_that_leans_is_warned_of():
     """Heights are read against one level z = 0: a room leaning 2 deg hid a 9 cm box on its
     low side in the floor's band, its cell free, with no word of why."""

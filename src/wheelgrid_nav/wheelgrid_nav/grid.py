@@ -195,8 +195,8 @@ class GridConfig:
     )
     unobserved_patch: float = field(
         0.35,
-        "a cell is not free where a square of this side inside it (off the wall strip) has "
-        "neither floor nor an obstacle seen: a hole, a drop, or floor hidden behind "
+        "a cell is not free where a square of this side (off the wall strip) with neither "
+        "floor nor an obstacle seen reaches into it: a hole, a drop, or floor hidden behind "
         "something (0: off)",
         "m",
     )
@@ -1010,11 +1010,16 @@ def floor_tilt_deg(pts: np.ndarray, cls: np.ndarray) -> float | None:
 def unobserved_patches(
     floor: np.ndarray, band: np.ndarray, ring: np.ndarray, cfg: GridConfig, k: int
 ) -> np.ndarray:
-    """(rows, cols): cells holding a square of ``cfg.unobserved_patch`` side, off the wall
+    """(rows, cols): cells reached by a square of ``cfg.unobserved_patch`` side, off the wall
     strip, where neither floor nor an obstacle in the band was seen. The observed fraction
     alone let a cell 80 % seen be free with a 68 x 68 cm hole in its middle, right under the
     chair (a stairwell or pit; points seen below the floor count as not floor here, as they
-    are: a few sparse returns off a pit's bottom had counted as observed)."""
+    are: a few sparse returns off a pit's bottom had counted as observed).
+
+    Every cell such a square reaches, not only the one holding its centre: a hole across a
+    cell border left the cells beside that one free with 15-25 cm of it inside (a 60 cm hole
+    on a four-cell corner, a 56 cm trench along a border, on 3 of 5 noisy draws). A chair in a
+    wheelchair-sized cell covers the whole cell, so the hole's edge is under it too."""
     if cfg.unobserved_patch <= 0:
         return np.zeros((floor.shape[0] // k, floor.shape[1] // k), dtype=bool)
     side = max(1, round(cfg.unobserved_patch / cfg.pixel_size))
@@ -1022,7 +1027,9 @@ def unobserved_patches(
     # erosion by a (2r+1)^2 square: a pixel stays where the whole square around it is a hole
     radius = max(0, (side - 1) // 2)
     inner = ~_dilate(~hole, radius) if radius else hole
-    return cell_density(inner, k, k) > 0
+    # and back out by the same square (an opening): the union of the squares that fit
+    reached = _dilate(inner, radius) if radius else inner
+    return cell_density(reached, k, k) > 0
 
 
 def build_grid(
