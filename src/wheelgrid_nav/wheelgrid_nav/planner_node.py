@@ -96,10 +96,10 @@ class PlannerNodeConfig:
     )
     odometry_max_age_s: float = pfield(
         2.0,
-        "a start pose from /wheelgrid/odometry received longer ago than this is not planned "
-        "from (no route): the mapper publishes a pose for each frame it maps and none while it "
-        "is lost or stopped, so an old one is where the chair was; 0 = no limit (a start from "
-        "/initialpose or the chair's pose does not age)",
+        "a start pose from /wheelgrid/odometry received longer ago than this is as none (the "
+        "chair stops, the goal waits goal_wait_s for a fresh start): the mapper publishes a "
+        "pose for each frame it maps and none while it is lost or stopped, so an old one is "
+        "where the chair was; 0 = no limit (/initialpose and the chair's pose do not age)",
         "s",
     )
 
@@ -237,7 +237,9 @@ def _make_node_class() -> type:
             # while the inputs that waited behind a learning are read, they plan nothing: the
             # learning's end decides whether to publish its route or plan again
             self._draining = False
-            self.create_subscription(Odometry, "wheelgrid/odometry", self._on_odom, SENSOR_QOS)
+            self._odom_sub = self.create_subscription(
+                Odometry, "wheelgrid/odometry", self._on_odom, SENSOR_QOS
+            )
             self.create_subscription(
                 PoseWithCovarianceStamped, "initialpose", self._on_initialpose, RELIABLE_QOS
             )
@@ -425,13 +427,16 @@ def _make_node_class() -> type:
             missing = []
             if self.grid is None:
                 missing.append(f"a safe grid on {self.resolve_topic_name('wheelgrid/safe_grid')}")
-            if self.start is None:
+            stale = self._stale_start()
+            if self.start is None or stale:
                 starts = [
                     self.resolve_topic_name(t)
                     for t in ("initialpose", "wheelgrid/odometry", "wheelgrid/chair_pose")
                 ]
                 missing.append(
-                    f"a start pose ({starts[0]}, {starts[1]}, or {starts[2]} once the chair moves)"
+                    f"a start pose ({starts[0]}, {starts[1]}, or {starts[2]} once the chair moves"
+                    + (f"; {stale}" if stale else "")
+                    + ")"
                 )
             return missing
 
@@ -513,7 +518,9 @@ def _make_node_class() -> type:
             started = self._set_start(pose, frame, child, convention)
             if started and from_odometry:
                 self._start_from_odometry_at = time.monotonic()
-            if started and not had_start and self.goal is not None:
+            # a goal waits for it: the first start, or one that had gone stale
+            waits = not had_start or self._goal_waits_since is not None
+            if started and waits and self.goal is not None:
                 self._plan()
 
         def _on_odom(self, msg: Any) -> None:
@@ -530,7 +537,8 @@ def _make_node_class() -> type:
             that has not come again for odometry_max_age_s. The mapper publishes no pose while
             it is lost (relocalising) or stopped; before, the planner planned from the last
             one, wherever the chair had gone since, and only the drive's pose check (30 cm)
-            stood between that route and the chair."""
+            stood between that route and the chair. Such a start is as none: a goal waits
+            for a fresh one (goal_wait_s)."""
             limit, at = self.node_cfg.odometry_max_age_s, self._start_from_odometry_at
             if limit <= 0 or at is None:
                 return ""
@@ -539,9 +547,8 @@ def _make_node_class() -> type:
                 return ""
             topic = self.resolve_topic_name("wheelgrid/odometry")
             return (
-                f"no route: the start pose from {topic} is {age:.1f} s old (odometry_max_age_s "
-                f"{limit:g}): the mapper has placed no frame since (lost, or stopped); send "
-                "the goal again once it maps, or give the start on /initialpose"
+                f"the start pose from {topic} is {age:.1f} s old (odometry_max_age_s "
+                f"{limit:g}): the mapper has placed no frame since (lost, or stopped)"
             )
 
         def _on_chair_pose(self, msg: Any) -> None:
@@ -580,6 +587,20 @@ def _make_node_class() -> type:
                 return
             if self.grid is None or self.start is None or self.goal is None:
                 return
+            stale = self._stale_start()
+            if stale:
+                # Where the chair is, is not known now: it stops (an empty path), and the goal
+                # waits for a fresh start, as for a first one (goal_wait_s). Dropped at once,
+                # a goal judged just before an /initialpose in the same executor pass was
+                # lost, and the pose then planned nothing (the demo's sequence, a review).
+                if self._goal_waits_since is None:  # (a new goal has said so already)
+                    self._goal_waits_since = time.monotonic()
+                    self.get_logger().warning(
+                        f"{stale}; publishing an empty path; the goal waits up to goal_wait_s "
+                        f"({self.node_cfg.goal_wait_s:g} s) for a start pose"
+                    )
+                self._publish_route(self.grid, [])
+                return
             self._goal_waits_since = None  # planned (or refused) now: it waits no more
             grid = self.grid
             for what, frame in (("start", self.start_frame), ("goal", self.goal_frame)):
@@ -590,10 +611,6 @@ def _make_node_class() -> type:
                         "no route (no tf)",
                     )
                     return
-            stale = self._stale_start()
-            if stale:
-                self._no_route(grid, stale)
-                return
             self.plans += 1
             start = grid.cell_of(self.start[0], self.start[1])
             goal = grid.cell_of(self.goal[0], self.goal[1])
@@ -622,6 +639,10 @@ def _make_node_class() -> type:
             self._draining = True
             try:
                 self._take_waiting_estops()
+                # the odometry that came meanwhile, first: a replan for a goal or grid read
+                # here judged the start's age by the last pose read before the learning, and
+                # a learning over odometry_max_age_s stopped the chair (a review, 2.8 s)
+                self._take_waiting(self._odom_sub, self._on_odom)
                 self._take_waiting(self._goal_sub, self._on_goal)
                 self._take_waiting(self._grid_sub, self._on_grid)
             except Exception as exc:  # rclpy's take_message is not public API: fail safe
