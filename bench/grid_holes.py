@@ -10,7 +10,9 @@ touches still reads FREE, with the default GridConfig (``alignment: map``):
 
 * in a cell's middle (cell (2, 1), centred at (1.8, 1.8) m);
 * on the corner of four cells (centred at (2.4, 2.4) m);
-* as a trench across the room along the cell border x = 2.4 m.
+* as a trench across the room along the cell border x = 2.4 m;
+* in cell (2, 1) and reaching a few centimetres past x = 2.4 m into cell (2, 2): whether that
+  cell, the hole's edge inside it, reads free (55, 60 and 70 cm holes, draws summed).
 
 The README's Safety section quotes these counts. Fidelity, not speed: nothing here is timed,
 and it is no stage of `make bench` (bench/run_all.py runs the bench_*.py scripts).
@@ -68,6 +70,10 @@ def free_draws(kind: str, size: float, noise: float, draws: int) -> int:
             c = 2.4 + shift
             hole = (c - size / 2, c + size / 2, c - size / 2, c + size / 2)
             cells = [(1, 1), (1, 2), (2, 1), (2, 2)]
+        elif kind.startswith("edge"):  # ``size`` is how far past x = 2.4 it reaches
+            side, yc = float(kind[4:]), 1.8 + shift
+            hole = (2.4 + size - side, 2.4 + size, yc - side / 2, yc + side / 2)
+            cells = [(2, 2)]
         else:  # a trench along the border x = 2.4 between columns 1 and 2
             c = 2.4 + shift
             hole = (c - size / 2, c + size / 2, -0.01, SIDE + 0.01)
@@ -88,6 +94,12 @@ def main(argv: list[str] | None = None) -> int:
             for s in (0.45, 0.50, 0.55, 0.60)
         )
         print(f"hole in a cell's middle, noise {noise * 100:.1f} cm: free on {sizes}")
+    reach = " ".join(
+        f"{d * 100:.0f} cm {sum(free_draws(f'edge{s}', d, 0.01, n) for s in (0.55, 0.6, 0.7))}"
+        f"/{3 * n}"
+        for d in (0.06, 0.08, 0.10)
+    )
+    print(f"hole reaching into a cell past its border, noise 1.0 cm: the cell free on {reach}")
     for kind, sizes_m in (("corner", (0.5, 0.6, 0.7)), ("trench", (0.46, 0.56, 0.66))):
         row = " ".join(f"{s * 100:.0f} cm {free_draws(kind, s, 0.01, n)}/{n}" for s in sizes_m)
         print(

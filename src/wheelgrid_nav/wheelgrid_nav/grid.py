@@ -1019,7 +1019,9 @@ def unobserved_patches(
     Every cell such a square reaches, not only the one holding its centre: a hole across a
     cell border left the cells beside that one free with 15-25 cm of it inside (a 60 cm hole
     on a four-cell corner, a 56 cm trench along a border, on 3 of 5 noisy draws). A chair in a
-    wheelchair-sized cell covers the whole cell, so the hole's edge is under it too."""
+    wheelchair-sized cell covers the whole cell, so the hole's edge is under it too. A hole
+    reaching 10 cm or less into a cell still leaves it free (``floor_fill`` grows the floor
+    seen 5 cm over its edge, and noise a few more; bench/grid_holes.py)."""
     if cfg.unobserved_patch <= 0:
         return np.zeros((floor.shape[0] // k, floor.shape[1] // k), dtype=bool)
     side = max(1, round(cfg.unobserved_patch / cfg.pixel_size))
@@ -1027,7 +1029,10 @@ def unobserved_patches(
     # erosion by a (2r+1)^2 square: a pixel stays where the whole square around it is a hole
     radius = max(0, (side - 1) // 2)
     inner = ~_dilate(~hole, radius) if radius else hole
-    # and back out by the same square (an opening): the union of the squares that fit
+    # and back out by the same square (an opening): the union of the squares that fit. Not
+    # by floor_fill's pixels too, which grew the floor seen over the hole's edge: that caught
+    # a hole reaching 8 cm into a cell (10 cm before), but the floor under the chair's start,
+    # which the camera never sees, then reached the next cell of the bundled bag's route
     reached = _dilate(inner, radius) if radius else inner
     return cell_density(reached, k, k) > 0
 
