@@ -366,6 +366,34 @@ def dropout_bag(
     )
 
 
+def prior_pause_bag(
+    src: Path,
+    out: Path,
+    first: int,
+    last: int,
+    shift: tuple[float, float] = (0.0, 0.0),
+    clouds: str = "/iphone/points",
+    odometry: str = "/iphone/odometry",
+) -> Path:
+    """A copy of the bag ``src`` (clouds and odometry) at ``out`` with odometry messages
+    ``first``-``last`` lost, every cloud kept (the pose prior pauses while the clouds go on),
+    and the odometry's world moved by ``shift`` (x, y in metres) from the message after them.
+    The tests and bench/prior_pauses.py build their pauses this one way."""
+
+    def move(k: int, msg: Any) -> None:
+        if k > last:
+            msg.pose.pose.position.x += shift[0]
+            msg.pose.pose.position.y += shift[1]
+
+    return edit_bag(
+        src,
+        out,
+        topics=[clouds, odometry],
+        keep=lambda topic, k: not (topic == odometry and first <= k <= last),
+        edits={odometry: move},
+    )
+
+
 def poses_by_stamp(path: Path) -> dict[float, np.ndarray]:
     """A TUM file's poses by stamp, rounded to the 10 ms that tell a 5 Hz bag's frames apart
     (a trajectory and the bag's true poses are compared frame by frame)."""

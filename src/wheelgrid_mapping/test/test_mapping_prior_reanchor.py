@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.fileio import matrix_to_quat, quat_to_matrix
-from wheelgrid_common.testing import dropout_bag, edit_bag, poses_by_stamp
+from wheelgrid_common.testing import dropout_bag, edit_bag, poses_by_stamp, prior_pause_bag
 from wheelgrid_mapping import cli_map
 from wheelgrid_mapping.levelling import rpy_matrix
 
@@ -149,12 +149,7 @@ def test_a_pose_prior_that_pauses_while_the_clouds_go_on_does_not_move_the_map(
     fails (``no pose prior``), and no frame is mapped off by more than the online drift."""
     if not (ROOM / "scan" / "metadata.yaml").exists():
         pytest.skip("bags/paper_room: not present")
-    bag = edit_bag(
-        ROOM / "scan",
-        tmp_path / "bag",
-        topics=["/iphone/points", "/iphone/odometry"],
-        keep=lambda topic, k: not (topic == "/iphone/odometry" and first <= k <= last),
-    )
+    bag = prior_pause_bag(ROOM / "scan", tmp_path / "bag", first, last)
     out = tmp_path / "map"
     argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
     assert cli_map.main(argv) == 0
