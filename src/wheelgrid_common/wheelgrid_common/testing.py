@@ -338,6 +338,33 @@ def edit_bag(
     return out
 
 
+def _lost_and_moved(
+    src: Path,
+    out: Path,
+    lost: str,
+    first: int,
+    last: int,
+    shift: tuple[float, float],
+    clouds: str,
+    odometry: str,
+) -> Path:
+    """A copy of ``src`` (clouds and odometry) with messages ``first``-``last`` of the topic
+    ``lost`` left out and the odometry's world moved by ``shift`` from the message after them."""
+
+    def move(k: int, msg: Any) -> None:
+        if k > last:
+            msg.pose.pose.position.x += shift[0]
+            msg.pose.pose.position.y += shift[1]
+
+    return edit_bag(
+        src,
+        out,
+        topics=[clouds, odometry],
+        keep=lambda topic, k: not (topic == lost and first <= k <= last),
+        edits={odometry: move},
+    )
+
+
 def dropout_bag(
     src: Path,
     out: Path,
@@ -351,19 +378,7 @@ def dropout_bag(
     lost, the odometry going on, and the odometry's world moved by ``shift`` (x, y in metres)
     from the message after them: ARKit re-anchoring while the stream was down. The tests and
     bench/dropouts.py build their dropouts this one way."""
-
-    def move(k: int, msg: Any) -> None:
-        if k > last:
-            msg.pose.pose.position.x += shift[0]
-            msg.pose.pose.position.y += shift[1]
-
-    return edit_bag(
-        src,
-        out,
-        topics=[clouds, odometry],
-        keep=lambda topic, k: not (topic == clouds and first <= k <= last),
-        edits={odometry: move},
-    )
+    return _lost_and_moved(src, out, clouds, first, last, shift, clouds, odometry)
 
 
 def prior_pause_bag(
@@ -379,19 +394,7 @@ def prior_pause_bag(
     ``first``-``last`` lost, every cloud kept (the pose prior pauses while the clouds go on),
     and the odometry's world moved by ``shift`` (x, y in metres) from the message after them.
     The tests and bench/prior_pauses.py build their pauses this one way."""
-
-    def move(k: int, msg: Any) -> None:
-        if k > last:
-            msg.pose.pose.position.x += shift[0]
-            msg.pose.pose.position.y += shift[1]
-
-    return edit_bag(
-        src,
-        out,
-        topics=[clouds, odometry],
-        keep=lambda topic, k: not (topic == odometry and first <= k <= last),
-        edits={odometry: move},
-    )
+    return _lost_and_moved(src, out, odometry, first, last, shift, clouds, odometry)
 
 
 def poses_by_stamp(path: Path) -> dict[float, np.ndarray]:
