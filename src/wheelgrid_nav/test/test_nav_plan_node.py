@@ -340,7 +340,17 @@ def test_a_start_from_odometry_that_stopped_coming_is_not_planned_from():
             time.sleep(0.6)
             node._drop_goal_waited_too_long()
             assert node.goal is None and "odometry is" in said[-1] and "goal_wait_s" in said[-1]
+            assert "the mapper has placed no frame since" in said[-1]
             assert node.plans == 4
+            # odometry that keeps coming in another frame is named as such, not as a lost mapper
+            other = odom_msg(grid, (6, 1))
+            other.header.frame_id = "odom"
+            node._on_odom(other)
+            node._on_goal(goal_msg(grid, (6, 5)))
+            assert (
+                "poses come but are not used (in frame 'odom' where the grid is in 'map'"
+                in (said[-1])
+            ), said[-1]
         finally:
             node.destroy_node()
         node = make_node(
@@ -359,6 +369,57 @@ def test_a_start_from_odometry_that_stopped_coming_is_not_planned_from():
             make_node(
                 context=ctx, parameter_overrides=[Parameter("odometry_max_age_s", value=-1.0)]
             )
+
+
+def test_a_goal_read_with_an_estop_after_a_learning_is_dropped_and_said():
+    """A route is learned; meanwhile the e-stop is pressed and released, and a new goal sent.
+    Read after the learning, the route is not published (it crossed the e-stop), and the new
+    goal was kept with no word and no goal_wait_s timer: the next grid the mapper sent planned
+    it, and the chair set off with no command (a review: 18 s on). Whether it came before or
+    after the clear is lost (each topic is read in turn): it is dropped now, said."""
+    from types import SimpleNamespace as Ns
+
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import Bool
+
+    from wheelgrid_nav.planner_node import make_node
+
+    grid = Grid(paper_grid(), RES, ORIGIN)
+    with rclpy_context() as ctx:
+        node = make_node(context=ctx, parameter_overrides=[Parameter("method", value="qlearning")])
+        try:
+            said: list[str] = []
+            logger = Ns(
+                warning=lambda text, **_: said.append(text),
+                info=lambda text, **_: None,
+                error=lambda text, **_: said.append(text),
+            )
+            node.get_logger = lambda: logger
+            paths: list = []
+            node._publish_route = lambda grid, cells, *a: paths.append(cells)
+            node._on_grid(to_occupancy_grid(grid))
+            node._on_initialpose(start_msg(grid, (2, 0), -math.pi / 2))
+            read = {"estops": False, "goal": False}
+
+            def estops() -> None:  # what waited behind the learning: a press and a release
+                if not read["estops"]:
+                    read["estops"] = True
+                    node._on_estop(Bool(data=True))
+                    node._on_estop(Bool(data=False))
+
+            def take(sub, handler, with_info=False) -> None:  # and then the user's new goal
+                if sub is node._goal_sub and not read["goal"]:
+                    read["goal"] = True
+                    handler(goal_msg(grid, (0, 7)))
+
+            node._take_waiting_estops, node._take_waiting = estops, take
+            node._on_goal(goal_msg(grid, (6, 5)))
+            assert node.goal is None and all(p == [] for p in paths), paths
+            assert "across an e-stop: not planned" in said[-1], said
+            node._on_grid(to_occupancy_grid(grid))  # the mapper's next grid plans nothing
+            assert all(p == [] for p in paths) and node.plans == 1
+        finally:
+            node.destroy_node()
 
 
 @pytest.mark.parametrize("change", ["goal", "grid"])

@@ -224,6 +224,8 @@ def _make_node_class() -> type:
             # monotonic time the start came from /wheelgrid/odometry (None: it came from
             # /initialpose or the chair's pose, which do not age)
             self._start_from_odometry_at: float | None = None
+            # the frame of the odometry last refused since the last one used (None: none was)
+            self._odometry_refused: str | None = None
             self.route: list[tuple[int, int]] = []
             self.plans = 0  # planning attempts (for tests and diagnostics)
             self.path_pub = self.create_publisher(Path, "wheelgrid/plan", MAP_QOS)
@@ -426,7 +428,7 @@ def _make_node_class() -> type:
         def _missing_for_a_goal(self) -> list[str]:
             missing = []
             if self.grid is None:
-                missing.append(f"a safe grid on {self.resolve_topic_name('wheelgrid/safe_grid')}")
+                missing.append(f"safe grid on {self.resolve_topic_name('wheelgrid/safe_grid')}")
             stale = self._stale_start()
             if self.start is None or stale:
                 starts = [
@@ -434,7 +436,7 @@ def _make_node_class() -> type:
                     for t in ("initialpose", "wheelgrid/odometry", "wheelgrid/chair_pose")
                 ]
                 missing.append(
-                    f"a start pose ({starts[0]}, {starts[1]}, or {starts[2]} once the chair moves"
+                    f"start pose ({starts[0]}, {starts[1]}, or {starts[2]} once the chair moves"
                     + (f"; {stale}" if stale else "")
                     + ")"
                 )
@@ -518,12 +520,14 @@ def _make_node_class() -> type:
             started = self._set_start(pose, frame, child, convention)
             if started and from_odometry:
                 self._start_from_odometry_at = time.monotonic()
+                self._odometry_refused = None
             # a goal waits for it: the first start, or one that had gone stale
             waits = not had_start or self._goal_waits_since is not None
             if started and waits and self.goal is not None:
                 self._plan()
 
         def _on_odom(self, msg: Any) -> None:
+            at = self._start_from_odometry_at
             self._follow_start(
                 msg.pose.pose,
                 msg.header.frame_id,
@@ -531,6 +535,8 @@ def _make_node_class() -> type:
                 self.node_cfg.odometry_convention,
                 from_odometry=True,
             )
+            if self._start_from_odometry_at == at:  # refused: its frame, or a bad pose
+                self._odometry_refused = msg.header.frame_id
 
         def _stale_start(self) -> str:
             """Why the start cannot be planned from now, or "": one from the mapper's odometry
@@ -546,9 +552,16 @@ def _make_node_class() -> type:
             if age <= limit:
                 return ""
             topic = self.resolve_topic_name("wheelgrid/odometry")
+            why = "the mapper has placed no frame since (lost, or stopped)"
+            if self._odometry_refused is not None:
+                grid_frame = self.grid.frame_id if self.grid is not None else "map"
+                why = (
+                    f"poses come but are not used (in frame {self._odometry_refused!r} where "
+                    f"the grid is in {grid_frame!r}: no tf; or a NaN pose)"
+                )
             return (
-                f"the start pose from {topic} is {age:.1f} s old (odometry_max_age_s "
-                f"{limit:g}): the mapper has placed no frame since (lost, or stopped)"
+                f"the start pose from {topic} is {age:.1f} s old (odometry_max_age_s {limit:g}): "
+                + why
             )
 
         def _on_chair_pose(self, msg: Any) -> None:
@@ -659,6 +672,16 @@ def _make_node_class() -> type:
                 # the e-stop has dropped the goal and published an empty path: this route
                 # leads to the goal of before it
                 self.get_logger().warning("route learned across an e-stop: not published")
+                if self.goal is not None:
+                    # A goal read with the e-stop's inputs: whether it came before or after
+                    # the clear is lost (each topic is read in turn). Kept, it waited with no
+                    # word and no timer, and the next grid planned it, the chair setting off
+                    # with no command (a review: 18 s on). Dropped, said: send it again.
+                    self._no_route(
+                        grid,
+                        "a goal came while a route was learned across an e-stop: not planned "
+                        "(whether it came before or after the clear is not known)",
+                    )
                 return
             if self.goal != goal_before:
                 # a new goal came while this one was learned (or was refused, and published
