@@ -1029,12 +1029,12 @@ def test_the_status_counts_a_frame_that_raised_and_the_counts_add_up(tmp_path, m
     calls = {"n": 0}
 
     def second_raises(
-        self: Any, prep: Any, prior: Any = None, after_gap: Any = None, prior_since: Any = None
+        self: Any, prep: Any, prior: Any = None, after_gap: Any = None, dropped_priors: Any = None
     ) -> Any:
         calls["n"] += 1
         if calls["n"] == 2:
             raise ValueError("a frame that breaks registration")
-        return real(self, prep, prior, after_gap, prior_since)
+        return real(self, prep, prior, after_gap, dropped_priors)
 
     monkeypatch.setattr(Mapper, "add_prepared", second_raises)
     with mapper_in_process(tmp_path, 4) as node:
@@ -1206,7 +1206,7 @@ def test_a_map_begun_again_with_the_first_prior_is_a_new_map_to_save(tmp_path):
             node.destroy_node()
 
 
-@pytest.mark.parametrize("lost_odometry", [False, True])
+@pytest.mark.parametrize("lost_odometry", ["none", "one", "a re-anchoring pause"])
 def test_frames_dropped_while_busy_are_no_dropout(tmp_path, lost_odometry):
     """With ``max_queue: 1`` (the live setting) a frame that arrives while the worker is busy
     replaces the one waiting, which is dropped and counted. Registration measured a dropout
@@ -1215,10 +1215,13 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path, lost_odometry):
     bundled bag 30 frames (6 s of map, odometry and /tf) failed it (a review, live, on a loaded
     machine). The worker is held on frame 40 while three more arrive, so two are dropped.
 
-    ``lost_odometry``: frame 40's odometry message is lost too, so it fails (``no pose
+    ``lost_odometry``: "one": frame 40's odometry message is lost too, so it fails (``no pose
     prior``). The pause of the prior was measured from the frames registration saw (39 to 43,
     0.8 s) and the frame after it was judged as after a dropout: 22 frames failed (a review);
-    the node now says that the dropped frame 42 had its prior (without: 17 more failed here)."""
+    the node now says that the dropped frame 42 had its prior (without: 17 more failed here).
+    "a re-anchoring pause": odometry 31-40 lost (2 s) and its world moved 28 cm from 41 on, the
+    first frame with it back dropped: measured from the dropped frames, the pause read as over,
+    and the map went on 31 cm off (a second review); it is measured up to them now."""
     import threading
 
     from wheelgrid_mapping.mapper_node import _stamp_seconds
@@ -1244,8 +1247,12 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path, lost_odometry):
                 with node._slot_lock:
                     return not node._queue
 
+            lost = {"none": (), "one": (40,), "a re-anchoring pause": range(31, 41)}
             for k, (msg, odom) in enumerate(bag_cloud_odometry(BAG, 60)):
-                if not (lost_odometry and k == 40):
+                if lost_odometry == "a re-anchoring pause" and k > 40:
+                    odom.pose.pose.position.x += 0.2
+                    odom.pose.pose.position.y += 0.2
+                if k not in lost[lost_odometry]:
                     node._on_prior(odom)
                 if k == 40:
                     held_stamp.append(_stamp_seconds(msg.header.stamp))
@@ -1259,12 +1266,18 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path, lost_odometry):
             wait_settled(node)
             counters = node.mapper.registrar.counters
             assert node.counts["skipped_busy"] == 2, node.counts
-            assert counters.gaps == 0 and counters.prior_gaps == 0, counters
-            if lost_odometry:
+            assert counters.gaps == 0, counters
+            if lost_odometry == "one":
                 assert counters.failure_reasons == {"no pose prior": 1}, counters
                 assert counters.accepted == 57 and counters.relocalised == 0
-            else:
+                assert counters.prior_gaps == 0
+            elif lost_odometry == "none":
                 assert counters.failed == 0 and counters.accepted == 58, counters
+                assert counters.prior_gaps == 0
+            else:  # judged as after a dropout: the re-anchored prior is not followed
+                assert counters.prior_gaps == 1 and counters.relocalised == 0, counters
+                assert counters.failure_reasons["no pose prior"] == 10, counters
+                assert counters.accepted == 31, counters  # frames 0-30: the map ends there
         finally:
             release.set()
             node.close()

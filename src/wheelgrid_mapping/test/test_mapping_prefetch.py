@@ -145,10 +145,10 @@ def test_a_frame_is_pending_until_its_outcome_is_counted(
             prep: object,
             prior: object = None,
             after_gap: object = None,
-            prior_since: object = None,
+            dropped_priors: object = None,
         ) -> FrameOutcome:
             seen_pending.append(pipe.pending)
-            return real(self, prep, prior, after_gap, prior_since)  # type: ignore[arg-type]
+            return real(self, prep, prior, after_gap, dropped_priors)  # type: ignore[arg-type]
 
         monkeypatch.setattr(Mapper, "add_prepared", watched)
         run(pipe, frames(3))

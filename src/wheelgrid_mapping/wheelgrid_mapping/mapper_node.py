@@ -185,6 +185,8 @@ class MapperNode(Node):  # type: ignore[misc]
         # the stamp of the last well-formed cloud received, mapped or dropped while busy: what
         # tells a dropout of the stream from frames this node dropped itself
         self._last_cloud_stamp: float | None = None
+        # the stamps of the frames dropped while busy since the worker last took one
+        self._dropped_busy: list[float] = []
         self._stop = False
         # (stamp, pose, child frame) of each prior received
         self._priors: deque[tuple[float, np.ndarray, str]] = deque(maxlen=2000)
@@ -346,7 +348,7 @@ class MapperNode(Node):  # type: ignore[misc]
             before, self._last_cloud_stamp = self._last_cloud_stamp, stamp
             frame = (pts, stamp, msg.header.frame_id, conf, msg.header.stamp, received, before)
             if len(self._queue) >= self.max_queue:
-                self._queue.popleft()
+                self._dropped_busy.append(self._queue.popleft()[1])
                 self.counts["skipped_busy"] += 1
             self._queue.append(frame)
             self._slot_lock.notify()
@@ -427,6 +429,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 # frames received before a ~/close_loops are mapped first, and the one in
                 # preparation is finished
                 frame = self._queue.popleft() if self._queue else None
+                dropped, self._dropped_busy = self._dropped_busy, []
                 closing = (
                     frame is None and not self._pipe.pending and self._loop_state == "requested"
                 )
@@ -461,15 +464,14 @@ class MapperNode(Node):  # type: ignore[misc]
                 if found is None:
                     self._log_once("noprior", self._no_prior_note(stamp))
             prior = found if isinstance(found, np.ndarray) else None
-            # and where the cloud before (maybe dropped while busy) had a pose, how long ago:
-            # registration measures a pause of the prior from it, not from the frames it saw
-            prior_since = (
-                stamp - before
-                if no_gap
-                and before is not None
-                and isinstance(self._prior_for(before, frame_id), np.ndarray)
-                else None
-            )
+            # and which of the frames dropped before it had a pose: registration measures a
+            # pause of the prior up to the first of them, not from the frames it saw
+            had = [
+                s
+                for s in dropped
+                if s < stamp and isinstance(self._prior_for(s, frame_id), np.ndarray)
+            ]
+            dropped_priors = (stamp - min(had), stamp - max(had)) if no_gap and had else None
             with self._lock:
                 if generation != self._generation:
                     # ~/reset came while it was in hand: dropped with the map, and not counted,
@@ -486,7 +488,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     prior,
                     received,
                     False if no_gap else None,
-                    prior_since,
+                    dropped_priors,
                 )
             self._report(done, generation)
 
@@ -779,6 +781,7 @@ class MapperNode(Node):  # type: ignore[misc]
         """~/reset's work on what came in, with ``_slot_lock`` held: done when it answers."""
         self.counts["skipped_busy"] += len(self._queue)
         self._queue.clear()
+        self._dropped_busy.clear()
         self._generation += 1  # a frame the worker has in hand must not map after the reset
         self._priors.clear()  # the old session's poses: a new one may reuse their stamps
         self._priors_behind.clear()

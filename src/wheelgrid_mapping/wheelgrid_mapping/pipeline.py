@@ -621,14 +621,14 @@ class Mapper:
         prep: PreparedFrame,
         prior: np.ndarray | None = None,
         after_gap: bool | None = None,
-        prior_since: float | None = None,
+        dropped_priors: tuple[float, float] | None = None,
     ) -> FrameOutcome:
         """The second half of :meth:`add_frame`: register and integrate the oldest admitted frame,
         ``prep`` its :func:`prepare_frame`. ``after_gap``: whether the frame follows a dropout of
         the stream, where the caller knows better than the frames mapped (a live node's frames
         dropped while busy are none); None: registration reads it from their stamps.
-        ``prior_since``: seconds from the newest frame before this one that had a pose prior,
-        where the caller saw it and registration did not (dropped while busy); None: not known."""
+        ``dropped_priors``: (first, last): seconds from the first and the last frame before this
+        one that the caller dropped (while busy) and that had a pose prior; None: none."""
         if not self._admitted:
             raise RuntimeError("Mapper.add_prepared without a frame admitted before it")
         index, stamp, t_map = self._admitted.pop(0)
@@ -655,7 +655,7 @@ class Mapper:
         if prior is not None and len(self.poses_odom) == 1 and self.registrar.last_prior is None:
             res = self._begin_again_with_prior(pts, t_map, prior, prep.inputs)
         if res is None:
-            res = self.registrar.register(pts, t_map, prior, prep.inputs, after_gap, prior_since)
+            res = self.registrar.register(pts, t_map, prior, prep.inputs, after_gap, dropped_priors)
         self.timings["registration_s"] += time.perf_counter() - t1
         if not res.accepted:
             self._note_failure({"frame": index, "stamp": stamp, "reason": res.reason})

@@ -95,7 +95,7 @@ class _Pending:
     stamp: float
     sent: bool  # to the worker (else it is prepared here when its turn comes)
     after_gap: bool | None = None  # Mapper.add_prepared's
-    prior_since: float | None = None  # Mapper.add_prepared's
+    dropped_priors: tuple[float, float] | None = None  # Mapper.add_prepared's
 
 
 class FramePipeline:
@@ -137,19 +137,19 @@ class FramePipeline:
         prior: np.ndarray | None = None,
         received: float | None = None,
         after_gap: bool | None = None,
-        prior_since: float | None = None,
+        dropped_priors: tuple[float, float] | None = None,
     ) -> list[tuple[float, FrameOutcome]]:
         """Admit this frame and add the one before it: the ``(stamp, outcome)`` of every frame
         finished by this call. A frame skipped between keyframes is finished at once, so its
         outcome can come before that of the frame still in preparation. ``after_gap``,
-        ``prior_since``: as :meth:`Mapper.add_prepared`'s."""
+        ``dropped_priors``: as :meth:`Mapper.add_prepared`'s."""
         skipped = self.mapper.admit(stamp, frame_id, received)
         if skipped is not None:
             return [(stamp, skipped)]
         previous = self._pending
         prepared = self._collect(previous) if previous is not None else None
         self._pending = _Pending(
-            points, confidence, prior, float(stamp), False, after_gap, prior_since
+            points, confidence, prior, float(stamp), False, after_gap, dropped_priors
         )
         if self._worker is not None:
             try:
@@ -183,7 +183,7 @@ class FramePipeline:
             return frame.stamp, FrameOutcome("error", repr(prepared))
         try:
             return frame.stamp, self.mapper.add_prepared(
-                prepared, frame.prior, frame.after_gap, frame.prior_since
+                prepared, frame.prior, frame.after_gap, frame.dropped_priors
             )
         except Exception as exc:
             self.mapper.frames_errored += 1  # read, and neither used, failed nor skipped

@@ -815,7 +815,7 @@ class Registrar:
         prior: np.ndarray | None = None,
         inputs: FrameInputs | None = None,
         after_gap: bool | None = None,
-        prior_since: float | None = None,
+        dropped_priors: tuple[float, float] | None = None,
     ) -> RegResult:
         """Register one filtered sensor-frame cloud; integrate it only if it passes the checks.
 
@@ -824,9 +824,10 @@ class Registrar:
         :func:`frame_inputs` of ``points`` under this registrar's config, where computed ahead.
         ``after_gap``: whether the frame follows a dropout (``max_gap``), where the stamps no
         longer tell (frames registered again without the ones that failed between them); by
-        default read from the stamps. ``prior_since``: seconds from the newest frame before this
-        one that had a pose prior, where the caller saw frames this registrar did not (a live
-        node's frames dropped while busy): a pause of the prior is measured from it.
+        default read from the stamps. ``dropped_priors``: (first, last): seconds from the first and
+        the last frame before this one that the caller dropped (a live node's, while busy) and
+        that had a pose prior, since the frame it registered before: the prior went on there,
+        or came back there after a pause.
         """
         t0 = time.perf_counter()
         cfg = self.cfg
@@ -866,11 +867,9 @@ class Registrar:
         # A frozen prior's continuity is not updated: its catch-up is measured from where it
         # froze, and its step is taken from the pose of the last frame that followed it.
         repeat, frozen = self._repeat(prior, stamp)
-        if prior_since is not None and self._prior_seen is not None:
-            # a frame dropped while busy had its prior: the prior did not pause there (the node
-            # waits up to 0.25 s for a missing pose, and the frame after it was then often
-            # dropped: a lost odometry message made a 0.6 s "pause", and 22 frames failed)
-            self._prior_seen = max(self._prior_seen, float(stamp - prior_since))
+        if dropped_priors is not None and self._prior_seen is not None and not self._prior_missing:
+            # frames dropped while busy had their prior: the prior did not pause there
+            self._prior_seen = max(self._prior_seen, float(stamp - dropped_priors[1]))
         if prior is None and self._prior_seen is not None and self.last_stamp is not None:
             # A run with a prior whose prior is missing for this frame (the pose topic paused,
             # a message lost or refused): the frame fails rather than being placed by ICP
@@ -884,7 +883,14 @@ class Registrar:
             self._paused_ok = paused_ok and not gap
             return failed
         if prior is not None:
-            paused = float(stamp - self._prior_seen) if self._prior_seen is not None else 0.0
+            # The prior came back with this frame or, where frames before it were dropped while
+            # busy with their prior, with the first of those: the node waits up to 0.25 s for
+            # a missing pose, and the frames after it were then often dropped (measured from
+            # this one, a lost odometry message made a 0.6 s "pause", and 22 frames failed).
+            # From the first, not the last: a pause that ended there was read as over (a
+            # review: a re-anchor across a 2 s pause went on 31 cm off).
+            back = float(stamp - (dropped_priors[0] if dropped_priors is not None else 0.0))
+            paused = back - self._prior_seen if self._prior_seen is not None else 0.0
             if self._prior_missing and not gap:
                 if paused > cfg.max_gap and not self._after_gap:
                     # The prior paused for longer than a dropout while the clouds went on: its
