@@ -422,36 +422,6 @@ def test_a_goal_read_with_an_estop_after_a_learning_is_dropped_and_said():
             node.destroy_node()
 
 
-@pytest.mark.parametrize("change", ["goal", "grid"])
-def test_a_replan_after_a_long_learning_reads_the_odometry_that_came_meanwhile(tmp_path, change):
-    """The odometry streams at 10 Hz while a route is learned for longer than
-    odometry_max_age_s; a new goal or a grid that closes a route cell comes meanwhile. The
-    replan judged the start's age by the last pose read before the learning: the chair
-    stopped and its goal was dropped while the mapper worked (a review, a 2.8 s learning). The
-    odometry that waited behind the learning is read first now: the first path out is a
-    route."""
-    closed = paper_grid()
-    closed[2, 3] = 100  # on the route to (6, 5) along row 2
-    with planner_process(tmp_path, *SLOW_LEARNING, "odometry_max_age_s:=0.5") as (h, log):
-        grid = Grid(paper_grid(), RES, ORIGIN)
-        h.grid_pub.publish(to_occupancy_grid(grid))
-        odom = odom_msg(grid, (2, 0))
-        h.node.create_timer(0.1, lambda: h.odom_pub.publish(odom))
-        spin_until(h.ex, lambda: False, 1.0)
-        h.goal_pub.publish(goal_msg(grid, (6, 5)))
-        spin_until(h.ex, lambda: False, 1.5)  # the route is being learned
-        if change == "goal":
-            h.goal_pub.publish(goal_msg(grid, (0, 7)))
-        else:
-            h.grid_pub.publish(to_occupancy_grid(Grid(closed, RES, ORIGIN)))
-        assert spin_until(h.ex, lambda: h.paths, 120.0), log.read_text()
-        spin_until(h.ex, lambda: False, 1.0)
-        assert "was learned: replanning" in log.read_text(), log.read_text()
-        assert h.paths[0].poses, log.read_text()  # a route, not the empty path of a stale start
-        assert cells_of(h.paths[0], grid)[-1] == ((0, 7) if change == "goal" else (6, 5))
-        assert "odometry is" not in log.read_text(), log.read_text()
-
-
 def chair_msg(grid, cell, yaw):
     from geometry_msgs.msg import PoseStamped
 
@@ -742,16 +712,31 @@ def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(
         )
 
 
+@pytest.mark.parametrize("start", ["initialpose", "odometry"])
 @pytest.mark.parametrize("change", ["goal", "grid"])
-def test_a_goal_or_grid_that_came_while_a_route_was_learned_voids_it(tmp_path, change):
+def test_a_goal_or_grid_that_came_while_a_route_was_learned_voids_it(tmp_path, change, start):
     """A new goal or grid waited behind the learning, as e-stops did: the route to the old goal
     went out after the new goal was sent (and stayed the plan while the new one was learned),
     and a route through a cell the new grid had closed went out before the replan. Both are
-    read before a route is published: the first route out is the one for the newest inputs."""
+    read before a route is published: the first route out is the one for the newest inputs.
+
+    ``start`` "odometry": the start streams on /wheelgrid/odometry at 10 Hz, and the learning
+    takes longer than odometry_max_age_s (0.5 s here). The replan judged the start's age by the
+    last pose read before the learning: the chair stopped and its goal was dropped while the
+    mapper worked (a review, a 2.8 s learning). The odometry that waited behind the learning
+    is read first now: the first path out is a route."""
     closed = paper_grid()
     closed[2, 3] = 100  # on the route to (6, 5) along row 2
-    with planner_process(tmp_path, *SLOW_LEARNING) as (h, log):
-        grid = paper_grid_with_the_chair_at_its_start(h)
+    params = (*SLOW_LEARNING, "odometry_max_age_s:=0.5")
+    with planner_process(tmp_path, *params) as (h, log):
+        if start == "initialpose":
+            grid = paper_grid_with_the_chair_at_its_start(h)
+        else:
+            grid = Grid(paper_grid(), RES, ORIGIN)
+            h.grid_pub.publish(to_occupancy_grid(grid))
+            odom = odom_msg(grid, (2, 0))
+            h.node.create_timer(0.1, lambda: h.odom_pub.publish(odom))
+            spin_until(h.ex, lambda: False, 1.0)
         h.goal_pub.publish(goal_msg(grid, (6, 5)))
         spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
         if change == "goal":
@@ -760,12 +745,14 @@ def test_a_goal_or_grid_that_came_while_a_route_was_learned_voids_it(tmp_path, c
             h.grid_pub.publish(to_occupancy_grid(Grid(closed, RES, ORIGIN)))
         assert spin_until(h.ex, lambda: h.paths, 120.0), log.read_text()
         spin_until(h.ex, lambda: False, 1.0)
+        assert h.paths[0].poses, log.read_text()  # a route, not the empty path of a stale start
         first = cells_of(h.paths[0], grid)
         if change == "goal":
             assert first[-1] == (0, 7), (first, log.read_text())
         else:
             assert first[-1] == (6, 5) and (2, 3) not in first, (first, log.read_text())
         assert "was learned: replanning" in log.read_text(), log.read_text()
+        assert "odometry is" not in log.read_text(), log.read_text()
 
 
 def test_a_new_goal_withdraws_the_route_to_the_old_one_while_it_is_learned(tmp_path):
