@@ -28,6 +28,20 @@ def paper_grid() -> np.ndarray:
     return g
 
 
+def said_by(node) -> list[str]:
+    """What ``node`` warns of (and errors), in order, in place of its log; info is dropped."""
+    from types import SimpleNamespace as Ns
+
+    said: list[str] = []
+    logger = Ns(
+        warning=lambda text, **_: said.append(text),
+        error=lambda text, **_: said.append(text),
+        info=lambda text, **_: None,
+    )
+    node.get_logger = lambda: logger
+    return said
+
+
 def cells_of(path, grid):
     return [grid.cell_of(p.pose.position.x, p.pose.position.y) for p in path.poses]
 
@@ -290,8 +304,6 @@ def test_a_start_from_odometry_that_stopped_coming_is_not_planned_from():
     why; a fresh pose or an /initialpose (the user's word, which does not age) plans it, even
     one read in the same executor pass just after the goal (the demo's sequence: dropped at
     once, the goal was lost and the pose planned nothing, a review)."""
-    from types import SimpleNamespace as Ns
-
     from rclpy.parameter import Parameter
 
     from wheelgrid_nav.planner_node import make_node
@@ -307,9 +319,7 @@ def test_a_start_from_odometry_that_stopped_coming_is_not_planned_from():
             ],
         )
         try:
-            said: list[str] = []
-            logger = Ns(warning=lambda text, **_: said.append(text), info=lambda text, **_: None)
-            node.get_logger = lambda: logger
+            said = said_by(node)
             paths: list = []
             node._publish_route = lambda grid, cells, *a: paths.append(cells)
             node._on_grid(to_occupancy_grid(grid))
@@ -377,8 +387,6 @@ def test_a_goal_read_with_an_estop_after_a_learning_is_dropped_and_said():
     goal was kept with no word and no goal_wait_s timer: the next grid the mapper sent planned
     it, and the chair set off with no command (a review: 18 s on). Whether it came before or
     after the clear is lost (each topic is read in turn): it is dropped now, said."""
-    from types import SimpleNamespace as Ns
-
     from rclpy.parameter import Parameter
     from std_msgs.msg import Bool
 
@@ -388,13 +396,7 @@ def test_a_goal_read_with_an_estop_after_a_learning_is_dropped_and_said():
     with rclpy_context() as ctx:
         node = make_node(context=ctx, parameter_overrides=[Parameter("method", value="qlearning")])
         try:
-            said: list[str] = []
-            logger = Ns(
-                warning=lambda text, **_: said.append(text),
-                info=lambda text, **_: None,
-                error=lambda text, **_: said.append(text),
-            )
-            node.get_logger = lambda: logger
+            said = said_by(node)
             paths: list = []
             node._publish_route = lambda grid, cells, *a: paths.append(cells)
             node._on_grid(to_occupancy_grid(grid))
@@ -971,17 +973,13 @@ def test_a_goal_that_cannot_be_planned_yet_says_what_it_waits_for():
     """A goal sent before the first safe grid or start pose got no path and no log line: the
     user heard nothing, and the chair set off whenever the grid or start came. It is still
     planned then, but the planner says so when the goal comes."""
-    from types import SimpleNamespace as Ns
-
     from wheelgrid_nav.planner_node import make_node
 
     grid = Grid(paper_grid(), RES, ORIGIN)
     with rclpy_context() as ctx:
         node = make_node(context=ctx)
         try:
-            said: list[str] = []
-            logger = Ns(warning=lambda text, **_: said.append(text), info=lambda text, **_: None)
-            node.get_logger = lambda: logger
+            said = said_by(node)
             node._on_goal(goal_msg(grid, (6, 5)))
             assert node.plans == 0 and len(said) == 1
             assert "/wheelgrid/safe_grid" in said[0] and "start pose" in said[0]
@@ -999,8 +997,6 @@ def test_a_goal_that_waits_longer_than_goal_wait_s_is_dropped():
     """A goal waiting for the first grid or start pose was planned whenever they came, maybe
     minutes later, and the chair set off with no command. After ``goal_wait_s`` it is dropped,
     said, and answered with an empty path; a grid and a start after that plan nothing."""
-    from types import SimpleNamespace as Ns
-
     from rclpy.parameter import Parameter
 
     from wheelgrid_nav.planner_node import make_node
@@ -1009,9 +1005,7 @@ def test_a_goal_that_waits_longer_than_goal_wait_s_is_dropped():
     with rclpy_context() as ctx:
         node = make_node(context=ctx, parameter_overrides=[Parameter("goal_wait_s", value=0.2)])
         try:
-            said: list[str] = []
-            logger = Ns(warning=lambda text, **_: said.append(text), info=lambda text, **_: None)
-            node.get_logger = lambda: logger
+            said = said_by(node)
             paths: list = []
             node._publish_route = lambda grid, cells, *a: paths.append(cells)
             node._on_goal(goal_msg(grid, (6, 5)))
