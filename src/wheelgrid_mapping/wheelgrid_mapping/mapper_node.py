@@ -179,14 +179,12 @@ class MapperNode(Node):  # type: ignore[misc]
         self._pipe_note = self._pipe.note  # a change is said once, in _report
         self._generation = 0  # bumped by ~/reset: a frame taken before it must not map after it
         self._slot_lock = threading.Condition()
-        self._queue: deque[
-            tuple[np.ndarray, float, str, np.ndarray | None, Any, float, float | None]
-        ] = deque()
-        # the stamp of the last well-formed cloud received, mapped or dropped while busy: what
-        # tells a dropout of the stream from frames this node dropped itself
-        self._last_cloud_stamp: float | None = None
-        # the stamps of the frames dropped while busy since the worker last took one
+        self._queue: deque[tuple[np.ndarray, float, str, np.ndarray | None, Any, float]] = deque()
+        # the stamps of the frames dropped while busy since the worker last took one, and the
+        # stamp of the frame it took last: a frame's predecessor is the last of those dropped,
+        # else that one (what tells a dropout of the stream from frames this node dropped)
         self._dropped_busy: list[float] = []
+        self._last_taken: float | None = None
         self._stop = False
         # (stamp, pose, child frame) of each prior received
         self._priors: deque[tuple[float, np.ndarray, str]] = deque(maxlen=2000)
@@ -344,9 +342,8 @@ class MapperNode(Node):  # type: ignore[misc]
         # when it arrived (the node's clock), for a stamp far ahead of it (:mod:`.frame_clock`)
         received = self.get_clock().now().nanoseconds * 1e-9
         stamp = _stamp_seconds(msg.header.stamp)
+        frame = (pts, stamp, msg.header.frame_id, conf, msg.header.stamp, received)
         with self._slot_lock:
-            before, self._last_cloud_stamp = self._last_cloud_stamp, stamp
-            frame = (pts, stamp, msg.header.frame_id, conf, msg.header.stamp, received, before)
             if len(self._queue) >= self.max_queue:
                 self._dropped_busy.append(self._queue.popleft()[1])
                 self.counts["skipped_busy"] += 1
@@ -429,7 +426,10 @@ class MapperNode(Node):  # type: ignore[misc]
                 # frames received before a ~/close_loops are mapped first, and the one in
                 # preparation is finished
                 frame = self._queue.popleft() if self._queue else None
-                dropped, self._dropped_busy = self._dropped_busy, []
+                if frame is not None:
+                    dropped, self._dropped_busy = self._dropped_busy, []
+                    before = dropped[-1] if dropped else self._last_taken
+                    self._last_taken = frame[1]
                 closing = (
                     frame is None and not self._pipe.pending and self._loop_state == "requested"
                 )
@@ -444,7 +444,7 @@ class MapperNode(Node):  # type: ignore[misc]
                     done = self._pipe.flush() if generation == self._generation else []
                 self._report(done, generation)
                 continue
-            pts, stamp, frame_id, conf, header_stamp, received, before = frame
+            pts, stamp, frame_id, conf, header_stamp, received = frame
             # Frames dropped while busy (max_queue) are no dropout: the stream went on. Where
             # the cloud received before this one is within max_gap of it, registration is told
             # so; else it judges from the frames it saw. Before, two frames skipped at 5 Hz
@@ -780,6 +780,8 @@ class MapperNode(Node):  # type: ignore[misc]
     def _clear_intake(self) -> None:
         """~/reset's work on what came in, with ``_slot_lock`` held: done when it answers."""
         self.counts["skipped_busy"] += len(self._queue)
+        if self._queue:  # received: the next frame's predecessor
+            self._last_taken = self._queue[-1][1]
         self._queue.clear()
         self._dropped_busy.clear()
         self._generation += 1  # a frame the worker has in hand must not map after the reset
