@@ -28,10 +28,9 @@ def test_demo_drives_the_chair_to_the_goal_through_free_cells_only(live_demo, ba
     assert "loops closed" in live_demo["stdout"]
     # in a domain of its own, not the test run's (a chain launched from the same shell once
     # got the demo's frames and goal)
-    from wheelgrid_bringup.demo import demo_domain
-
-    own = demo_domain(os.environ["ROS_DOMAIN_ID"])
-    assert f"demo: ROS_DOMAIN_ID={own} " in live_demo["stdout"]
+    said = re.search(r"demo: ROS_DOMAIN_ID=(\d+) ", live_demo["stdout"])
+    assert said, live_demo["stdout"][:2000]
+    own = int(said[1])  # the first of its order, unless another demo on this machine held it
     assert own != int(os.environ["ROS_DOMAIN_ID"]) and 215 <= own <= 232
     assert s["reached_goal"] is True
     assert s["entered_non_free"] == []

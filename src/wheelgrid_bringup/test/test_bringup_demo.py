@@ -1,6 +1,7 @@
 """The demo names the truth's room cells in whatever grid the chain published."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -154,3 +155,33 @@ def test_demo_arguments_say_what_they_expect_and_the_summary_names_only_files_wr
     line = paper_line({"paper": {"grid_cells_as_expected": 63, "grid_cells": 64}})
     assert line == "  paper     grid 63/64 cells as expected"
     assert paper_line({"paper": {"error": "cannot compare"}}) == "  paper     cannot compare"
+
+
+def test_a_demo_takes_a_domain_no_other_demo_holds_and_refuses_when_all_are_held(
+    tmp_path, monkeypatch, capsys
+):
+    """Two demos run at once shared domain 217 and each mapped the other's frames (the summary
+    could only warn afterwards). Each now takes a domain no other demo on the machine holds,
+    in an order that starts from the checkout's domain and never is the checkout's."""
+    from wheelgrid_bringup import demo
+    from wheelgrid_common import ros_env
+
+    order = demo.demo_domains("17")
+    assert sorted(order) == list(demo.DEMO_DOMAINS) and order[0] == demo.DEMO_DOMAINS[17]
+    assert 220 not in demo.demo_domains("220")  # never the inherited domain
+    monkeypatch.setattr(ros_env, "DOMAIN_LOCK_DIR", tmp_path)
+    held = [ros_env.claim_domain([d]) for d in demo.DEMO_DOMAINS]  # every one, as 18 demos
+    try:
+        assert all(h is not None and h[1] >= 0 for h in held)
+        from wheelgrid_sim.cli import main as simulate  # a real bag: refused after opening it
+
+        sim = tmp_path / "sim"
+        assert simulate(["--seed", "7", "--frames", "2", "--out", str(sim)]) == 0
+        capsys.readouterr()
+        assert demo.main(["--bag", str(sim), "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert "every demo domain (215-232) is held by another demo" in err, err
+    finally:
+        for h in held:
+            if h is not None:
+                os.close(h[1])

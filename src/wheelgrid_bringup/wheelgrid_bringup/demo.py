@@ -34,7 +34,7 @@ from wheelgrid_bringup.supervisor import (
 from wheelgrid_common.bagio import BagError, BagReader
 from wheelgrid_common.fileio import out_folder, read_ply
 from wheelgrid_common.map_io import Grid
-from wheelgrid_common.ros_env import child_env, configure_ros_env
+from wheelgrid_common.ros_env import child_env, claim_domain, configure_ros_env
 
 HEADING_ROW_COL = {"up": (-1, 0), "down": (1, 0), "left": (0, -1), "right": (0, 1)}
 
@@ -220,16 +220,19 @@ def build_parser() -> argparse.ArgumentParser:
 DEMO_DOMAINS = range(215, 233)
 
 
-def demo_domain(inherited: str | None) -> int:
-    """The demo's own ROS domain, never the inherited one: in the checkout's domain (every
-    shell of it shares one, scripts/env.sh) a `wheelgrid launch` left running got the demo's
-    frames, goal and start pose, and its drive followed them."""
+def demo_domains(inherited: str | None) -> list[int]:
+    """The demo's own ROS domains in the order it tries them, never the inherited one: in the
+    checkout's domain (every shell of it shares one, scripts/env.sh) a `wheelgrid launch` left
+    running got the demo's frames, goal and start pose, and its drive followed them. The
+    first is chosen from the checkout's; the demo takes the first that no other demo on this
+    machine holds (:func:`claim_domain`)."""
     try:
         base = int(inherited or 0)
     except ValueError:
         base = 0
-    pick = DEMO_DOMAINS[base % len(DEMO_DOMAINS)]
-    return pick if pick != base else DEMO_DOMAINS[(base + 1) % len(DEMO_DOMAINS)]
+    first = base % len(DEMO_DOMAINS)
+    order = [*DEMO_DOMAINS[first:], *DEMO_DOMAINS[:first]]
+    return [d for d in order if d != base]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -266,7 +269,17 @@ def main(argv: list[str] | None = None) -> int:
         args.timeout = max(170.0, bag_seconds / args.rate + 30.0)
     configure_ros_env()
     inherited = os.environ.get("ROS_DOMAIN_ID")
-    os.environ["ROS_DOMAIN_ID"] = str(demo_domain(inherited))
+    claim = claim_domain(demo_domains(inherited))
+    if claim is None:
+        # two demos in one domain each mapped the other's frames (a review's shared 217)
+        print(
+            f"wheelgrid demo: every demo domain ({DEMO_DOMAINS.start}-{DEMO_DOMAINS.stop - 1}) "
+            "is held by another demo on this machine: wait for one to end",
+            file=sys.stderr,
+        )
+        return 2
+    domain, _lock = claim  # the lock is held until this process ends
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
     params = args.params or default_params_file()
     try:
         # as `wheelgrid launch` does: a section that reaches no node (`gird:`) ran the chain on
@@ -308,8 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     code = 1
     try:
         print(
-            f"demo: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} (its own; a chain launched from "
-            f"this shell, in {inherited or 0}, stays apart: an RViz joins with that domain)"
+            f"demo: ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} (its own, held against other "
+            f"demos on this machine; a chain launched from this shell, in {inherited or 0}, "
+            "stays apart: an RViz joins with that domain)"
         )
         print(f"demo: bag {bag} ({', '.join(f'{t.name} x{t.count}' for t in topics)})")
         try:  # before any node starts: a ROS 1 bag or an unknown type ended in a traceback

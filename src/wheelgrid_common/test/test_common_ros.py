@@ -250,3 +250,36 @@ def test_tf2_is_available_only_where_its_type_support_loads(monkeypatch):
 
     problem = tf2_problem()  # what the mapper says: not "not importable", which it is
     assert problem is not None and "importable but its type support does not load" in problem
+
+
+def test_a_domain_held_by_another_process_is_passed_over_until_that_process_ends(tmp_path):
+    """Two demos run at once picked the same domain and each mapped the other's frames: a
+    domain is claimed with a lock file that another process's claim sees, and that ends with
+    the process however it ends (here killed)."""
+    import subprocess
+    import sys
+
+    from wheelgrid_common.ros_env import claim_domain
+
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time; from pathlib import Path; "
+         "from wheelgrid_common.ros_env import claim_domain; "
+         f"print(claim_domain([215], Path({str(tmp_path)!r}))[0], flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "215"
+        got = claim_domain([215, 216], tmp_path)
+        assert got is not None and got[0] == 216  # 215 is held: the next one
+        assert claim_domain([215, 216], tmp_path) is None  # both held (216 by this process)
+        os.close(got[1])
+        again = claim_domain([215, 216], tmp_path)
+        assert again is not None and again[0] == 216  # closed: free again
+        os.close(again[1])
+    finally:
+        holder.kill()
+        holder.wait()
+    freed = claim_domain([215], tmp_path)  # the killed holder left no stale claim behind
+    assert freed is not None and freed[0] == 215 and freed[1] >= 0
+    os.close(freed[1])

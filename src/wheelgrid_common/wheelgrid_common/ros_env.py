@@ -8,12 +8,14 @@ and rclpy has a log folder even where ``HOME`` is unset (it refuses to start wit
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
 import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Callable, Mapping, MutableMapping
+from collections.abc import Callable, Iterable, Mapping, MutableMapping
 from contextlib import suppress
 from importlib.util import find_spec
 from pathlib import Path
@@ -82,6 +84,40 @@ def child_env(domain_id: int | None = None, **extra: str) -> dict[str, str]:
         env["ROS_DOMAIN_ID"] = str(domain_id)
     env.update(extra)
     return env
+
+
+#: Where the domain claims' lock files lie: one folder for the machine, since a DDS domain is
+#: the machine's, whichever user or checkout runs in it.
+DOMAIN_LOCK_DIR = Path(tempfile.gettempdir())
+
+
+def claim_domain(candidates: Iterable[int], lock_dir: Path | None = None) -> tuple[int, int] | None:
+    """The first of ``candidates`` no other wheelgrid process on this machine holds, and the
+    file descriptor of its lock (held until it is closed or the process ends, however it
+    ends), or None where every one is held.
+
+    Two demos run at once both picked the same domain and each mapped the other's frames (a
+    review's two shared 217; the summary could only warn afterwards). A lock file per domain,
+    taken with ``flock``, leaves no stale claim behind a killed process. It is opened read-only
+    so that another user's demo can lock the same file; a file this user may not open at all
+    counts as held. Where the folder takes no locks the candidate tried comes back with -1
+    for its descriptor: not claimed, as before there were claims."""
+    folder = DOMAIN_LOCK_DIR if lock_dir is None else lock_dir
+    for domain in candidates:
+        path = folder / f"wheelgrid-ros-domain-{domain}.lock"
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                continue
+            return domain, -1  # a folder without locks (ENOLCK): unclaimed, as before
+        return domain, fd
+    return None
 
 
 def with_message_info(callback: Callable[[Any, Any], None]) -> Callable[[Any], None]:
