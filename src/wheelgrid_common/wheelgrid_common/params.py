@@ -23,15 +23,43 @@ import yaml
 T = TypeVar("T")
 
 
-def field(default: Any, doc: str, unit: str = "") -> Any:
-    """A dataclass field with a description (and unit) that becomes the ROS parameter's."""
+def field(default: Any, doc: str, unit: str = "", bounds: tuple[float, float] | None = None) -> Any:
+    """A dataclass field with a description (and unit) that becomes the ROS parameter's.
+
+    ``bounds`` (lo, hi), closed, ``math.inf`` for none, become the parameter descriptor's
+    range, so ``ros2 param describe`` shows them, rqt's reconfigure draws a slider and rclpy
+    refuses a value outside before the node sees it. A config checks them too
+    (:func:`check_bounds`): the CLIs read the same fields from YAML, without rclpy. The bounds
+    are the hull of the valid values; an open end or a bound that depends on another field
+    stays the config's own check."""
+    meta: dict[str, Any] = {"doc": doc, "unit": unit}
+    if bounds is not None:
+        meta["bounds"] = bounds
     if isinstance(default, list | dict):
         # a copy per instance: a default list shared by every config was changed through one
         return dataclasses.field(
-            default_factory=functools.partial(copy.copy, default),
-            metadata={"doc": doc, "unit": unit},
+            default_factory=functools.partial(copy.copy, default), metadata=meta
         )
-    return dataclasses.field(default=default, metadata={"doc": doc, "unit": unit})
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def bounds_of(cls: type) -> dict[str, tuple[float, float]]:
+    """Field name -> its declared (lo, hi), for the fields that have them."""
+    return {
+        f.name: f.metadata["bounds"]
+        for f in dataclasses.fields(cls)
+        if f.metadata.get("bounds") is not None
+    }
+
+
+def check_bounds(cfg: Any, prefix: str = "") -> None:
+    """``ValueError`` naming the first field of ``cfg`` outside its declared bounds."""
+    for name, (lo, hi) in bounds_of(type(cfg)).items():
+        value = getattr(cfg, name)
+        if not lo <= value <= hi:
+            unit = {f.name: f.metadata.get("unit", "") for f in dataclasses.fields(cfg)}[name]
+            where = f"[{lo:g}, {hi:g}]" + (f" {unit}" if unit else "")
+            raise ValueError(f"{prefix}{name} must be in {where}, not {value}")
 
 
 def describe(cls: type) -> dict[str, str]:
@@ -254,7 +282,7 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
     reading the parameter back saw 10). Only a node that applies and checks changes at run
     time (the grid node) passes ``read_only=False``.
     """
-    from rcl_interfaces.msg import ParameterDescriptor
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
     from rclpy.exceptions import ParameterException
 
     docs = describe(type(cfg))
@@ -272,6 +300,14 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
             dynamic_typing=isinstance(default, list) and not default,
             read_only=read_only,
         )
+        bounds = f.metadata.get("bounds")
+        if bounds is not None and isinstance(default, float):
+            descriptor.floating_point_range = [
+                FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))
+            ]
+        elif bounds is not None and isinstance(default, int) and not isinstance(default, bool):
+            lo, hi = (b if math.isfinite(b) else math.copysign(2**63 - 1, b) for b in bounds)
+            descriptor.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
         try:
             node.declare_parameter(name, default, descriptor)
         except ParameterException as exc:  # a value of the wrong type: one line, not a trace

@@ -340,6 +340,28 @@ def test_use_sim_time_is_described_and_cannot_change_live():
         assert result.successful
 
 
+def test_the_grid_parameters_declare_their_ranges_and_a_value_outside_is_refused():
+    """No parameter carried a range: `ros2 param describe grid density_threshold` showed none
+    and rqt's reconfigure could draw no slider for the one node whose parameters change live."""
+    from rclpy.parameter import Parameter
+
+    with in_process_grid(max_rate_hz=100.0) as t:
+        node = t.grid_node
+        (ranged,) = node.describe_parameter("density_threshold").floating_point_range
+        assert (ranged.from_value, ranged.to_value) == (0.0, 1.0)
+        (height,) = node.describe_parameter("safe_height").floating_point_range
+        assert height.from_value == 0.9 and height.to_value == math.inf
+        (count,) = node.describe_parameter("min_floor_points").integer_range
+        assert count.from_value == 1 and count.step == 1
+        assert not node.describe_parameter("alignment").floating_point_range
+        [result] = node.set_parameters([Parameter("density_threshold", value=1.5)])
+        assert not result.successful and "out of range" in result.reason, result.reason
+        assert node.get_parameter("density_threshold").value == 0.05
+        assert node.cfg.density_threshold == 0.05
+        [result] = node.set_parameters([Parameter("density_threshold", value=0.1)])
+        assert result.successful, result.reason
+
+
 def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_it_back():
     """The mapper's ~/reset publishes an empty map cloud and starts a new map whose frame is
     placed under the next pose: the running grid node kept the old grid, so the planner and the

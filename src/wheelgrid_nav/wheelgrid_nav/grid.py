@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN, Grid
-from wheelgrid_common.params import check_finite, field
+from wheelgrid_common.params import check_bounds, check_finite, field
 
 ALIGNMENTS = ("walls", "map")
 
@@ -131,19 +131,27 @@ class GridConfig:
         "safe height (the paper's height δ): points above it are removed so the chair may pass "
         f"under them; set it to at least the seated user's height (>= {MIN_SAFE_HEIGHT} m)",
         "m",
+        bounds=(MIN_SAFE_HEIGHT, math.inf),
     )
     floor_clearance: float = field(
         0.05,
         "points at or below this height are floor (observed free space), not obstacles",
         "m",
+        bounds=(0.0, MAX_FLOOR_CLEARANCE),
     )
     drop_depth: float = field(
         0.10,
         "points more than this below the floor are a drop (a step down, a hole) and block like "
         f"obstacles; in (0, {MAX_DROP_DEPTH}]: anything shallower is read as floor",
         "m",
+        bounds=(0.0, MAX_DROP_DEPTH),
     )
-    pixel_size: float = field(0.05, "side of a fine obstacle-image pixel (and of /map)", "m")
+    pixel_size: float = field(
+        0.05,
+        "side of a fine obstacle-image pixel (and of /map)",
+        "m",
+        bounds=(MIN_PIXEL_SIZE, math.inf),
+    )
     cell_size: float = field(
         1.2,
         "side of a grid cell: the chair's safe footprint; a whole number of pixels",
@@ -154,12 +162,14 @@ class GridConfig:
         "the paper's density threshold δ (eq 10): a cell whose fraction of black pixels exceeds "
         "it is occupied",
         "fraction",
+        bounds=(0.0, 1.0),
     )
     min_points_per_pixel: int = field(
         1,
         "points needed in a pixel to make it black (an obstacle pixel); at most "
         "guard_line_min_points, or thin obstacles vanish",
         "points",
+        bounds=(1, math.inf),
     )
     thin_obstacle_guard: bool = field(
         True,
@@ -173,6 +183,7 @@ class GridConfig:
         "stack up over its height; scattered noise (one or two points) stays below it and only "
         "counts in the density. Assumes map voxels <= 3 cm; lower it for coarser maps",
         "points",
+        bounds=(1, math.inf),
     )
     guard_line_min_points: int = field(
         GUARD_LINE_MIN_POINTS,
@@ -180,6 +191,7 @@ class GridConfig:
         "(a rod, rope or cable leaving one line of map points: about 7 at 2 cm map voxels; a "
         "row of lone noise points gives 3)",
         "points",
+        bounds=(1, math.inf),
     )
     guard_line_length: float = field(
         0.3,
@@ -192,6 +204,7 @@ class GridConfig:
         "fraction of a cell's area where floor or obstacles were observed for it to be free; "
         "less makes it unknown",
         "fraction",
+        bounds=(0.5, 1.0),
     )
     unobserved_patch: float = field(
         0.35,
@@ -199,15 +212,20 @@ class GridConfig:
         "floor nor an obstacle seen reaches into it: a hole, a drop, or floor hidden behind "
         "something (0: off)",
         "m",
+        bounds=(0.0, MAX_UNOBSERVED_PATCH),
     )
     floor_fill: int = field(
         1,
         "observed-floor pixels are grown by this many pixels to close sampling gaps between "
         "floor points (not real unobserved areas)",
         "pixels",
+        bounds=(0, math.inf),
     )
     min_floor_points: int = field(
-        50, "fewer floor points than this means no floor was found (bad input)", "points"
+        50,
+        "fewer floor points than this means no floor was found (bad input)",
+        "points",
+        bounds=(1, math.inf),
     )
     alignment: str = field(
         "walls",
@@ -218,6 +236,7 @@ class GridConfig:
         "the grid extent is the floor points' [q, 1-q] quantile range per axis (robust to "
         "stray points)",
         "fraction",
+        bounds=(0.0, 0.25),
     )
     extent_tolerance: float = field(
         0.25,
@@ -231,11 +250,13 @@ class GridConfig:
         "grid reaches past the observed floor) are the walls (the boundary), not content of the "
         "border cells",
         "m",
+        bounds=(0.0, MAX_BOUNDARY_MARGIN),
     )
     fine_margin: float = field(
         0.25,
         "the fine map (/map, fine.pgm) extends this far beyond the grid so the walls show",
         "m",
+        bounds=(0.0, 5.0),
     )
 
     def cell_pixels(self) -> int:
@@ -368,6 +389,7 @@ class GridConfig:
                 f"guard_line_length must be 0 (off) or in [3 pixel_size, cell_size] = "
                 f"[{3 * self.pixel_size:g}, {self.cell_size:g}] m, not {self.guard_line_length:g}"
             )
+        check_bounds(self)  # the ranges the parameters declare; the explanations above first
 
 
 @dataclass
@@ -384,6 +406,7 @@ class GridNodeConfig(GridConfig):
         "the grid is recomputed at most this often while the map keeps changing (a 1 M point "
         "map costs about 0.1 s)",
         "Hz",
+        bounds=(0.001, 100.0),
     )
 
 
