@@ -83,6 +83,36 @@ def sensor_view(world: np.ndarray, T: np.ndarray, rng: Any) -> np.ndarray:
     return p + rng.normal(0, 0.005, p.shape)
 
 
+def check_declared_bounds(
+    cls: type, validate: Callable[[Any], None], outside_only: Iterable[str] = ()
+) -> list[str]:
+    """The fields of config ``cls`` that declare bounds, after checking that ``validate``
+    refuses a value just outside each finite bound (or the CLI's YAML takes what the node's
+    rclpy refuses) and takes one just inside (or rclpy would pass a value the config then
+    refuses, a range that says less than it seems). ``outside_only``: fields whose valid
+    values have a gap (0 for off, then from 1) or depend on another field's."""
+    import dataclasses
+    import math
+
+    import pytest
+
+    from wheelgrid_common.params import bounds_of
+
+    ranged = bounds_of(cls)
+    for name, (lo, hi) in ranged.items():
+        default = getattr(cls(), name)
+        assert lo <= default <= hi, (name, default, lo, hi)
+        step = 1 if isinstance(default, int) else 1e-6
+        for outside in (lo - step, hi + step):
+            if math.isfinite(outside):
+                with pytest.raises(ValueError, match=name):
+                    validate(dataclasses.replace(cls(), **{name: outside}))
+        for inside in (lo + step, hi - step):
+            if math.isfinite(inside) and name not in outside_only:
+                validate(dataclasses.replace(cls(), **{name: inside}))
+    return sorted(ranged)
+
+
 def shared_data(name: str, repo_root: Path) -> Path:
     """Where a real data set lives: ``$WHEELGRID_SHARED/data/NAME``, else the checkout's sibling
     ``../shared/data/NAME``. It may be absent: callers skip with a reason (never copy it in)."""

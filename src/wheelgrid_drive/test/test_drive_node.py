@@ -923,6 +923,18 @@ def test_link_settings_it_cannot_run_with_stop_the_node_with_exit_2():
     assert "invalid parameters: retries must be in 0..20" in done.stderr + done.stdout
 
 
+def test_the_ranges_the_drive_parameters_declare_hold_every_valid_value_and_no_other():
+    """No parameter carried a range: `ros2 param describe drive speed` showed none. Each
+    declared range holds every value check_config takes and no other (speed has no upper
+    end: above 3 km/h it is capped, as documented; grid_state_timeout is 0 for off, then
+    from 1 s, a gap no range can say)."""
+    from wheelgrid_common.testing import check_declared_bounds
+    from wheelgrid_drive.drive_node import DriveConfig, check_config
+
+    ranged = check_declared_bounds(DriveConfig, check_config, ("grid_state_timeout",))
+    assert {"speed", "cmd_vel_timeout", "pose_tolerance", "grid_state_timeout"} <= set(ranged)
+
+
 @pytest.mark.parametrize(
     "param",
     [

@@ -39,7 +39,13 @@ from std_msgs.msg import Bool, String
 
 from wheelgrid_common.fileio import quat_yaw
 from wheelgrid_common.map_io import Grid, from_occupancy_grid
-from wheelgrid_common.params import check_finite, check_no_undeclared, declare_dataclass, field
+from wheelgrid_common.params import (
+    check_bounds,
+    check_finite,
+    check_no_undeclared,
+    declare_dataclass,
+    field,
+)
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS, SENSOR_QOS, volatile_writers_expected
 from wheelgrid_common.ros_env import (
     SideSpinner,
@@ -117,12 +123,18 @@ class DriveConfig:
 
     port: str = field("", "serial device of the motor controller (or a simulator pty)")
     baud: int = field(115200, "serial baud rate", "baud")
-    speed: float = field(3.0, "driving speed, hard-capped at 3 km/h; at least 0.1", "km/h")
+    speed: float = field(
+        3.0,
+        "driving speed, hard-capped at 3 km/h; at least 0.1",
+        "km/h",
+        bounds=(proto.MIN_SPEED_KMH, math.inf),
+    )
     cell_size: float = field(
         1.2,
         "not used: a /cmd_vel step needs the safe grid and drives to its next cell's centre, and "
         "a plan's steps are the grid's cells (kept so that a params file that sets it loads)",
         "m",
+        bounds=(0.001, proto.MAX_DISTANCE_MM / 1000),
     )
     reply_timeout: float = field(0.1, "wait for each controller reply before a retry", "s")
     retries: int = field(3, "resends of an unanswered frame before giving up (and STOP)")
@@ -130,7 +142,9 @@ class DriveConfig:
     reconnect_period: float = field(
         RECONNECT_PERIOD_S, "retry period to reopen a vanished port", "s"
     )
-    cmd_vel_timeout: float = field(0.5, "no /cmd_vel Twist for this long -> STOP", "s")
+    cmd_vel_timeout: float = field(
+        0.5, "no /cmd_vel Twist for this long -> STOP", "s", bounds=(0.0, 5.0)
+    )
     initial_heading: str = field(
         "auto",
         "chair heading at the plan start: up/down/left/right, or auto = the plan's "
@@ -147,13 +161,18 @@ class DriveConfig:
         "this much of the next cell's centre; a /cmd_vel step drives to the next cell's "
         "centre and must pass within this much of it",
         "cells",
+        bounds=(0.0, 0.5),
     )
     set_pose_on_plan: bool = field(
         False, "tell the controller it stands on the plan's start cell (simulator/demo only)"
     )
-    linear_deadband: float = field(0.05, "|linear.x| below this is no motion", "m/s")
-    angular_deadband: float = field(0.3, "|angular.z| above this is a turn", "rad/s")
-    state_rate: float = field(5.0, "drive_state publishing rate", "Hz")
+    linear_deadband: float = field(
+        0.05, "|linear.x| below this is no motion", "m/s", bounds=(0.0, math.inf)
+    )
+    angular_deadband: float = field(
+        0.3, "|angular.z| above this is a turn", "rad/s", bounds=(0.0, math.inf)
+    )
+    state_rate: float = field(5.0, "drive_state publishing rate", "Hz", bounds=(0.0, 100.0))
     grid_state_timeout: float = field(
         2.0,
         "once the grid node's state (wheelgrid/grid_state, 2 Hz) has been heard, a silence "
@@ -161,6 +180,7 @@ class DriveConfig:
         "move and refuses steps: a hung grid node leaves its last grid published while newer "
         "maps go ungridded; 0 = off (a static grid: map_server)",
         "s",
+        bounds=(0.0, 60.0),
     )
 
 
@@ -195,6 +215,7 @@ def check_config(c: DriveConfig) -> None:
         raise ValueError(
             f"initial_heading must be auto, up, down, left or right, not {c.initial_heading!r}"
         )
+    check_bounds(c)  # the ranges the parameters declare; the explanations above first
 
 
 class DriveNode(Node):

@@ -423,30 +423,18 @@ def test_invalid_config_is_rejected():
 
 def test_the_ranges_the_grid_parameters_declare_hold_every_valid_value_and_no_other():
     """The grid node's parameters carry ranges (`ros2 param describe`, rqt's sliders, rclpy
-    refusing a value before the node sees it), which nothing had: each range must hold every
-    value the config takes (or rclpy refuses a good one) and the config must refuse what lies
-    outside it (or the CLI's YAML takes what the node refuses)."""
-    from wheelgrid_common.params import bounds_of
+    refusing a value before the node sees it), which nothing had. At the ends themselves the
+    config's open ends refuse (drop_depth 0, density_threshold 1); pixel_size must also
+    divide cell_size, which no range can say."""
+    from wheelgrid_common.testing import check_declared_bounds
     from wheelgrid_nav.grid import GridNodeConfig
 
-    ranged = bounds_of(GridNodeConfig)
+    ranged = check_declared_bounds(
+        GridNodeConfig, lambda c: c.validate(), outside_only=("pixel_size",)
+    )
     assert {"safe_height", "density_threshold", "min_observed_fraction", "max_rate_hz"} <= set(
         ranged
     )
-    for name, (lo, hi) in ranged.items():
-        default = getattr(GridNodeConfig(), name)
-        assert lo <= default <= hi, name
-        step = 1 if isinstance(default, int) else 1e-6
-        for outside in (lo - step, hi + step):
-            if math.isfinite(outside):
-                with pytest.raises(ValueError, match=name):
-                    GridNodeConfig(**{name: outside}).validate()  # type: ignore[arg-type]
-        # and values just inside each end are the config's to take (at the ends themselves
-        # its open ends refuse: drop_depth 0, density_threshold 1; pixel_size must also divide
-        # cell_size, which no range can say)
-        for inside in (lo + step, hi - step):
-            if math.isfinite(inside) and name != "pixel_size":
-                GridNodeConfig(**{name: inside}).validate()  # type: ignore[arg-type]
 
 
 def test_the_most_points_a_pixel_may_need_keeps_every_obstacle_of_the_paper_room():
