@@ -1,5 +1,6 @@
 """The demo names the truth's room cells in whatever grid the chain published."""
 
+import json
 import math
 import os
 
@@ -136,6 +137,7 @@ def test_demo_arguments_say_what_they_expect_and_the_summary_names_only_files_wr
 
     for argv, says in (
         (["--start", "2"], "expected a cell R,C such as 2,0"),
+        (["--goal=-1,3"], "a cell's row and column count from 0"),
         (["--timeout", "nan"], "must be a number of seconds > 0"),
         (["--timeout", "-5"], "must be a number of seconds > 0"),
     ):
@@ -185,3 +187,27 @@ def test_a_demo_takes_a_domain_no_other_demo_holds_and_refuses_when_all_are_held
         for h in held:
             if h is not None:
                 os.close(h[1])
+
+
+def test_a_start_or_goal_outside_the_simulated_room_is_refused_before_the_replay(tmp_path, capsys):
+    """`--goal 9,9` on the paper room (8 x 8) replayed the whole bag, 2-3 minutes, and only
+    then said the goal was not free."""
+    import shutil
+
+    from wheelgrid_bringup import demo
+
+    sim = tmp_path / "sim"  # truth.json and its expected grid, but no bag: refused before it
+    sim.mkdir()
+    bundled = demo.repo_root() / "bags" / "paper_room"
+    for name in ("truth.json", "expected_grid.yaml", "expected_grid.pgm"):
+        shutil.copy(bundled / name, sim / name)
+    truth = json.loads((sim / "truth.json").read_text())
+    assert demo.cells_outside_room(sim, truth, {"start": (2, 0), "goal": (7, 7)}) is None
+    assert demo.cells_outside_room(sim, truth, {"start": None, "goal": None}) is None
+    why = demo.cells_outside_room(sim, truth, {"start": None, "goal": (9, 9)})
+    assert why is not None and "--goal 9,9 lies outside the simulated room's 8 x 8 grid" in why
+    assert demo.cells_outside_room(tmp_path, {}, {"goal": (99, 0)}) is None  # no truth: live
+    # refused before the bag is opened (there is none here) and before --out is made
+    assert demo.main(["--bag", str(sim), "--goal", "8,0", "--out", str(tmp_path / "o")]) == 2
+    assert "--goal 8,0 lies outside" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

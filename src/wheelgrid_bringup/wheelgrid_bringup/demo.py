@@ -129,7 +129,37 @@ def parse_cell(text: str) -> tuple[int, int]:
         r, c = (int(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a cell R,C such as 2,0, not {text!r}") from None
+    if r < 0 or c < 0:  # refused only after the whole replay, minutes later
+        raise argparse.ArgumentTypeError(f"a cell's row and column count from 0, not {text!r}")
     return r, c
+
+
+def cells_outside_room(
+    sim_dir: Path, truth: dict[str, Any], cells: dict[str, tuple[int, ...] | None]
+) -> str | None:
+    """Why a --start or --goal given lies outside the simulated room's grid (truth.json's
+    expected grid, in either orientation: the live grid may be turned by 90 deg), or None. A
+    goal off the grid was refused only after the replay, 2-3 minutes on."""
+    if not truth:
+        return None
+    import yaml
+
+    from wheelgrid_common.map_io import read_map
+
+    try:
+        room = read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+    except (OSError, ValueError, yaml.YAMLError):
+        return None  # the run judges its cells on the live grid, as without truth
+    for name, cell in cells.items():
+        if cell is None:
+            continue
+        r, c = cell[0], cell[1]
+        if not ((r < room.rows and c < room.cols) or (r < room.cols and c < room.rows)):
+            return (
+                f"--{name} {r},{c} lies outside the simulated room's {room.rows} x {room.cols} "
+                f"grid ({sim_dir / 'truth.json'})"
+            )
+    return None
 
 
 def positive_seconds(text: str) -> float:
@@ -254,6 +284,10 @@ def main(argv: list[str] | None = None) -> int:
         truth = json.loads((sim_dir / "truth.json").read_text())
     start = args.start or tuple(truth.get("start_cell", (2, 0)))
     goal = args.goal or tuple(truth.get("goal_cell", (6, 5)))
+    why = cells_outside_room(sim_dir, truth, {"start": args.start, "goal": args.goal})
+    if why:
+        print(f"wheelgrid demo: {why}", file=sys.stderr)
+        return 2
     try:
         with BagReader(bag) as reader:
             topics = reader.topics()
