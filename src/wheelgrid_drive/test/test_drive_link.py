@@ -450,6 +450,35 @@ def test_a_plan_whose_start_checks_saw_the_old_port_does_not_start_on_the_reopen
     assert moves(sim2) == [], "the plan started on the reopened port"
 
 
+def test_a_step_checked_on_the_old_port_is_not_sent_on_one_reopened_after_its_check(
+    make_sim, make_link, wait, tmp_path
+):
+    """run_steps compared the connection count and then called execute(), whose move went out
+    on whatever port was open by then: the port lost and reopened in between (the thread
+    descheduled there; a review stalled it there to show it) and the next step's MOVE drove
+    the chair on the reopened controller, which no check had asked. The count now goes with
+    the move, and the link refuses it on a later connection."""
+    port = str(tmp_path / "ttyWG")
+    sims = [make_sim(link=port, pose=(0.6, -3.0, YAW["down"]))]
+    link = make_link(port, reconnect_period=0.1)
+    real_execute, calls = link.execute, []
+
+    def stalled_after_the_check(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:  # the second step, its checks passed on the first port
+            sims[0].vanish()
+            sims.append(make_sim(link=port, pose=(1.8, -3.0, 0.0)))
+            assert wait(lambda: link.stats.reconnects == 1 and not link.stop_owed, 10.0)
+        return real_execute(*args, **kwargs)
+
+    link.execute = stalled_after_the_check
+    steps = plan_steps((2, 0), ["right"] * 3, "down")
+    result = run_steps(link, steps, distance_m=1.2, speed_kmh=3.0)
+    assert not result.ok and result.done == 1, result
+    assert "reopened" in result.error, result.error
+    assert moves(sims[1]) == [], "the plan went on on the reopened port"
+
+
 def test_a_reopened_port_takes_nothing_before_its_stop(make_sim, make_link, wait, tmp_path):
     """Host duty 5: the first frame on a reopened port is STOP. Another thread's request (a
     plan's status read, a new move) could go out between the reopening and that STOP; here it
@@ -525,8 +554,8 @@ def test_an_e_stop_before_the_move_reaches_the_wire_keeps_it_off_the_wire(make_s
     abort = threading.Event()
     real_status = link.status
 
-    def e_stop_meanwhile() -> proto.Status:
-        st = real_status()
+    def e_stop_meanwhile(connection: int | None = None) -> proto.Status:
+        st = real_status(connection)
         abort.set()  # as the drive node's e-stop: the flag, then the STOP
         assert link.stop()
         return st

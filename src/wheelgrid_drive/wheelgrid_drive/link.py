@@ -360,6 +360,7 @@ class MotorLink:
         retries: int | None = None,
         avoid_seq: int | None = None,
         abort: threading.Event | None = None,
+        connection: int | None = None,
     ) -> proto.Frame:
         """Send one request and return its valid reply (ACK, NAK or STATUS), retrying on failure.
 
@@ -368,14 +369,21 @@ class MotorLink:
         the chair after the reconnection's STOP), and for anything but STOP while a STOP is
         owed (:attr:`stop_owed`): any valid frame feeds the controller's watchdog, which must
         be left to stop the motors. LinkAbortedError, and nothing (more) written, once
-        ``abort`` is set (see :meth:`_write`).
+        ``abort`` is set (see :meth:`_write`). ``connection``: the :attr:`connection` count the
+        caller's checks were made on; a request other than STOP is not sent on any later one
+        (a plan step checked on the old port went out on the reopened one).
         """
         is_stop = mtype == proto.MsgType.STOP
         with self._state_lock:
-            # one look at both: read apart, a port reopened between them (its STOP still to
-            # go first) was taken as this request's connection, and a move went out before
+            # one look at all three: read apart, a port reopened between them (its STOP still
+            # to go first) was taken as this request's connection, and a move went out before
             # that STOP
-            stop_first, ser = self._stop_first, self._ser
+            stop_first, ser, now = self._stop_first, self._ser, self.connection
+        if connection is not None and now != connection and not is_stop:
+            raise LinkError(
+                f"{mtype.name} not sent: port {self.port} was lost and reopened since the "
+                "checks this request rests on"
+            )
         if stop_first and not is_stop and self._stop_owed_at is None:
             raise LinkError(
                 f"{mtype.name} not sent: port {self.port} was just reopened, and its first frame "
@@ -450,8 +458,8 @@ class MotorLink:
         )
         return False
 
-    def status(self) -> proto.Status:
-        frame = self.request(proto.MsgType.STATUS_REQ)
+    def status(self, connection: int | None = None) -> proto.Status:
+        frame = self.request(proto.MsgType.STATUS_REQ, connection=connection)
         return self._got_status(frame)
 
     def _got_status(self, frame: proto.Frame) -> proto.Status:
@@ -477,9 +485,11 @@ class MotorLink:
         distance_m: float,
         speed_kmh: float,
         abort: threading.Event | None = None,
+        connection: int | None = None,
     ) -> int:
         """Start a move; returns its sequence number once ACKed. STOP + LinkError otherwise
-        (LinkAbortedError where ``abort`` was set before the move reached the wire)."""
+        (LinkAbortedError where ``abort`` was set before the move reached the wire; LinkError
+        where the port was reopened since ``connection``, see :meth:`request`)."""
         if action not in proto.MOVE_TYPES:
             raise ValueError(f"unknown action {action!r}")
         payload = proto.pack_move(distance_m, min(speed_kmh, proto.MAX_SPEED_KMH))
@@ -491,8 +501,10 @@ class MotorLink:
                 # that SEQ, type and payload would be taken as its retry and ACKed without
                 # moving (protocol rule 4), and the host would plan on from the wrong cell.
                 # So the first move avoids the SEQ the controller reports.
-                self._last_move_seq = self.status().last_seq
-            frame = self.request(mtype, payload, avoid_seq=self._last_move_seq, abort=abort)
+                self._last_move_seq = self.status(connection).last_seq
+            frame = self.request(
+                mtype, payload, avoid_seq=self._last_move_seq, abort=abort, connection=connection
+            )
         except LinkError:
             # The controller may have accepted this move (its ACKs lost) or not: which move
             # it remembers is unknown, so the next move reads it from STATUS again. Avoiding
@@ -518,15 +530,17 @@ class MotorLink:
         timeout: float,
         abort: threading.Event | None = None,
         poll: float = 0.02,
+        connection: int | None = None,
     ) -> proto.Status:
-        """Poll STATUS until move ``seq`` is DONE; anything else -> STOP + LinkError."""
+        """Poll STATUS until move ``seq`` is DONE; anything else -> STOP + LinkError (a port
+        reopened since ``connection`` too: see :meth:`request`)."""
         deadline = time.monotonic() + timeout
         while True:
             if abort is not None and abort.is_set():
                 self.stop()
                 raise LinkAbortedError(f"move seq {seq} aborted")
             try:
-                st = self.status()
+                st = self.status(connection)
             except LinkError:
                 self.stop()
                 raise
@@ -553,15 +567,17 @@ class MotorLink:
         speed_kmh: float,
         timeout: float | None = None,
         abort: threading.Event | None = None,
+        connection: int | None = None,
     ) -> tuple[int, proto.Status]:
-        """Start a move and wait until it is done: ``(seq, final status)``."""
+        """Start a move and wait until it is done: ``(seq, final status)``. ``connection``:
+        see :meth:`move`."""
         if abort is not None and abort.is_set():
             raise LinkAbortedError(f"{action} not started: aborted")
-        seq = self.move(action, distance_m, speed_kmh, abort)
+        seq = self.move(action, distance_m, speed_kmh, abort, connection)
         if timeout is None:
             timeout = move_timeout(distance_m, speed_kmh)
         try:
-            return seq, self.wait_done(seq, timeout, abort)
+            return seq, self.wait_done(seq, timeout, abort, connection=connection)
         except LinkError as exc:
             exc.seq = seq
             raise

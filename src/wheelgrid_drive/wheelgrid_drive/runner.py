@@ -252,7 +252,9 @@ def run_steps(
                 on_step(step, command_record(step, "FAILED", reason=why))
             return RunResult(False, i, total, why)
         try:
-            seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort)
+            # the count goes with the move: a port lost and reopened after the check above
+            # (the thread descheduled there) took the move on the reopened port
+            seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort, connection)
         except LinkAbortedError as exc:
             if on_step is not None:
                 on_step(step, command_record(step, "ABORTED", reason=str(exc), **_seq(exc)))
