@@ -314,6 +314,26 @@ def test_a_chair_drifting_off_its_route_is_stopped_before_it_leaves_the_free_cel
         assert grid.inside(r, c) and grid.data[r, c] == 0, row
 
 
+def test_a_last_move_that_ends_outside_the_goal_cell_fails_and_stops(make_sim, tmp_path, capsys):
+    """No next step reads where the last one ended: a last move reported done 0.6 m past its
+    cell, into an occupied one, was "1/1 steps done", exit 0 (a review; the drive node
+    checks it, "plan ended short of its goal"). The command now reads the controller's pose
+    after the last step too."""
+    data = np.zeros((4, 4), np.int8)
+    data[2, 3] = 100  # just past the goal (2, 2)
+    grid_yaml = write_map(tmp_path / "grid.yaml", Grid(data, 1.2))
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"cells": [[2, 1], [2, 2]], "moves": ["right"],
+                                "actions": [{"heading": "right"}]}))  # fmt: skip
+    sim = make_sim(noise_m=0.5, seed=1)  # this seed's move ends 0.64 m long
+    rc = main([str(plan), "--port", sim.slave_path, "--grid", str(grid_yaml), "--set-pose"])
+    err = capsys.readouterr().err
+    st = sim.status()
+    assert Grid(data, 1.2).cell_of(st.x, st.y) != (2, 2), "the seed no longer ends off its cell"
+    assert rc == 1 and "the plan ended short of its goal" in err and "cell (2, 2)" in err, err
+    assert "chair stopped" in err and sim.state == proto.State.IDLE
+
+
 def test_a_controller_elsewhere_than_the_plans_start_is_refused_before_any_move(
     make_sim, tmp_path, capsys
 ):

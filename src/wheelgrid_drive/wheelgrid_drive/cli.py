@@ -29,6 +29,7 @@ from wheelgrid_drive.runner import (
     command_record,
     controller_pose_check,
     grid_cell_check,
+    off_centre_problem,
     run_steps,
 )
 
@@ -374,6 +375,15 @@ def main(argv: list[str] | None = None) -> int:
         )
         # the runner sent STOP already; once more, to learn whether the controller heard it
         stop_note = "" if result.ok else _stopped(link)
+        short = None
+        if result.ok and not args.no_pose_check:
+            # a last move reported done short of (or past) its cell was "steps done", exit 0,
+            # with the chair in another cell, an occupied one included: no next step's check
+            # reads it (the drive node checks it, "plan ended short of its goal")
+            st = link.status()
+            short = off_centre_problem(_Cells(cell_size, grid), st.x, st.y, cells[-1])
+            if short:
+                stop_note = _stopped(link)
     except (LinkError, KeyboardInterrupt, Terminated) as exc:
         stopped = _stopped(link)
         if isinstance(exc, LinkError):
@@ -394,6 +404,12 @@ def main(argv: list[str] | None = None) -> int:
         for sig, handler in replaced.items():
             signal.signal(sig, handler)
         link.close()
+    if short:
+        print(
+            f"wheelgrid drive: the plan ended short of its goal: {short}; {stop_note}",
+            file=sys.stderr,
+        )
+        return 1
     if not result.ok:
         hint = ""
         if result.refused and result.done == 0 and OFF_CELL in result.error:
