@@ -44,6 +44,11 @@ class InputError(Exception):
     """Unusable input: reported on one line, exit code 2."""
 
 
+#: report.json's counts of frames skipped before registration for their stamp or frame (the
+#: rest of ``skipped`` is min_frame_interval's keyframe selection)
+STAMP_OR_FRAME_SKIPS = ("out_of_order", "stamped_ahead", "stamped_behind", "other_frame")
+
+
 def is_stray(path: Path) -> bool:
     return path.is_dir() and (path / "depth").is_dir() and not (path / "metadata.yaml").exists()
 
@@ -81,12 +86,15 @@ class FrameNumbers:
     def push(self, stamp: float, number: int) -> None:
         self._numbers.setdefault(float(stamp), deque()).append(number)
 
-    def pop(self, stamp: float) -> int:
-        """The oldest number pushed under ``stamp`` (-1 if none)."""
+    def pop(self, stamp: float, newest: bool = False) -> int:
+        """The oldest number pushed under ``stamp`` (-1 if none); with ``newest``, the last
+        one: a frame skipped at admission comes back at once, ahead of the frame still being
+        prepared, and is the one just pushed (a bag stamped alike throughout warned of its
+        frame 0, which was mapped, for frame 1)."""
         queue = self._numbers.get(float(stamp))
         if not queue:
             return -1
-        number = queue.popleft()
+        number = queue.pop() if newest else queue.popleft()
         if not queue:
             del self._numbers[float(stamp)]
         return number
@@ -554,7 +562,7 @@ def _run(args: argparse.Namespace) -> int:
 
     def report(done: list[tuple[float, FrameOutcome]]) -> None:
         for stamp, out in done:
-            k = index.pop(stamp)
+            k = index.pop(stamp, newest=out.status == "skipped")
             if out.status == "failed":
                 print(
                     f"\nWARNING frame {k}: registration failed: {out.reason}; "
@@ -563,6 +571,14 @@ def _run(args: argparse.Namespace) -> int:
                 )
             elif out.status == "error":
                 print(f"\nWARNING frame {k}: skipped, it raised {out.reason}", file=sys.stderr)
+            elif out.status == "empty" and "empty" not in causes_said:
+                # counted in report.json alone: 20 all-NaN clouds of 41 read "21 used, 0
+                # failed" with no word of the other 20
+                causes_said.add("empty")
+                print(
+                    f"\nWARNING frame {k} (and any like it): skipped: {out.reason}",
+                    file=sys.stderr,
+                )
             elif out.cause and out.cause not in causes_said:
                 causes_said.add(out.cause)  # the report counts them all
                 print(
@@ -687,6 +703,16 @@ def _run(args: argparse.Namespace) -> int:
             if used < 10
             else ""
         )
+        fr = mapper.report()["frames"]
+        checked = sum(fr[k] for k in STAMP_OR_FRAME_SKIPS)
+        if checked + fr["empty"] > used:
+            # a bag whose clouds all carry one stamp: 40 of 41 skipped as repeats, and the
+            # message spoke of levelling alone
+            hint += (
+                f"; {checked + fr['empty']} of {n} frames were skipped before registration ("
+                + ", ".join(f"{k} {fr[k]}" for k in (*STAMP_OR_FRAME_SKIPS, "empty") if fr[k])
+                + "): check the clouds' header stamps and points"
+            )
         print(f"wheelgrid map: cannot level the map: {exc}{hint}", file=sys.stderr)
         return 1
     except OSError as exc:
@@ -698,6 +724,13 @@ def _run(args: argparse.Namespace) -> int:
     fr = rep["frames"]
     wall = time.perf_counter() - t0
     skipped = f", {len(bad)} unreadable skipped" if bad else ""
+    if fr.get("empty"):
+        skipped += f", {fr['empty']} without a valid point skipped"
+    checked = sum(fr.get(k, 0) for k in STAMP_OR_FRAME_SKIPS)
+    if checked:
+        skipped += f", {checked} skipped for their stamps or frame"
+    if fr.get("skipped", 0) > checked:  # the rest: min_frame_interval's keyframe selection
+        skipped += f", {fr['skipped'] - checked} between keyframes"
     missing = int(fr.get("without_confidence", 0))
     if missing and (stray or fr.get("with_confidence")):
         # an ARKit capture is expected to carry it, in every frame (a bag of another sensor,

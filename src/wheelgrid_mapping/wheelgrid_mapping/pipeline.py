@@ -567,7 +567,12 @@ class Mapper:
             # evidence. A step back of LATE_FRAME_WINDOW or more is a clock jump (below).
             self.frames_skipped += 1
             self.out_of_order += 1
-            return FrameOutcome("skipped", "stamped at or before the frame before it")
+            return FrameOutcome(
+                "skipped",
+                "stamped at or before the frame before it (delivered twice, or clouds stamped "
+                "alike: a recorder or bridge that repeats or leaves the header stamp)",
+                cause="out_of_order",
+            )
         if self._last_processed is not None and stamp < self._last_processed:
             # A stamp before the last keyframe's: a publisher restarted, a clock was set, or
             # one frame came stamped 0 (a driver's unset stamp). Taken as a new time base at
