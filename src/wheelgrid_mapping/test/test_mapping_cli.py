@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from wheelgrid_common.fileio import read_ply, read_tum, write_ply
 from wheelgrid_common.testing import edit_bag
@@ -315,6 +316,11 @@ def test_an_unreadable_frame_of_a_stray_export_is_skipped_and_counted(
     assert "10 frames read, 2 unreadable skipped" not in err  # the summary is on stdout
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["read"] == 8 and rep["malformed_frames"] == {"unreadable image": 2}
+    for i in range(10):  # every depth image reads, no frame does: named as an export's
+        shutil.copy(stray_capture / "depth" / f"{i:06d}.png", cap / "depth")
+        Image.fromarray(np.zeros((2, 2), np.uint8)).save(cap / "confidence" / f"{i:06d}.png")
+    assert cli_map.main([str(cap), "--out", str(tmp_path / "o3")]) == 2
+    assert "no readable depth frame (unreadable image)" in capsys.readouterr().err
     for i in range(10):
         (cap / "depth" / f"{i:06d}.png").write_bytes(b"not a png")
     assert cli_map.main([str(cap), "--out", str(tmp_path / "o2")]) == 2

@@ -103,6 +103,33 @@ def test_a_broken_image_fails_its_frame_only(tmp_path: Path) -> None:
     assert exp.frame(1).pose is not None and exp.frame(3).pose is None
 
 
+def test_a_first_depth_image_of_another_size_or_an_8_bit_one_fails_its_frame_only(
+    tmp_path: Path,
+) -> None:
+    """The first image that read set the export's resolution: one 16 x 12 first frame made
+    every other frame "differ from the first frame's", the whole capture unreadable (a review,
+    on the real capture). The most common size of the first few sets it now. An 8-bit depth
+    PNG was read as millimetres, 0-255 mm, its frames failing registration with no word of
+    the file; it is refused as its frame is read, naming the file and its type."""
+    cap = make_export(tmp_path / "cap", 4)
+    Image.fromarray(np.full((12, 16), 1000, np.uint16)).save(cap / "depth" / "000000.png")
+    Image.fromarray(np.full((6, 8), 200, np.uint8)).save(cap / "depth" / "000002.png")
+    exp = StrayExport(cap)
+    assert (exp.height, exp.width) == (6, 8)
+    np.testing.assert_allclose(exp.K, [[4.0, 0, 4.0], [0, 3.0, 3.0], [0, 0, 1]])
+    with pytest.raises(ValueError, match=r"000000\.png: shape \(12, 16\) differs from the "
+                       r"export's depth resolution \(6, 8\)"):  # fmt: skip
+        exp.frame(0)
+    with pytest.raises(ValueError, match=r"000002\.png: depth must be 16-bit millimetres.*uint8"):
+        exp.frame(2)
+    assert exp.frame(1).depth.shape == exp.frame(3).depth.shape == (6, 8)
+    for i in range(4):  # no size in the majority: the first that reads
+        Image.fromarray(np.full((6 + 2 * i, 8), 1000, np.uint16)).save(
+            cap / "depth" / f"{i:06d}.png"
+        )
+    assert (StrayExport(cap).height, StrayExport(cap).width) == (6, 8)
+
+
 def _world_cloud(exp: StrayExport, i: int, arkit_camera_axes: bool = False) -> np.ndarray:
     f = exp.frame(i)
     assert f.pose is not None

@@ -639,9 +639,8 @@ def _run(args: argparse.Namespace) -> int:
             if NO_FRAME_ID in bad
             else ""
         )
-        raise InputError(
-            f"{path}: no readable PointCloud2 frame ({', '.join(sorted(set(bad)))}){hint}"
-        )
+        what = "depth frame" if stray else "PointCloud2 frame"  # an export holds no clouds
+        raise InputError(f"{path}: no readable {what} ({', '.join(sorted(set(bad)))}){hint}")
     if mapper.frames_empty == n - len(bad):
         raise InputError(f"{path}: all {n} frames have no valid points (all NaN/out of range)")
     if mapper.registrar.counters.accepted == 0:

@@ -71,6 +71,26 @@ def _read_image(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: cannot read the image ({exc})") from exc
 
 
+def _read_depth(path: Path) -> np.ndarray:
+    """A depth image: 16-bit millimetres (PNG) or float metres (.npy). Any other kind raises
+    ``ValueError`` naming it: an 8-bit PNG was read as millimetres, 0-255 mm, and its frames
+    failed registration as "too few points" with no word of the file."""
+    raw = _read_image(path)
+    if raw.ndim != 2:
+        raise ValueError(f"{path}: depth image must be single-channel, got {raw.shape}")
+    if raw.dtype != np.uint16 and not np.issubdtype(raw.dtype, np.floating):
+        raise ValueError(
+            f"{path}: depth must be 16-bit millimetres (or float metres in .npy), not {raw.dtype}"
+        )
+    return raw
+
+
+#: How many readable depth images the export's resolution is taken from (the most common shape
+#: among them), and after how many files it settles for those it has.
+SHAPE_VOTES = 5
+SHAPE_LOOK = 50
+
+
 def _read_camera_matrix(path: Path) -> np.ndarray:
     try:
         rows = [
@@ -199,10 +219,7 @@ class StrayExport:
             raise ValueError(f"{exc.filename}: cannot read it ({exc.strerror})") from exc
         self._known: list[int] | None = None  # odometry's frame numbers, sorted when needed
         self._conf_dir = self.path / "confidence"
-        first = self._first_readable(files)
-        if first.ndim != 2:
-            raise ValueError(f"{files[0]}: depth image must be single-channel, got {first.shape}")
-        self.height, self.width = (int(s) for s in first.shape)
+        self.height, self.width = self._resolution(files)
         K = self._K_rgb.copy()
         K[0, :] *= self.width / RGB_WIDTH
         K[1, :] *= self.height / RGB_HEIGHT
@@ -210,17 +227,29 @@ class StrayExport:
         self.K.setflags(write=False)
 
     @staticmethod
-    def _first_readable(files: list[Path]) -> np.ndarray:
-        """The first depth image that decodes: it sets the export's resolution, and one broken
-        file at the start must not refuse a capture whose other frames read (each frame that
-        does not is skipped when it is read)."""
+    def _resolution(files: list[Path]) -> tuple[int, int]:
+        """(height, width) of the export's depth: the most common shape of its first
+        :data:`SHAPE_VOTES` depth images that read (the earliest on a tie). One broken file at
+        the start must not refuse a capture whose other frames read (each frame that does not
+        is skipped when it is read), nor one of another size: the first image alone set the
+        resolution, and one 512 x 384 first frame made all 119 others "differ from the first
+        frame's", the whole capture unreadable."""
+        shapes: list[tuple[int, int]] = []
         first_error: ValueError | None = None
-        for f in files:
+        for i, f in enumerate(files):
+            if len(shapes) == SHAPE_VOTES or (shapes and i >= SHAPE_LOOK):
+                break
             try:
-                return _read_image(f)
+                raw = _read_depth(f)
             except ValueError as exc:
                 first_error = first_error or exc
-        raise ValueError(f"none of the {len(files)} depth images reads; the first: {first_error}")
+                continue
+            shapes.append((int(raw.shape[0]), int(raw.shape[1])))
+        if not shapes:
+            raise ValueError(
+                f"none of the {len(files)} depth images reads; the first: {first_error}"
+            )
+        return max(shapes, key=shapes.count)  # max keeps the first of equal counts
 
     @property
     def has_poses(self) -> bool:
@@ -291,9 +320,12 @@ class StrayExport:
             raise IndexError(f"frame {i} out of range: export has {len(self)} frames")
         path = self._depth_files[i]
         index = int(path.stem)
-        raw = _read_image(path)
+        raw = _read_depth(path)
         if raw.shape != (self.height, self.width):
-            raise ValueError(f"{path}: shape {raw.shape} differs from the first frame's")
+            raise ValueError(
+                f"{path}: shape {raw.shape} differs from the export's depth resolution "
+                f"({self.height}, {self.width})"
+            )
         if np.issubdtype(raw.dtype, np.integer):
             depth = raw.astype(np.float32) * np.float32(0.001)  # millimetres
         else:
