@@ -284,6 +284,47 @@ def test_files_written_together_keep_the_old_set_when_one_fails(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.pgm", "g.yaml"]
 
 
+def test_files_written_together_keep_the_old_set_when_one_cannot_be_replaced(tmp_path, monkeypatch):
+    """The targets were replaced one by one: where a later one could not be (a folder in its
+    place; another user's file in a sticky /tmp, made to fail here), the ones before it were
+    new and it old: a 0.6 m grid.yaml and grid.pgm beside a 1.2 m grid.png (a review). The
+    replaced ones are put back, and a target that did not exist before is removed again."""
+    import os
+
+    from wheelgrid_common import fileio
+
+    old = {"a.txt": "old a", "b.txt": "old b"}
+    for name, text in old.items():
+        (tmp_path / name).write_text(text)
+    (tmp_path / "c.txt").mkdir()
+    (tmp_path / "c.txt" / "inside").write_text("kept")
+    writers = {tmp_path / n: (lambda t: lambda p: p.write_text(t))(f"new {n}")
+               for n in ("a.txt", "b.txt", "c.txt")}  # fmt: skip
+    with pytest.raises(IsADirectoryError, match=r"c\.txt"):
+        write_together(writers)
+    assert {n: (tmp_path / n).read_text() for n in old} == old
+    assert (tmp_path / "c.txt" / "inside").read_text() == "kept"
+
+    real_replace = os.replace
+
+    def refuses_b(src, dst):
+        if os.path.basename(dst) == "b.txt":
+            raise PermissionError(1, "Operation not permitted", str(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", refuses_b)
+    writers = {tmp_path / n: (lambda t: lambda p: p.write_text(t))(f"new {n}")
+               for n in ("new.txt", "a.txt", "b.txt")}  # fmt: skip
+    with pytest.raises(PermissionError):
+        write_together(writers)
+    assert {n: (tmp_path / n).read_text() for n in old} == old  # a.txt put back
+    assert not (tmp_path / "new.txt").exists()  # made, then taken away again
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt", "c.txt"]
+    monkeypatch.setattr(fileio.os, "replace", real_replace)
+    write_together(writers)
+    assert (tmp_path / "b.txt").read_text() == "new b.txt"
+
+
 def test_a_binary_file_given_as_a_yaml_is_one_clear_error(tmp_path):
     """A map.ply given where the grid's YAML belongs: 'utf-8' codec can't decode byte 0xf9."""
     write_ply(tmp_path / "map.ply", np.ones((10, 3)) * np.pi)

@@ -7,9 +7,11 @@ whatever Open3D version is installed; the reader accepts any binary/ascii PLY wi
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import os
 import re
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -411,17 +413,46 @@ def write_together(writers: dict[Path, Callable[[Path], object]]) -> None:
     its PGM) so that a failure leaves the old set as it was: each writer fills a temporary
     file beside its target, and the targets are replaced only once every one is complete.
     A write that fails mid-way (a full disk) left a cut-off file beside its old partners:
-    a YAML whose origin no longer matches its PGM, a map.ply beside another run's report."""
+    a YAML whose origin no longer matches its PGM, a map.ply beside another run's report.
+
+    The replacing is undone too where one target cannot be replaced (a folder in its place,
+    another user's file in a sticky /tmp): the targets replaced before it got a new grid.yaml
+    and grid.pgm beside the old grid.png, a new map.ply beside no report at all. Each old
+    target is kept (a hard link, else a copy) until every one is replaced, and put back
+    otherwise."""
     staged = {
         target: target.with_name(f".{target.name}.{os.getpid()}.partial") for target in writers
     }
+    kept: dict[Path, Path] = {}
     try:
         for target, write in writers.items():
             write(staged[target])
-        for target, tmp in staged.items():
-            os.replace(tmp, target)
+        for target in writers:
+            if target.is_dir() and not target.is_symlink():
+                raise IsADirectoryError(errno.EISDIR, "a folder stands in its place", str(target))
+        for target in writers:
+            if target.is_file():
+                old = target.with_name(f".{target.name}.{os.getpid()}.old")
+                try:
+                    os.link(target, old)
+                except OSError:  # a file system without hard links: a copy
+                    shutil.copy2(target, old)
+                kept[target] = old
+        replaced: list[Path] = []
+        try:
+            for target, tmp in staged.items():
+                os.replace(tmp, target)
+                replaced.append(target)
+        except OSError:
+            for target in reversed(replaced):
+                with contextlib.suppress(OSError):
+                    if target in kept:
+                        os.replace(kept.pop(target), target)
+                    else:
+                        target.unlink()
+            raise
     finally:
-        for tmp in staged.values():
+        for tmp in (*staged.values(), *kept.values()):
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
 
