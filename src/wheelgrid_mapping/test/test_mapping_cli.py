@@ -274,6 +274,11 @@ def test_a_broken_config_or_output_path_stops_before_the_first_frame(
         ("loop_closure: false\n", "to turn it off: `loop_closure: {enabled: false}`"),
         ("registration: []\n", "section 'registration' must be a mapping"),
         ("mapper: 0\n", "section 'mapper' must be a mapping"),
+        # KISS-ICP's C++ takes 32-bit ints: a TypeError traceback, exit 1, after --out was made
+        ("registration: {threads: 3000000000}\n", "threads must be in [0, 1024]"),
+        ("registration: {max_iterations: 2147483648}\n", "max_iterations must be in"),
+        # every frame "too far from the origin", then a traceback at the save
+        ("mapper: {map_voxel: 1.0e-12}\n", "map_voxel must be in [0.001, inf] m"),
     ):
         cfg.write_text(text)
         out = tmp_path / "o"

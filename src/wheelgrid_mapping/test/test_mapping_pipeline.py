@@ -785,3 +785,19 @@ def test_a_first_frame_with_a_prior_that_cannot_begin_a_map_leaves_the_map_as_it
     frames = m.report()["frames"]
     assert frames["dropped_before_prior"] == 1 and frames["used"] == 1 and frames["failed"] == 1
     assert frames["read"] == 3
+
+
+def test_the_ranges_the_mapper_parameters_declare_hold_every_valid_value_and_no_other() -> None:
+    """KISS-ICP's counts (32-bit ints in its C++) and the map's voxels declare ranges: a
+    3e9-thread or 1e-12 m setting passed the configs and ended in a traceback (a review)."""
+    from wheelgrid_common.testing import check_declared_bounds
+    from wheelgrid_mapping.registration import RegistrationConfig
+
+    assert check_declared_bounds(RegistrationConfig, lambda c: c.validate()) == [
+        "max_iterations", "max_points_per_voxel", "threads"
+    ]  # fmt: skip
+    # evidence_voxel must also hold evidence_margin (4 cm), which no range can say
+    ranged = check_declared_bounds(MapperConfig, lambda c: c.validate(), ("evidence_voxel",))
+    assert ranged == [
+        "evidence_voxel", "map_voxel"
+    ]  # fmt: skip

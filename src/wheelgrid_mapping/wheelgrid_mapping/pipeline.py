@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.fileio import write_ply, write_together, write_tum
-from wheelgrid_common.params import check_finite, field, from_mapping, read_yaml
+from wheelgrid_common.params import check_bounds, check_finite, field, from_mapping, read_yaml
 
 from .evidence import EvidenceMap
 from .frame_clock import AHEAD_CONFIRM, AHEAD_WINDOW, FrameClock
@@ -53,12 +53,17 @@ from .registration import (
 )
 from .se3 import is_rigid
 
+#: The finest map and evidence voxel (m): voxel keys hold +-2^20 voxels a side, a kilometre at 1 mm.
+MIN_VOXEL = 0.001
+
 
 @dataclass
 class MapperConfig:
     """Map building and levelling parameters (YAML section ``mapper``)."""
 
-    map_voxel: float = field(0.02, "voxel of the saved/published map", "m")
+    map_voxel: float = field(
+        0.02, "voxel of the saved/published map", "m", bounds=(MIN_VOXEL, math.inf)
+    )
     max_published_points: int = field(
         300000, "the published map cloud is coarsened until it has at most this many", "points"
     )
@@ -94,7 +99,10 @@ class MapperConfig:
         "",
     )
     evidence_voxel: float = field(
-        0.1, "voxel in which frame evidence (hits, ray misses) is counted", "m"
+        0.1,
+        "voxel in which frame evidence (hits, ray misses) is counted",
+        "m",
+        bounds=(MIN_VOXEL, math.inf),
     )
     evidence_min_frames: int = field(
         2, "a place reaches the map only when this many frames put points there", "frames"
@@ -138,6 +146,8 @@ class MapperConfig:
         if self.min_frame_interval < 0:
             raise ValueError(f"min_frame_interval must be >= 0, not {self.min_frame_interval}")
         self.evidence_map()
+        # 1e-12 m passed, every frame then "too far from the origin" and the save a traceback
+        check_bounds(self, "mapper ")
         convention_for_frame("", self.sensor_convention)
         if self.mount_xyz_rpy:
             map_from_mount(self.mount_xyz_rpy, "optical")

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.params import check_finite, field
+from wheelgrid_common.params import check_bounds, check_finite, field
 
 from .evidence import INVALID_KEY, NEIGHBOUR_KEYS, contains_sorted, voxel_keys_or_invalid
 from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
@@ -46,6 +46,11 @@ from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 #: of noise would be most of a shorter one. Consecutive shorter steps (a 60 Hz phone moves
 #: millimetres a frame) are joined until their travel reaches it.
 PRIOR_SCALE_MIN_STEP = 0.02
+
+
+#: Upper bounds of the counts KISS-ICP's C++ takes as 32-bit ints (far above any use).
+MAX_COUNT = 100_000
+MAX_THREADS = 1024
 
 
 @dataclass
@@ -69,9 +74,12 @@ class RegistrationConfig:
     )
     min_motion_th: float = field(0.02, "motion below this does not adapt the threshold", "m")
     max_points_per_voxel: int = field(
-        40, "points kept per registration-map voxel (denser: point-to-point ICP sticks less)", ""
+        40,
+        "points kept per registration-map voxel (denser: point-to-point ICP sticks less)",
+        "",
+        bounds=(1, MAX_COUNT),
     )
-    max_iterations: int = field(100, "ICP iterations at most", "")
+    max_iterations: int = field(100, "ICP iterations at most", "", bounds=(1, MAX_COUNT))
     convergence: float = field(
         1e-3,
         "ICP stops once an iteration's update (KISS-ICP's convergence_criterion: the norm of the "
@@ -230,6 +238,7 @@ class RegistrationConfig:
         "the same online trajectory, bit for bit, at 1.65x the registration time (2 cores, "
         "real frames: 58 against 35 ms a frame)",
         "",
+        bounds=(0, MAX_THREADS),
     )
 
     def __post_init__(self) -> None:
@@ -295,6 +304,8 @@ class RegistrationConfig:
                     f"registration {name} must be in [0, 1] (0 = the prior, 1 = ICP), "
                     f"not {getattr(self, name)}"
                 )
+        # KISS-ICP's C++ takes these as 32-bit ints: 3e9 threads ended in a TypeError traceback
+        check_bounds(self, "registration ")
 
 
 def _insert_sorted(sorted_keys: np.ndarray, new: np.ndarray) -> np.ndarray:
