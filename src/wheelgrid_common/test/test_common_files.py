@@ -406,6 +406,10 @@ def test_folders_named_with_a_tilde_are_under_the_users_home(tmp_path, monkeypat
     assert user_folder("~/maps") == tmp_path / "maps"
     monkeypatch.chdir(tmp_path)
     assert user_folder("maps") == tmp_path / "maps"  # relative: to where it was started
+    # ``~maps`` is user maps's home: with no such user pathlib raised RuntimeError, which no
+    # node caught (~/save_map killed the mapper); an OSError that says what was meant
+    with pytest.raises(FileNotFoundError, match=r"no user 'nosuchuser_wg'.*~/nosuchuser_wg"):
+        user_folder("~nosuchuser_wg")
 
 
 def _pcd(path, fields, rows, kind="ascii", sizes=None, types=None, declared=None):

@@ -473,8 +473,22 @@ def user_folder(text: str) -> Path:
     shell expands a ROS parameter (``output_dir: ~/maps`` in a params file), nor an option
     written ``--out=~/maps``: both made a folder literally named ``~`` beside wherever the
     node was started, and ``rm -rf ~`` is what a user then types to clean it up. Absolute,
-    because a service caller may not know where the node was started."""
-    return Path(text).expanduser().absolute()
+    because a service caller may not know where the node was started.
+
+    ``~name`` is user name's home: where there is no such user (``~maps`` for ``~/maps``)
+    pathlib raises RuntimeError, which no caller caught, and ``~/save_map`` killed the mapper
+    and the grid node. It is a FileNotFoundError (an OSError, as every unwritable folder is)
+    that says so."""
+    try:
+        return Path(text).expanduser().absolute()
+    except RuntimeError as exc:
+        user = text[1:].split("/", 1)[0]
+        raise FileNotFoundError(
+            errno.ENOENT,
+            f"{text!r}: no user {user!r} whose home ~{user} names ({exc}); ~/{user} is a "
+            "folder in your home",
+            text,
+        ) from None
 
 
 def new_folder(base: Path) -> Path:

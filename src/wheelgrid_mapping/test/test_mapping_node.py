@@ -227,6 +227,10 @@ def test_mapper_node_maps_reports_and_saves(tmp_path: Path) -> None:
         "topic:=1abc",
         "max_queue:=abc",
         "registration.voxel_size:=-1.0",
+        # no user "nosuchuser_wg": ~/save_map raised RuntimeError and killed the node
+        "output_dir:=~nosuchuser_wg/maps",
+        # KISS-ICP's C++ takes a 32-bit int (a TypeError traceback)
+        "registration.threads:=3000000000",
     ],
 )
 def test_bad_parameters_stop_the_mapper_with_exit_2(param: str) -> None:
@@ -984,6 +988,34 @@ def test_save_map_puts_a_tilde_output_dir_under_the_users_home(tmp_path, monkeyp
     assert answer.success, answer.message
     assert (home / "maps" / "map.ply").is_file() and str(home / "maps") in answer.message
     assert not (started / "~").exists()
+
+
+def test_a_cloud_in_the_map_frame_itself_is_skipped_said_once_and_counted(tmp_path):
+    """A cloud whose frame_id is the map frame (a map republished into the topic, a driver
+    set up wrong) was mapped, and its pose went out as /tf and odometry map -> map, a
+    self-transform tf2 refuses, without a word (a review). It is malformed input now."""
+
+    def in_map(k: int, cloud: Any) -> None:
+        if k in (2, 4):
+            cloud.header.frame_id = "/map" if k == 4 else "map"
+
+    with mapper_in_process(tmp_path, 5, in_map) as node:
+        assert node.counts["malformed"] == 2
+        assert node.mapper.registrar.counters.accepted == 3
+        assert "map_frame_cloud" in node._logged
+
+
+def test_an_output_dir_that_names_no_folder_is_a_failed_save_not_a_dead_node(tmp_path):
+    """``~maps`` for ``~/maps`` (a user "maps" with a home) raised RuntimeError in ~/save_map,
+    uncaught: the mapper died, and its save on exit failed as well (a review). Refused at
+    start now (the test above); a node that has one all the same answers the save with the
+    reason and stays up."""
+    from std_srvs.srv import Trigger
+
+    with mapper_in_process(tmp_path, 2) as node:
+        node.output_dir = "~nosuchuser_wg/maps"
+        answer = node._on_save(Trigger.Request(), Trigger.Response())
+    assert not answer.success and "no user 'nosuchuser_wg'" in answer.message, answer.message
 
 
 def test_a_cloud_in_a_frame_of_the_other_convention_is_skipped_said_once_and_counted(tmp_path):

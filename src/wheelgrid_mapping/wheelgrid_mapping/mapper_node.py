@@ -299,6 +299,10 @@ class MapperNode(Node):  # type: ignore[misc]
             raise ValueError("max_queue must be >= 1 and max_kept_frames >= 0")
         if not c.map_frame:
             raise ValueError("map_frame must not be empty")
+        try:  # `~maps` for `~/maps`: known at start, not when a save is asked for
+            user_folder(c.output_dir)
+        except OSError as exc:
+            raise ValueError(f"output_dir: {exc.strerror}") from None
 
     def _log_once(self, key: str, text: str, warn: bool = True) -> None:
         if key not in self._logged:
@@ -335,6 +339,16 @@ class MapperNode(Node):  # type: ignore[misc]
                 "no_frame_id",
                 "skipping PointCloud2 without a frame_id: its axes are unknown (set "
                 "mapper.sensor_convention to optical or body to map such clouds); logged once",
+            )
+            return
+        if msg.header.frame_id and msg.header.frame_id.lstrip("/") == self.map_frame.lstrip("/"):
+            # A cloud in the map frame itself is no sensor's view: mapped, its pose went out
+            # as /tf and odometry map -> map, a self-transform tf2 refuses, without a word.
+            self.counts["malformed"] += 1
+            self._log_once(
+                "map_frame_cloud",
+                f"skipping PointCloud2 in the map frame {self.map_frame!r} itself: the mapper "
+                "registers a sensor's clouds (in its own frame); logged once",
             )
             return
         if msg.is_bigendian:
@@ -743,7 +757,6 @@ class MapperNode(Node):  # type: ignore[misc]
         self._publish(self.status_pub, arr)
 
     def _on_save(self, request: Any, response: Any) -> Any:
-        out = user_folder(self.output_dir)
         if self._loop_state in _CLOSING:
             # the worker holds the map; waiting here would stall every other callback
             response.success = False
@@ -759,6 +772,7 @@ class MapperNode(Node):  # type: ignore[misc]
             )
             return response
         try:
+            out = user_folder(self.output_dir)
             with self._lock:
                 rep = self.mapper.save(out, {"node_counts": dict(self.counts)})
                 self._saved = self._map_state()
@@ -942,8 +956,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 # lose the scan this save exists for: a fresh temporary folder is tried next.
                 fallback = Path(tempfile.mkdtemp(prefix="wheelgrid_on_exit_"))
                 log.error(
-                    f"cannot save the map to {user_folder(self.output_dir) / name} ({exc}); "
-                    f"trying {fallback}"
+                    f"cannot save the map to {self.output_dir}/{name} ({exc}); trying {fallback}"
                 )
                 out = fallback
                 rep = save(out, extra)

@@ -159,7 +159,14 @@ def test_grid_node_publishes_keeps_and_saves(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "param", ["max_rate_hz:=1e-12", "max_rate_hz:=.nan", "pixel_size:=1", "floor_clearance:=1.0"]
+    "param",
+    [
+        "max_rate_hz:=1e-12",
+        "max_rate_hz:=.nan",
+        "pixel_size:=1",
+        "floor_clearance:=1.0",
+        "output_dir:=~nosuchuser_wg/grid",  # ~/save raised RuntimeError: the node died
+    ],
 )
 def test_bad_parameters_stop_the_grid_node_with_exit_2(param):
     """1e-12 Hz raised inside create_timer (a traceback), NaN meant "no limit" silently, a
@@ -360,6 +367,9 @@ def test_the_grid_parameters_declare_their_ranges_and_a_value_outside_is_refused
         assert node.cfg.density_threshold == 0.05
         [result] = node.set_parameters([Parameter("density_threshold", value=0.1)])
         assert result.successful, result.reason
+        # a folder no user has (``~maps`` for ``~/maps``): refused, not a node killed at ~/save
+        [result] = node.set_parameters([Parameter("output_dir", value="~nosuchuser_wg/g")])
+        assert not result.successful and "no user 'nosuchuser_wg'" in result.reason
 
 
 def test_a_cleared_map_withdraws_the_grid_and_a_parameter_change_does_not_bring_it_back():
