@@ -410,6 +410,10 @@ def test_folders_named_with_a_tilde_are_under_the_users_home(tmp_path, monkeypat
     # node caught (~/save_map killed the mapper); an OSError that says what was meant
     with pytest.raises(FileNotFoundError, match=r"no user 'nosuchuser_wg'.*~/nosuchuser_wg"):
         user_folder("~nosuchuser_wg")
+    import argparse  # and --out ~nosuchuser_wg/run: a traceback, now argparse's exit 2
+
+    with pytest.raises(argparse.ArgumentTypeError, match="no user 'nosuchuser_wg'"):
+        out_folder("~nosuchuser_wg/run")
 
 
 def _pcd(path, fields, rows, kind="ascii", sizes=None, types=None, declared=None):

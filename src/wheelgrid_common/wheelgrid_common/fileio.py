@@ -460,12 +460,16 @@ def write_together(writers: dict[Path, Callable[[Path], object]]) -> None:
 def out_folder(text: str) -> Path:
     """argparse ``type`` of an ``--out`` folder: an empty one is refused. ``Path("")`` is the
     current folder, so ``--out ""`` (an unset shell variable) wrote a run's files wherever
-    the shell stood, with exit 0."""
-    if not text.strip():
-        import argparse
+    the shell stood, with exit 0. A ``~name`` with no such user is refused too (it was a
+    RuntimeError traceback)."""
+    import argparse
 
+    if not text.strip():
         raise argparse.ArgumentTypeError("an empty folder name (an unset shell variable?)")
-    return Path(text).expanduser()
+    try:
+        return _expand_user(text)
+    except FileNotFoundError as exc:
+        raise argparse.ArgumentTypeError(str(exc.strerror)) from None
 
 
 def user_folder(text: str) -> Path:
@@ -473,14 +477,17 @@ def user_folder(text: str) -> Path:
     shell expands a ROS parameter (``output_dir: ~/maps`` in a params file), nor an option
     written ``--out=~/maps``: both made a folder literally named ``~`` beside wherever the
     node was started, and ``rm -rf ~`` is what a user then types to clean it up. Absolute,
-    because a service caller may not know where the node was started.
+    because a service caller may not know where the node was started."""
+    return _expand_user(text).absolute()
 
-    ``~name`` is user name's home: where there is no such user (``~maps`` for ``~/maps``)
-    pathlib raises RuntimeError, which no caller caught, and ``~/save_map`` killed the mapper
-    and the grid node. It is a FileNotFoundError (an OSError, as every unwritable folder is)
-    that says so."""
+
+def _expand_user(text: str) -> Path:
+    """``Path(text).expanduser()``. ``~name`` is user name's home: where there is no such user
+    (``~maps`` for ``~/maps``) pathlib raises RuntimeError, which no caller caught:
+    ``~/save_map`` killed the mapper and the grid node. A FileNotFoundError (an OSError, as
+    every unwritable folder is) says so instead."""
     try:
-        return Path(text).expanduser().absolute()
+        return Path(text).expanduser()
     except RuntimeError as exc:
         user = text[1:].split("/", 1)[0]
         raise FileNotFoundError(
