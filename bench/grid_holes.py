@@ -8,7 +8,8 @@ sides seen: a stairwell or an open hatch that the sensor never looked into. For 
 the number of draws (the hole nudged by 2 cm a draw, the noise redrawn) on which a cell the hole
 touches still reads FREE, with the default GridConfig (``alignment: map``):
 
-* in a cell's middle (cell (2, 1), centred at (1.8, 1.8) m);
+* in a cell's middle (cell (2, 1), centred at (1.8, 1.8) m); and so with one point over it, in
+  the band (50 cm up) or at floor height;
 * on the corner of four cells (centred at (2.4, 2.4) m);
 * as a trench across the room along the cell border x = 2.4 m;
 * in cell (2, 1) and reaching a few centimetres past x = 2.4 m into cell (2, 2): whether that
@@ -63,9 +64,14 @@ def free_draws(kind: str, size: float, noise: float, draws: int) -> int:
     count = 0
     for seed in range(draws):
         shift = 0.02 * seed
-        if kind == "middle":
+        speck = None
+        if kind.startswith("middle"):  # "middle+band" / "middle+floor": one point over it
             c = 1.8 + shift
             hole, cells = (c - size / 2, c + size / 2, c - size / 2, c + size / 2), [(2, 1)]
+            if kind.endswith("+band"):
+                speck = [c, c, 0.5]  # a speck of noise, a cord's tip over a stairwell
+            elif kind.endswith("+floor"):
+                speck = [c, c, -0.03]  # a stray return at floor height
         elif kind == "corner":
             c = 2.4 + shift
             hole = (c - size / 2, c + size / 2, c - size / 2, c + size / 2)
@@ -78,7 +84,10 @@ def free_draws(kind: str, size: float, noise: float, draws: int) -> int:
             c = 2.4 + shift
             hole = (c - size / 2, c + size / 2, -0.01, SIDE + 0.01)
             cells = [(r, col) for r in range(4) for col in (1, 2)]
-        data = build_grid(room(hole, noise, seed), GridConfig(alignment="map")).grid.data
+        pts = room(hole, noise, seed)
+        if speck is not None:
+            pts = np.vstack([pts, [speck]])
+        data = build_grid(pts, GridConfig(alignment="map")).grid.data
         count += int(any(data[rc] == FREE for rc in cells))
     return count
 
@@ -94,6 +103,14 @@ def main(argv: list[str] | None = None) -> int:
             for s in (0.45, 0.50, 0.55, 0.60)
         )
         print(f"hole in a cell's middle, noise {noise * 100:.1f} cm: free on {sizes}")
+    for kind, what in (
+        ("middle+band", "a lone point at 50 cm"),
+        ("middle+floor", "a stray point at floor height"),
+    ):
+        sizes = " ".join(
+            f"{s * 100:.0f} cm {free_draws(kind, s, 0.01, n)}/{n}" for s in (0.55, 0.65, 0.75)
+        )
+        print(f"hole in a cell's middle with {what} over it, noise 1.0 cm: free on {sizes}")
     reach = " ".join(
         f"{d * 100:.0f} cm {sum(free_draws(f'edge{s}', d, 0.01, n) for s in (0.55, 0.6, 0.7))}"
         f"/{3 * n}"

@@ -707,6 +707,30 @@ def test_a_cell_with_an_unseen_hole_in_its_middle_is_not_free():
             build_grid(room, GridConfig(unobserved_patch=bad))
 
 
+def test_a_lone_speck_in_the_band_over_an_unseen_hole_does_not_make_its_cell_free():
+    """One point at 50 cm over a 68 cm unseen hole (a speck of noise, the tip of a cord
+    hanging over a stairwell) blocked every 35 cm square the hole rule could fit, and the
+    cell read free (a review: 5 of 5 draws). A band speck with no floor seen beside it counts
+    for nothing against a hole now; an obstacle standing on seen floor still does."""
+    from wheelgrid_nav.grid_synth import room_cloud
+
+    room = room_cloud([], size=(3.6, 3.6), spacing=0.02)
+    x, y, z = room.T
+    middle = (1, 1)
+    pit = room[~((z == 0.0) & (np.abs(x - 1.8) < 0.34) & (np.abs(y - 1.8) < 0.34))]
+    assert build_grid(pit).grid.data[middle] != FREE
+    for speck in ([[1.8, 1.8, 0.5]], [[1.8, 1.8, 0.5], [1.81, 1.8, 0.52], [1.8, 1.81, 0.9]]):
+        res = build_grid(np.vstack([pit, speck]))
+        assert res.grid.data[middle] != FREE, speck
+    # a 2 cm post (a chair leg) on seen floor in that cell: still occupied or free, as before
+    post = np.array([[1.2 + 0.01 * i, 1.2, h] for i in range(2) for h in np.arange(0.1, 0.8, 0.02)])
+    with_post = build_grid(np.vstack([room, post])).grid.data[middle]
+    assert (
+        with_post
+        == build_grid(np.vstack([room, post]), GridConfig(unobserved_patch=0)).grid.data[middle]
+    )
+
+
 def test_an_unseen_hole_across_cell_borders_keeps_every_cell_it_reaches_from_free():
     """A 60 cm hole 10 cm off the corner of four cells: a 35 cm square fits in it, but its
     centres (where the square may sit) all lie in one cell. Only that cell was kept from free,
