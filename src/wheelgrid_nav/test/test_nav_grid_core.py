@@ -770,3 +770,21 @@ def test_a_floor_that_leans_is_warned_of():
     said = [w for w in build_grid(room @ tilt.T).stats["warnings"] if "leans" in w]
     # the floor points' plane (those within floor_clearance of z = 0: a band across the lean)
     assert said and re.search(r"leans (1\.[6-9]|2\.[0-2]) deg", said[0]) and "--level" in said[0]
+
+
+def test_a_small_lean_across_a_long_room_is_warned_of():
+    """The warning read the angle alone: 0.45 deg across a 14.4 m room is 5.7 cm at its ends,
+    and a 9 cm kerb on the low side read as floor, its cells free, with no word (a review). A
+    lean that puts the map more than 2.6 cm off z = 0 anywhere is warned of too; the same
+    lean across a 4.8 m room is not."""
+    from wheelgrid_nav.grid_synth import Box, room_cloud
+
+    a = math.tan(math.radians(0.45))
+    for length, warned in ((14.4, True), (4.8, False)):
+        room = room_cloud([Box(0.6, 1.8, 1.8, 3.0, 0.0, 0.09)], size=(length, 4.8), spacing=0.03)
+        room[:, 2] += (room[:, 0] - length / 2) * a
+        said = [w for w in build_grid(room, GridConfig(alignment="map")).stats["warnings"]
+                if "leans" in w]  # fmt: skip
+        assert bool(said) == warned, (length, said)
+        if warned:
+            assert re.search(r"leans 0\.[345] deg from level, (4\.[5-9]|5\.\d) cm off z = 0", said[0])

@@ -101,6 +101,10 @@ MAX_DROP_DEPTH = 0.15
 # A floor leaning more than this is warned of: heights are read against one level z = 0, and
 # at 0.5 deg the floor 3 m away is 2.6 cm off it (half of floor_clearance).
 MAX_FLOOR_TILT_DEG = 0.5
+# ... and so is a lean that puts any part of the map more than this (m) off z = 0, however
+# small its angle: 0.45 deg across a 14 m room is 5.7 cm at its ends, and a 9 cm kerb on the
+# low side read as floor, a 13 cm step down on the high side too, with no word (a review).
+MAX_FLOOR_RISE = 0.026
 MAX_UNOBSERVED_PATCH = 0.8  # the chair's width: a wider unseen square is no hole under it
 _TILT_SAMPLE = 20_000  # floor points a plane fit needs (a regular subsample)
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
@@ -1017,17 +1021,21 @@ def map_warnings(z: np.ndarray, drops: int, drop_depth: float) -> list[str]:
     return out
 
 
-def floor_tilt_deg(pts: np.ndarray, cls: np.ndarray) -> float | None:
-    """How far the floor points' plane leans from level (deg), or None where they span
-    less than 2 m (too little to tell a lean from noise)."""
+def floor_lean(pts: np.ndarray, cls: np.ndarray) -> tuple[float, float] | None:
+    """How far the floor points' plane leans from level (deg), and how far off z = 0 (m) it
+    lies at the farthest point of the map below the safe height; None where the floor points
+    span less than 2 m (too little to tell a lean from noise)."""
     idx = np.flatnonzero(cls == 0)
     floor = pts.take(idx[:: max(1, math.ceil(idx.size / _TILT_SAMPLE))], axis=0)
     if floor.shape[0] < 100 or np.ptp(floor[:, :2], axis=0).max() < 2.0:
         return None
-    xy = floor[:, :2] - floor[:, :2].mean(axis=0)
-    a = np.column_stack([xy, np.ones(len(xy))])
-    (gx, gy, _), *_ = np.linalg.lstsq(a, floor[:, 2], rcond=None)
-    return math.degrees(math.atan(math.hypot(gx, gy)))
+    centre = floor[:, :2].mean(axis=0)
+    a = np.column_stack([floor[:, :2] - centre, np.ones(len(floor))])
+    (gx, gy, c0), *_ = np.linalg.lstsq(a, floor[:, 2], rcond=None)
+    low = np.flatnonzero(cls != 3)  # the map the grid reads: floor, band, drops
+    reach = pts.take(low[:: max(1, math.ceil(low.size / _TILT_SAMPLE))], axis=0)[:, :2] - centre
+    rise = float(np.abs(c0 + reach @ np.array([gx, gy])).max())
+    return math.degrees(math.atan(math.hypot(gx, gy))), rise
 
 
 #: Band pixels (8-connected) a patch of them needs to count against an unseen hole: a lone
@@ -1097,14 +1105,15 @@ def build_grid(
     cfg.validate()
     pts, cls, class_counts = _check_input(points, cfg)
     warnings = map_warnings(pts[:, 2], int(class_counts[2]), cfg.drop_depth)
-    tilt = floor_tilt_deg(pts, cls)
-    if tilt is not None and tilt > MAX_FLOOR_TILT_DEG:
+    lean = floor_lean(pts, cls)
+    if lean is not None and (lean[0] > MAX_FLOOR_TILT_DEG or lean[1] > MAX_FLOOR_RISE):
         # heights are read against one z = 0: a 2 deg lean lowered a 9 cm box's top by 4.5 cm
         # into the floor's band on the map's low side, and its cell read free, silently
         warnings.append(
-            f"the floor leans {tilt:.1f} deg from level: on its low side low obstacles can "
-            "read as floor, on its high side floor as obstacles (`wheelgrid grid --level` "
-            "levels a map made elsewhere; a live map: check the mapper's levelling)"
+            f"the floor leans {lean[0]:.1f} deg from level, {lean[1] * 100:.1f} cm off z = 0 "
+            "at the map's far side: on its low side low obstacles can read as floor, on its "
+            "high side floor as obstacles (`wheelgrid grid --level` levels a map made "
+            "elsewhere; a live map: check the mapper's levelling)"
         )
     k = cfg.cell_pixels()
     ps = cfg.pixel_size
