@@ -108,6 +108,7 @@ MAX_FLOOR_RISE = 0.026
 MAX_UNOBSERVED_PATCH = 0.8  # the chair's width: a wider unseen square is no hole under it
 _TILT_SAMPLE = 20_000  # floor points a plane fit needs (a regular subsample)
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
+MAX_EXTENT_TOLERANCE = 0.25  # m (the default): the grid reaches half of it past the floor seen
 # m: the boundary rule's strip may hide an obstacle this deep against a wall; (120 - 80) / 2 cm,
 # the chair's clearance along its width in its safe cell. "At most a cell" (1.2 m) emptied the
 # obstacles of every border cell: the paper room's tables at (3, 0) and (5, 0) read free.
@@ -245,8 +246,9 @@ class GridConfig:
     extent_tolerance: float = field(
         0.25,
         "a floor extent up to this much short of a whole number of cells still counts as that "
-        "many cells (floor points never reach the walls exactly)",
+        f"many cells (floor points never reach the walls exactly); at most {MAX_EXTENT_TOLERANCE}",
         "m",
+        bounds=(0.0, MAX_EXTENT_TOLERANCE),
     )
     boundary_margin: float = field(
         0.15,
@@ -311,6 +313,15 @@ class GridConfig:
             raise ValueError(f"min_floor_points must be >= 1, not {self.min_floor_points}")
         if not 0.0 <= self.extent_tolerance < self.cell_size:
             raise ValueError("extent_tolerance must be in [0, cell_size)")
+        if self.extent_tolerance > MAX_EXTENT_TOLERANCE:
+            # the grid reaches half of it past the floor seen, into the wall strip: where no
+            # wall stands (a floor that ends at a drop) 1.1 m left 22 cm of it unseen in a free
+            # border cell (a review)
+            raise ValueError(
+                f"extent_tolerance must be <= {MAX_EXTENT_TOLERANCE} m: the grid reaches half "
+                "of it past the floor seen, and where the floor ends at a drop, not a wall, "
+                f"that edge of a border cell is unseen; not {self.extent_tolerance}"
+            )
         if self.boundary_margin > min(MAX_BOUNDARY_MARGIN, self.cell_size):
             raise ValueError(
                 f"boundary_margin must be <= {MAX_BOUNDARY_MARGIN} m (and the cell size): "
