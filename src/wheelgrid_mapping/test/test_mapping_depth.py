@@ -155,3 +155,33 @@ def test_camera_info_of_a_binned_cropped_or_other_resolution_image_is_refused() 
         size = (128, 96) if "depth 128x96" in says else (256, 192)
         with pytest.raises(ValueError, match=says):
             camera_info_intrinsics(bad, *size)
+
+
+def test_camera_info_projects_with_p_and_says_what_it_cannot_honour() -> None:
+    """depth_to_cloud back-projected with K whatever else the CameraInfo said (a review): P,
+    a rectified image's projection, which depth_image_proc uses (clouds of half the scale
+    where P's focal length was half K's); K's last row (0 0 0 accepted); distortion; and the
+    info's frame (another camera's). It takes P where set, refuses a K that is no camera
+    matrix, and says once of distortion or a frame other than the depth image's."""
+    from sensor_msgs.msg import CameraInfo
+
+    from wheelgrid_mapping.depth import camera_info_doubts, camera_info_intrinsics
+
+    k = [30.0, 0, 4, 0, 30.0, 3, 0, 0, 1]
+    info = CameraInfo(width=8, height=6, k=k)  # P unset (zeros): K
+    assert camera_info_intrinsics(info, 8, 6)[0, 0] == 30.0
+    info.p = [15.0, 0, 4, 0, 0, 15.0, 3, 0, 0, 0, 1, 0]
+    np.testing.assert_allclose(
+        camera_info_intrinsics(info, 8, 6), [[15, 0, 4], [0, 15, 3], [0, 0, 1]]
+    )
+    with pytest.raises(ValueError, match="last row"):
+        camera_info_intrinsics(
+            CameraInfo(width=8, height=6, k=[30.0, 0, 4, 0, 30.0, 3, 0, 0, 0]), 8, 6
+        )
+    info.header.frame_id = "depth_optical"
+    info.distortion_model, info.d = "plumb_bob", [0.0] * 5
+    assert camera_info_doubts(info, "depth_optical") == []
+    info.d = [-0.4, 0.2, 0.0, 0.0, 0.0]
+    info.header.frame_id = "color_optical"
+    causes = [cause for cause, _ in camera_info_doubts(info, "depth_optical")]
+    assert causes == ["distortion", "info_frame"]

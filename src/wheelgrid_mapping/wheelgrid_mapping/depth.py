@@ -59,7 +59,7 @@ ARKIT_CAMERA_TO_OPTICAL: np.ndarray = np.diag([1.0, -1.0, -1.0, 1.0])
 ARKIT_CAMERA_TO_OPTICAL.setflags(write=False)
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=2)  # one stream's K (two while it changes): 8 held 270 MB of 2048^2 rays
 def _rays(h: int, w: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """Per-pixel (x/z, y/z) for a pinhole camera; cached because K rarely changes per stream."""
     u = (np.arange(w, dtype=np.float64) - cx) / fx
@@ -103,10 +103,40 @@ def camera_info_intrinsics(info: Any, width: int, height: int) -> np.ndarray:
             "(its K is for the full resolution)"
         )
     K = check_intrinsics(np.asarray(info.k, dtype=np.float64).reshape(3, 3))
+    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
+        raise ValueError(f"camera info: K's last row is {K[2].tolist()}, not a camera's (0, 0, 1)")
+    # A rectified image's projection is P's (REP-104; depth_image_proc and image_geometry take
+    # P): K alone made clouds of another scale where the two differ. P unset (all 0): K.
+    P = np.asarray(info.p, dtype=np.float64).reshape(3, 4)
+    if np.isfinite(P).all() and P[0, 0] > 0 and P[1, 1] > 0:
+        K = check_intrinsics(P[:, :3])
     problem = principal_point_problem(float(K[0, 2]), float(K[1, 2]), width, height)
     if problem:
         raise ValueError(f"camera info: {problem}")
     return K
+
+
+def camera_info_doubts(info: Any, depth_frame: str) -> list[tuple[str, str]]:
+    """(cause, text) of what a CameraInfo says that the cloud cannot honour, each to be said
+    once: distortion coefficients (the image is projected as rectified, as depth_image_proc
+    does) and a frame other than the depth image's (the cloud is in the image's). Both went
+    unsaid."""
+    out = []
+    d = np.asarray(info.d, dtype=np.float64)
+    if d.size and np.abs(d).max() > 1e-9:
+        out.append((
+            "distortion",
+            f"camera info gives distortion {info.distortion_model} {d.tolist()}: the depth image "
+            "is projected as rectified (as depth_image_proc does); give it the rectified image",
+        ))  # fmt: skip
+    frame = str(info.header.frame_id)
+    if frame and depth_frame and frame.lstrip("/") != depth_frame.lstrip("/"):
+        out.append((
+            "info_frame",
+            f"camera info is in frame {frame!r}, the depth image in {depth_frame!r}: the cloud "
+            "is published in the depth image's frame (another camera's calibration?)",
+        ))  # fmt: skip
+    return out
 
 
 def principal_point_problem(cx: float, cy: float, width: int, height: int) -> str | None:

@@ -21,6 +21,7 @@ import numpy as np
 from wheelgrid_common.params import check_no_undeclared, field
 from wheelgrid_mapping.depth import (
     StampSync,
+    camera_info_doubts,
     camera_info_intrinsics,
     check_min_confidence,
     depth_image_to_metres,
@@ -147,7 +148,8 @@ def _make_node() -> Any:
             silent = [self._topics[s] for s in self.sync.streams if s not in self._seen]
             if silent:
                 hint = (
-                    " (a camera without confidence images needs confidence_topic:='')"
+                    " (a camera without confidence images needs -p confidence_topic:=\"''\" "
+                    "in a shell, or confidence_topic: '' in a params file)"
                     if self._topics.get("conf") in silent
                     else ""
                 )
@@ -174,6 +176,8 @@ def _make_node() -> Any:
                 self.cfg.mm_scale,
             )
             K = camera_info_intrinsics(info, depth_msg.width, depth_msg.height)
+            for cause, text in camera_info_doubts(info, depth_msg.header.frame_id):
+                self._warn_once(cause, text)
             conf = None
             if conf_msg is not None:
                 conf = image_array(
