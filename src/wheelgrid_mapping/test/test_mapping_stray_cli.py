@@ -314,3 +314,59 @@ def test_parting_status_reads_what_the_bridge_said_before_it_closed() -> None:
             assert bp.status_words(st) == "idle timeout (status PROTOCOL_ERROR)"
         else:
             assert st is None
+
+
+def _with_odometry(capture: Path, cap: Path, times: list[float]) -> None:
+    """odometry.csv for ``cap``'s frames from the capture's own rows, retimed to ``times``."""
+    rows = (capture / "odometry.csv").read_text().splitlines()
+    body = [r.split(",", 1)[1] for r in rows[1 : 1 + len(times)]]
+    lines = [rows[0], *(f"{t:.6f},{rest}" for t, rest in zip(times, body, strict=True))]
+    (cap / "odometry.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_stream_stray_reconnects_across_a_pause_the_bridge_would_time_out(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """stream-stray slept through a pause in the capture on an open connection, the bridge
+    closed it as idle (5 s), and the rest of the capture was never sent, exit 1 (a review).
+    It now waits out a long pause disconnected and connects again, as the protocol says."""
+    from wheelgrid_mapping import cli_stray
+
+    cap = _first_frames(stray_capture, tmp_path / "cap", 6)
+    _with_odometry(stray_capture, cap, [100.0, 100.1, 100.2, 101.7, 101.8, 101.9])
+    monkeypatch.setattr(cli_stray, "PAUSE_RECONNECT_S", 0.5)
+    got: list[bp.Frame] = []
+    srv = bp.BridgeServer(lambda f, c: got.append(f), lambda lv, t: None, port=0,
+                          idle_timeout_s=1.0)  # fmt: skip
+    srv.start()
+    try:
+        assert stream_main([str(cap), "--to", f"127.0.0.1:{srv.port}"]) == 0
+        out = capsys.readouterr().out
+        deadline = time.monotonic() + 5
+        while len(got) < 6 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        srv.stop()
+    assert "sent 6 frames" in out and "reconnected 1 time(s) after a pause" in out, out
+    assert len(got) == 6
+
+
+def test_frames_stamped_before_the_clock_began_are_skipped_not_the_import(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path, tmp_path: Path
+) -> None:
+    """Frames before odometry.csv's first row take its time extrapolated back at 60 Hz: with
+    the ARKit clock just started that went below 0, and import-stray failed whole ("stamp
+    -0.25 s outside 0 .. 2^31 s", the bag removed) while the bridge dropped them quietly (a
+    review). Such frames are skipped, said and counted; the rest are imported."""
+    cap = _first_frames(stray_capture, tmp_path / "cap", 8)
+    rows = (stray_capture / "odometry.csv").read_text().splitlines()
+    body = [r.split(",", 1)[1] for r in rows[1:9]]
+    # rows for frames 4..7 only, the clock at 0.02 s for frame 4: frames 0..3 extrapolate < 0
+    kept = [f"{0.02 + (k - 4) / 60:.6f},{body[k]}" for k in range(4, 8)]
+    (cap / "odometry.csv").write_text("\n".join([rows[0], *kept]) + "\n")
+    out = tmp_path / "bag"
+    assert import_main([str(cap), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "frame 0 skipped" in captured.err and "no time a ROS stamp holds" in captured.err
+    # frame 3 lies 3.3 ms after the clock began: kept
+    assert "wrote 5 frames" in captured.out and "3 unreadable" in captured.out, captured.out

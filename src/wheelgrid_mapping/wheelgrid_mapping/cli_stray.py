@@ -42,6 +42,11 @@ from wheelgrid_mapping.depth import check_min_confidence, metres_to_millimetres
 from wheelgrid_mapping.stray import StrayExport, StrayFrame
 
 TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
+#: A wait this long for the next frame's slot (a pause in the capture) is spent disconnected:
+#: the bridge closes a connection idle for its idle_timeout_s (5 s by default), and the rest
+#: of a capture with a 6 s pause was never sent, exit 1 (a review). The protocol's answer: a
+#: client that pauses longer reconnects (docs/iphone-protocol.md).
+PAUSE_RECONNECT_S = 2.0
 
 
 class _UsageError(Exception):
@@ -111,6 +116,7 @@ class StreamStats:
     late_frames: int = 0  # sent more than 50 ms after their real-time slot
     max_lag_s: float = 0.0
     skipped: int = 0  # frames whose images do not read: not sent, as a phone drops a frame
+    reconnects: int = 0  # pauses in the capture longer than PAUSE_RECONNECT_S (see there)
 
 
 class BridgeClosedError(ConnectionError):
@@ -139,7 +145,8 @@ def stream_export(
     stats = StreamStats()
     if not idx:
         return stats
-    sock = connect(host, port, token=token, name=f"stream-stray {exp.path.name}")
+    name = f"stream-stray {exp.path.name}"
+    sock = connect(host, port, token=token, name=name)
     try:
         t_first = exp.captured_by(idx[0])
         t0 = time.monotonic()
@@ -161,7 +168,12 @@ def stream_export(
             if rate > 0:
                 slot = t0 + (exp.captured_by(i) - t_first) / rate
                 wait = slot - time.monotonic()
-                if wait > 0:
+                if wait > PAUSE_RECONNECT_S:
+                    sock.close()
+                    time.sleep(wait)
+                    sock = connect(host, port, token=token, name=name)
+                    stats.reconnects += 1
+                elif wait > 0:
                     time.sleep(wait)
                 lag = time.monotonic() - slot
                 stats.max_lag_s = max(stats.max_lag_s, lag)
@@ -230,6 +242,11 @@ def stream_main(argv: list[str]) -> int:
         f"{stats.wall_s:.2f} s (capture {stats.capture_s:.2f} s, rate {args.rate}); "
         f"late > 50 ms: {stats.late_frames}, max lag {stats.max_lag_s * 1000:.1f} ms"
         + (f"; {stats.skipped} unreadable frames skipped" if stats.skipped else "")
+        + (
+            f"; reconnected {stats.reconnects} time(s) after a pause in the capture"
+            if stats.reconnects
+            else ""
+        )
     )
     return 0
 

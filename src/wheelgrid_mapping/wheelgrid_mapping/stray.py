@@ -341,10 +341,18 @@ class StrayExport:
                         f"{cpath}: shape {confidence.shape} differs from depth {depth.shape}"
                     )
                 break
+        stamp = self._stamp_of(index)
+        if not 0.0 <= stamp < MAX_STAMP_S:
+            # a frame before odometry.csv's first row, its time extrapolated back past the
+            # clock's start: import-stray failed whole on it, the bridge dropped it quietly
+            raise ValueError(
+                f"{path}: its time, {stamp:.3f} s, extrapolated from odometry.csv's first row "
+                f"at 60 Hz, is no time a ROS stamp holds (0 .. 2^31 s)"
+            )
         odo = self._odometry.get(index)
         return StrayFrame(
             index=index,
-            stamp=self._stamp_of(index),
+            stamp=stamp,
             depth=depth,
             confidence=confidence,
             K=self.K.copy(),
