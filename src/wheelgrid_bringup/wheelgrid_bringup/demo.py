@@ -266,6 +266,15 @@ def demo_domains(inherited: str | None) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    held: list[int] = []  # the domain's lock, let go however the run ends (a caller may run again)
+    try:
+        return _main(argv, held)
+    finally:
+        for fd in held:
+            os.close(fd)
+
+
+def _main(argv: list[str] | None, held: list[int]) -> int:
     args = build_parser().parse_args(argv)
     t_start = time.monotonic()
     if not (math.isfinite(args.rate) and args.rate > 0):
@@ -312,7 +321,9 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    domain, _lock = claim  # the lock is held until this process ends
+    domain, lock = claim
+    if lock >= 0:
+        held.append(lock)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     params = args.params or default_params_file()
     try:

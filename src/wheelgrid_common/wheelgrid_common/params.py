@@ -22,6 +22,9 @@ import yaml
 
 T = TypeVar("T")
 
+INT64_MAX = 2**63 - 1  # an IntegerRange's ends are int64
+INT64_MIN = -(2**63)
+
 
 def field(default: Any, doc: str, unit: str = "", bounds: tuple[float, float] | None = None) -> Any:
     """A dataclass field with a description (and unit) that becomes the ROS parameter's.
@@ -306,8 +309,12 @@ def declare_dataclass(node: Any, cfg: T, prefix: str = "", *, read_only: bool = 
                 FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))
             ]
         elif bounds is not None and isinstance(default, int) and not isinstance(default, bool):
-            lo, hi = (b if math.isfinite(b) else math.copysign(2**63 - 1, b) for b in bounds)
-            descriptor.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+            # int64 ends for an open one: math.copysign gave the float 2^63, one past it, and
+            # a describe request (`ros2 param describe`, rqt) killed the node sending it back
+            lo, hi = (
+                int(b) if math.isfinite(b) else INT64_MAX if b > 0 else INT64_MIN for b in bounds
+            )
+            descriptor.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
         try:
             node.declare_parameter(name, default, descriptor)
         except ParameterException as exc:  # a value of the wrong type: one line, not a trace

@@ -87,8 +87,9 @@ def child_env(domain_id: int | None = None, **extra: str) -> dict[str, str]:
 
 
 #: Where the domain claims' lock files lie: one folder for the machine, since a DDS domain is
-#: the machine's, whichever user or checkout runs in it.
-DOMAIN_LOCK_DIR = Path(tempfile.gettempdir())
+#: the machine's, whichever user or checkout runs in it (not $TMPDIR, which one shell may set
+#: and another not: two demos then claimed 215 each).
+DOMAIN_LOCK_DIR = Path("/tmp") if os.access("/tmp", os.W_OK) else Path(tempfile.gettempdir())
 
 
 def claim_domain(candidates: Iterable[int], lock_dir: Path | None = None) -> tuple[int, int] | None:
@@ -106,7 +107,7 @@ def claim_domain(candidates: Iterable[int], lock_dir: Path | None = None) -> tup
     for domain in candidates:
         path = folder / f"wheelgrid-ros-domain-{domain}.lock"
         try:
-            fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)
+            fd = _open_lock_file(path)
         except OSError:
             continue
         try:
@@ -118,6 +119,19 @@ def claim_domain(candidates: Iterable[int], lock_dir: Path | None = None) -> tup
             return domain, -1  # a folder without locks (ENOLCK): unclaimed, as before
         return domain, fd
     return None
+
+
+def _open_lock_file(path: Path) -> int:
+    """A read-only descriptor of the lock file, made where it is missing. Opened without
+    O_CREAT where it exists: Linux's fs.protected_regular refuses O_CREAT on another user's
+    file in a sticky folder (/tmp), and that user's old lock would read as held for ever."""
+    try:
+        return os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        try:
+            return os.open(path, os.O_RDONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:  # another process made it just now
+            return os.open(path, os.O_RDONLY)
 
 
 def with_message_info(callback: Callable[[Any, Any], None]) -> Callable[[Any], None]:

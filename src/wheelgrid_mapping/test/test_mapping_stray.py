@@ -130,6 +130,28 @@ def test_a_first_depth_image_of_another_size_or_an_8_bit_one_fails_its_frame_onl
     assert (StrayExport(cap).height, StrayExport(cap).width) == (6, 8)
 
 
+def test_a_16_bit_png_opened_as_32_bit_is_read_as_millimetres(tmp_path: Path, monkeypatch) -> None:
+    """Pillow before 10.3 (Ubuntu 24.04's, under an apt ROS Jazzy) opens a 16-bit PNG as mode
+    I, int32: the 8-bit refusal took every depth image of a real capture for "not 16-bit"
+    there (a review, with Pillow 10.2). Whole numbers within 16 bits read as millimetres; an
+    8-bit image is still refused."""
+    from wheelgrid_mapping import stray
+
+    cap = make_export(tmp_path / "cap", 2)
+    real = stray._read_image
+
+    def as_old_pillow(path: Path) -> np.ndarray:
+        out = real(path)
+        return out.astype(np.int32) if out.dtype == np.uint16 else out
+
+    monkeypatch.setattr(stray, "_read_image", as_old_pillow)
+    exp = StrayExport(cap)
+    assert np.isclose(exp.frame(1).depth[3, 3], 1.1)
+    Image.fromarray(np.full((6, 8), 200, np.uint8)).save(cap / "depth" / "000001.png")
+    with pytest.raises(ValueError, match="not uint8"):
+        exp.frame(1)
+
+
 def _world_cloud(exp: StrayExport, i: int, arkit_camera_axes: bool = False) -> np.ndarray:
     f = exp.frame(i)
     assert f.pose is not None

@@ -78,11 +78,16 @@ def _read_depth(path: Path) -> np.ndarray:
     raw = _read_image(path)
     if raw.ndim != 2:
         raise ValueError(f"{path}: depth image must be single-channel, got {raw.shape}")
-    if raw.dtype != np.uint16 and not np.issubdtype(raw.dtype, np.floating):
-        raise ValueError(
-            f"{path}: depth must be 16-bit millimetres (or float metres in .npy), not {raw.dtype}"
-        )
-    return raw
+    if raw.dtype == np.uint16 or np.issubdtype(raw.dtype, np.floating):
+        return raw
+    # Pillow before 10.3 (Ubuntu 24.04's, under an apt ROS Jazzy) opens a 16-bit PNG as
+    # mode I, int32: millimetres all the same, where they fit in 16 bits
+    whole = raw.dtype in (np.int32, np.int64, np.uint32) and path.suffix == ".png"
+    if whole and (raw.size == 0 or (int(raw.min()) >= 0 and int(raw.max()) <= 0xFFFF)):
+        return raw.astype(np.uint16)
+    raise ValueError(
+        f"{path}: depth must be 16-bit millimetres (or float metres in .npy), not {raw.dtype}"
+    )
 
 
 #: How many readable depth images the export's resolution is taken from (the most common shape
