@@ -14,6 +14,7 @@ from wheelgrid_nav.planner import (
     _optimal_cost,
     astar,
     bfs_distances,
+    check_config,
     plan,
     verify_route,
 )
@@ -49,7 +50,8 @@ def test_the_time_budget_holds_from_the_start_of_planning():
         steps = int(bfs_distances(free, g)[s])
         if steps <= 0:
             continue
-        assert _optimal_cost(_build_mdp(free, s, g, cfg, None)) == steps * -cfg.reward_step
+        mdp = _build_mdp(free, s, g, cfg, None)
+        assert mdp is not None and _optimal_cost(mdp) == steps * -cfg.reward_step
     free = np.ones((70, 70), dtype=bool)  # 19,600 heading states: past the first time check
     mdp = _build_mdp(free, (0, 0), (69, 69), cfg, "right")
     assert _optimal_cost(mdp, deadline=0.0) is None
@@ -407,3 +409,34 @@ def test_json_says_null_for_a_shortest_length_the_budget_cut_off():
     walled[:, 1] = 100
     gone = plan(walled, (0, 0), (0, 2))
     assert gone.reason == "unreachable" and result_json(gone, None)["shortest_moves"] == -1
+
+
+def test_a_large_grid_is_given_up_at_the_budget_and_its_agents_fit_the_history(monkeypatch):
+    """A review: on a 1000 x 1000 open grid a heading-aware plan with a 2 s budget took 6.5 s
+    (the MDP's build and its move table turned into lists were never timed), and one agent
+    per state times replay 128 passed MAX_HISTORY, so any goal on a 724 x 724 grid was "bad
+    input". The build and the lists look at the deadline now, and agents 0 means as many as
+    the history holds; an explicit agents value too large is still refused."""
+    import wheelgrid_nav.planner as planner_mod
+
+    free = np.ones((30, 30), dtype=bool)
+    cfg = PlannerConfig()
+    assert _build_mdp(free, (0, 0), (29, 29), cfg, "right", deadline=0.0) is None
+    assert _build_mdp(free, (0, 0), (29, 29), cfg, None, deadline=0.0) is None
+    monkeypatch.setattr(planner_mod, "MAX_HISTORY", 128 * 100)  # 100 agents at replay 128
+    grid = np.zeros((12, 12), dtype=np.int8)
+    res = plan(grid, (0, 0), (11, 11), PlannerConfig(replay=128), method="qlearning")
+    assert res.ok and len(res.cells) == 23, res.reason
+    with pytest.raises(PlanInputError, match="history"):
+        plan(grid, (0, 0), (11, 11), PlannerConfig(replay=128, agents=143), method="qlearning")
+    with pytest.raises(PlanInputError, match="history"):  # fewer than 64 would fit: refused
+        plan(grid, (0, 0), (11, 11), PlannerConfig(replay=1280), method="qlearning")
+
+
+def test_rewards_too_small_to_tell_from_the_cost_checks_tolerance_are_refused():
+    """With every reward under 1e-9 the cost checks (to 1e-9 of the optimum) let a route two
+    moves and a turn longer pass as the cheapest, "ok" (a review: 10 of 200 random grids)."""
+    for name in ("reward_step", "reward_blocked", "reward_turn", "reward_backward"):
+        with pytest.raises(PlanInputError, match=f"{name} must be 0 or at least 1e-06"):
+            check_config(PlannerConfig(**{name: -1e-10}), "qlearning-heading")
+    check_config(PlannerConfig(reward_turn=0.0, reward_backward=0.0), "qlearning-heading")

@@ -255,10 +255,15 @@ def _build_mdp(
     cfg: PlannerConfig,
     heading: str | None,
     reenter_start: bool = True,
-) -> _Mdp:
+    deadline: float = math.inf,
+) -> _Mdp | None:
     """The MDP over ``free``; with ``reenter_start`` False no move enters the start cell (an
-    unknown cell the chair stands on may be left, never driven into)."""
+    unknown cell the chair stands on may be left, never driven into). None once ``deadline``
+    (``time.perf_counter()``) has passed, looked at between its stages: the heading-aware
+    build of a 1000 x 1000 grid took 2.6 s, inside no budget."""
     index, nb = _neighbour_index(free)
+    if time.perf_counter() > deadline:
+        return None
     if not reenter_start:
         nb[nb == index[start]] = -1
     rc = np.argwhere(free)
@@ -290,14 +295,21 @@ def _build_mdp(
     states = np.arange(4 * n)
     ncell = nb[cell]  # (S, 4)
     blocked = ncell < 0
+    if time.perf_counter() > deadline:
+        return None
     nxt = np.where(blocked, states[:, None], ncell * 4 + new_h[hd])
     step_rew = cfg.reward_step + extra[hd]
+    if time.perf_counter() > deadline:
+        return None
     cost = np.where(blocked, np.inf, -step_rew)
     terminal = cell == index[goal]
     rew = np.where(blocked, cfg.reward_blocked, step_rew)
     rew = rew + np.where(~blocked & terminal[nxt], cfg.reward_goal, 0.0)
     start_state = int(index[start]) * 4 + _HEADING_INDEX[heading]
     return _Mdp(nxt, rew, terminal, cost, rc[cell], start_state, hd)
+
+
+_LIST_BLOCK = 65536  # states turned into lists between two looks at the deadline
 
 
 def _optimal_cost(mdp: _Mdp, deadline: float = math.inf) -> float | None:
@@ -312,8 +324,17 @@ def _optimal_cost(mdp: _Mdp, deadline: float = math.inf) -> float | None:
     dist = np.full(S, np.inf)
     dist[mdp.start] = 0.0
     heap = [(0.0, mdp.start)]
-    nxt, cost, terminal = mdp.nxt.tolist(), mdp.cost.tolist(), mdp.terminal
-    if time.perf_counter() > deadline:  # the lists alone: 2.4 s on a 700 x 700 grid
+    # as lists (fast to index one by one), a block at a time with the deadline between: the
+    # lists alone took 4.9 s on a 1000 x 1000 grid, 2.4 s past a 2 s budget
+    nxt: list[list[int]] = []
+    cost: list[list[float]] = []
+    for k in range(0, S, _LIST_BLOCK):
+        if time.perf_counter() > deadline:
+            return None
+        nxt += mdp.nxt[k : k + _LIST_BLOCK].tolist()
+        cost += mdp.cost[k : k + _LIST_BLOCK].tolist()
+    terminal = mdp.terminal
+    if time.perf_counter() > deadline:
         return None
     pops = 0
     while heap:
@@ -453,6 +474,11 @@ def _manoeuvre_lower_bound(mdp: _Mdp, goal_rc: np.ndarray, cfg: PlannerConfig) -
 
 # The replay history is (replay x agents) int64: at most this many entries (2 GiB)
 MAX_HISTORY = 2**28
+# The smallest reward size (other than 0) the cost checks can tell apart from their tolerance
+MIN_REWARD = 1e-6
+# agents 0 (one per state) takes fewer where the history cannot hold them all, but not fewer
+# than this: a replay that leaves fewer is the setting's fault, and refused
+MIN_AUTO_AGENTS = 64
 # Each agent also holds a few (agents x 4) float64 arrays a step: 2**24 agents is ~2 GiB of
 # them; 2**28 passed the history check with replay 1 and died allocating 8 GiB (exit 1)
 MAX_AGENTS = 2**24
@@ -470,7 +496,15 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
     rng = np.random.default_rng(cfg.seed)
     S = len(mdp.terminal)
     nonterminal = np.nonzero(~mdp.terminal)[0]
-    B = cfg.agents if cfg.agents > 0 else len(nonterminal)
+    # agents 0: one per state, as many as the history allows (one per state of a 724 x 724
+    # open grid, heading-aware, with replay 128 was "bad input", exit 2, for any goal), but
+    # no fewer than MIN_AUTO_AGENTS: a replay so long that fewer fit is refused below
+    B = cfg.agents
+    if B == 0:
+        B = min(len(nonterminal), MAX_AGENTS)
+        fit = MAX_HISTORY // max(cfg.replay, 1)
+        if fit >= min(B, MIN_AUTO_AGENTS):
+            B = min(B, fit)
     if B > MAX_AGENTS:
         raise PlanInputError(f"agents {B} is more than {MAX_AGENTS} (memory): lower agents")
     if max(cfg.replay, 1) * B > MAX_HISTORY:
@@ -635,12 +669,18 @@ def plan(
     # A heading-aware route may come back into a cell (a three-point turn), but not into an
     # unknown start: the drive enters only cells known to be free, and stopped there.
     mdp = _build_mdp(
-        free, s, g, cfg, heading if heading_aware else None, reenter_start=not start_unknown
+        free,
+        s,
+        g,
+        cfg,
+        heading if heading_aware else None,
+        reenter_start=not start_unknown,
+        deadline=deadline,
     )
     found = None
-    if time.perf_counter() <= deadline:
+    if mdp is not None and time.perf_counter() <= deadline:
         found = bfs_len * -cfg.reward_step if not heading_aware else _optimal_cost(mdp, deadline)
-    if found is None:
+    if mdp is None or found is None:
         res.reason = "not converged"
         res.seconds = time.perf_counter() - t0
         return res
@@ -709,6 +749,18 @@ def check_config(cfg: PlannerConfig, method: str | None = None) -> None:
         raise PlanInputError("reward_step and reward_blocked must be negative")
     if cfg.reward_turn > 0 or cfg.reward_backward > 0:
         raise PlanInputError("reward_turn and reward_backward must not be positive")
+    small = [
+        name
+        for name in ("reward_step", "reward_blocked", "reward_turn", "reward_backward")
+        if 0.0 < abs(getattr(cfg, name)) < MIN_REWARD
+    ]
+    if small:
+        # route costs are compared to within 1e-9 of the optimum: with every reward under
+        # that, a route two moves and a turn longer passed as the cheapest (a review)
+        raise PlanInputError(
+            f"{', '.join(small)} must be 0 or at least {MIN_REWARD:g} in size: the learned "
+            "route's cost is checked against the optimum to 1e-9"
+        )
     if cfg.q_init not in ("heuristic", "optimistic", "zero"):
         raise PlanInputError("q_init must be heuristic, optimistic or zero")
     if cfg.stable_checks < 1:
