@@ -308,6 +308,10 @@ def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, ca
         ("preprocess: {voxel_size: 0.03}\n", "'preprocess/voxel_size' must hold a ros__param"),
         ("mapper:\n  ros__parameters: 5\n", "mapper's ros__parameters must be a mapping"),
         ("- mapper\n", "expected a mapping of node name"),
+        # what only rcl's parser refuses: every node died on it after the start (a review)
+        ("grid:\n  ros__parameters:\n    safe_height:\n", "rcl cannot read it: No value"),
+        ("grid:\n  x: 1\n  ros__parameters: {safe_height: 1.6}\n", "Cannot have a value"),
+        ("grid:\n  ros__parameters: {topics: [1, a]}\n", "Sequence should be of same type"),
     ):
         bad.write_text(text)
         with pytest.raises(ValueError) as info:
@@ -315,7 +319,7 @@ def test_launch_refuses_a_broken_params_file_before_any_node_starts(tmp_path, ca
         assert says in str(info.value), (text, str(info.value))
     assert launch_main(["--params", str(bad), "--no-drive", "--duration", "1"]) == 2
     err = capsys.readouterr().err
-    assert "expected a mapping of node name" in err and "Traceback" not in err
+    assert "rcl cannot read it: Sequence should" in err and "Traceback" not in err
 
 
 def test_a_section_that_reaches_no_node_of_the_chain_is_refused(tmp_path, capsys):
@@ -372,6 +376,14 @@ def test_the_namespaced_copy_is_the_params_file_as_checked(tmp_path):
     copy = namespaced_params_file(params, "/chair1", tmp_path / "out", checked)
     assert yaml.safe_load(copy.read_text()) == {
         "/chair1/mapper": {"ros__parameters": {"topic": "/checked"}}
+    }
+    # a key with a '/' names its node already (rcl reads ``chair1/grid`` as /chair1/grid):
+    # prefixed, it became /chair1/chair1/grid, and the grid ran on its defaults (a review)
+    params.write_text("chair1/grid:\n  ros__parameters: {safe_height: 1.9}\n")
+    checked = check_params_file(params, "/chair1")
+    copy = namespaced_params_file(params, "/chair1", tmp_path / "out", checked)
+    assert yaml.safe_load(copy.read_text()) == {
+        "chair1/grid": {"ros__parameters": {"safe_height": 1.9}}
     }
 
 

@@ -184,3 +184,85 @@ def test_a_replay_that_fails_mid_bag_is_said_and_ends_the_launch_with_exit_1(
     said = [ln for ln in err.splitlines() if "the replay failed after" in ln]
     assert len(said) == 1 and " of 12 messages (" in said[0], out + err
     assert "Traceback" not in err
+
+
+def test_a_bags_tf_static_reaches_a_latched_reader_that_comes_after_it(tmp_path: Path) -> None:
+    """Every topic was replayed volatile: tf2's static listener (RViz, a Nav2 stack) asks for
+    transient local and got no /tf_static at all, and the launch waited 30 s for a reader that
+    could never match (a review). /tf_static goes out latched, as tf2's static broadcaster
+    sends it, and is not waited for."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from wheelgrid_common.ros_env import tf2_problem
+
+    if tf2_problem():
+        pytest.skip(f"no /tf here: {tf2_problem()}")
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+    from tf2_msgs.msg import TFMessage
+
+    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_common.testing import rclpy_context, spin_until
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    types = ts.types
+    msg = types["tf2_msgs/msg/TFMessage"](transforms=[types["geometry_msgs/msg/TransformStamped"](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1700000000, nanosec=0),
+            frame_id="base_link"),
+        child_frame_id="camera",
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=0.1, y=0.0, z=1.0),
+            rotation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))])  # fmt: skip
+    bag = tmp_path / "tf"
+    with Writer(bag, version=9) as w:
+        conn = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)
+        w.write(conn, 1_700_000_000_000_000_000, ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_tf_static_test", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        player = BagPlayer(node, bag, ["/tf_static"])
+        try:
+            assert player.unsubscribed() == []  # latched: nobody to wait for
+            player.start()
+            assert player.done.wait(10.0) and player.error is None
+            got: list = []
+            latched = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)  # fmt: skip
+            node.create_subscription(TFMessage, "/tf_static", got.append, latched)
+            assert spin_until(ex, lambda: bool(got), 10.0), "the static transform never came"
+            assert got[0].transforms[0].child_frame_id == "camera"
+        finally:
+            player.stop()
+            ex.shutdown()
+            node.destroy_node()
+
+
+def test_a_wait_beyond_what_a_timeout_holds_is_waited_in_slices() -> None:
+    """At --rate 1e-11, 0.2 s between two messages is a 2e10 s wait: Event.wait raised
+    OverflowError and the replay ended "ERROR" (a review). It waits in slices, and a stop
+    still ends it at once."""
+    import threading
+    import time
+
+    import rclpy
+
+    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_common.testing import rclpy_context
+
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_slices_test", context=ctx)
+        player = BagPlayer(node, SCAN, ["/iphone/odometry"], rate=1e-11)
+        out: list = []
+        waiter = threading.Thread(
+            target=lambda: out.append(player._wait_until(time.monotonic() + 2e10, 0.0, 0))
+        )
+        waiter.start()
+        time.sleep(0.3)
+        player.stop()
+        waiter.join(5.0)
+        node.destroy_node()
+    assert out == [True]  # stopped, not an OverflowError

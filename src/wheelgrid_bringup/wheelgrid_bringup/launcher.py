@@ -95,8 +95,9 @@ def namespaced_params_file(
 ) -> Path:
     """A copy of the params file whose plain node keys (``mapper:``) name the nodes in
     ``namespace`` (``/chair1/mapper:``): rcl matches a plain key to ``/mapper`` only, and the
-    chain's nodes would have run on their defaults. Keys already absolute (``/**``,
-    ``/chair1/grid``) and namespace sections (``chair1: {grid: ...}``) are kept as written.
+    chain's nodes would have run on their defaults. Keys with a ``/`` (``/**``,
+    ``/chair1/grid``, ``chair1/grid``) and namespace sections (``chair1: {grid: ...}``) are
+    kept as written.
     ``data``: the file as :func:`check_params_file` read it, so that the copy is what was
     checked (read a second time, a file edited in between went unchecked)."""
     import yaml
@@ -106,7 +107,9 @@ def namespaced_params_file(
     out: dict[Any, Any] = {}
     for key, body in data.items():
         plain = isinstance(body, dict) and "ros__parameters" in body
-        name = f"{namespace}/{key}" if plain and not str(key).startswith("/") else key
+        # only a bare node name is prefixed: rcl reads ``chair1/grid:`` as ``/chair1/grid``
+        # too, and prefixed it became ``/chair1/chair1/grid``, the grid on its defaults
+        name = f"{namespace}/{key}" if plain and "/" not in str(key) else key
         if name in out and plain and "ros__parameters" in out[name]:
             # ``grid:`` and ``/chair1/grid:`` both: rcl applies both, the later over the
             # earlier; one dict key for the two kept only the later, and the grid ran on its
@@ -219,7 +222,31 @@ def check_params_file(path: Path, namespace: str = "") -> dict[str, Any]:
 
     for node, body in data.items():
         check(str(node), body)
+    _rcl_reads(path)
     return data
+
+
+def _rcl_reads(path: Path) -> None:
+    """``ValueError`` where rcl's own parser refuses the file: a parameter with no value, a
+    key beside ``ros__parameters``, a list of mixed types or of lists, a YAML alias. Each
+    passed the checks above, every node then died reading it, and the launch ended with exit 1
+    naming the first node to die (a review). rcl parses ``--params-file`` as a context starts:
+    one that makes no node opens no DDS participant."""
+    import rclpy
+    from rclpy.context import Context
+
+    ctx = Context()
+    try:
+        rclpy.init(
+            args=["--ros-args", "--params-file", str(path)],
+            context=ctx,
+            signal_handler_options=rclpy.signals.SignalHandlerOptions.NO,
+        )
+    except Exception as exc:  # rclpy's RCLError: "... Error: No value at line 3, at ..."
+        text = str(exc)
+        why = text.split("Error: ", 1)[1].split(", at ", 1)[0] if "Error: " in text else text
+        raise ValueError(f"{path}: rcl cannot read it: {why.strip()}") from None
+    rclpy.shutdown(context=ctx)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -27,6 +27,14 @@ REPLAY_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+# /tf_static as tf2's static broadcaster offers it: a latched reader (tf2's static listener,
+# RViz) asks for transient local, which REPLAY_QOS cannot give, and got nothing (a review).
+# Every message kept: each is one broadcaster's set of static transforms.
+STATIC_TF_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # Only the newest time matters; reliable matches rclpy's best-effort /clock reader and a
 # reliable one alike.
 CLOCK_QOS = QoSProfile(
@@ -131,7 +139,9 @@ class BagPlayer:
                 ) from None
         self._pubs = {
             t.name: node.create_publisher(
-                classes[t.name], replayed_name(t.name, namespace), REPLAY_QOS
+                classes[t.name],
+                replayed_name(t.name, namespace),
+                STATIC_TF_QOS if t.name.rstrip("/").endswith("tf_static") else REPLAY_QOS,
             )
             for t in self.topics
         }
@@ -149,7 +159,13 @@ class BagPlayer:
         """Replayed topics nobody subscribes to yet (a frame sent now would be lost), and
         ``/clock`` while fewer than ``clock_readers`` nodes follow it (a node that matched it
         late stamped its first map or grid with time 0)."""
-        topics = [p.topic_name for p in self._pubs.values() if p.get_subscription_count() == 0]
+        # a latched topic (/tf_static) reaches a reader that comes later: not waited for
+        topics = [
+            p.topic_name
+            for p in self._pubs.values()
+            if p.get_subscription_count() == 0
+            and p.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
+        ]
         clock = self._clock_pub
         if clock is not None and clock.get_subscription_count() < self.clock_readers:
             topics.append("/clock")
@@ -212,7 +228,9 @@ class BagPlayer:
                 return self._stop.is_set()
             if self._clock_pub is not None:
                 left = min(left, self._clock_next - now)
-            if self._stop.wait(left):
+            # in slices: a wait past ~9.2e9 s (0.2 s between messages at --rate 1e-11) raised
+            # OverflowError and ended the replay
+            if self._stop.wait(min(left, 60.0)):
                 return True
 
     def _publish_clock(self, bag_ns: int) -> None:
