@@ -228,10 +228,38 @@ def bag_files(src: Path) -> list[Path]:
 
 def _sqlite_reader(path: Path) -> Any:
     """A sqlite3 file describes its own topics; a killed recorder leaves it consistent (every
-    message committed before the kill) and only ``metadata.yaml`` unwritten."""
+    message committed before the kill) and only ``metadata.yaml`` unwritten.
+
+    Not quite where it wrote in WAL mode (``ros2 bag record --storage-preset-profile
+    resilient``, the one chosen to survive a crash): messages committed since the last
+    checkpoint lie in ``NAME.db3-wal``, which rosbags' reader (immutable) does not look at,
+    and half a recording was left out with "every message committed copied" (a review). A
+    copy of the file and its WAL is checkpointed and read instead; the recording itself is
+    not touched."""
+    import shutil
+    import sqlite3
+    import tempfile
+    import weakref
+
     from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
-    reader = Sqlite3Reader(path)
+    wal = path.with_name(path.name + "-wal")
+    source = path
+    tmp = None
+    if wal.is_file() and wal.stat().st_size > 0:
+        tmp = Path(tempfile.mkdtemp(prefix="wheelgrid_bag_recover_"))
+        source = tmp / path.name
+        for f in (path, wal, path.with_name(path.name + "-shm")):
+            if f.is_file():
+                shutil.copyfile(f, tmp / f.name)
+        con = sqlite3.connect(source)
+        try:
+            con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        finally:
+            con.close()
+    reader = Sqlite3Reader(source)
+    if tmp is not None:
+        weakref.finalize(reader, shutil.rmtree, tmp, True)
     reader.open()
     return reader
 
