@@ -31,6 +31,7 @@ from .fileio import out_folder
 from .progress import Progress
 
 _HEADER, _FOOTER, _STATISTICS, _DATA_END = 0x01, 0x02, 0x0B, 0x0F
+_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x03, 0x04, 0x05, 0x06
 
 
 @dataclass
@@ -264,6 +265,51 @@ def _sqlite_reader(path: Path) -> Any:
     return reader
 
 
+def cut_chunk_records(path: Path, extent: Extent) -> bytes:
+    """The complete Schema, Channel and Message records inside the chunk the cut went through,
+    where that chunk is uncompressed (rosbags' writer, rosbag2's "none" compression): b"" for
+    a compressed one, or none. The walk from the header drops the chunk whole, and a cut in a
+    recording's first chunk gave back nothing, its first cloud and pose intact (a review)."""
+    with path.open("rb") as f:
+        f.seek(extent.data_end)
+        head = f.read(1 + 8 + 8 + 8 + 8 + 4 + 4)
+        if len(head) < 41 or head[0] != _CHUNK:
+            return b""
+        (name_len,) = struct.unpack("<I", head[37:41])
+        if name_len:  # compressed: nothing before its end can be read
+            return b""
+        sized = f.read(8)  # the records' byte count, then the records
+        if len(sized) < 8:
+            return b""
+        body = f.read(struct.unpack("<Q", sized)[0])
+    out, pos = bytearray(), 0
+    while pos + 9 <= len(body):
+        op, length = body[pos], struct.unpack("<Q", body[pos + 1 : pos + 9])[0]
+        end = pos + 9 + length
+        if end > len(body) or op not in (_SCHEMA, _CHANNEL, _MESSAGE):
+            break
+        out += body[pos:end]
+        pos = end
+    return bytes(out)
+
+
+def _salvaged_reader(path: Path, extent: Extent, inner: bytes) -> Any:
+    """A reader over a copy of ``path``'s complete records followed by ``inner`` (the cut
+    chunk's complete records, unchunked, as MCAP allows); the copy goes with the reader."""
+    import tempfile
+    import weakref
+
+    tmp = Path(tempfile.mkdtemp(prefix="wheelgrid_bag_recover_"))
+    copy = tmp / path.name
+    with path.open("rb") as src, copy.open("wb") as dst:
+        dst.write(src.read(extent.data_end))
+        dst.write(inner)
+    ext = Extent(extent.data_start, extent.data_end + len(inner), copy.stat().st_size, False)
+    reader = _reader(copy, ext)
+    weakref.finalize(reader, shutil.rmtree, tmp, True)
+    return reader
+
+
 def _open_file(path: Path, res: Recovery) -> Any:
     """A reader over ``path``'s complete messages; what was cut off is counted in ``res``."""
     if path.suffix == ".db3":
@@ -274,9 +320,12 @@ def _open_file(path: Path, res: Recovery) -> Any:
         res.already_complete += 1
         return indexed
     ext = mcap_extent(path)
-    res.bytes_lost += 0 if ext.complete else ext.size - ext.data_end
     res.already_complete += int(ext.complete)
-    return _reader(path, ext)
+    if ext.complete:
+        return _reader(path, ext)
+    inner = cut_chunk_records(path, ext)
+    res.bytes_lost += ext.size - ext.data_end - len(inner)
+    return _salvaged_reader(path, ext, inner) if inner else _reader(path, ext)
 
 
 def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) -> Recovery:
