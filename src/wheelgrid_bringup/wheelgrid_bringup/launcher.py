@@ -231,22 +231,33 @@ def _rcl_reads(path: Path) -> None:
     key beside ``ros__parameters``, a list of mixed types or of lists, a YAML alias. Each
     passed the checks above, every node then died reading it, and the launch ended with exit 1
     naming the first node to die (a review). rcl parses ``--params-file`` as a context starts:
-    one that makes no node opens no DDS participant."""
-    import rclpy
+    one that makes no node opens no DDS participant. Domain 0 and no logging, so that only the
+    file can fail it (not a ROS_DOMAIN_ID of "abc") and no log file is left per check; rcl's
+    own "Failed to parse global arguments" line is kept off stderr, said here in one line."""
+    import os
+
     from rclpy.context import Context
 
     ctx = Context()
+    err = os.dup(2)
     try:
-        rclpy.init(
-            args=["--ros-args", "--params-file", str(path)],
-            context=ctx,
-            signal_handler_options=rclpy.signals.SignalHandlerOptions.NO,
-        )
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            try:
+                ctx.init(
+                    args=["--ros-args", "--params-file", str(path)],
+                    initialize_logging=False,
+                    domain_id=0,
+                )
+            finally:
+                os.dup2(err, 2)
     except Exception as exc:  # rclpy's RCLError: "... Error: No value at line 3, at ..."
         text = str(exc)
         why = text.split("Error: ", 1)[1].split(", at ", 1)[0] if "Error: " in text else text
         raise ValueError(f"{path}: rcl cannot read it: {why.strip()}") from None
-    rclpy.shutdown(context=ctx)
+    finally:
+        os.close(err)
+    ctx.try_shutdown()
 
 
 def main(argv: list[str] | None = None) -> int:

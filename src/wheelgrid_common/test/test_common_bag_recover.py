@@ -164,7 +164,29 @@ def test_messages_committed_only_to_a_sqlite3_write_ahead_log_are_given_back(
     assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
     assert _read(tmp_path / "back") == msgs
     assert {f.name: f.read_bytes() for f in bag.iterdir()} == before  # untouched
-    assert not any(n.startswith("wheelgrid_bag_recover_") for n in os.listdir(tmp_path))
+    import tempfile
+
+    def copies() -> set[str]:
+        return {n for n in os.listdir(tempfile.gettempdir()) if "wheelgrid_bag_recover_" in n}
+
+    left = copies()
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "again")]) == 0
+    assert copies() <= left  # the checkpointed copy goes with its reader
+    # a copy that cannot be made (the temp folder full) is said as such, and leaves nothing
+    real_copy = bag_recover._copy_prefix
+
+    def full(src, dst, n):
+        real_copy(src, dst, min(n, 10))
+        raise OSError(28, "No space left on device")
+
+    bag_recover._copy_prefix = full
+    try:
+        assert bag_recover.main([str(bag), "--out", str(tmp_path / "full")]) == 2
+    finally:
+        bag_recover._copy_prefix = real_copy
+    err = capsys.readouterr().err
+    assert "cannot make the copy it is read from" in err and "No space left" in err, err
+    assert "damaged" not in err and copies() <= left
 
 
 def test_messages_the_recording_lists_but_that_are_not_recovered_are_counted_lost(

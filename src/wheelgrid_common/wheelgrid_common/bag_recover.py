@@ -154,8 +154,9 @@ def _count_lost(src: Path, files: list[Path], res: Recovery) -> None:
                 res.lost += n
 
 
-def _reader(path: Path, extent: Extent) -> Any:
-    """rosbags' MCAP reader over the complete records only (its own scan, no summary)."""
+def _cut_reader(path: Path, extent: Extent) -> Any:
+    """rosbags' MCAP reader over the complete records only (its own scan, no summary), not yet
+    opened."""
     from rosbags.rosbag2.storage_mcap import McapReader
 
     class _CutReader(McapReader):  # type: ignore[misc]
@@ -172,7 +173,12 @@ def _reader(path: Path, extent: Extent) -> Any:
             # recorder writes them in arrival order.
             return self.messages_scan(connections, start, stop)
 
-    reader = _CutReader(path)
+    return _CutReader(path)
+
+
+def _reader(path: Path, extent: Extent) -> Any:
+    """rosbags' MCAP reader over the complete records only (its own scan, no summary)."""
+    reader = _cut_reader(path, extent)
     reader.open()
     return reader
 
@@ -237,32 +243,72 @@ def _sqlite_reader(path: Path) -> Any:
     and half a recording was left out with "every message committed copied" (a review). A
     copy of the file and its WAL is checkpointed and read instead; the recording itself is
     not touched."""
-    import shutil
     import sqlite3
-    import tempfile
-    import weakref
 
     from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
     wal = path.with_name(path.name + "-wal")
-    source = path
-    tmp = None
-    if wal.is_file() and wal.stat().st_size > 0:
-        tmp = Path(tempfile.mkdtemp(prefix="wheelgrid_bag_recover_"))
-        source = tmp / path.name
+    if not (wal.is_file() and wal.stat().st_size > 0):
+        reader = Sqlite3Reader(path)
+        reader.open()
+        return reader
+
+    def checkpointed(tmp: Path) -> Path:
+        copy = tmp / path.name
         for f in (path, wal, path.with_name(path.name + "-shm")):
             if f.is_file():
-                shutil.copyfile(f, tmp / f.name)
-        con = sqlite3.connect(source)
+                _copy_prefix(f, tmp / f.name, f.stat().st_size)
+        con = sqlite3.connect(copy)
         try:
             con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         finally:
             con.close()
-    reader = Sqlite3Reader(source)
-    if tmp is not None:
+        return copy
+
+    return _on_a_copy(path, checkpointed, lambda copy: Sqlite3Reader(copy))
+
+
+def _copy_prefix(src: Path, dst: Path, n: int) -> None:
+    """The first ``n`` bytes of ``src`` into ``dst``, a megabyte at a time (a recording of
+    gigabytes read at once needed that much memory)."""
+    with src.open("rb") as f, dst.open("wb") as g:
+        left = n
+        while left > 0:
+            block = f.read(min(left, 1 << 20))
+            if not block:
+                break
+            g.write(block)
+            left -= len(block)
+
+
+class TempSpaceError(BagError):
+    """The temporary copy a recovery reads could not be made (its folder full, unwritable)."""
+
+
+def _on_a_copy(path: Path, make: Any, open_reader: Any) -> Any:
+    """``open_reader(make(tmp))`` on a copy made in a fresh temporary folder, which goes with
+    the reader, or at once where anything fails (a copy left behind filled the temp disk).
+    A copy that cannot be written is said as such, not as damage to the recording."""
+    import tempfile
+    import weakref
+
+    tmp = Path(tempfile.mkdtemp(prefix="wheelgrid_bag_recover_"))
+    try:
+        try:
+            copy = make(tmp)
+        except OSError as exc:
+            raise TempSpaceError(
+                f"{path}: cannot make the copy it is read from in {tmp.parent} "
+                f"({exc.strerror or exc}); free space there or set TMPDIR to a folder with "
+                "room for the recording"
+            ) from None
+        reader = open_reader(copy)
         weakref.finalize(reader, shutil.rmtree, tmp, True)
-    reader.open()
-    return reader
+        reader.open()
+        return reader
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def cut_chunk_records(path: Path, extent: Extent) -> bytes:
@@ -296,18 +342,16 @@ def cut_chunk_records(path: Path, extent: Extent) -> bytes:
 def _salvaged_reader(path: Path, extent: Extent, inner: bytes) -> Any:
     """A reader over a copy of ``path``'s complete records followed by ``inner`` (the cut
     chunk's complete records, unchunked, as MCAP allows); the copy goes with the reader."""
-    import tempfile
-    import weakref
 
-    tmp = Path(tempfile.mkdtemp(prefix="wheelgrid_bag_recover_"))
-    copy = tmp / path.name
-    with path.open("rb") as src, copy.open("wb") as dst:
-        dst.write(src.read(extent.data_end))
-        dst.write(inner)
-    ext = Extent(extent.data_start, extent.data_end + len(inner), copy.stat().st_size, False)
-    reader = _reader(copy, ext)
-    weakref.finalize(reader, shutil.rmtree, tmp, True)
-    return reader
+    def salvaged(tmp: Path) -> Path:
+        copy = tmp / path.name
+        _copy_prefix(path, copy, extent.data_end)
+        with copy.open("ab") as g:
+            g.write(inner)
+        return copy
+
+    ext = Extent(extent.data_start, extent.data_end + len(inner), 0, False)
+    return _on_a_copy(path, salvaged, lambda copy: _cut_reader(copy, ext))
 
 
 def _open_file(path: Path, res: Recovery) -> Any:

@@ -440,3 +440,21 @@ def test_rewards_too_small_to_tell_from_the_cost_checks_tolerance_are_refused():
         with pytest.raises(PlanInputError, match=f"{name} must be 0 or at least 1e-06"):
             check_config(PlannerConfig(**{name: -1e-10}), "qlearning-heading")
     check_config(PlannerConfig(reward_turn=0.0, reward_backward=0.0), "qlearning-heading")
+
+
+def test_the_cost_check_tells_one_turn_apart_however_large_the_route_cost():
+    """The cost checks allowed 1e-9 of the optimum: with reward_step -1e4 and reward_turn
+    -1e-5 a route of cost 1e5 could carry a turn more and pass as the cheapest (a review).
+    The tolerance is never half the smallest reward or more; the learned route is still the
+    Dijkstra optimum under such rewards."""
+    from wheelgrid_nav.planner import cost_tolerance
+
+    scaled = PlannerConfig(reward_step=-1e4, reward_turn=-1e-5, reward_backward=-1e-5)
+    assert cost_tolerance(scaled, 1e5) == 0.5e-5  # half the turn, not 1e-4
+    assert cost_tolerance(PlannerConfig(), 20.0) == pytest.approx(2e-8)  # as before
+    grid = np.zeros((6, 6), dtype=np.int8)
+    grid[2, 1:5] = 100
+    res = plan(grid, (0, 0), (5, 5), scaled, method="qlearning-heading", heading="down")
+    mdp = _build_mdp(grid == 0, (0, 0), (5, 5), scaled, "down")
+    assert res.ok and mdp is not None
+    assert res.cost == pytest.approx(_optimal_cost(mdp), abs=1e-7), (res.cost, res.cells)

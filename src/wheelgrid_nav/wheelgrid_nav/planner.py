@@ -581,7 +581,7 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
         if steps % check_every == 0:
             found = _greedy_route(Q2, mdp, tol)
             route, route_cost = found if found else (None, math.nan)
-            good = found is not None and abs(found[1] - optimal) <= 1e-9 * max(1.0, optimal)
+            good = found is not None and abs(found[1] - optimal) <= cost_tolerance(cfg, optimal)
             if good and route == prev_route:
                 stable += 1
             else:
@@ -703,7 +703,7 @@ def plan(
     )
     if start_unknown and s in cells[1:]:
         problems.append(f"route comes back into the unknown start cell ({s[0]},{s[1]})")
-    if abs(res.cost - optimal) > 1e-9 * max(1.0, optimal):
+    if abs(res.cost - optimal) > cost_tolerance(cfg, optimal):
         problems.append(f"route cost {res.cost} is not the optimum {optimal}")
     res.seconds = time.perf_counter() - t0
     if problems:
@@ -714,6 +714,14 @@ def plan(
     res.moves = cells_to_moves(cells)
     res.reason = "ok"
     return res
+
+
+def cost_tolerance(cfg: PlannerConfig, optimal: float) -> float:
+    """How far a route's cost may lie from the optimum and still be it: float rounding (1e-9
+    of it), but never half the smallest reward or more. Relative alone, on a route of cost
+    1e5 (reward_step -1e4) a turn of -1e-5 more passed as the cheapest (a review)."""
+    sizes = [abs(v) for v in (cfg.reward_step, cfg.reward_turn, cfg.reward_backward) if v]
+    return min(1e-9 * max(1.0, abs(optimal)), 0.5 * min(sizes, default=1.0))
 
 
 def check_config(cfg: PlannerConfig, method: str | None = None) -> None:
