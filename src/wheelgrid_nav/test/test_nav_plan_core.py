@@ -458,3 +458,13 @@ def test_the_cost_check_tells_one_turn_apart_however_large_the_route_cost():
     mdp = _build_mdp(grid == 0, (0, 0), (5, 5), scaled, "down")
     assert res.ok and mdp is not None
     assert res.cost == pytest.approx(_optimal_cost(mdp), abs=1e-7), (res.cost, res.cells)
+
+
+def test_the_ranges_the_planner_parameters_declare_hold_every_valid_value_and_no_other():
+    """The planner's parameters declared no range (`ros2 param describe planner
+    learning_rate` showed none): each declared one now holds every value check_config takes
+    and no other."""
+    from wheelgrid_common.testing import check_declared_bounds
+
+    ranged = check_declared_bounds(PlannerConfig, lambda c: check_config(c))
+    assert {"learning_rate", "epsilon", "max_seconds", "reward_step", "seed"} <= set(ranged)

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.params import check_finite
+from wheelgrid_common.params import check_bounds, check_finite
 from wheelgrid_common.params import field as pfield
 from wheelgrid_nav.actions import DELTAS, LEFT_OF, MOVES, OPPOSITE, RIGHT_OF, cells_to_moves
 
@@ -51,23 +51,37 @@ class PlannerConfig:
     learning_rate: float = pfield(
         1.0,
         "Q-learning step size alpha in (0, 1]; 1 is exact for the grid's deterministic moves",
+        bounds=(0.0, 1.0),
     )
     discount: float = pfield(
         1.0,
         "discount gamma in (0, 1]; 1 keeps the learned route the cheapest one (the task ends at "
         "the goal) and keeps value differences on long corridors above float precision",
+        bounds=(0.0, 1.0),
     )
-    epsilon: float = pfield(0.1, "probability of a random (exploratory) move per step")
-    reward_step: float = pfield(-1.0, "reward for every move to a neighbouring free cell")
+    epsilon: float = pfield(
+        0.1, "probability of a random (exploratory) move per step", bounds=(0.0, 1.0)
+    )
+    reward_step: float = pfield(
+        -1.0, "reward for every move to a neighbouring free cell", bounds=(-math.inf, 0.0)
+    )
     reward_blocked: float = pfield(
-        -10.0, "reward for trying to enter a wall, occupied or unknown cell (the chair stays)"
+        -10.0,
+        "reward for trying to enter a wall, occupied or unknown cell (the chair stays)",
+        bounds=(-math.inf, 0.0),
     )
-    reward_goal: float = pfield(100.0, "extra reward on reaching the goal (ends the episode)")
+    reward_goal: float = pfield(
+        100.0, "extra reward on reaching the goal (ends the episode)", bounds=(0.0, math.inf)
+    )
     reward_turn: float = pfield(
-        -0.5, "heading-aware only: extra reward for a quarter turn (left/right-forward)"
+        -0.5,
+        "heading-aware only: extra reward for a quarter turn (left/right-forward)",
+        bounds=(-math.inf, 0.0),
     )
     reward_backward: float = pfield(
-        -1.0, "heading-aware only: extra reward for backing up (the costliest manoeuvre)"
+        -1.0,
+        "heading-aware only: extra reward for backing up (the costliest manoeuvre)",
+        bounds=(-math.inf, 0.0),
     )
     q_init: str = pfield(
         "heuristic",
@@ -77,26 +91,41 @@ class PlannerConfig:
         "back to 'optimistic'), 'optimistic' = max(reward_goal, 0), 'zero' = 0",
     )
     replay: int = pfield(
-        128, "replay the last N steps' transitions newest-first every N steps (0 = off)"
+        128,
+        "replay the last N steps' transitions newest-first every N steps (0 = off)",
+        bounds=(0, math.inf),
     )
     agents: int = pfield(
-        0, "parallel agents; 0 = one per state (exploring starts from every free cell/heading)"
+        0,
+        "parallel agents; 0 = one per state (exploring starts from every free cell/heading)",
+        bounds=(0, math.inf),
     )
-    max_episode_steps: int = pfield(0, "steps before an episode is cut; 0 = 2 x number of states")
-    max_episodes: int = pfield(2_000_000, "training budget in episodes (all agents together)")
+    max_episode_steps: int = pfield(
+        0, "steps before an episode is cut; 0 = 2 x number of states", bounds=(0, math.inf)
+    )
+    max_episodes: int = pfield(
+        2_000_000, "training budget in episodes (all agents together)", bounds=(1, math.inf)
+    )
     max_seconds: float = pfield(
         10.0,
         "planning budget in wall-clock time, from the search for the optimum to the learned "
         "route (checked every step, > 0 and finite)",
         "s",
+        bounds=(0.0, math.inf),
     )
     check_every: int = pfield(
-        8, f"training steps between convergence checks (1 to {MAX_CHECK_EVERY})"
+        8,
+        f"training steps between convergence checks (1 to {MAX_CHECK_EVERY})",
+        bounds=(1, MAX_CHECK_EVERY),
     )
     stable_checks: int = pfield(
-        2, "consecutive checks the greedy route must stay the same and optimal to converge"
+        2,
+        "consecutive checks the greedy route must stay the same and optimal to converge",
+        bounds=(1, math.inf),
     )
-    seed: int = pfield(0, "random seed (>= 0); the same seed and grid give the same route")
+    seed: int = pfield(
+        0, "random seed (>= 0); the same seed and grid give the same route", bounds=(0, math.inf)
+    )
     allow_unknown_start: bool = pfield(
         True,
         "the chair's own cell may be unknown (a sensor on the chair never sees the floor under "
@@ -779,3 +808,7 @@ def check_config(cfg: PlannerConfig, method: str | None = None) -> None:
         raise PlanInputError("max_seconds must be a positive finite number")
     if cfg.seed < 0:  # numpy's generators take only non-negative seeds
         raise PlanInputError(f"seed must be a non-negative integer, got {cfg.seed}")
+    try:  # the ranges the parameters declare (the explanations above first)
+        check_bounds(cfg)
+    except ValueError as exc:
+        raise PlanInputError(str(exc)) from None
