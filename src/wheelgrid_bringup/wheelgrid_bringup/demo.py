@@ -33,7 +33,7 @@ from wheelgrid_bringup.supervisor import (
 )
 from wheelgrid_common.bagio import BagError, BagReader
 from wheelgrid_common.fileio import out_folder, read_ply
-from wheelgrid_common.map_io import Grid
+from wheelgrid_common.map_io import Grid, read_map
 from wheelgrid_common.ros_env import child_env, claim_domain, configure_ros_env
 
 HEADING_ROW_COL = {"up": (-1, 0), "down": (1, 0), "left": (0, -1), "right": (0, 1)}
@@ -55,6 +55,11 @@ def heading_yaw(grid: Grid, heading: str) -> float:
     return math.atan2(b[1] - a[1], b[0] - a[0])
 
 
+def truth_grid(sim_dir: Path, truth: dict[str, Any]) -> Grid:
+    """The simulated room's true grid that ``truth.json`` names (its expected grid)."""
+    return read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+
+
 def room_cells_in_grid(
     sim_dir: Path,
     truth: dict[str, Any],
@@ -66,9 +71,7 @@ def room_cells_in_grid(
     """Truth start/goal cells and heading (room frame) as cells and heading of ``grid``."""
     import numpy as np
 
-    from wheelgrid_common.map_io import read_map
-
-    room = read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+    room = truth_grid(sim_dir, truth)
     m = np.asarray(truth["map_from_room"], dtype=float)
 
     def to_map(cell: tuple[int, ...]) -> np.ndarray:
@@ -144,10 +147,8 @@ def cells_outside_room(
         return None
     import yaml
 
-    from wheelgrid_common.map_io import read_map
-
     try:
-        room = read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+        room = truth_grid(sim_dir, truth)
     except (OSError, ValueError, yaml.YAMLError):
         return None  # the run judges its cells on the live grid, as without truth
     for name, cell in cells.items():
@@ -185,9 +186,7 @@ def paper_check(
     free cells: a grid or a route other than the paper's was OK too, without a word."""
     import numpy as np
 
-    from wheelgrid_common.map_io import read_map
-
-    room = read_map(sim_dir / truth.get("expected_grid", "expected_grid.yaml"))
+    room = truth_grid(sim_dir, truth)
     m = np.asarray(truth["map_from_room"], dtype=float)
     same = 0
     for r in range(room.rows):
