@@ -481,6 +481,16 @@ def user_folder(text: str) -> Path:
     return _expand_user(text).absolute()
 
 
+def check_user_folder(text: str, name: str = "output_dir") -> None:
+    """``ValueError`` naming parameter ``name`` where :func:`user_folder` cannot place
+    ``text`` (``~maps`` for ``~/maps``): a node checks it at start and on a live change, not
+    when a save is asked for (the save raised and the node died)."""
+    try:
+        user_folder(text)
+    except OSError as exc:
+        raise ValueError(f"{name}: {exc.strerror}") from None
+
+
 def _expand_user(text: str) -> Path:
     """``Path(text).expanduser()``. ``~name`` is user name's home: where there is no such user
     (``~maps`` for ``~/maps``) pathlib raises RuntimeError, which no caller caught:

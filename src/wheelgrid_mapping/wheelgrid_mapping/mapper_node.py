@@ -36,7 +36,13 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.fileio import matrix_to_quat, new_folder, pose_or_nan, user_folder
+from wheelgrid_common.fileio import (
+    check_user_folder,
+    matrix_to_quat,
+    new_folder,
+    pose_or_nan,
+    user_folder,
+)
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.pointcloud2 import (
     CloudError,
@@ -299,10 +305,7 @@ class MapperNode(Node):  # type: ignore[misc]
             raise ValueError("max_queue must be >= 1 and max_kept_frames >= 0")
         if not c.map_frame:
             raise ValueError("map_frame must not be empty")
-        try:  # `~maps` for `~/maps`: known at start, not when a save is asked for
-            user_folder(c.output_dir)
-        except OSError as exc:
-            raise ValueError(f"output_dir: {exc.strerror}") from None
+        check_user_folder(c.output_dir)  # `~maps` for `~/maps`
 
     def _log_once(self, key: str, text: str, warn: bool = True) -> None:
         if key not in self._logged:

@@ -36,7 +36,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from wheelgrid_common import params
-from wheelgrid_common.fileio import user_folder
+from wheelgrid_common.fileio import check_user_folder, user_folder
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
 from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
@@ -66,15 +66,6 @@ def check_rate(hz: float) -> None:
         raise ValueError(f"max_rate_hz must be in [0.001, 100] Hz, not {hz}")
 
 
-def check_output_dir(text: str) -> None:
-    """``ValueError`` for an ``output_dir`` that names no folder (``~maps`` for ``~/maps``:
-    ``~/save`` raised, uncaught, and the node died, the drive losing its grid)."""
-    try:
-        user_folder(text)
-    except OSError as exc:
-        raise ValueError(f"output_dir: {exc.strerror}") from None
-
-
 class GridNode(Node):
     """Subscribes the map cloud, publishes the safe grid and the fine map, saves on request."""
 
@@ -86,7 +77,7 @@ class GridNode(Node):
             self.grid_cfg = grid_config(self.cfg)
             self.grid_cfg.validate()
             check_rate(self.cfg.max_rate_hz)
-            check_output_dir(self.cfg.output_dir)
+            check_user_folder(self.cfg.output_dir)
         except ValueError as exc:
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
@@ -293,7 +284,7 @@ class GridNode(Node):
             grid_cfg = grid_config(cfg)
             grid_cfg.validate()
             check_rate(cfg.max_rate_hz)  # 1e-12 killed the node: its timer went first
-            check_output_dir(cfg.output_dir)
+            check_user_folder(cfg.output_dir)
         except (TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         with self._working():
