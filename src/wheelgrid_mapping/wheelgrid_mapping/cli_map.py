@@ -14,7 +14,7 @@ import itertools
 import sys
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,12 @@ class InputError(Exception):
 #: report.json's counts of frames skipped before registration for their stamp or frame (the
 #: rest of ``skipped`` is min_frame_interval's keyframe selection)
 STAMP_OR_FRAME_SKIPS = ("out_of_order", "stamped_ahead", "stamped_behind", "other_frame")
+
+
+def stamp_or_frame_skips(frames: Mapping[str, Any]) -> int:
+    """Frames skipped before registration for their stamp or frame, of report.json's
+    ``frames`` counts (or the Mapper's counters by the same names)."""
+    return sum(int(frames.get(k, 0)) for k in STAMP_OR_FRAME_SKIPS)
 
 
 def is_stray(path: Path) -> bool:
@@ -702,8 +708,10 @@ def _run(args: argparse.Namespace) -> int:
             if used < 10
             else ""
         )
-        fr = mapper.report()["frames"]
-        checked = sum(fr[k] for k in STAMP_OR_FRAME_SKIPS)
+        # the counters report.json names them by (no whole report: it measures the map too)
+        fr = {k: int(getattr(mapper, k)) for k in STAMP_OR_FRAME_SKIPS}
+        fr["empty"] = mapper.frames_empty
+        checked = stamp_or_frame_skips(fr)
         if checked + fr["empty"] > used:
             # a bag whose clouds all carry one stamp: 40 of 41 skipped as repeats, and the
             # message spoke of levelling alone
@@ -725,7 +733,7 @@ def _run(args: argparse.Namespace) -> int:
     skipped = f", {len(bad)} unreadable skipped" if bad else ""
     if fr.get("empty"):
         skipped += f", {fr['empty']} without a valid point skipped"
-    checked = sum(fr.get(k, 0) for k in STAMP_OR_FRAME_SKIPS)
+    checked = stamp_or_frame_skips(fr)
     if checked:
         skipped += f", {checked} skipped for their stamps or frame"
     if fr.get("skipped", 0) > checked:  # the rest: min_frame_interval's keyframe selection
