@@ -559,6 +559,7 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
     nxt, rew = mdp.nxt.ravel(), mdp.rew.ravel()
     terminal = mdp.terminal
     tol = 2 * noise
+    cost_tol = cost_tolerance(cfg, optimal)  # how near the optimum a learned route must come
     # exploring starts: a random permutation of every non-goal state (the start included)
     pos = rng.permutation(nonterminal)[:B] if len(nonterminal) >= B else rng.choice(nonterminal, B)
     pos[0] = mdp.start
@@ -610,7 +611,7 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
         if steps % check_every == 0:
             found = _greedy_route(Q2, mdp, tol)
             route, route_cost = found if found else (None, math.nan)
-            good = found is not None and abs(found[1] - optimal) <= cost_tolerance(cfg, optimal)
+            good = found is not None and abs(found[1] - optimal) <= cost_tol
             if good and route == prev_route:
                 stable += 1
             else:
