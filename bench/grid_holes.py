@@ -9,7 +9,8 @@ the number of draws (the hole nudged by 2 cm a draw, the noise redrawn) on which
 touches still reads FREE, with the default GridConfig (``alignment: map``):
 
 * in a cell's middle (cell (2, 1), centred at (1.8, 1.8) m); and so with one point over it, in
-  the band (50 cm up) or at floor height;
+  the band (50 cm up) or at floor height, or a cable lying across it (a line of points 1 cm
+  up, 2 cm apart);
 * on the corner of four cells (centred at (2.4, 2.4) m);
 * as a trench across the room along the cell border x = 2.4 m;
 * in cell (2, 1) and reaching a few centimetres past x = 2.4 m into cell (2, 2): whether that
@@ -65,13 +66,16 @@ def free_draws(kind: str, size: float, noise: float, draws: int) -> int:
     for seed in range(draws):
         shift = 0.02 * seed
         speck = None
-        if kind.startswith("middle"):  # "middle+band" / "middle+floor": one point over it
+        if kind.startswith("middle"):  # "middle+band|floor|cable": something over it
             c = 1.8 + shift
             hole, cells = (c - size / 2, c + size / 2, c - size / 2, c + size / 2), [(2, 1)]
             if kind.endswith("+band"):
                 speck = [c, c, 0.5]  # a speck of noise, a cord's tip over a stairwell
             elif kind.endswith("+floor"):
                 speck = [c, c, -0.03]  # a stray return at floor height
+            elif kind.endswith("+cable"):  # a cable lying across it, one line of map points
+                xs = np.arange(c - size / 2 - 0.1, c + size / 2 + 0.1, SPACING)
+                speck = np.column_stack([xs, np.full(xs.size, c), np.full(xs.size, 0.01)])
         elif kind == "corner":
             c = 2.4 + shift
             hole = (c - size / 2, c + size / 2, c - size / 2, c + size / 2)
@@ -86,7 +90,7 @@ def free_draws(kind: str, size: float, noise: float, draws: int) -> int:
             cells = [(r, col) for r in range(4) for col in (1, 2)]
         pts = room(hole, noise, seed)
         if speck is not None:
-            pts = np.vstack([pts, [speck]])
+            pts = np.vstack([pts, np.atleast_2d(speck)])
         data = build_grid(pts, GridConfig(alignment="map")).grid.data
         count += int(any(data[rc] == FREE for rc in cells))
     return count
@@ -104,13 +108,14 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"hole in a cell's middle, noise {noise * 100:.1f} cm: free on {sizes}")
     for kind, what in (
-        ("middle+band", "a lone point at 50 cm"),
-        ("middle+floor", "a stray point at floor height"),
+        ("middle+band", "a lone point at 50 cm over it"),
+        ("middle+floor", "a stray point at floor height over it"),
+        ("middle+cable", "a cable lying across it (a line of map points 1 cm up)"),
     ):
         sizes = " ".join(
             f"{s * 100:.0f} cm {free_draws(kind, s, 0.01, n)}/{n}" for s in (0.55, 0.65, 0.75)
         )
-        print(f"hole in a cell's middle with {what} over it, noise 1.0 cm: free on {sizes}")
+        print(f"hole in a cell's middle with {what}, noise 1.0 cm: free on {sizes}")
     reach = " ".join(
         f"{d * 100:.0f} cm {sum(free_draws(f'edge{s}', d, 0.01, n) for s in (0.55, 0.6, 0.7))}"
         f"/{3 * n}"

@@ -734,6 +734,35 @@ def test_a_lone_speck_in_the_band_over_an_unseen_hole_does_not_make_its_cell_fre
     )
 
 
+def test_a_stray_floor_return_over_an_unseen_hole_does_not_make_its_cell_free():
+    """One return at floor height in the middle of a 68 cm unseen hole (a stray point, a
+    mixed pixel) blocked every 35 cm square the hole rule could fit, and the cell read free (a
+    review: 5 of 5 draws at 55-65 cm). A patch of floor with fewer than PATCH_MIN_FLOOR pixels
+    holding a return counts for nothing against a hole now; a wide patch of seen floor in the
+    hole (a 20 cm square: no 35 cm square fits beside it) still does."""
+    from wheelgrid_nav.grid import PATCH_MIN_FLOOR
+    from wheelgrid_nav.grid_synth import room_cloud
+
+    room = room_cloud([], size=(3.6, 3.6), spacing=0.02)
+    x, y, z = room.T
+    middle = (1, 1)
+    in_hole = (z == 0.0) & (np.abs(x - 1.8) < 0.34) & (np.abs(y - 1.8) < 0.34)
+    pit = room[~in_hole]
+    assert build_grid(pit).grid.data[middle] != FREE
+    # one return; two, 5 cm apart (two pixels, one patch once floor_fill grows them)
+    for speck in ([[1.8, 1.8, -0.03]], [[1.8, 1.8, 0.0], [1.85, 1.8, 0.01]]):
+        assert len(speck) < PATCH_MIN_FLOOR
+        res = build_grid(np.vstack([pit, speck]))
+        assert res.grid.data[middle] != FREE, speck
+        # the rule, not the observed share, keeps it from free
+        assert res.observed[middle] >= GridConfig().min_observed_fraction
+        with_rule_off = build_grid(np.vstack([pit, speck]), GridConfig(unobserved_patch=0))
+        assert with_rule_off.grid.data[middle] == FREE
+    # the floor seen in the hole's middle, 20 cm across, leaves no 35 cm square unseen
+    island = room[in_hole & (np.abs(x - 1.8) < 0.1) & (np.abs(y - 1.8) < 0.1)]
+    assert build_grid(np.vstack([pit, island])).grid.data[middle] == FREE
+
+
 def test_an_unseen_hole_across_cell_borders_keeps_every_cell_it_reaches_from_free():
     """A 60 cm hole 10 cm off the corner of four cells: a 35 cm square fits in it, but its
     centres (where the square may sit) all lie in one cell. Only that cell was kept from free,

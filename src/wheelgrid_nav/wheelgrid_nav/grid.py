@@ -1059,9 +1059,7 @@ def band_for_patches(band: np.ndarray, floor_points: np.ndarray) -> np.ndarray:
     with no floor seen beside it. One point in the band over an unseen stairwell (a speck of
     noise, the tip of a cord hanging over it) blocked every 35 cm square the rule could fit,
     and a 70 cm hole's cell read free (a review; 5 of 5 draws). Stricter only: a cell such a
-    speck kept free is unknown now, never the reverse. A floor-height speck still blocks the
-    squares: the camera's few returns off the floor just ahead of the chair's start are such
-    specks, and only they keep the bundled bag's first route cell free (README, Safety)."""
+    speck kept free is unknown now, never the reverse. Floor specks: :func:`floor_for_patches`."""
     rows, cols, comp = _components(band)
     if comp.size == 0:
         return band
@@ -1069,6 +1067,27 @@ def band_for_patches(band: np.ndarray, floor_points: np.ndarray) -> np.ndarray:
     lone = small & ~_dilate(floor_points, 1)[rows, cols]
     out = band.copy()
     out[rows[lone], cols[lone]] = False
+    return out
+
+
+#: Pixels with a floor return a patch of seen floor needs to count against an unseen hole: a
+#: stray return or two over a stairwell does not.
+PATCH_MIN_FLOOR = 3
+
+
+def floor_for_patches(floor: np.ndarray, floor_points: np.ndarray) -> np.ndarray:
+    """The floor :func:`unobserved_patches` takes for seen: ``floor`` (grown by floor_fill)
+    without its specks, the 8-connected patches of it holding fewer than PATCH_MIN_FLOOR pixels
+    with a floor return (``floor_points``). One stray return at floor height over an unseen
+    55-65 cm hole blocked every square the rule could fit, and the cell read free (a review; 5
+    of 5 draws). Stricter only: a cell such a speck kept free is unknown now, never the reverse.
+    A cable across the hole is a long patch and still blocks the squares (README, Safety)."""
+    rows, cols, comp = _components(floor)
+    out = floor.copy()
+    if comp.size:
+        raw = np.bincount(comp, weights=floor_points[rows, cols])[comp]
+        speck = raw < PATCH_MIN_FLOOR
+        out[rows[speck], cols[speck]] = False
     return out
 
 
@@ -1203,7 +1222,13 @@ def build_grid(
     guard_only = guard & ~occupied
     occupied |= guard
     observed = cell_density(floor | black, k, k)
-    patch = unobserved_patches(floor, band_for_patches(band_black, counts[0] > 0), ring, cfg, k)
+    patch = unobserved_patches(
+        floor_for_patches(floor, counts[0] > 0),
+        band_for_patches(band_black, counts[0] > 0),
+        ring,
+        cfg,
+        k,
+    )
     data = np.full((rows, cols), UNKNOWN, dtype=np.int8)
     data[(observed >= cfg.min_observed_fraction) & ~patch] = FREE
     data[occupied] = OCCUPIED
