@@ -196,6 +196,26 @@ def test_map_savers_unknown_gray_stays_unknown_whatever_free_thresh(tmp_path):
     assert read_map(tmp_path / "n.yaml").data.tolist() == [[0, 100, -1]]
 
 
+def test_the_unknown_gray_is_occupied_where_occupied_thresh_makes_it_so(tmp_path):
+    """With occupied_thresh under 0.196 (or under 0.804 with negate 1) Nav2 reads the gray 205
+    occupied; it was unknown here whatever the thresholds, and a plan could start in that cell
+    (an unknown start cell is allowed) though Nav2 calls it occupied (a review)."""
+    (tmp_path / "m.pgm").write_bytes(b"P5\n3 1\n255\n\xcd\xfe\xfe")
+    base = "image: m.pgm\nmode: trinary\nresolution: 1.2\norigin: [0.0, 0.0, 0.0]\n"
+    (tmp_path / "low.yaml").write_text(base + "occupied_thresh: 0.15\nfree_thresh: 0.1\n")
+    assert read_map(tmp_path / "low.yaml").data.tolist() == [[100, 0, 0]]
+    # negate: 1, whose unknown gray is 255 - 205 = 50 (occupancy 0.196 again), black free
+    (tmp_path / "neg.yaml").write_text(
+        base + "negate: 1\noccupied_thresh: 0.15\nfree_thresh: 0.1\n"
+    )
+    (tmp_path / "m.pgm").write_bytes(b"P5\n3 1\n255\n\x32\x00\x00")
+    assert read_map(tmp_path / "neg.yaml").data.tolist() == [[100, 0, 0]]
+    # the defaults: unknown, as map_saver meant it
+    (tmp_path / "def.yaml").write_text(base)
+    (tmp_path / "m.pgm").write_bytes(b"P5\n3 1\n255\n\xcd\xfe\xfe")
+    assert read_map(tmp_path / "def.yaml").data.tolist() == [[-1, 0, 0]]
+
+
 def test_pgm_samples_above_maxval_or_a_zero_maxval_are_refused(tmp_path):
     (tmp_path / "g.yaml").write_text("image: g.pgm\nresolution: 1.2\n")
     for pgm, message in (

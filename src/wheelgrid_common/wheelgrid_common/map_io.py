@@ -220,7 +220,7 @@ def read_map(yaml_path: str | Path) -> Grid:
     that is not are refused or corrected: ``free_thresh >= occupied_thresh`` (the free test
     overwrote occupied cells), and in trinary mode map_saver's unknown gray (205), which any
     ``free_thresh`` above 0.196 (Nav2 map_saver's default is 0.25) reads as free, stays
-    unknown here."""
+    unknown here (occupied where ``occupied_thresh`` makes it so, as in Nav2)."""
     yaml_path = Path(yaml_path)
     if yaml_path.is_file():
         with yaml_path.open("rb") as f:
@@ -289,7 +289,10 @@ def read_map(yaml_path: str | Path) -> Grid:
                 data[alpha < 255.0] = UNKNOWN
         else:
             gray = 255.0 - PIX_UNKNOWN if negate else PIX_UNKNOWN
-            data[np.rint(img) == gray] = UNKNOWN
+            # only where the thresholds do not make it occupied: with occupied_thresh under
+            # 0.196 Nav2 reads the gray occupied, and an unknown start cell is allowed (a plan
+            # started in a cell Nav2 calls occupied)
+            data[(np.rint(img) == gray) & (data != OCCUPIED)] = UNKNOWN
     return Grid(
         data=data,
         resolution=resolution,
