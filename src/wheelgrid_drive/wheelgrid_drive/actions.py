@@ -9,7 +9,8 @@ So each move is converted, given the chair's current heading ``d``, into an actu
 * move == heading turned left  -> LEFT_FORWARD   (turn 90 deg to the chair's left, then forward)
 * move == heading turned right -> RIGHT_FORWARD  (turn 90 deg to the chair's right, then forward)
 * move == opposite of heading  -> BACKWARD       (heading kept: reversing one cell is safer and
-  shorter than a 180 deg turn in place, and it is what the paper's converter does)
+  shorter than a 180 deg turn in place; the paper lists "backward" among the chair's actions
+  but no Table II row uses it, so the kept heading is this project's choice)
 
 Grid directions are IMAGE directions (see docs/CONVENTIONS.md): up = row - 1, down = row + 1,
 left = col - 1, right = col + 1. Seen from above with row 0 at the top, a chair facing "down"

@@ -146,7 +146,7 @@ class GridConfig:
     )
     drop_depth: float = field(
         0.10,
-        "points more than this below the floor are a drop (a step down, a hole) and block like "
+        "points this far or more below the floor are a drop (a step down, a hole) and block like "
         f"obstacles; in (0, {MAX_DROP_DEPTH}]: anything shallower is read as floor",
         "m",
         bounds=(0.0, MAX_DROP_DEPTH),

@@ -576,8 +576,10 @@ def _learn(mdp: _Mdp, cfg: PlannerConfig, optimal: float, deadline: float) -> di
         s2 = nxt[idx]
         done = terminal[s2]
         target = rew[idx] + gamma * np.where(done, 0.0, _rowmax(Q2[s2]))
-        # Deterministic moves: duplicate (s, a) pairs in a batch share one target, so a plain
-        # fancy-index write is the same sample-based update as applying them one by one.
+        # Deterministic moves: duplicate (s, a) pairs in a batch share one target, and a plain
+        # fancy-index write applies it once (the last write wins). That is one update where
+        # applying them one by one would be several: the same with alpha 1 (the default),
+        # a smaller step towards the same target otherwise, still a Q-learning update.
         Q[idx] += alpha * (target - Q[idx])
         return s2
 
