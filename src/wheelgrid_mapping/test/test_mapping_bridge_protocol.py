@@ -293,3 +293,43 @@ def test_fuzz_mutated_valid_stream(
 def test_fuzz_claimed_lengths(length: int, mtype: int, tail: bytes) -> None:
     """A peer claiming up to 4 GiB never makes the decoder buffer more than its limit."""
     _run_decoder([bp.PREFIX.pack(bp.MAGIC, bp.VERSION, mtype, 0, length) + tail, _VALID[0]])
+
+
+def test_the_ranges_the_bridge_and_depth_to_cloud_declare_hold_every_valid_value_and_no_other():
+    """Neither node's parameters carried a range (`ros2 param describe` showed none, and rqt
+    drew no slider). Each declared range holds every value the node takes and no other: the
+    bridge's network settings are checked where its server is made, before anything listens."""
+    from wheelgrid_common.testing import check_declared_bounds
+    from wheelgrid_mapping import depth_to_cloud_node as d2c
+    from wheelgrid_mapping import iphone_bridge_node as bridge
+
+    def check_bridge(cfg: bridge.BridgeConfig) -> None:
+        bridge.check_config(cfg)
+        bp.BridgeServer(
+            lambda frame, client: None,
+            lambda level, text: None,
+            bind_address=cfg.bind_address,
+            port=cfg.port,
+            token=cfg.token,
+            max_clients=cfg.max_clients,
+            max_frame_bytes=cfg.max_frame_bytes,
+            hello_timeout_s=cfg.hello_timeout_s,
+            idle_timeout_s=cfg.idle_timeout_s,
+            max_errors_in_row=cfg.max_errors_in_row,
+        )
+
+    assert check_declared_bounds(bridge.BridgeConfig, check_bridge) == [
+        "hello_timeout_s",
+        "idle_timeout_s",
+        "max_clients",
+        "max_errors_in_row",
+        "max_frame_bytes",
+        "min_confidence",
+        "port",
+    ]
+    assert check_declared_bounds(d2c.DepthToCloudConfig, d2c.check_config) == [
+        "min_confidence",
+        "mm_scale",
+        "queue_size",
+        "sync_tolerance_s",
+    ]

@@ -39,12 +39,20 @@ class DepthToCloudConfig:
     )
     points_topic: str = field("iphone/points", "PointCloud2 output, in the depth image's frame")
     min_confidence: int = field(
-        1, "pixels with confidence below this become NaN (ARKit: 0 low, 1 medium, 2 high)"
+        1,
+        "pixels with confidence below this become NaN (ARKit: 0 low, 1 medium, 2 high)",
+        bounds=(0, 2),
     )
     organized: bool = field(True, "organised cloud (H x W, NaN kept) or dense (valid only)")
-    mm_scale: float = field(0.001, "metres per unit of 16UC1 depth", "m")
-    sync_tolerance_s: float = field(0.001, "largest stamp difference still 'the same frame'", "s")
-    queue_size: int = field(10, "messages kept per stream while waiting for a match")
+    mm_scale: float = field(
+        0.001, "metres per unit of 16UC1 depth (> 0)", "m", bounds=(0.0, math.inf)
+    )
+    sync_tolerance_s: float = field(
+        0.001, "largest stamp difference still 'the same frame'", "s", bounds=(0.0, math.inf)
+    )
+    queue_size: int = field(
+        10, "messages kept per stream while waiting for a match", bounds=(1, math.inf)
+    )
 
 
 def check_config(cfg: DepthToCloudConfig) -> None:

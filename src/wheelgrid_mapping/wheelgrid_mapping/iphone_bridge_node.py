@@ -18,6 +18,7 @@ launcher waits for before a phone streams: a frame sent before is lost).
 from __future__ import annotations
 
 import array
+import math
 import os
 import sys
 import threading
@@ -30,7 +31,9 @@ from wheelgrid_common.params import check_no_undeclared, field
 from wheelgrid_mapping.bridge_protocol import (
     DEPTH_U16_MM,
     MAX_FRAME_BYTES,
+    MAX_FRAME_LIMIT,
     MAX_STAMP_S,
+    MIN_FRAME_LIMIT,
     BridgeServer,
     Frame,
 )
@@ -55,23 +58,36 @@ class BridgeConfig:
     bind_address: str = field(
         "127.0.0.1", "address to listen on; anything but loopback requires a token"
     )
-    port: int = field(DEFAULT_PORT, "TCP port to listen on (0 = any free port)")
+    port: int = field(DEFAULT_PORT, "TCP port to listen on (0 = any free port)", bounds=(0, 65535))
     token: str = field("", f"shared secret the phone must send in HELLO (or env {TOKEN_ENV})")
-    max_clients: int = field(1, "phones streaming at once; later ones are refused as busy")
-    max_frame_bytes: int = field(MAX_FRAME_BYTES, "largest message accepted", "bytes")
-    hello_timeout_s: float = field(5.0, "a client that sends no HELLO in this time is dropped", "s")
+    max_clients: int = field(
+        1, "phones streaming at once; later ones are refused as busy", bounds=(1, math.inf)
+    )
+    max_frame_bytes: int = field(
+        MAX_FRAME_BYTES,
+        "largest message accepted",
+        "bytes",
+        bounds=(MIN_FRAME_LIMIT, MAX_FRAME_LIMIT),
+    )
+    hello_timeout_s: float = field(
+        5.0, "a client that sends no HELLO in this time is dropped", "s", bounds=(0.0, math.inf)
+    )
     idle_timeout_s: float = field(
         5.0,
         "a client that has said HELLO and then makes no progress for this long (no whole "
         "message, nor 64 KiB of one) is dropped, freeing its slot (a phone that lost Wi-Fi "
         "sends no FIN); a stream of 10+ Hz is never that idle",
         "s",
+        bounds=(0.0, math.inf),
     )
-    max_errors_in_row: int = field(20, "bad messages in a row before a client is disconnected")
+    max_errors_in_row: int = field(
+        20, "bad messages in a row before a client is disconnected", bounds=(1, math.inf)
+    )
     min_confidence: int = field(
         1,
         "ARKit confidence (0 low, 1 medium, 2 high) a pixel needs to become a point; low "
         "confidence pixels are mostly flying pixels at edges. Dropped pixels are NaN (unknown)",
+        bounds=(0, 2),
     )
     organized: bool = field(True, "publish /iphone/points organised (H x W, NaN kept) or dense")
     stamp_mode: str = field(
