@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import shutil
 import struct
 import sys
@@ -311,23 +312,64 @@ def _on_a_copy(path: Path, make: Any, open_reader: Any) -> Any:
         raise
 
 
-def cut_chunk_records(path: Path, extent: Extent) -> bytes:
+#: Compressed bytes fed to a decompressor at a time: what a salvage counts as given back is
+#: known to this much.
+_FEED = 4096
+
+
+def _decompressed_prefix(codec: str, data: bytes) -> list[tuple[int, bytes]] | None:
+    """What a streaming decompressor gives for the first bytes of a compressed chunk cut off
+    mid-way, as (compressed bytes fed, output) steps; None for a codec it does not know."""
+    if codec == "zstd":
+        try:
+            from compression import zstd  # type: ignore[import-not-found]
+        except ImportError:
+            from backports import zstd  # type: ignore[import-not-found,no-redef]
+        dec: Any = zstd.ZstdDecompressor()
+    elif codec == "lz4":
+        import lz4.frame  # type: ignore[import-untyped]
+
+        dec = lz4.frame.LZ4FrameDecompressor()
+    else:
+        return None
+    steps = []
+    for at in range(0, len(data), _FEED):
+        try:
+            out = dec.decompress(data[at : at + _FEED])
+        except Exception:  # damaged past here: what came out before stands
+            break
+        steps.append((min(at + _FEED, len(data)), out))
+    return steps
+
+
+def cut_chunk_records(path: Path, extent: Extent) -> tuple[bytes, int]:
     """The complete Schema, Channel and Message records inside the chunk the cut went through,
-    where that chunk is uncompressed (rosbags' writer, rosbag2's "none" compression): b"" for
-    a compressed one, or none. The walk from the header drops the chunk whole, and a cut in a
-    recording's first chunk gave back nothing, its first cloud and pose intact (a review)."""
+    and how many of the file's bytes after ``extent.data_end`` they account for: (b"", 0)
+    where there is no such chunk or its compression is unknown. The walk from the header drops
+    the chunk whole: a cut in a recording's first chunk gave back nothing, its first cloud and
+    pose intact (a review). A chunk compressed with zstd (libmcap's default; rosbag2's
+    ``zstd_fast`` and ``zstd_small`` presets) or lz4 is read as far as a streaming
+    decompressor gets, which is up to the cut."""
     with path.open("rb") as f:
         f.seek(extent.data_end)
         head = f.read(1 + 8 + 8 + 8 + 8 + 4 + 4)
         if len(head) < 41 or head[0] != _CHUNK:
-            return b""
+            return b"", 0
         (name_len,) = struct.unpack("<I", head[37:41])
-        if name_len:  # compressed: nothing before its end can be read
-            return b""
+        name = f.read(name_len)
         sized = f.read(8)  # the records' byte count, then the records
-        if len(sized) < 8:
-            return b""
-        body = f.read(struct.unpack("<Q", sized)[0])
+        if len(name) < name_len or len(sized) < 8:
+            return b"", 0
+        codec = name.decode("utf-8", "replace")
+        at = 41 + name_len + 8  # where the records begin, from data_end
+        stored = f.read(struct.unpack("<Q", sized)[0])
+    if name_len:
+        steps = _decompressed_prefix(codec, stored)
+        if not steps:
+            return b"", 0
+        body = b"".join(out for _, out in steps)
+    else:
+        steps, body = [], stored
     out, pos = bytearray(), 0
     while pos + 9 <= len(body):
         op, length = body[pos], struct.unpack("<Q", body[pos + 1 : pos + 9])[0]
@@ -336,7 +378,21 @@ def cut_chunk_records(path: Path, extent: Extent) -> bytes:
             break
         out += body[pos:end]
         pos = end
-    return bytes(out)
+    if not out:
+        return b"", 0
+    if not name_len:
+        return bytes(out), at + pos
+    # the compressed bytes it took to make the records given back: within the feed that made
+    # the last of them, in proportion (a block of lz4 can hold the end of a record and the
+    # start of the one the cut went through)
+    made = fed_before = 0
+    for fed, chunk_out in steps:
+        if made + len(chunk_out) >= pos:
+            share = (pos - made) / max(1, len(chunk_out))
+            return bytes(out), at + fed_before + math.ceil(share * (fed - fed_before))
+        made += len(chunk_out)
+        fed_before = fed
+    return bytes(out), at + len(stored)
 
 
 def _salvaged_reader(path: Path, extent: Extent, inner: bytes) -> Any:
@@ -367,8 +423,8 @@ def _open_file(path: Path, res: Recovery) -> Any:
     res.already_complete += int(ext.complete)
     if ext.complete:
         return _reader(path, ext)
-    inner = cut_chunk_records(path, ext)
-    res.bytes_lost += ext.size - ext.data_end - len(inner)
+    inner, used = cut_chunk_records(path, ext)
+    res.bytes_lost += ext.size - ext.data_end - used
     return _salvaged_reader(path, ext, inner) if inner else _reader(path, ext)
 
 
