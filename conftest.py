@@ -1,26 +1,52 @@
-"""Workspace-wide pytest set-up: every test process talks DDS on loopback only, in its own domain.
+"""Workspace-wide pytest set-up: every test process talks DDS on loopback only, in a ROS domain
+no other wheelgrid process on this machine holds.
 
-scripts/test.sh already exports these; this also covers a bare `pytest` run by a developer.
+scripts/test.sh sources scripts/env.sh first; this also covers a bare `pytest` run by a
+developer, whose shell may have set other values for a live chain or another machine.
 """
 
+import atexit
 import os
 import random
+import shutil
 import tempfile
 from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
-if os.environ.get("PYTEST_XDIST_WORKER", "").startswith("gw"):
-    # pytest -n: every worker inherits the run's domain, and two workers' nodes of one name
-    # (/mapper, /planner) would hear each other. Each worker takes its own, spread over 1-100.
-    _worker = int(os.environ["PYTEST_XDIST_WORKER"][2:])
-    _workers = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)
-    _base = int(os.environ["ROS_DOMAIN_ID"])
-    os.environ["ROS_DOMAIN_ID"] = str((_base - 1 + _worker * (100 // _workers)) % 100 + 1)
-os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="wheelgrid-test-log."))
+from wheelgrid_common.ros_env import claim_domain, rmw_missing
+
+# Loopback discovery, whatever the shell says: a ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET kept
+# from a shell set up for a remote RViz had the test nodes discover across the subnet.
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+# Each test process (each pytest-xdist worker too) claims its own domain with the demo's
+# lock files, never the shell's: scripts/env.sh gives every shell of a checkout its domain, so
+# a `wheelgrid launch` in another terminal shares it, and two runs at once that drew the same
+# random domain failed each other's node tests (5 of 21 each, a review). The lock is held as
+# long as this process lives.
+_inherited = os.environ.get("ROS_DOMAIN_ID", "")
+_first = random.randint(1, 100)
+_order = [(_first - 1 + i) % 100 + 1 for i in range(100)]
+_claim = claim_domain(d for d in _order if str(d) != _inherited)
+if _claim is None:  # every domain of 1-100 held: share one, as before there were claims
+    _claim = (next(d for d in _order if str(d) != _inherited), -1)
+os.environ["ROS_DOMAIN_ID"] = str(_claim[0])
+
+
+def _remove_if_no_file(folder: str) -> None:
+    """Every run left its log folder behind, empty (265 in /tmp on a review's machine)."""
+    if not any(files for _, _, files in os.walk(folder)):
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+if "ROS_LOG_DIR" not in os.environ:
+    os.environ["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix="wheelgrid-test-log.")
+    atexit.register(_remove_if_no_file, os.environ["ROS_LOG_DIR"])
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+_rmw = rmw_missing(os.environ)
+if _rmw:  # rclpy exits 102 at its first init, and pytest with it, without a word
+    pytest.exit(_rmw, returncode=2)
 
 
 @pytest.fixture

@@ -1,6 +1,16 @@
 # Sourced by the Makefile targets: the venv, the colcon install space, and a ROS environment that
 # never talks beyond this machine. Safe to source by hand too: `. scripts/env.sh`.
 _wg_root=$(cd "$(dirname "${BASH_SOURCE[0]:-$0}")/.." && pwd)
+case $_wg_root in
+  *[[:space:]]*)
+    # colcon's install/setup.sh splits its own path at spaces: nothing of wheelgrid was found
+    # ("wheelgrid: command not found", ModuleNotFoundError), after a set-up that went well
+    echo "env.sh: the checkout's path has a space in it ($_wg_root), which colcon's setup" \
+      "scripts cannot take: move or clone it to a path without one" >&2
+    unset _wg_root
+    return 1 2>/dev/null || exit 1
+    ;;
+esac
 export PATH="$_wg_root/.venv/bin:$PATH"
 # colcon's setup scripts reference unset variables; source them without nounset.
 case $- in *u*) _wg_u=1; set +u;; *) _wg_u=0;; esac
@@ -14,5 +24,25 @@ export ROS_LOG_DIR=${ROS_LOG_DIR:-$_wg_root/log/ros}
 # a different domain in every terminal. The tests pick their own (scripts/test.sh).
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $(printf '%s' "$_wg_root" | cksum | cut -d' ' -f1) % 100 + 1 ))}
 export RMW_IMPLEMENTATION=${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}
+if [ "$RMW_IMPLEMENTATION" != rmw_fastrtps_cpp ]; then
+  # one left from another ROS install (rmw_cyclonedds_cpp) that this one lacks: rclpy exits
+  # 102 at its first init, and the test suite and every node with it, without a word
+  _wg_found=0
+  _wg_ifs=$IFS
+  IFS=:
+  for _wg_d in "$_wg_root/.venv/lib" ${LD_LIBRARY_PATH:-}; do
+    [ -e "$_wg_d/lib$RMW_IMPLEMENTATION.so" ] && _wg_found=1
+  done
+  for _wg_d in ${AMENT_PREFIX_PATH:-}; do
+    [ -e "$_wg_d/lib/lib$RMW_IMPLEMENTATION.so" ] && _wg_found=1
+  done
+  IFS=$_wg_ifs
+  if [ "$_wg_found" = 0 ]; then
+    echo "env.sh: RMW_IMPLEMENTATION=$RMW_IMPLEMENTATION is not installed here: using" \
+      "rmw_fastrtps_cpp, which the ROS wheels bring" >&2
+    export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+  fi
+  unset _wg_found _wg_ifs _wg_d
+fi
 mkdir -p "$ROS_LOG_DIR"
 unset _wg_root _wg_u

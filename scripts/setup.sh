@@ -4,12 +4,24 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
+case $ROOT in
+  *[[:space:]]*)
+    # colcon's install/setup.sh splits its own path at spaces: the set-up went well, and then
+    # nothing of wheelgrid could be found
+    echo "setup: the checkout's path has a space in it ($ROOT), which colcon's setup" \
+      "scripts cannot take: move or clone it to a path without one" >&2
+    exit 2
+    ;;
+esac
 PY=${PYTHON:-python3}
 
 # Open3D's wheel links against a few Debian libraries; a bare image may lack them.
 missing=()
+# read once: `ldconfig -p | grep -q` under pipefail failed when grep quit first (SIGPIPE),
+# and about one set-up in ten said a library was missing that was there
+libs=$(ldconfig -p)
 for lib in libusb-1.0.so.0 libEGL.so.1 libGL.so.1 libX11.so.6 libudev.so.1 libgomp.so.1; do
-  ldconfig -p | grep -q "$lib" || missing+=("$lib")
+  grep -qF "$lib" <<<"$libs" || missing+=("$lib")
 done
 if [ ${#missing[@]} -gt 0 ]; then
   echo "setup: missing system libraries: ${missing[*]}" >&2
@@ -23,7 +35,10 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 
 mkdir -p .stamps log
-if [ ! -x .venv/bin/python ]; then
+# pip too: a set-up killed between the venv's python and ensurepip's pip left a venv every
+# later run failed on (".venv/bin/pip: No such file or directory")
+if [ ! -x .venv/bin/python ] || ! .venv/bin/python -m pip --version >/dev/null 2>&1; then
+  rm -rf .venv .stamps/lock
   "$PY" -m venv .venv
 fi
 if [ ! -f .stamps/lock ] || ! cmp -s requirements.lock .stamps/lock; then

@@ -108,20 +108,56 @@ def test_a_launcher_whose_terminal_closes_stops_every_node(tmp_path):
         _cleanup(pids)
 
 
+def _hold_in_tracing_stop(pid: int) -> None:
+    """Stop ``pid`` as a debugger does (PTRACE_SEIZE, PTRACE_INTERRUPT): unlike SIGSTOP, no
+    SIGCONT resumes it and it handles no signal; SIGKILL still ends it."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.ptrace.argtypes = [ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
+    for request in (0x4206, 0x4207):  # PTRACE_SEIZE, PTRACE_INTERRUPT
+        if libc.ptrace(request, pid, None, None) != 0:
+            pytest.skip(f"ptrace refused here ({os.strerror(ctypes.get_errno())})")
+
+
 def test_a_node_that_must_be_killed_at_the_stop_makes_the_launch_fail(tmp_path):
-    """A node that ignores its SIGINT and SIGTERM (here: stopped with SIGSTOP) is killed 7 s
-    on; the launcher said "stopped grid (-9)" and exited 0, so a script never learned that a
-    node had not done what it does on its way out."""
+    """A node that handles neither its SIGINT nor its SIGTERM (here: held as a debugger holds
+    it) is killed 7 s on; the launcher said "stopped grid (-9)" and exited 0, so a script never
+    learned that a node had not done what it does on its way out."""
     proc, pids, lines = _launch(tmp_path)
     try:
-        os.kill(pids["grid"], signal.SIGSTOP)
+        _hold_in_tracing_stop(pids["grid"])
         os.kill(proc.pid, signal.SIGINT)
+        # a traced process's end reaches its tracer first: reaped here, its parent (the
+        # launcher) then sees it killed
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            _, status = os.waitpid(pids["grid"], os.WNOHANG | 0x40000000)  # __WALL
+            if status and not os.WIFSTOPPED(status):
+                break
+            time.sleep(0.05)
         assert proc.wait(timeout=60) == 1, "".join(lines[-10:])
         left = _gone(pids, 10.0)
         assert not left, f"left running: {left}"
         said = [ln for ln in lines if "did not stop cleanly" in ln]
         assert len(said) == 1, "".join(lines[-10:])
         assert said[0].startswith("wheelgrid launch: grid (exit -9) did not stop cleanly: see ")
+    finally:
+        stop_process(proc)
+        _cleanup(pids)
+
+
+def test_a_frozen_node_is_continued_and_stops_cleanly(tmp_path):
+    """A node frozen with SIGSTOP (Ctrl-Z, a debugger let go) handled neither SIGINT nor
+    SIGTERM: it was killed 7 s on, and a frozen mapper's scan was never saved on exit (a
+    review). Each stop signal now comes with SIGCONT, and it stops as any other."""
+    proc, pids, lines = _launch(tmp_path)
+    try:
+        os.kill(pids["grid"], signal.SIGSTOP)
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=60) == 0, "".join(lines[-10:])
+        assert not _gone(pids, 10.0)
+        assert not any("did not stop cleanly" in ln for ln in lines), "".join(lines[-10:])
     finally:
         stop_process(proc)
         _cleanup(pids)
@@ -167,3 +203,32 @@ def test_the_mapper_is_given_time_to_save_its_map_as_the_chain_stops(tmp_path):
     codes = sup.stop_all()
     assert saved.exists(), f"killed after {time.monotonic() - t0:.1f} s, before its save"
     assert codes["mapper"] == 0
+
+
+def test_a_node_stopped_while_it_is_still_importing_ends_cleanly(tmp_path):
+    """A Ctrl-C half a second after start-up reached the nodes inside their imports: a
+    KeyboardInterrupt traceback in every node's log and "did not stop cleanly", exit 1 (a
+    review). A node with nothing yet to save nor a chair to stop ends with status 0."""
+    from wheelgrid_bringup.supervisor import child_code
+    from wheelgrid_common.ros_env import child_env
+
+    (tmp_path / "slow_node.py").write_text(
+        "import time\nprint('importing', flush=True)\ntime.sleep(60)\ndef main():\n    return 0\n"
+    )
+    env = child_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env.get("PYTHONPATH", "")])
+    proc = subprocess.Popen(
+        [sys.executable, "-c", child_code("slow_node", "main")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "importing"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        stop_process(proc)
+    assert proc.returncode == 0 and "Traceback" not in err, err

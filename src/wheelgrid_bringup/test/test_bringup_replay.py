@@ -154,7 +154,7 @@ def test_a_replay_that_fails_mid_bag_is_said_and_ends_the_launch_with_exit_1(
     import subprocess
 
     from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
-    from wheelgrid_common.testing import chain_params, stop_process, wheelgrid_command
+    from wheelgrid_common.testing import chain_params, managed_process, wheelgrid_command
 
     bag = tmp_path / "broken"
     with BagReader(SCAN) as r, BagWriter(bag, "mcap") as w:
@@ -175,12 +175,9 @@ def test_a_replay_that_fails_mid_bag_is_said_and_ends_the_launch_with_exit_1(
         "launch", "--bag", str(bag), "--rate", "4", "--no-drive", "--duration", "8",
         "--params", str(params), "--log-dir", str(tmp_path / "logs"),
     )  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        out, err = proc.communicate(timeout=90)
-    finally:
-        stop_process(proc)
-    assert proc.returncode == 1, out + err
+    with managed_process(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        out, err = proc.communicate(timeout=90)  # a launcher outside a group of its own was
+    assert proc.returncode == 1, out + err  # not stopped on a timeout (killpg of its pid)
     said = [ln for ln in err.splitlines() if "the replay failed after" in ln]
     assert len(said) == 1 and " of 12 messages (" in said[0], out + err
     assert "Traceback" not in err

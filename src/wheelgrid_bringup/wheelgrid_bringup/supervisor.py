@@ -55,10 +55,21 @@ def die_with_parent(parent: int) -> None:
 
 
 def child_code(module: str, func: str) -> str:
-    """``python -c`` code that runs ``module.func()`` as a supervised child of this process."""
+    """``python -c`` code that runs ``module.func()`` as a supervised child of this process.
+
+    A Ctrl-C while the node's module is still being imported ends it with status 0: it has
+    nothing to save and no chair to stop yet, and a stop half a second after start-up left a
+    KeyboardInterrupt traceback in every node's log and "did not stop cleanly", exit 1 (a
+    review). Once the node runs, rclpy's own handler takes Ctrl-C."""
     return (
-        "import sys; from wheelgrid_bringup.supervisor import die_with_parent; "
-        f"die_with_parent({os.getpid()}); from {module} import {func} as m; sys.exit(m() or 0)"
+        "import sys\n"
+        "from wheelgrid_bringup.supervisor import die_with_parent\n"
+        f"die_with_parent({os.getpid()})\n"
+        "try:\n"
+        f"    from {module} import {func} as m\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(0)\n"
+        "sys.exit(m() or 0)\n"
     )
 
 

@@ -283,3 +283,122 @@ def test_a_domain_held_by_another_process_is_passed_over_until_that_process_ends
     freed = claim_domain([215], tmp_path)  # the killed holder left no stale claim behind
     assert freed is not None and freed[0] == 215 and freed[1] >= 0
     os.close(freed[1])
+
+
+def test_this_test_process_holds_its_domain_and_not_the_shells():
+    """Two test runs at once drew the same random domain and failed each other's node tests
+    (5 of 21 each), and a bare pytest after scripts/env.sh ran in the checkout's domain, a
+    live `wheelgrid launch`'s (a review): each test process claims its own."""
+    from wheelgrid_common.ros_env import claim_domain
+
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    assert 1 <= domain <= 100
+    assert claim_domain([domain]) is None  # held, by this process's conftest
+
+
+def test_a_managed_child_dies_with_a_test_process_killed_outright():
+    """A node a test started outlived a pytest killed with SIGKILL by minutes, in a session of
+    its own that nothing else reached (a review)."""
+    import subprocess
+    import sys
+
+    from wheelgrid_common.ros_env import child_env
+
+    code = (
+        "import sys, time\n"
+        "from wheelgrid_common.testing import managed_process\n"
+        "with managed_process([sys.executable, '-c', 'import time; time.sleep(120)']) as p:\n"
+        "    print(p.pid, flush=True)\n"
+        "    time.sleep(120)\n"
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=child_env()
+    )
+    assert parent.stdout is not None
+    child = int(parent.stdout.readline())
+    try:
+        parent.kill()
+        parent.wait()
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            try:
+                with open(f"/proc/{child}/stat") as f:
+                    if f.read().split(") ")[1].startswith("Z"):
+                        break  # dead, not yet reaped by its new parent
+            except FileNotFoundError:
+                break
+            time.sleep(0.05)
+        else:
+            pytest.fail("the managed child outlived its killed parent")
+    finally:
+        with __import__("contextlib").suppress(ProcessLookupError):
+            os.kill(child, 9)
+
+
+def test_an_rmw_that_is_not_installed_is_named(tmp_path):
+    """A shell left with rmw_cyclonedds_cpp from another ROS install made the suite exit 102
+    without a word (rclpy's first init): conftest and scripts/env.sh look for its library."""
+    from wheelgrid_common.ros_env import rmw_missing
+
+    assert rmw_missing({}) == "" and rmw_missing({"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}) == ""
+    env = {"RMW_IMPLEMENTATION": "rmw_nosuch_cpp", "LD_LIBRARY_PATH": str(tmp_path)}
+    assert "rmw_nosuch_cpp is not installed here" in rmw_missing(env)
+    (tmp_path / "librmw_nosuch_cpp.so").touch()
+    assert rmw_missing(env) == ""
+
+
+def test_env_sh_refuses_a_path_with_a_space_and_an_rmw_it_lacks(tmp_path):
+    """A checkout at a path with a space set up well, then nothing of wheelgrid was found
+    (colcon's setup scripts split the path); an RMW left from another ROS install that this
+    one lacks made rclpy exit 102 without a word (a review)."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    if not (root / "install" / "setup.sh").exists():
+        pytest.skip("no colcon install space next to scripts/env.sh")
+    spaced = tmp_path / "a checkout"
+    spaced.symlink_to(root)
+    run = subprocess.run(
+        ["bash", "-c", f". '{spaced}/scripts/env.sh' && echo sourced"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode != 0 and "sourced" not in run.stdout
+    assert "has a space in it" in run.stderr
+    run = subprocess.run(
+        ["bash", "-c", f"export RMW_IMPLEMENTATION=rmw_nosuch_cpp; . '{root}/scripts/env.sh' "
+         "&& echo $RMW_IMPLEMENTATION"],
+        capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert run.stdout.split()[-1] == "rmw_fastrtps_cpp", run.stderr
+    assert "rmw_nosuch_cpp is not installed here" in run.stderr
+
+
+def test_a_stopped_process_is_continued_so_it_can_stop_cleanly(tmp_path):
+    """A node frozen with SIGSTOP handled neither SIGINT nor SIGTERM: the launcher waited out
+    the grace, SIGKILLed the mapper, and its scan was never saved on exit (a review). Each
+    signal now comes with SIGCONT, as systemd sends it."""
+    import signal
+    import subprocess
+    import sys
+
+    from wheelgrid_common.testing import managed_process, stop_process
+
+    saved = tmp_path / "saved"
+    code = (
+        "import signal, sys, time\n"
+        "def bye(*_):\n"
+        f"    open({str(saved)!r}, 'w').write('saved')\n"
+        "    sys.exit(0)\n"
+        "signal.signal(signal.SIGINT, bye)\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    with managed_process([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True) as p:
+        assert p.stdout is not None and p.stdout.readline().strip() == "ready"
+        os.kill(p.pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        assert stop_process(p, grace=10.0) == 0
+        assert time.monotonic() - t0 < 5.0 and saved.read_text() == "saved"

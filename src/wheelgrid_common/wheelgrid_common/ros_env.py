@@ -13,6 +13,7 @@ import fcntl
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterable, Mapping, MutableMapping
@@ -44,6 +45,29 @@ def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMap
     if profile is not None:
         env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(profile)
     return env
+
+
+def rmw_missing(env: Mapping[str, str]) -> str:
+    """Why ``env``'s RMW_IMPLEMENTATION cannot run here ("" where it can, or where it is not
+    set: Fast DDS then, which the ROS wheels bring). rclpy exits with status 102 at its first
+    init when the library is absent, without a word in a test run or a node's log: a shell
+    left with rmw_cyclonedds_cpp from another ROS install made the whole suite exit 102
+    silently (a review). Looked for as rcpputils does: ``lib<name>.so`` on LD_LIBRARY_PATH,
+    beside this Python's (the venv's lib, where the wheels put theirs) or under a prefix of
+    AMENT_PREFIX_PATH."""
+    name = env.get("RMW_IMPLEMENTATION", "").strip()
+    if not name or name == "rmw_fastrtps_cpp":
+        return ""
+    folders = [Path(sys.prefix) / "lib"]
+    folders += [Path(d) for d in env.get("LD_LIBRARY_PATH", "").split(os.pathsep) if d]
+    folders += [Path(d) / "lib" for d in env.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if d]
+    if any((folder / f"lib{name}.so").exists() for folder in folders):
+        return ""
+    return (
+        f"RMW_IMPLEMENTATION={name} is not installed here (no lib{name}.so on LD_LIBRARY_PATH, "
+        f"in {sys.prefix}/lib or under AMENT_PREFIX_PATH): unset it, or set it to "
+        "rmw_fastrtps_cpp, which the ROS wheels bring"
+    )
 
 
 #: Fast DDS transports for this machine only: shared memory that holds a whole iPhone cloud,

@@ -202,6 +202,10 @@ def _stop(proc: subprocess.Popen[Any], grace: float) -> int | None:
     for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
         try:
             os.killpg(proc.pid, sig)
+            # and SIGCONT, as systemd does: a stopped (SIGSTOP, Ctrl-Z) process handles no
+            # signal, and a frozen mapper waited out the grace, was SIGKILLed, and its scan was
+            # never saved on exit (a review)
+            os.killpg(proc.pid, signal.SIGCONT)
         except ProcessLookupError:
             break
         try:
@@ -211,13 +215,33 @@ def _stop(proc: subprocess.Popen[Any], grace: float) -> int | None:
     return proc.poll()
 
 
+#: ``python -c`` code that asks Linux to SIGTERM this process when its parent dies, then
+#: execs ``argv[2:]`` (the same pid, so the caller's handle stays the child's). Plain Python,
+#: no wheelgrid import: a test may give the child an environment of its own.
+_DIE_WITH_PARENT_THEN_EXEC = (
+    "import ctypes, os, signal, sys\n"
+    "try:\n"
+    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)\n"
+    "except (OSError, AttributeError):\n"
+    "    pass\n"
+    "if os.getppid() != int(sys.argv[1]):\n"
+    "    os.kill(os.getpid(), signal.SIGTERM)\n"
+    "os.execvp(sys.argv[2], sys.argv[2:])\n"
+)
+
+
 @contextmanager
 def managed_process(
     args: Sequence[str], env: dict[str, str] | None = None, **popen: Any
 ) -> Iterator[subprocess.Popen[Any]]:
-    """Start a child in its own process group and always stop it on exit."""
+    """Start a child in its own process group and always stop it on exit, and where the test
+    process is killed outright (SIGKILL, the OOM killer, a CI timeout) too: it runs in a
+    session of its own, so nothing else reached it, and a grid node outlived a killed pytest
+    by minutes (a review). Linux SIGTERMs it when the thread that started it ends: start it
+    from the test's own thread."""
+    argv = [sys.executable, "-c", _DIE_WITH_PARENT_THEN_EXEC, str(os.getpid()), *args]
     proc = subprocess.Popen(
-        list(args), env=env if env is not None else child_env(), start_new_session=True, **popen
+        argv, env=env if env is not None else child_env(), start_new_session=True, **popen
     )
     try:
         yield proc
