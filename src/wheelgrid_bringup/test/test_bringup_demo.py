@@ -64,6 +64,21 @@ def test_the_status_line_shows_the_phone_bridge_and_leaves_out_a_drive_not_start
             monitor.close()
 
 
+def test_a_silent_mapper_is_said_on_the_status_line():
+    """A mapper frozen mid-replay left "map 28/28" on the line for as long, read as mapping (a
+    review): three of its status periods (5 s at least) without a status, and the line says
+    for how long it has been silent."""
+    from wheelgrid_bringup.chain import mapper_silence
+
+    status = {"frames_used": "28", "status_period_s": "2.0"}
+    assert mapper_silence(status, 100.0, now=105.9) == 0.0
+    assert mapper_silence(status, 100.0, now=112.0) == pytest.approx(12.0)
+    slow = {**status, "status_period_s": "10.0"}  # a mapper set to report every 10 s
+    assert mapper_silence(slow, 100.0, now=125.0) == 0.0
+    assert mapper_silence(slow, 100.0, now=131.0) == pytest.approx(31.0)
+    assert mapper_silence({}, 0.0, now=500.0) == 0.0  # none yet: nothing said
+
+
 def test_demo_never_deletes_a_folder_that_is_not_its_own(tmp_path, capsys):
     """`wheelgrid demo --out DIR` emptied DIR with shutil.rmtree whatever it held: `--out .`
     in the checkout, `--out ~` or `--out /tmp/s` beside the bag it replays were wiped without a

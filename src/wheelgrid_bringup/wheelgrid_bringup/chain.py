@@ -34,6 +34,7 @@ class ChainState:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     mapper: dict[str, str] = field(default_factory=dict)
+    last_mapper_t: float = 0.0
     map_points: int = 0
     map_cloud: Any = None
     grid: Grid | None = None
@@ -124,6 +125,7 @@ class Monitor:
         values, _, message = _diag_values(msg)
         with self.state.lock:
             self.state.mapper = {**values, "message": message}
+            self.state.last_mapper_t = time.monotonic()
 
     def _on_bridge(self, msg: Any) -> None:
         values, _, _ = _diag_values(msg)
@@ -233,6 +235,10 @@ class Monitor:
             recv = m.get("frames_received", "?")
             failed = m.get("frames_failed", m.get("registration_failures", "0"))
             mapped = f"map {used}/{recv} frames ({failed} failed), {s.map_points / 1000:.0f}k pts"
+            silent = mapper_silence(m, s.last_mapper_t)
+            if silent:
+                # a frozen mapper's last counts stood on the line as if it were mapping
+                mapped += f" (mapper silent for {silent:.0f} s)"
             loops = m.get("loop_closure", "")
             if loops in ("requested", "running"):
                 mapped += f", closing loops {m.get('loop_closure_note', '')}".rstrip()
@@ -251,6 +257,20 @@ class Monitor:
             if drive:
                 parts.append(f"drive {s.drive_message or '-'} ({len(s.commands)} cmds)")
         return " | ".join(parts) + (f" | {extra}" if extra else "")
+
+
+def mapper_silence(status: dict[str, str], last_t: float, now: float | None = None) -> float:
+    """Seconds the mapper's status has been overdue by three of its periods (5 s at least),
+    or 0: a mapper frozen mid-replay (SIGSTOP, a hang) left "map 28/28" on the status line,
+    read as mapping (a review)."""
+    if not status or last_t <= 0:
+        return 0.0
+    try:
+        period = float(status.get("status_period_s", "2.0"))
+    except ValueError:
+        period = 2.0
+    age = (time.monotonic() if now is None else now) - last_t
+    return age if age > max(3.0 * period, 5.0) else 0.0
 
 
 class Chain:

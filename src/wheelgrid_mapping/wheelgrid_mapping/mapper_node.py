@@ -752,6 +752,9 @@ class MapperNode(Node):  # type: ignore[misc]
             "loop_closure_note": self._loop_note,
             "frames_after_close": self.counts["after_close"],
             "prepare": self._pipe.note,  # where frames are filtered: second process | one ...
+            # how often this comes: a reader can tell a silent (frozen, hung) mapper from one
+            # whose counts have not changed
+            "status_period_s": self.publish_period,
         }
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
