@@ -139,6 +139,7 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
     from wheelgrid_bringup.demo import heading_yaw
     from wheelgrid_common.testing import (
         chain_params,
+        dying_with_this_process,
         rclpy_context,
         stop_process,
         wheelgrid_command,
@@ -169,7 +170,7 @@ def test_a_node_killed_mid_run_is_reported_and_the_chair_stopped(bag_dir, tmp_pa
             str(tmp_path / "logs"),
         )
         proc = subprocess.Popen(
-            cmd,
+            dying_with_this_process(cmd),
             cwd=repo_root,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

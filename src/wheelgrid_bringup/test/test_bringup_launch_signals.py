@@ -20,7 +20,12 @@ from pathlib import Path
 
 import pytest
 
-from wheelgrid_common.testing import chain_params, stop_process, wheelgrid_command
+from wheelgrid_common.testing import (
+    chain_params,
+    dying_with_this_process,
+    stop_process,
+    wheelgrid_command,
+)
 
 pytestmark = [pytest.mark.ros]
 
@@ -45,7 +50,7 @@ def _launch(
         "launch", "--no-drive", "--params", str(params), "--log-dir", str(tmp_path / "logs")
     )
     proc = subprocess.Popen(
-        cmd,
+        dying_with_this_process(cmd),
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,

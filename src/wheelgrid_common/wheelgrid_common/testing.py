@@ -230,6 +230,13 @@ _DIE_WITH_PARENT_THEN_EXEC = (
 )
 
 
+def dying_with_this_process(args: Sequence[str]) -> list[str]:
+    """argv that runs ``args`` (the same pid) SIGTERMed by Linux when this process's thread
+    that starts it ends, however it ends: for a child in a session of its own, which nothing
+    else reaches when a test process is killed outright."""
+    return [sys.executable, "-c", _DIE_WITH_PARENT_THEN_EXEC, str(os.getpid()), *args]
+
+
 @contextmanager
 def managed_process(
     args: Sequence[str], env: dict[str, str] | None = None, **popen: Any
@@ -239,9 +246,11 @@ def managed_process(
     session of its own, so nothing else reached it, and a grid node outlived a killed pytest
     by minutes (a review). Linux SIGTERMs it when the thread that started it ends: start it
     from the test's own thread."""
-    argv = [sys.executable, "-c", _DIE_WITH_PARENT_THEN_EXEC, str(os.getpid()), *args]
     proc = subprocess.Popen(
-        argv, env=env if env is not None else child_env(), start_new_session=True, **popen
+        dying_with_this_process(args),
+        env=env if env is not None else child_env(),
+        start_new_session=True,
+        **popen,
     )
     try:
         yield proc
