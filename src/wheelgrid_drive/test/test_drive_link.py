@@ -565,3 +565,18 @@ def test_an_e_stop_before_the_move_reaches_the_wire_keeps_it_off_the_wire(make_s
         link.execute("FORWARD", 1.2, 3.0, abort=abort)
     assert moves(sim) == []  # the controller never took it
     assert sim.state == proto.State.IDLE
+
+
+def test_the_simulator_keeps_only_its_newest_events(make_sim, monkeypatch):
+    """Every frame the simulator received (each heartbeat) was kept for ever, ~5 MB an hour
+    for a simulator left running (a review): it keeps between MAX_EVENTS and twice as many,
+    the newest."""
+    from wheelgrid_drive import motor_sim
+
+    monkeypatch.setattr(motor_sim, "MAX_EVENTS", 5)
+    sim = make_sim()
+    for i in range(40):
+        sim._event("test", seq=i)
+    ours = [e.seq for e in sim.events if e.what == "test"]
+    assert len(sim.events) <= 10 and ours and ours[-1] == 39
+    assert ours == list(range(ours[0], 40))  # the newest, in order

@@ -36,6 +36,10 @@ from wheelgrid_drive import protocol as proto
 _DEFAULT_POSE = (0.0, 0.0, 0.0)
 
 
+#: Events the simulator keeps (the newest; between this and twice as many).
+MAX_EVENTS = 100_000
+
+
 @dataclass
 class MotorSimConfig:
     """Simulator settings; every one is also a command-line flag of ``wheelgrid motor-sim``."""
@@ -244,6 +248,11 @@ class MotorSim:
 
     def _event(self, what: str, seq: int = -1, detail: str = "", t: float | None = None) -> None:
         self.events.append(SimEvent(time.monotonic() if t is None else t, what, seq, detail))
+        if len(self.events) > 2 * MAX_EVENTS:
+            # the oldest half goes: every frame (each heartbeat) was kept for ever, ~5 MB an
+            # hour for a simulator left running (a review); a list trimmed in place, so a
+            # reader iterating it meanwhile never fails, as a deque's iterator would
+            del self.events[:MAX_EVENTS]
 
     # ---- protocol -----------------------------------------------------------------------------
 

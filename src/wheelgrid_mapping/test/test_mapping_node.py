@@ -5,6 +5,7 @@ from __future__ import annotations
 import array
 import contextlib
 import copy
+import math
 import os
 import re
 import shutil
@@ -1314,3 +1315,33 @@ def test_frames_dropped_while_busy_are_no_dropout(tmp_path, lost_odometry):
             release.set()
             node.close()
             node.destroy_node()
+
+
+def test_a_run_of_registration_failures_is_said_at_once_then_every_ten_seconds(monkeypatch):
+    """A line per failed frame grew every log ~7 MB an hour for as long as the mapper stayed
+    lost (a review): the first failure of a run is said at once, then one line every
+    FAILURE_LOG_PERIOD_S with how many failed between, and the count when a frame maps."""
+    from wheelgrid_mapping import mapper_node
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    said: list[tuple[str, str]] = []
+    log = SimpleNamespace(
+        warning=lambda text: said.append(("warn", text)),
+        info=lambda text: said.append(("info", text)),
+    )
+    node = SimpleNamespace(
+        get_logger=lambda: log, _failing=False, _failure_said_t=-math.inf, _failures_unsaid=0
+    )
+    clock = [1000.0]
+    monkeypatch.setattr(mapper_node.time, "monotonic", lambda: clock[0])
+    for i in range(30):  # 30 failures, 1 s apart: at 0, 10 and 20 s
+        MapperNode._say_failure(node, 100.0 + i, "too few points")  # type: ignore[arg-type]
+        clock[0] += 1.0
+    warned = [text for level, text in said if level == "warn"]
+    assert len(warned) == 3, said
+    assert warned[0].startswith("registration failed at 100.000 s: too few points")
+    assert "(9 more failed since the last such line)" in warned[1]
+    MapperNode._end_failures(node)  # type: ignore[arg-type]
+    assert said[-1] == ("info", "9 more frames failed before this one was mapped")
+    MapperNode._say_failure(node, 200.0, "low overlap")  # type: ignore[arg-type]
+    assert said[-1][0] == "warn" and "200.000 s: low overlap" in said[-1][1]  # a new run: at once

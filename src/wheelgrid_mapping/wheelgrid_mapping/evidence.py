@@ -111,6 +111,11 @@ def _unique_keys(
     return _pack(i + lo[0] + _OFFSET, j + lo[1] + _OFFSET, k + lo[2] + _OFFSET)
 
 
+#: Points added before they are merged into the map: bounds what waiting frames hold (their
+#: points, voxel keys and ray misses; ~200 B a point) whoever adds them.
+PENDING_POINTS = 1_000_000
+
+
 class EvidenceMap:
     """Centroid voxel map (``voxel``) filtered by frame evidence (``evidence_voxel``)."""
 
@@ -155,6 +160,7 @@ class EvidenceMap:
         self._ev_frames = np.empty(0, np.int64)
         self._pending: list[np.ndarray] = []
         self._pending_ev: list[np.ndarray] = []
+        self._pending_points = 0
 
     def add(self, points: np.ndarray, origin: np.ndarray | None = None) -> None:
         """Add one frame's points (already in the map's frame), seen from ``origin``."""
@@ -170,6 +176,12 @@ class EvidenceMap:
         if origin is not None and self.hit_fraction > 0:
             misses = self._ray_misses(pts, np.asarray(origin, dtype=np.float64).reshape(3))
             self._pending_miss.append(np.setdiff1d(misses, hits, assume_unique=True))
+        self._pending_points += pts.shape[0]
+        if self._pending_points >= PENDING_POINTS:
+            # merged as they come, not all at the end: ~loop closure's rebuild added every
+            # kept frame before the first merge, 0.9 MB a frame at its peak (932 MB for 588
+            # frames, ~5 GB at max_kept_frames; a review), where the OOM killer ends a mapper
+            self._consolidate()
 
     def _ray_misses(self, pts: np.ndarray, origin: np.ndarray) -> np.ndarray:
         """Evidence voxels crossed by the rays before their last two voxels (unique keys)."""
@@ -220,6 +232,7 @@ class EvidenceMap:
             self._miss_keys, self._miss_frames, self._pending_miss
         )
         self._pending, self._pending_ev, self._pending_miss = [], [], []
+        self._pending_points = 0
 
     def points(self, min_frames: int | None = None, up: np.ndarray | None = None) -> np.ndarray:
         """Centroids of the map voxels whose evidence voxel was seen by enough frames, and of

@@ -20,7 +20,8 @@ corrected poses and republishes it; ``~/save_map`` then saves it. It runs in the
 then final, so later frames are counted (``frames_after_close``) and not mapped until
 ``~/reset``. For it the node keeps each mapped frame's filtered points (tens of kB a frame), up
 to ``max_kept_frames``; beyond that they are released with a warning and the map goes on without
-loop closure, so memory stays bounded on a scan that never ends.
+loop closure, so memory stays bounded on a scan that never ends, but for the trajectory (about
+300 B a mapped frame, ~10 MB an hour at 10 frames/s).
 """
 
 from __future__ import annotations
@@ -111,7 +112,7 @@ class MapperNodeConfig:
         6000,
         "frames kept for ~/close_loops (with loop_closure.enabled); beyond this they are "
         "released and loop closure is off until ~/reset (6000: ~10 min at 10 frames/s, "
-        "0.3-0.6 GB)",
+        "0.3-0.6 GB; rebuilding the map after ~/close_loops adds ~0.3 GB at most)",
         "frames",
     )
 
@@ -137,6 +138,10 @@ _FINAL = (*_CLOSING, "closed")
 
 class _CancelledError(Exception):
     """Raised from the loop closure's progress callback when ~/reset asks it to stop."""
+
+
+#: While registration keeps failing, one warning per this many seconds (the first at once).
+FAILURE_LOG_PERIOD_S = 10.0
 
 
 def _stamp_seconds(stamp: Any) -> float:
@@ -200,6 +205,11 @@ class MapperNode(Node):  # type: ignore[misc]
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
         self._mount_check_seen: dict[str, Any] | None = None  # the mount check last warned of
         self._logged: set[str] = set()
+        # registration failures said one line each only where a run of them begins, then at
+        # most every FAILURE_LOG_PERIOD_S with how many came between (see _say_failure)
+        self._failing = False
+        self._failure_said_t = -math.inf
+        self._failures_unsaid = 0
         self._map_dirty = False
         self._saved: tuple[int, int, str, int] | None = None  # what ~/save_map last wrote
         # unmapped_at_exit: frames still queued when the node stopped (a bag replayed faster
@@ -306,6 +316,33 @@ class MapperNode(Node):  # type: ignore[misc]
         if not c.map_frame:
             raise ValueError("map_frame must not be empty")
         check_user_folder(c.output_dir)  # `~maps` for `~/maps`
+
+    def _say_failure(self, stamp: float, reason: str) -> None:
+        """A registration failure, loudly where a run of them begins; while the mapper stays
+        lost, one line every FAILURE_LOG_PERIOD_S saying how many failed since the last. A
+        line per failed frame grew every log (the node's, ROS_LOG_DIR's, /rosout) ~7 MB an hour
+        for as long as it stayed lost (a review); frames_failed counts every one."""
+        now = time.monotonic()
+        if self._failing and now - self._failure_said_t < FAILURE_LOG_PERIOD_S:
+            self._failures_unsaid += 1
+            return
+        more = (
+            f" ({self._failures_unsaid} more failed since the last such line)"
+            if self._failures_unsaid
+            else ""
+        )
+        self.get_logger().warning(
+            f"registration failed at {stamp:.3f} s: {reason}; map integration paused, "
+            f"relocalising{more}"
+        )
+        self._failing, self._failure_said_t, self._failures_unsaid = True, now, 0
+
+    def _end_failures(self) -> None:
+        if self._failures_unsaid:
+            self.get_logger().info(
+                f"{self._failures_unsaid} more frames failed before this one was mapped"
+            )
+        self._failing, self._failures_unsaid = False, 0
 
     def _log_once(self, key: str, text: str, warn: bool = True) -> None:
         if key not in self._logged:
@@ -541,16 +578,15 @@ class MapperNode(Node):  # type: ignore[misc]
             if out.status == "error":
                 self.get_logger().error(f"frame at {stamp:.3f} s failed: {out.reason}")
             elif out.status == "failed":
-                self.get_logger().warning(
-                    f"registration failed at {stamp:.3f} s: {out.reason}; map integration "
-                    "paused, relocalising"
-                )
+                self._say_failure(stamp, out.reason)
             elif out.status == "empty":
                 self._log_once("no_valid_points", f"frame without valid points ({out.reason})")
             elif out.cause:
                 self._log_once(
                     out.cause, f"skipping clouds like the one at {stamp:.3f} s: {out.reason}"
                 )
+            if out.status == "used":
+                self._end_failures()
             if out.after_gap:
                 self.get_logger().info(f"after a dropout, placed against the map at {stamp:.3f} s")
             elif out.relocalised:
