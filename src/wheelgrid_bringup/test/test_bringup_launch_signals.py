@@ -41,10 +41,11 @@ def _alive(pid: int) -> bool:
 
 
 def _launch(
-    tmp_path: Path, hangup: object = signal.SIG_DFL
+    tmp_path: Path, hangup: object = signal.SIG_DFL, domain: int | None = None
 ) -> tuple[subprocess.Popen[str], dict[str, int], list[str]]:
     """The launcher with SIGHUP as a terminal's child has it (``hangup``; SIG_IGN: under
-    ``nohup``), whatever the test run's own is: a run under nohup passed it on ignored."""
+    ``nohup``), whatever the test run's own is: a run under nohup passed it on ignored. In
+    ``domain`` where one is given, else in the test's."""
     params = chain_params(tmp_path, tmp_path / "out")
     cmd = wheelgrid_command(
         "launch", "--no-drive", "--params", str(params), "--log-dir", str(tmp_path / "logs")
@@ -56,6 +57,7 @@ def _launch(
         text=True,
         start_new_session=True,
         preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup),  # type: ignore[arg-type]
+        env=None if domain is None else {**os.environ, "ROS_DOMAIN_ID": str(domain)},
     )
     lines: list[str] = []
     threading.Thread(
@@ -237,3 +239,28 @@ def test_a_node_stopped_while_it_is_still_importing_ends_cleanly(tmp_path):
     finally:
         stop_process(proc)
     assert proc.returncode == 0 and "Traceback" not in err, err
+
+
+def test_a_launch_holds_its_domain_so_that_no_test_process_claims_it(tmp_path):
+    """Each test process claims a domain no other wheelgrid process holds, but only demos
+    held theirs: a test run beside a `wheelgrid launch` could land on its graph, drive
+    included (a review). The launcher holds its domain while it runs."""
+    from wheelgrid_common.ros_env import claim_domain
+
+    own = int(os.environ["ROS_DOMAIN_ID"])
+    got = claim_domain(d for d in range(1, 101) if d != own)
+    assert got is not None
+    domain, fd = got
+    os.close(fd)  # free again, for the launch to take
+    proc, pids, lines = _launch(tmp_path, domain=domain)
+    try:
+        assert any(ln.startswith(f"launch: ROS_DOMAIN_ID={domain} ") for ln in lines), lines
+        assert claim_domain([domain]) is None  # the launch holds it
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=60) == 0, "".join(lines[-10:])
+    finally:
+        stop_process(proc)
+        _cleanup(pids)
+    again = claim_domain([domain])  # let go with the launch
+    assert again is not None and again[0] == domain
+    os.close(again[1])

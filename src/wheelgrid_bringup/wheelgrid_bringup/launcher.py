@@ -9,7 +9,9 @@ line, and shuts everything down on Ctrl-C or as soon as any node dies (exit 1, n
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import os
 import signal
 import sys
 import time
@@ -25,7 +27,7 @@ from wheelgrid_bringup.supervisor import (
 )
 from wheelgrid_common.bagio import BagError
 from wheelgrid_common.params import read_yaml
-from wheelgrid_common.ros_env import child_env, configure_ros_env, rcl_reason
+from wheelgrid_common.ros_env import child_env, claim_domain, configure_ros_env, rcl_reason
 from wheelgrid_common.shm import clean_dead_segments
 
 
@@ -261,6 +263,15 @@ def _rcl_reads(path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    held: list[int] = []  # the domain's lock, let go however the launch ends
+    try:
+        return _main(argv, held)
+    finally:
+        for fd in held:
+            os.close(fd)
+
+
+def _main(argv: list[str] | None, held: list[int]) -> int:
     args = build_parser().parse_args(argv)
     if not (math.isfinite(args.rate) and args.rate > 0):  # NaN: a replay that spun, silent
         print(f"wheelgrid launch: --rate must be > 0, not {args.rate}", file=sys.stderr)
@@ -341,6 +352,14 @@ def main(argv: list[str] | None = None) -> int:
         + (f" namespace {namespace}" if namespace else ""),
         flush=True,
     )
+    # held while the chain runs, so that a test process, which claims a domain no other
+    # wheelgrid process holds (conftest.py), never lands on it: only demos held theirs, and a
+    # test run beside a launch could join its graph, drive included (a review). Held already
+    # (the test or demo that started this launch, a second launch of this checkout): as before.
+    with contextlib.suppress(ValueError):
+        claim = claim_domain([int(env.get("ROS_DOMAIN_ID", "0"))])
+        if claim is not None and claim[1] >= 0:
+            held.append(claim[1])
     try:
         # a chain in a namespace logs in a folder of its own: two chains on one --log-dir
         # wrote into the same files, and each launcher read the other's mapper log

@@ -57,18 +57,20 @@ def die_with_parent(parent: int) -> None:
 def child_code(module: str, func: str) -> str:
     """``python -c`` code that runs ``module.func()`` as a supervised child of this process.
 
-    A Ctrl-C while the node's module is still being imported ends it with status 0: it has
+    A Ctrl-C while the node's modules are still being imported ends it with status 0: it has
     nothing to save and no chair to stop yet, and a stop half a second after start-up left a
     KeyboardInterrupt traceback in every node's log and "did not stop cleanly", exit 1 (a
-    review). Once the node runs, rclpy's own handler takes Ctrl-C."""
+    review). Python's own Ctrl-C handling is back before the node's main runs, and rclpy's
+    takes over from there."""
     return (
-        "import sys\n"
+        "import os, signal, sys\n"
+        # a handler, not `except KeyboardInterrupt`: numpy turns one inside its import into an
+        # ImportError (rc 1, a traceback; a review); os._exit, as there is nothing to flush
+        "signal.signal(signal.SIGINT, lambda *_: os._exit(0))\n"
         "from wheelgrid_bringup.supervisor import die_with_parent\n"
         f"die_with_parent({os.getpid()})\n"
-        "try:\n"
-        f"    from {module} import {func} as m\n"
-        "except KeyboardInterrupt:\n"
-        "    sys.exit(0)\n"
+        f"from {module} import {func} as m\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "sys.exit(m() or 0)\n"
     )
 

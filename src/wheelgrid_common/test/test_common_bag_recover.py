@@ -381,5 +381,19 @@ def test_the_messages_inside_a_cut_compressed_chunk_come_back(tmp_path, codec, c
         # the messages before the cut, less at most a cloud and a string being written
         assert len(got) >= share * len(msgs) * 0.93 - 2, (share, len(got))
         assert 0 < res.bytes_lost < 0.05 * len(data), res.bytes_lost
-    # the whole chunk was all a cut in the first one left before: nothing
+    # a records length that lies (larger than the file; 2^64 - 1 overflowed the read itself)
+    # is read as far as the file goes: the same messages, not a failed recovery
+    import struct
+
+    cut = tmp_path / "cut0.6" / mcap.name
+    start = bag_recover.mcap_extent(cut).data_end
+    (name_len,) = struct.unpack("<I", cut.read_bytes()[start + 37 : start + 41])
+    at = start + 41 + name_len
+    lying = tmp_path / "lying"
+    lying.mkdir()
+    raw = cut.read_bytes()
+    (lying / mcap.name).write_bytes(raw[:at] + struct.pack("<Q", 2**64 - 1) + raw[at + 8 :])
+    bag_recover.recover(lying, tmp_path / "back_lying", progress=False)
+    assert _read(tmp_path / "back_lying") == _read(tmp_path / "back0.6")
+    # a complete file has no chunk the cut went through
     assert bag_recover.cut_chunk_records(mcap, bag_recover.mcap_extent(mcap)) == (b"", 0)

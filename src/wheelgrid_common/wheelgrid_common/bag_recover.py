@@ -362,7 +362,10 @@ def cut_chunk_records(path: Path, extent: Extent) -> tuple[bytes, int]:
             return b"", 0
         codec = name.decode("utf-8", "replace")
         at = 41 + name_len + 8  # where the records begin, from data_end
-        stored = f.read(struct.unpack("<Q", sized)[0])
+        # never more than the file holds: a length field that lies (2^40, 2^64 - 1) made the
+        # read itself fail (MemoryError, OverflowError) and the whole recovery with it
+        left = max(0, extent.size - extent.data_end - at)
+        stored = f.read(min(struct.unpack("<Q", sized)[0], left))
     if name_len:
         steps = _decompressed_prefix(codec, stored)
         if not steps:

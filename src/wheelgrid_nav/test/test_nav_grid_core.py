@@ -749,9 +749,17 @@ def test_a_stray_floor_return_over_an_unseen_hole_does_not_make_its_cell_free():
     in_hole = (z == 0.0) & (np.abs(x - 1.8) < 0.34) & (np.abs(y - 1.8) < 0.34)
     pit = room[~in_hole]
     assert build_grid(pit).grid.data[middle] != FREE
-    # one return; two, 5 cm apart (two pixels, one patch once floor_fill grows them)
-    for speck in ([[1.8, 1.8, -0.03]], [[1.8, 1.8, 0.0], [1.85, 1.8, 0.01]]):
-        assert len(speck) < PATCH_MIN_FLOOR
+    # one return; two, 5 cm apart (two pixels, one patch once floor_fill grows them); one
+    # with a point 30 cm above it, and a streak from the floor to 50 cm (a cord hanging to the
+    # floor, flying pixels): each rule took the other's speck for seen, and the cell read free
+    streak = [[1.8, 1.8, h] for h in np.arange(0.0, 0.51, 0.05)]
+    for speck in (
+        [[1.8, 1.8, -0.03]],
+        [[1.8, 1.8, 0.0], [1.85, 1.8, 0.01]],
+        [[1.8, 1.8, 0.0], [1.8, 1.8, 0.3]],
+        streak,
+    ):
+        assert sum(1 for q in speck if q[2] <= 0.05) < PATCH_MIN_FLOOR
         res = build_grid(np.vstack([pit, speck]))
         assert res.grid.data[middle] != FREE, speck
         # the rule, not the observed share, keeps it from free
@@ -761,6 +769,11 @@ def test_a_stray_floor_return_over_an_unseen_hole_does_not_make_its_cell_free():
     # the floor seen in the hole's middle, 20 cm across, leaves no 35 cm square unseen
     island = room[in_hole & (np.abs(x - 1.8) < 0.1) & (np.abs(y - 1.8) < 0.1)]
     assert build_grid(np.vstack([pit, island])).grid.data[middle] == FREE
+    # patches join within 5 cm whatever the pixel: at 1 cm pixels each return of a floor
+    # sampled every 4 cm was a patch of its own, and no cell of an empty room was free
+    sparse = room_cloud([], size=(3.6, 3.6), spacing=0.04)
+    fine = GridConfig(pixel_size=0.01, min_observed_fraction=0.5, guard_line_min_points=1)
+    assert (build_grid(sparse, fine).grid.data == FREE).sum() == 9
 
 
 def test_an_unseen_hole_across_cell_borders_keeps_every_cell_it_reaches_from_free():

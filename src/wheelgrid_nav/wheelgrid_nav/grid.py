@@ -1073,22 +1073,32 @@ def band_for_patches(band: np.ndarray, floor_points: np.ndarray) -> np.ndarray:
 #: Pixels with a floor return a patch of seen floor needs to count against an unseen hole: a
 #: stray return or two over a stairwell does not.
 PATCH_MIN_FLOOR = 3
+#: Floor returns this close (m) belong to one patch, whatever the pixel size: at 1 cm pixels
+#: each return of a floor sampled every 4 cm was a patch of its own, and no floor counted.
+PATCH_FLOOR_REACH = 0.05
 
 
-def floor_for_patches(floor: np.ndarray, floor_points: np.ndarray) -> np.ndarray:
-    """The floor :func:`unobserved_patches` takes for seen: ``floor`` (grown by floor_fill)
-    without its specks, the 8-connected patches of it holding fewer than PATCH_MIN_FLOOR pixels
-    with a floor return (``floor_points``). One stray return at floor height over an unseen
-    55-65 cm hole blocked every square the rule could fit, and the cell read free (a review; 5
-    of 5 draws). Stricter only: a cell such a speck kept free is unknown now, never the reverse.
-    A cable across the hole is a long patch and still blocks the squares (README, Safety)."""
-    rows, cols, comp = _components(floor)
-    out = floor.copy()
+def floor_for_patches(
+    floor: np.ndarray, floor_points: np.ndarray, pixel_size: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The floor :func:`unobserved_patches` takes for seen, and its pixels with a floor return:
+    ``floor`` (grown by floor_fill) without its specks, the patches (returns joined within
+    PATCH_FLOOR_REACH) holding fewer than PATCH_MIN_FLOOR pixels with a return. One stray
+    return at floor height over an unseen 55-65 cm hole blocked every square the rule could
+    fit, and the cell read free (a review; 5 of 5 draws). Stricter only: a cell such a speck
+    kept free is unknown now, never the reverse. A cable across the hole is a long patch and
+    still blocks the squares (README, Safety)."""
+    reach = max(1, math.ceil(PATCH_FLOOR_REACH / pixel_size - 1e-9))
+    # joined across obstacle pixels too: a return inside one (a streak of flying pixels down
+    # to the floor, a cord's end) belongs to the patch around it, and goes with it
+    rows, cols, comp = _components(_dilate(floor_points, reach))
+    out, returns = floor.copy(), floor_points.copy()
     if comp.size:
         raw = np.bincount(comp, weights=floor_points[rows, cols])[comp]
         speck = raw < PATCH_MIN_FLOOR
         out[rows[speck], cols[speck]] = False
-    return out
+        returns[rows[speck], cols[speck]] = False
+    return out, returns
 
 
 def unobserved_patches(
@@ -1222,13 +1232,11 @@ def build_grid(
     guard_only = guard & ~occupied
     occupied |= guard
     observed = cell_density(floor | black, k, k)
-    patch = unobserved_patches(
-        floor_for_patches(floor, counts[0] > 0),
-        band_for_patches(band_black, counts[0] > 0),
-        ring,
-        cfg,
-        k,
-    )
+    # a band speck counts only beside floor that counts: a stray floor return with one point
+    # above it (a cord hanging to the floor, a streak of flying pixels) kept each other's
+    # speck seen, and the cell over a 60 cm hole read free (a review)
+    seen_floor, seen_returns = floor_for_patches(floor, counts[0] > 0, ps)
+    patch = unobserved_patches(seen_floor, band_for_patches(band_black, seen_returns), ring, cfg, k)
     data = np.full((rows, cols), UNKNOWN, dtype=np.int8)
     data[(observed >= cfg.min_observed_fraction) & ~patch] = FREE
     data[occupied] = OCCUPIED
