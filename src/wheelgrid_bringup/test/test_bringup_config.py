@@ -3,6 +3,7 @@ the nodes: a misspelt parameter would otherwise be ignored silently by ROS."""
 
 import ast
 import dataclasses
+import os
 from pathlib import Path
 
 import yaml
@@ -427,9 +428,13 @@ def test_a_node_set_in_two_sections_keeps_both_under_a_namespace(tmp_path, capsy
             check_params_file(params)
     # the demo checks its --params as the launch does, before any node starts
     params.write_text("gird:\n  ros__parameters: {safe_height: 1.7}\n")
+    ours = os.environ["ROS_DOMAIN_ID"]
     assert demo_main(["--params", str(params), "--out", str(tmp_path / "demo")]) == 2
     err = capsys.readouterr().err
     assert "reaches no node of the chain" in err and "Traceback" not in err
+    # the demo's domain (215-232) given back: it stayed in os.environ, and this test process's
+    # later node tests ran in a domain no lock held any more
+    assert os.environ["ROS_DOMAIN_ID"] == ours
 
 
 def test_a_replay_stopped_before_it_started_stops_cleanly():

@@ -266,11 +266,18 @@ def demo_domains(inherited: str | None) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     held: list[int] = []  # the domain's lock, let go however the run ends (a caller may run again)
+    # and the caller's domain given back: run in-process (the tests), the demo's stayed in
+    # os.environ, and the caller's later nodes joined a domain no lock held any more
+    before = os.environ.get("ROS_DOMAIN_ID")
     try:
         return _main(argv, held)
     finally:
         for fd in held:
             os.close(fd)
+        if before is None:
+            os.environ.pop("ROS_DOMAIN_ID", None)
+        else:
+            os.environ["ROS_DOMAIN_ID"] = before
 
 
 def _main(argv: list[str] | None, held: list[int]) -> int:
