@@ -45,7 +45,7 @@ if "ROS_LOG_DIR" not in os.environ:
     atexit.register(_remove_if_no_file, os.environ["ROS_LOG_DIR"])
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 _rmw = rmw_missing(os.environ)
-if _rmw:  # rclpy exits 102 at its first init, and pytest with it, without a word
+if _rmw:  # rclpy exits 102 at its first init, and the whole run with it
     pytest.exit(_rmw, returncode=2)
 
 

@@ -197,7 +197,7 @@ def test_map_savers_unknown_gray_stays_unknown_whatever_free_thresh(tmp_path):
 
 
 def test_the_unknown_gray_is_occupied_where_occupied_thresh_makes_it_so(tmp_path):
-    """With occupied_thresh under 0.196 Nav2 reads the unknown gray occupied (205, or 50 with
+    """With occupied_thresh at or under 0.196 Nav2 reads the unknown gray occupied (205, or 50 with
     negate 1: occupancy 0.196 either way); it was unknown here whatever the thresholds, and a plan could start in that cell
     (an unknown start cell is allowed) though Nav2 calls it occupied (a review)."""
     (tmp_path / "m.pgm").write_bytes(b"P5\n3 1\n255\n\xcd\xfe\xfe")

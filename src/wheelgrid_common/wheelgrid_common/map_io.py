@@ -289,9 +289,9 @@ def read_map(yaml_path: str | Path) -> Grid:
                 data[alpha < 255.0] = UNKNOWN
         else:
             gray = 255.0 - PIX_UNKNOWN if negate else PIX_UNKNOWN
-            # only where the thresholds do not make it occupied: with occupied_thresh under
-            # 0.196 Nav2 reads the gray occupied, and an unknown start cell is allowed (a plan
-            # started in a cell Nav2 calls occupied)
+            # only where the thresholds do not make it occupied: with occupied_thresh at or
+            # under 0.196 (the gray's occupancy is 0.19608) Nav2 reads it occupied, and an
+            # unknown start cell is allowed (a plan started in a cell Nav2 calls occupied)
             data[(np.rint(img) == gray) & (data != OCCUPIED)] = UNKNOWN
     return Grid(
         data=data,

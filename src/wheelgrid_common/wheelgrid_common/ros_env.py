@@ -50,9 +50,9 @@ def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMap
 def rmw_missing(env: Mapping[str, str]) -> str:
     """Why ``env``'s RMW_IMPLEMENTATION cannot run here ("" where it can, or where it is not
     set: Fast DDS then, which the ROS wheels bring). rclpy exits with status 102 at its first
-    init when the library is absent, without a word in a test run or a node's log: a shell
-    left with rmw_cyclonedds_cpp from another ROS install made the whole suite exit 102
-    silently (a review). Looked for as rcpputils does: ``lib<name>.so`` on LD_LIBRARY_PATH,
+    init when the library is absent, the whole process with it: a shell left with
+    rmw_cyclonedds_cpp from another ROS install made the test suite exit 102 with no test
+    report (a review). Looked for as rcpputils does: ``lib<name>.so`` on LD_LIBRARY_PATH,
     beside this Python's (the venv's lib, where the wheels put theirs) or under a prefix of
     AMENT_PREFIX_PATH."""
     name = env.get("RMW_IMPLEMENTATION", "").strip()

@@ -178,9 +178,10 @@ class EvidenceMap:
             self._pending_miss.append(np.setdiff1d(misses, hits, assume_unique=True))
         self._pending_points += pts.shape[0]
         if self._pending_points >= PENDING_POINTS:
-            # merged as they come, not all at the end: ~loop closure's rebuild added every
-            # kept frame before the first merge, 0.9 MB a frame at its peak (932 MB for 588
-            # frames, ~5 GB at max_kept_frames; a review), where the OOM killer ends a mapper
+            # merged as they come, not all at the end: loop closure's rebuild added every
+            # kept frame before the first merge, ~0.9 MB a frame at its peak (471 MB over the
+            # node's 461 for 588 frames, ~5 GB at max_kept_frames; a review), where the OOM
+            # killer ends a mapper
             self._consolidate()
 
     def _ray_misses(self, pts: np.ndarray, origin: np.ndarray) -> np.ndarray:

@@ -112,7 +112,8 @@ class MapperNodeConfig:
         6000,
         "frames kept for ~/close_loops (with loop_closure.enabled); beyond this they are "
         "released and loop closure is off until ~/reset (6000: ~10 min at 10 frames/s, "
-        "0.3-0.6 GB; rebuilding the map after ~/close_loops adds ~0.3 GB at most)",
+        "0.3-0.6 GB; rebuilding the map after ~/close_loops holds the new map beside the old "
+        "one and up to ~0.25 GB of frames waiting to be merged)",
         "frames",
     )
 

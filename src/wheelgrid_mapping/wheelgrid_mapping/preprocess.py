@@ -544,7 +544,8 @@ def statistical_outlier_mask(
     ``missing_distance`` (default: the largest finite distance seen), so an isolated point
     among dense surfaces is an outlier rather than silently kept. It is a stand-in, not the
     distance: where the surfaces themselves are sampled about as sparsely as the search
-    reaches, a point far from all of them reads as they do and is kept (README, "Filter").
+    reaches, a point far from all of them reads as they do and is kept (README, the "No
+    filter erases a thin obstacle" bullet).
 
     Where every mu_i is the same (a spread within rounding, 1e-9 of the largest), every point is
     kept: taken literally, eq. 4 then marks every point an outlier (``mu_i >= t = mu``), and

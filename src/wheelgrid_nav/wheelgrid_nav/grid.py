@@ -1012,13 +1012,13 @@ def _check_input(points: np.ndarray, cfg: GridConfig) -> tuple[np.ndarray, np.nd
 
 def map_warnings(z: np.ndarray, drops: int, drop_depth: float) -> list[str]:
     """Doubts about a map that still gives a grid, for the log and the summary. ``drops``: how
-    many of the points lie more than ``drop_depth`` under z = 0."""
+    many of the points lie ``drop_depth`` or more under z = 0."""
     out = []
     if drops > _MANY_DROPS * z.size:
         # PCL's room scan, its floor at z = -1.27 m, gave a grid of 48 occupied cells and no
         # word of why: its whole floor read as a drop (safe, but useless)
         out.append(
-            f"{100 * drops / z.size:.0f} % of the map lies more than {drop_depth:g} m under "
+            f"{100 * drops / z.size:.0f} % of the map lies {drop_depth:g} m or more under "
             "z = 0 and reads as drops (obstacles): is its floor at z = 0? (`wheelgrid grid "
             "--level` finds the floor of a map made elsewhere)"
         )
@@ -1314,7 +1314,8 @@ def _fine_map(pts: np.ndarray, cls: np.ndarray, grid: Grid, cfg: GridConfig, fra
         raise GridError("too_large", f"the fine map would be {h} x {w} pixels: raise pixel_size")
     counts = _raster_classes(pts[:, 0], pts[:, 1], cls, lo[0], lo[1], ps, h, w)
     black = (counts[1] + counts[2]) >= cfg.min_points_per_pixel
-    floor = _dilate((counts[0] > 0) & (counts[2] == 0), cfg.floor_fill) & ~black  # as the grid's
+    # no floor seeded from a pixel a drop return shares (the grid weighs its 3 x 3 pixels)
+    floor = _dilate((counts[0] > 0) & (counts[2] == 0), cfg.floor_fill) & ~black
     data = np.full((h, w), UNKNOWN, dtype=np.int8)
     data[floor] = FREE
     data[black] = OCCUPIED
