@@ -26,23 +26,16 @@ export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $(printf '%s' "$_wg_root" | cksum | cu
 export RMW_IMPLEMENTATION=${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}
 if [ "$RMW_IMPLEMENTATION" != rmw_fastrtps_cpp ]; then
   # one left from another ROS install (rmw_cyclonedds_cpp) that this one lacks: rclpy exits
-  # 102 at its first init, and the test suite and every node with it, without a word
-  _wg_found=0
-  _wg_ifs=$IFS
-  IFS=:
-  for _wg_d in "$_wg_root/.venv/lib" ${LD_LIBRARY_PATH:-}; do
-    [ -e "$_wg_d/lib$RMW_IMPLEMENTATION.so" ] && _wg_found=1
-  done
-  for _wg_d in ${AMENT_PREFIX_PATH:-}; do
-    [ -e "$_wg_d/lib/lib$RMW_IMPLEMENTATION.so" ] && _wg_found=1
-  done
-  IFS=$_wg_ifs
-  if [ "$_wg_found" = 0 ]; then
-    echo "env.sh: RMW_IMPLEMENTATION=$RMW_IMPLEMENTATION is not installed here: using" \
-      "rmw_fastrtps_cpp, which the ROS wheels bring" >&2
+  # 102 at its first init, and the test suite and every node with it. The test run's own
+  # check (wheelgrid_common.ros_env.rmw_missing) says why.
+  _wg_why=$("$_wg_root/.venv/bin/python" -c \
+    'import os; from wheelgrid_common.ros_env import rmw_missing; print(rmw_missing(os.environ))' \
+    2>/dev/null || true)
+  if [ -n "$_wg_why" ]; then
+    echo "env.sh: $_wg_why; using rmw_fastrtps_cpp" >&2
     export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
   fi
-  unset _wg_found _wg_ifs _wg_d
+  unset _wg_why
 fi
 mkdir -p "$ROS_LOG_DIR"
 unset _wg_root _wg_u

@@ -34,7 +34,7 @@ from wheelgrid_bringup.supervisor import (
 from wheelgrid_common.bagio import BagError, BagReader
 from wheelgrid_common.fileio import out_folder, read_ply
 from wheelgrid_common.map_io import Grid, read_map
-from wheelgrid_common.ros_env import child_env, claim_domain, configure_ros_env
+from wheelgrid_common.ros_env import child_env, claim_domain, configure_ros_env, held_claims
 
 HEADING_ROW_COL = {"up": (-1, 0), "down": (1, 0), "left": (0, -1), "right": (0, 1)}
 
@@ -265,15 +265,14 @@ def demo_domains(inherited: str | None) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    held: list[int] = []  # the domain's lock, let go however the run ends (a caller may run again)
-    # and the caller's domain given back: run in-process (the tests), the demo's stayed in
-    # os.environ, and the caller's later nodes joined a domain no lock held any more
+    # the domain's lock let go however the run ends (a caller may run again), and the caller's
+    # domain given back: run in-process (the tests), the demo's stayed in os.environ, and the
+    # caller's later nodes joined a domain no lock held any more
     before = os.environ.get("ROS_DOMAIN_ID")
     try:
-        return _main(argv, held)
+        with held_claims() as held:
+            return _main(argv, held)
     finally:
-        for fd in held:
-            os.close(fd)
         if before is None:
             os.environ.pop("ROS_DOMAIN_ID", None)
         else:
@@ -328,8 +327,7 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
         )
         return 2
     domain, lock = claim
-    if lock >= 0:
-        held.append(lock)
+    held.append(lock)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     params = args.params or default_params_file()
     try:

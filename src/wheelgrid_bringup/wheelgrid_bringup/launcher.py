@@ -27,7 +27,13 @@ from wheelgrid_bringup.supervisor import (
 )
 from wheelgrid_common.bagio import BagError
 from wheelgrid_common.params import read_yaml
-from wheelgrid_common.ros_env import child_env, claim_domain, configure_ros_env, rcl_reason
+from wheelgrid_common.ros_env import (
+    child_env,
+    claim_domain,
+    configure_ros_env,
+    held_claims,
+    rcl_reason,
+)
 from wheelgrid_common.shm import clean_dead_segments
 
 
@@ -236,8 +242,6 @@ def _rcl_reads(path: Path) -> None:
     one that makes no node opens no DDS participant. Domain 0 and no logging, so that only the
     file can fail it (not a ROS_DOMAIN_ID of "abc") and no log file is left per check; rcl's
     own "Failed to parse global arguments" line is kept off stderr, said here in one line."""
-    import os
-
     from rclpy.context import Context
 
     ctx = Context()
@@ -263,12 +267,8 @@ def _rcl_reads(path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    held: list[int] = []  # the domain's lock, let go however the launch ends
-    try:
+    with held_claims() as held:  # the domain's lock, let go however the launch ends
         return _main(argv, held)
-    finally:
-        for fd in held:
-            os.close(fd)
 
 
 def _main(argv: list[str] | None, held: list[int]) -> int:
@@ -358,7 +358,7 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
     # (the test or demo that started this launch, a second launch of this checkout): as before.
     with contextlib.suppress(ValueError):
         claim = claim_domain([int(env.get("ROS_DOMAIN_ID", "0"))])
-        if claim is not None and claim[1] >= 0:
+        if claim is not None:
             held.append(claim[1])
     try:
         # a chain in a namespace logs in a folder of its own: two chains on one --log-dir

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from wheelgrid_common.ros_env import child_env
+from wheelgrid_common.ros_env import DIE_WITH_PARENT_CODE, child_env
 from wheelgrid_common.testing import stop_process
 
 # A replay maps every frame, as `wheelgrid map` does; live, the mapper keeps only the newest
@@ -34,26 +34,6 @@ NODES: dict[str, str] = {
 }
 
 
-def die_with_parent(parent: int) -> None:
-    """Called first thing in a supervised child: SIGTERM it when the process that started it
-    dies, however it dies. The children run in sessions of their own (a terminal's Ctrl-C
-    reaches only the supervisor, which stops them in order), so a supervisor killed outright
-    (SIGKILL, the OOM killer) left every node running, the drive node holding the chair's
-    port. SIGTERM is the clean stop every node handles. Linux only; elsewhere a no-op."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    import signal
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-    if os.getppid() != parent:  # it died before the prctl: nobody would send the signal
-        os.kill(os.getpid(), signal.SIGTERM)
-
-
 def child_code(module: str, func: str) -> str:
     """``python -c`` code that runs ``module.func()`` as a supervised child of this process.
 
@@ -67,9 +47,7 @@ def child_code(module: str, func: str) -> str:
         # a handler, not `except KeyboardInterrupt`: numpy turns one inside its import into an
         # ImportError (rc 1, a traceback; a review); os._exit, as there is nothing to flush
         "signal.signal(signal.SIGINT, lambda *_: os._exit(0))\n"
-        "from wheelgrid_bringup.supervisor import die_with_parent\n"
-        f"die_with_parent({os.getpid()})\n"
-        f"from {module} import {func} as m\n"
+        f"parent = {os.getpid()}\n" + DIE_WITH_PARENT_CODE + f"from {module} import {func} as m\n"
         "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "sys.exit(m() or 0)\n"
     )

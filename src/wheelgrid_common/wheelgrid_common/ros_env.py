@@ -16,8 +16,8 @@ import signal
 import sys
 import tempfile
 import threading
-from collections.abc import Callable, Iterable, Mapping, MutableMapping
-from contextlib import suppress
+from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping
+from contextlib import contextmanager, suppress
 from importlib.util import find_spec
 from pathlib import Path
 from typing import Any, cast
@@ -68,6 +68,25 @@ def rmw_missing(env: Mapping[str, str]) -> str:
         f"in {sys.prefix}/lib or under AMENT_PREFIX_PATH): unset it, or set it to "
         "rmw_fastrtps_cpp, which the ROS wheels bring"
     )
+
+
+#: ``python -c`` code run first in a child that has ``parent`` (the pid that started it)
+#: defined: Linux SIGTERMs it when that process dies, however it dies. Children in sessions of
+#: their own are reached by nothing else: a supervisor killed outright (SIGKILL, the OOM killer)
+#: left every node running, the drive holding the chair's port, and a test node outlived a
+#: killed pytest by minutes. SIGTERM is the clean stop every node handles. Plain Python, no
+#: wheelgrid import (a child's environment may not reach the packages, and it costs no
+#: start-up); where prctl is missing (not Linux), nothing.
+DIE_WITH_PARENT_CODE = (
+    "import ctypes, os, signal\n"
+    "try:\n"
+    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)\n"
+    "except (OSError, AttributeError):\n"
+    "    pass\n"
+    "else:\n"
+    "    if os.getppid() != parent:  # it died before the prctl: nobody would send it\n"
+    "        os.kill(os.getpid(), signal.SIGTERM)\n"
+)
 
 
 #: Fast DDS transports for this machine only: shared memory that holds a whole iPhone cloud,
@@ -143,6 +162,20 @@ def claim_domain(candidates: Iterable[int], lock_dir: Path | None = None) -> tup
             return domain, -1  # a folder without locks (ENOLCK): unclaimed, as before
         return domain, fd
     return None
+
+
+@contextmanager
+def held_claims() -> Iterator[list[int]]:
+    """A list for :func:`claim_domain`'s lock descriptors (-1 for none), each closed however
+    the block ends: a caller run again in the same process (a test) must let go of its
+    domain, and the demo's and the launcher's ``main`` both hold one for their run."""
+    held: list[int] = []
+    try:
+        yield held
+    finally:
+        for fd in held:
+            if fd >= 0:
+                os.close(fd)
 
 
 def _open_lock_file(path: Path) -> int:

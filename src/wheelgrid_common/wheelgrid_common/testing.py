@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.ros_env import child_env, configure_ros_env
+from wheelgrid_common.ros_env import DIE_WITH_PARENT_CODE, child_env, configure_ros_env
 from wheelgrid_common.services import call_with_retry
 from wheelgrid_common.shm import clean_dead_segments
 
@@ -215,18 +215,12 @@ def _stop(proc: subprocess.Popen[Any], grace: float) -> int | None:
     return proc.poll()
 
 
-#: ``python -c`` code that asks Linux to SIGTERM this process when its parent dies, then
-#: execs ``argv[2:]`` (the same pid, so the caller's handle stays the child's). Plain Python,
-#: no wheelgrid import: a test may give the child an environment of its own.
+#: ``python -c`` code: :data:`DIE_WITH_PARENT_CODE`, then exec ``argv[2:]`` (the same pid, so
+#: the caller's handle stays the child's).
 _DIE_WITH_PARENT_THEN_EXEC = (
-    "import ctypes, os, signal, sys\n"
-    "try:\n"
-    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)\n"
-    "except (OSError, AttributeError):\n"
-    "    pass\n"
-    "if os.getppid() != int(sys.argv[1]):\n"
-    "    os.kill(os.getpid(), signal.SIGTERM)\n"
-    "os.execvp(sys.argv[2], sys.argv[2:])\n"
+    "import sys\nparent = int(sys.argv[1])\n"
+    + DIE_WITH_PARENT_CODE
+    + "os.execvp(sys.argv[2], sys.argv[2:])\n"
 )
 
 
