@@ -397,3 +397,42 @@ def test_the_messages_inside_a_cut_compressed_chunk_come_back(tmp_path, codec, c
     assert _read(tmp_path / "back_lying") == _read(tmp_path / "back0.6")
     # a complete file has no chunk the cut went through
     assert bag_recover.cut_chunk_records(mcap, bag_recover.mcap_extent(mcap)) == (b"", 0)
+
+
+def test_a_message_on_a_channel_nothing_defines_ends_the_salvage_counted_lost(tmp_path) -> None:
+    """A reader skips a message whose channel nothing defines without a word: inside the chunk
+    a cut went through (damage, never a recorder's doing) it reported no bytes lost. The
+    salvage ends there, and it and what follows count as lost."""
+    import struct
+
+    bag, _ = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    data = mcap.read_bytes()[: int(0.6 * len(mcap.read_bytes()))]
+    clean = tmp_path / "clean"
+    clean.mkdir()
+    (clean / mcap.name).write_bytes(data)
+    ok = bag_recover.recover(clean, tmp_path / "back_clean", progress=False)
+
+    start = bag_recover.mcap_extent(clean / mcap.name).data_end
+    (name_len,) = struct.unpack("<I", data[start + 37 : start + 41])
+    assert name_len == 0  # rosbags writes its chunks uncompressed
+    pos = start + 41 + 8  # the chunk's records
+    messages = []  # where each complete message record inside the cut chunk begins
+    while pos + 9 <= len(data):
+        op, length = data[pos], struct.unpack("<Q", data[pos + 1 : pos + 9])[0]
+        if pos + 9 + length > len(data):
+            break
+        if op == 0x05:
+            messages.append(pos)
+        pos += 9 + length
+    assert len(messages) > 3
+    pos = messages[2]  # the third is put on channel 999
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    (damaged / mcap.name).write_bytes(data[: pos + 9] + struct.pack("<H", 999) + data[pos + 11 :])
+    res = bag_recover.recover(damaged, tmp_path / "back", progress=False)
+    got, before = _read(tmp_path / "back"), _read(tmp_path / "back_clean")
+    # the two messages before it come back, nothing from it on; its bytes on count lost
+    assert len(got) == res.messages == ok.messages - len(messages) + 2
+    assert got == before[: len(got)]
+    assert res.bytes_lost >= len(data) - pos > ok.bytes_lost

@@ -23,6 +23,7 @@ import math
 import shutil
 import struct
 import sys
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -342,14 +343,21 @@ def _decompressed_prefix(codec: str, data: bytes) -> list[tuple[int, bytes]] | N
     return steps
 
 
-def cut_chunk_records(path: Path, extent: Extent) -> tuple[bytes, int]:
+def cut_chunk_records(
+    path: Path, extent: Extent, channels: Collection[int] = ()
+) -> tuple[bytes, int]:
     """The complete Schema, Channel and Message records inside the chunk the cut went through,
     and how many of the file's bytes after ``extent.data_end`` they account for: (b"", 0)
     where there is no such chunk or its compression is unknown. The walk from the header drops
     the chunk whole: a cut in a recording's first chunk gave back nothing, its first cloud and
     pose intact (a review). A chunk compressed with zstd (libmcap's default; rosbag2's
     ``zstd_fast`` and ``zstd_small`` presets) or lz4 is read as far as a streaming
-    decompressor gets, which is up to the cut."""
+    decompressor gets, which is up to the cut.
+
+    The records end at a message on a channel neither ``channels`` (those of the complete
+    records before) nor the chunk itself defines: a reader skips such a message without a
+    word, so it and what follows count as lost bytes (a review's hand-made chunk with three
+    messages on channel 999 reported nothing lost)."""
     with path.open("rb") as f:
         f.seek(extent.data_end)
         head = f.read(1 + 8 + 8 + 8 + 8 + 4 + 4)
@@ -373,11 +381,16 @@ def cut_chunk_records(path: Path, extent: Extent) -> tuple[bytes, int]:
         body = b"".join(out for _, out in steps)
     else:
         steps, body = [], stored
-    out, pos = bytearray(), 0
+    out, pos, known = bytearray(), 0, set(channels)
     while pos + 9 <= len(body):
         op, length = body[pos], struct.unpack("<Q", body[pos + 1 : pos + 9])[0]
         end = pos + 9 + length
-        if end > len(body) or op not in (_SCHEMA, _CHANNEL, _MESSAGE):
+        if end > len(body) or op not in (_SCHEMA, _CHANNEL, _MESSAGE) or length < 2:
+            break
+        (channel,) = struct.unpack("<H", body[pos + 9 : pos + 11])  # its id, a message's channel
+        if op == _CHANNEL:
+            known.add(channel)
+        elif op == _MESSAGE and channel not in known:
             break
         out += body[pos:end]
         pos = end
@@ -426,9 +439,13 @@ def _open_file(path: Path, res: Recovery) -> Any:
     res.already_complete += int(ext.complete)
     if ext.complete:
         return _reader(path, ext)
-    inner, used = cut_chunk_records(path, ext)
+    reader = _reader(path, ext)
+    inner, used = cut_chunk_records(path, ext, [c.id for c in reader.connections])
     res.bytes_lost += ext.size - ext.data_end - used
-    return _salvaged_reader(path, ext, inner) if inner else _reader(path, ext)
+    if not inner:
+        return reader
+    reader.close()
+    return _salvaged_reader(path, ext, inner)
 
 
 def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) -> Recovery:
