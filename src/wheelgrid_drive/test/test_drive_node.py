@@ -791,6 +791,27 @@ def test_vanished_port_is_reported_and_recovered(make_sim, tmp_path):
         assert next(e for e in sim2.events if e.what == "rx").detail == "STOP"
 
 
+def test_a_controller_that_stops_answering_is_an_error_and_its_last_pose_is_not_shown(make_sim):
+    """A port still open with nobody answering on it (a dead firmware, a cut RX wire) read OK,
+    its 19 unanswered heartbeats only counted, and the last pose it ever sent shown as the
+    chair's. It is an ERROR within a few heartbeats, without the pose, and OK again once the
+    controller answers."""
+    sim = make_sim()
+    with rclpy_context() as ctx, Harness(ctx, sim.slave_path) as h:
+        assert h.matched()
+        assert h.spin(lambda: bool(h.states) and "x" in {v.key for v in h.states[-1].values})
+        assert h.states[-1].level == b"\x00"
+        sim.drop_rx_next = 10**9  # the controller hears nothing any more
+        assert h.spin(lambda: h.states[-1].level == b"\x02", 3.0)
+        last = h.states[-1]
+        keys = {v.key: v.value for v in last.values}
+        assert "not answering" in last.message and "x" not in keys and "state" not in keys
+        assert float(keys["status_age_s"]) > 3 * h.drive.cfg.heartbeat_period
+        sim.drop_rx_next = 0  # it answers again
+        assert h.spin(lambda: h.states[-1].level == b"\x00", 3.0)
+        assert "x" in {v.key for v in h.states[-1].values}
+
+
 def test_drive_console_entry_point_runs_and_stops_the_chair_on_sigint(make_sim, tmp_path):
     """Started as `wheelgrid launch` starts it (a global ``__node`` rename) with its e-stop
     topic remapped: the e-stop node keeps a name of its own and still hears the remapped

@@ -75,6 +75,10 @@ from wheelgrid_drive.runner import (
 
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+# The state says ERROR once the controller has not reported for this many heartbeat periods
+# (and their tries): it no longer answers, and its last pose is not the chair's.
+SILENT_HEARTBEATS = 3
+HEARTBEAT_LOG_PERIOD_S = 10.0  # a failing heartbeat is logged at most this often
 
 
 # The grid node's heartbeat (DiagnosticArray, 2 Hz): see DriveConfig.grid_state_timeout.
@@ -415,7 +419,14 @@ class DriveNode(Node):
             # matched the planner later than that, and the demo's route was never driven)
             "plan_publishers": str(self._plan_sub.get_publisher_count()),
         }
-        if st is not None:
+        silent = self.link.silent_for() if self.link.connected else 0.0
+        # heartbeats go every heartbeat_period, each tried twice: longer than three of them
+        # and their tries is a controller that no longer answers (a dead firmware, a cut RX
+        # wire), whose last pose is no longer the chair's
+        deaf = silent > SILENT_HEARTBEATS * self.cfg.heartbeat_period + 2 * self.cfg.reply_timeout
+        if self.link.connected:
+            values["status_age_s"] = f"{silent:.2f}"
+        if st is not None and not deaf:
             values.update(
                 x=f"{st.x:.3f}",
                 y=f"{st.y:.3f}",
@@ -428,6 +439,18 @@ class DriveNode(Node):
         message = f"{job}: {message}"
         if not self.link.connected and self.cfg.port:
             level, message = ERROR, f"motor controller port {self.cfg.port} not connected"
+        elif self.link.stop_owed:
+            level, message = (
+                ERROR,
+                "a STOP went unacknowledged: the link is silent so that the controller's "
+                "watchdog stops the motors",
+            )
+        elif deaf:
+            # an open port said OK with 19 heartbeats unanswered, and the last pose as current
+            level, message = (
+                ERROR,
+                f"motor controller not answering for {silent:.1f} s on {self.cfg.port}",
+            )
         elif self._estop_failed:
             level, message = (
                 ERROR,
@@ -477,6 +500,8 @@ class DriveNode(Node):
         logger = exit_logger(self)  # close() stops the chair after the context is shut down
         if kind in ("vanished", "stop", "nak", "garbled", "unexpected"):
             logger.warning(self._link_note)
+        elif kind == "heartbeat":  # ten a second from a controller that does not answer
+            logger.warning(self._link_note, throttle_duration_sec=HEARTBEAT_LOG_PERIOD_S)
         elif kind == "reconnected":
             logger.info(self._link_note)
 

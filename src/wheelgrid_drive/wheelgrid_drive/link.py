@@ -85,6 +85,7 @@ def _default_serial_factory(port: str, baud: int) -> Any:
     return serial.Serial(port, baud, timeout=0.02, write_timeout=0.5, exclusive=True)
 
 
+MAX_BAUD = 12_000_000  # an FTDI high-speed adapter's fastest
 HEARTBEAT_PERIOD_S = 0.1  # 5x faster than the controller's 0.5 s watchdog (protocol duty 3)
 # after an unacknowledged STOP the link says nothing this long, twice the controller's watchdog,
 # before it tries STOP again
@@ -138,6 +139,7 @@ class MotorLink:
         self.stats = LinkStats()
         self.last_status: proto.Status | None = None
         self.last_status_time = 0.0
+        self.opened_at = 0.0  # when the port was last opened (monotonic)
         self._factory = serial_factory
         self._ser: Any = None
         self._decoder = proto.FrameDecoder()
@@ -169,6 +171,11 @@ class MotorLink:
     def connected(self) -> bool:
         return self._ser is not None
 
+    def silent_for(self) -> float:
+        """Seconds since the controller last reported its status, or since the port opened
+        before its first report: an open port says nothing of whether anyone answers on it."""
+        return time.monotonic() - max(self.last_status_time, self.opened_at)
+
     def open(self) -> MotorLink:
         """Open the port and start the reader; LinkError if it cannot be opened."""
         self._closing.clear()
@@ -186,6 +193,7 @@ class MotorLink:
         with self._state_lock:
             self._stop_first = stop_first
             self._ser = ser
+            self.opened_at = time.monotonic()
             self.connection += 1
             # Whoever drove the controller while the port was away (a second host, a
             # `wheelgrid drive` run) moved its last accepted SEQ: the next move reads it from
@@ -635,6 +643,8 @@ def check_link_settings(
     stop the chair in the middle of every move."""
     if baud <= 0:
         raise ValueError(f"baud must be > 0, not {baud}")
+    if baud > MAX_BAUD:  # past int32 the OS's own words were "signed integer is greater..."
+        raise ValueError(f"baud must be <= {MAX_BAUD} (a fast USB serial adapter's), not {baud}")
     if not 0.0 < reply_timeout <= 10.0:
         raise ValueError(f"reply_timeout must be in (0, 10] s, not {reply_timeout}")
     if not 0 <= retries <= 20:
