@@ -209,6 +209,7 @@ def test_a_plan_nested_too_deep_is_bad_input(tmp_path, capsys):
         (["--reply-timeout", "nan"], "--reply-timeout must be in (0, 10] s"),
         (["--retries", "-1"], "--retries must be in 0..20"),  # no frame, STOP included, sent
         (["--baud", "0"], "--baud must be > 0"),  # baud 0 hangs up a real line
+        (["--baud", "99999999999"], "--baud must be <= 12000000"),  # exit 1, the OS's words
     ],
 )
 def test_bad_settings_exit_2_before_any_frame(make_sim, tmp_path, capsys, extra, message):
@@ -455,3 +456,15 @@ def test_a_signal_mid_move_stops_the_chair_as_ctrl_c_does(
     (rec,) = [json.loads(ln) for ln in out.splitlines()]  # --jsonl: JSON lines alone
     assert rec["ack"] == "INTERRUPTED" and says in rec["reason"] and len(rec["pose"]) == 2
     assert rec["from"] == [0, 0] and rec["to"] == [0, 1], rec
+
+
+def test_a_plan_without_moves_takes_the_heading_wheelgrid_plan_wrote(make_sim, tmp_path, capsys):
+    """`wheelgrid plan --heading down` from a cell to itself writes "heading" and no actions:
+    the drive refused it ("start heading unknown"), exit 2. It is 0 steps, the chair unmoved."""
+    sim = make_sim()
+    doc = {"cells": [[2, 2]], "moves": [], "reason": "ok", "heading": "down", "actions": []}
+    assert main([write(tmp_path, doc), "--port", sim.slave_path]) == 0, capsys.readouterr().err
+    assert not any(e.what == "move" for e in sim.events)
+    doc["heading"] = "north"  # said as bad, not taken for none
+    assert main([write(tmp_path, doc), "--port", sim.slave_path]) == 2
+    assert "heading must be up/down/left/right" in capsys.readouterr().err

@@ -269,6 +269,7 @@ def test_link_settings_it_cannot_run_with_are_refused():
     check_link_settings(115200, 0.1, 3, 0.1, 0.5)
     for kw, message in (
         ({"baud": 0}, "baud must be > 0"),
+        ({"baud": 99_999_999_999}, "baud must be <= 12000000"),  # the OS: "signed integer..."
         ({"reply_timeout": float("nan")}, "reply_timeout"),
         ({"reply_timeout": 1e12}, "reply_timeout"),
         ({"retries": -1}, "retries"),
@@ -301,6 +302,10 @@ def test_motor_sim_refuses_settings_that_break_it_and_never_deletes_a_file(tmp_p
     precious.write_text("keep me\n")
     assert sim_main(["--link", str(precious)]) == 2
     assert precious.read_text() == "keep me\n" and "not a symlink" in capsys.readouterr().err
+    # a link in a folder that is not there is bad input, said as the link's (it was "cannot
+    # open a pty", exit 1, the pty left open)
+    assert sim_main(["--link", str(tmp_path / "no_such_dir" / "chair.pty")]) == 2
+    assert "--link" in (err := capsys.readouterr().err) and "No such file" in err, err
     for flag in ("--heartbeat-timeout", "--x", "--delay"):  # NaN: no watchdog, a dead thread
         assert sim_main([flag, "nan"]) == 2
         assert f"{flag} must be finite" in capsys.readouterr().err

@@ -85,6 +85,8 @@ def load_plan(
         if not isinstance(acts, list) or not all(isinstance(a, dict) for a in acts):
             raise PlanError("'actions' must be a list of objects")
         plan_heading = str(acts[0].get("heading", "")).lower() or None
+    elif isinstance(doc.get("heading"), str):  # no move: `wheelgrid plan --heading` says it
+        plan_heading = doc["heading"].lower() or None
     if heading and plan_heading and heading.lower() != plan_heading:
         raise PlanError(
             f"--heading {heading} disagrees with the plan's start heading {plan_heading}"

@@ -145,9 +145,13 @@ class MotorSim:
         tty.setraw(self._slave)
         self.slave_path = os.ttyname(self._slave)
         if link is not None:
-            with contextlib.suppress(FileNotFoundError):
-                link.unlink()
-            link.symlink_to(self.slave_path)
+            try:
+                with contextlib.suppress(FileNotFoundError):
+                    link.unlink()
+                link.symlink_to(self.slave_path)
+            except OSError as exc:  # a folder that is not there: said as the pty's failure
+                self.stop()
+                raise ValueError(f"--link {link}: cannot make it: {exc.strerror}") from None
         self._last_rx = self._last_tick = self._t0 = time.monotonic()
         self._log_pose(force=True)
         self._stop.clear()
