@@ -794,8 +794,13 @@ def test_the_ranges_the_mapper_parameters_declare_hold_every_valid_value_and_no_
     from wheelgrid_mapping.registration import RegistrationConfig
 
     assert check_declared_bounds(RegistrationConfig, lambda c: c.validate()) == [
-        "max_iterations", "max_points_per_voxel", "threads"
+        "max_iterations", "max_points_per_voxel", "threads", "voxel_size"
     ]  # fmt: skip
+    # registration voxel_size 1e-6 started the mapper, which then failed every frame ("cloud
+    # too large for cell"), one ERROR line a frame; the loop closure's submaps likewise
+    from wheelgrid_mapping.loop_closure import LoopClosureConfig
+
+    assert check_declared_bounds(LoopClosureConfig, lambda c: c.validate()) == ["submap_voxel"]
     # evidence_voxel must also hold evidence_margin (4 cm), which no range can say
     ranged = check_declared_bounds(MapperConfig, lambda c: c.validate(), ("evidence_voxel",))
     assert ranged == [

@@ -65,9 +65,9 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from wheelgrid_common.params import check_finite, field
+from wheelgrid_common.params import check_bounds, check_finite, field
 
-from .preprocess import voxel_downsample
+from .preprocess import MIN_VOXEL, voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
 
@@ -81,7 +81,9 @@ class LoopClosureConfig:
         "time a submap (one pose-graph node) spans: 10 frames at 5 Hz, 60 at an iPhone's 30 fps",
         "s",
     )
-    submap_voxel: float = field(0.04, "voxel of the submap clouds the loop ICP aligns", "m")
+    submap_voxel: float = field(
+        0.04, "voxel of the submap clouds the loop ICP aligns", "m", bounds=(MIN_VOXEL, math.inf)
+    )
     normal_radius: float = field(0.15, "radius of the submap normals (point-to-plane ICP)", "m")
     min_overlap: float = field(
         0.1,
@@ -240,6 +242,7 @@ class LoopClosureConfig:
         .nan`` made every edge's weight NaN, and the solve then pruned every loop edge without
         a word, and a negative ``max_correction`` refused every one of them."""
         check_finite(self, "loop_closure ")
+        check_bounds(self, "loop_closure ")
         for name in (
             "max_correction", "max_correction_deg", "edge_prune_threshold", "max_drift_scale",
             "max_drift_deg_per_m", "max_loop_residual",

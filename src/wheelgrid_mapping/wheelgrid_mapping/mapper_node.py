@@ -577,7 +577,11 @@ class MapperNode(Node):  # type: ignore[misc]
         for stamp, out in done:
             frame_id, header_stamp = self._pushed(stamp, out.status == "skipped")
             if out.status == "error":
-                self.get_logger().error(f"frame at {stamp:.3f} s failed: {out.reason}")
+                # throttled like the registration failures (frames_errored counts each)
+                self.get_logger().error(
+                    f"frame at {stamp:.3f} s failed: {out.reason}",
+                    throttle_duration_sec=FAILURE_LOG_PERIOD_S,
+                )
             elif out.status == "failed":
                 self._say_failure(stamp, out.reason)
             elif out.status == "empty":

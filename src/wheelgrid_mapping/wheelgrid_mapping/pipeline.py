@@ -38,6 +38,7 @@ from .levelling import (
 )
 from .loop_closure import LoopClosureConfig, LoopClosureResult, close_loops, submap_groups
 from .preprocess import (
+    MIN_VOXEL,
     PreprocessConfig,
     PreprocessStats,
     preprocess_for_map,
@@ -52,9 +53,6 @@ from .registration import (
     transform,
 )
 from .se3 import is_rigid
-
-#: The finest map and evidence voxel (m): voxel keys hold +-2^20 voxels a side, a kilometre at 1 mm.
-MIN_VOXEL = 0.001
 
 
 @dataclass

@@ -36,6 +36,10 @@ from wheelgrid_common.params import check_finite, field
 
 from .depth import check_min_confidence
 
+#: The finest map, evidence, registration and submap voxel (m): voxel keys hold +-2^20 voxels
+#: a side, a kilometre at 1 mm.
+MIN_VOXEL = 0.001
+
 
 @dataclass
 class PreprocessConfig:

@@ -29,6 +29,7 @@ the baseline the benchmarks compare against.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from dataclasses import field as dc_field
@@ -39,7 +40,7 @@ import numpy as np
 from wheelgrid_common.params import check_bounds, check_finite, field
 
 from .evidence import INVALID_KEY, NEIGHBOUR_KEYS, contains_sorted, voxel_keys_or_invalid
-from .preprocess import grid_knn, neighbourhood_normals, voxel_downsample
+from .preprocess import MIN_VOXEL, grid_knn, neighbourhood_normals, voxel_downsample
 from .se3 import exp_se3, log_se3, rotation_angle_deg, transform
 
 #: A scale measurement spans at least this much of the prior's travel (m): ICP's millimetres
@@ -58,7 +59,13 @@ class RegistrationConfig:
     """Registration and failure-detection parameters (YAML section ``registration``)."""
 
     method: str = field("kiss", "kiss (KISS-ICP) or open3d (point-to-plane ICP baseline)", "")
-    voxel_size: float = field(0.1, "voxel of the registration map (KISS-ICP voxel_size)", "m")
+    voxel_size: float = field(
+        0.1,
+        "voxel of the registration map (KISS-ICP voxel_size)",
+        "m",
+        # 1e-6 started, then failed every frame ("cloud too large for cell")
+        bounds=(MIN_VOXEL, math.inf),
+    )
     max_range: float = field(6.0, "map points farther than this from the sensor are dropped", "m")
     initial_threshold: float = field(
         0.3, "initial correspondence threshold of the adaptive estimator", "m"
