@@ -126,6 +126,15 @@ class BagPlayer:
                     f"topics: {listing}"
                 )
             self.topics = [t for t in infos if t.name in wanted]
+            names = [t.name for t in self.topics]
+            if twice := sorted({n for n in names if names.count(n) > 1}):
+                # one publisher a topic: the other type's messages went out as this one's
+                types = ", ".join(t.msgtype for t in self.topics if t.name == twice[0])
+                raise BagError(
+                    f"{self.bag}: topic {twice[0]} carries more than one message type "
+                    f"({types}), which ROS 2 cannot publish on one topic; replay the other "
+                    "topics with --topic"
+                )
             self.total = sum(t.count for t in self.topics)
         classes = {}
         for t in self.topics:

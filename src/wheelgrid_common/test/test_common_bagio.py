@@ -102,3 +102,43 @@ def test_edit_bag_copies_keeps_stops_and_edits(tmp_path, storage):
     with BagReader(out) as r:
         msgs = list(r.messages(["/b"], damaged_as_none=True))
     assert [m.data if m is not None else None for _, _, m in msgs] == ["B0", "B2", None]
+
+
+@pytest.mark.parametrize("first", ["odometry", "cloud"])
+def test_a_topic_that_carries_two_message_types_is_read_as_the_type_picked(tmp_path, first):
+    """A merged or ROS 1 bag may hold two types on one topic. The last connection's type named
+    the topic: the bag then had "no PointCloud2 topic", or the other type's messages were read
+    as clouds (a traceback in ``wheelgrid map``). The cloud topic is found, and only its clouds
+    are read."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Writer
+
+    from wheelgrid_common.bagio import typestore
+
+    store = typestore()
+    bag = tmp_path / "mixed"
+    cloud = to_pointcloud2(np.random.default_rng(0).random((50, 3)), "cam")
+    with Writer(bag, version=9) as w:
+        kinds = ["odometry", "cloud"] if first == "odometry" else ["cloud", "odometry"]
+        conns = {
+            k: w.add_connection(
+                "/iphone/points",
+                "nav_msgs/msg/Odometry" if k == "odometry" else POINTCLOUD2,
+                typestore=store,
+            )
+            for k in kinds
+        }
+        w.write(conns["odometry"], 1, serialize_message(Odometry()))
+        for i in range(3):
+            w.write(conns["cloud"], 10 + i, serialize_message(cloud))
+    with BagReader(bag) as r:
+        assert r.pick_topic(None) == "/iphone/points"
+        assert r.count(["/iphone/points"]) == 3
+        got = [read_xyz(m) for _, _, m in r.messages(["/iphone/points"])]
+        assert len(got) == 3 and all(g.shape == (50, 3) for g in got)
+    with BagReader(bag) as r:  # named with --topic: the same
+        assert r.pick_topic("/iphone/points") == "/iphone/points"
+        assert r.count(["/iphone/points"]) == 3
+        with pytest.raises(BagError, match=r"carries .*Odometry.*PointCloud2, not .*Imu"):
+            r.pick_topic("/iphone/points", "sensor_msgs/msg/Imu")

@@ -138,6 +138,9 @@ class BagReader:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._reader: Any = None
+        # the type :meth:`pick_topic` chose for a topic: a ROS 1 or merged bag may hold
+        # another type on the same topic, whose messages were read as this one (a traceback)
+        self._picked: dict[str, str] = {}
 
     def __enter__(self) -> BagReader:
         from rosbags.highlevel import AnyReader
@@ -170,11 +173,13 @@ class BagReader:
         return self._reader
 
     def topics(self) -> list[TopicInfo]:
-        out: dict[str, TopicInfo] = {}
+        """One entry per topic and message type (a topic may carry two: merged bags, ROS 1)."""
+        out: dict[tuple[str, str], TopicInfo] = {}
         for c in self.reader.connections:
-            prev = out.get(c.topic)
-            out[c.topic] = TopicInfo(c.topic, c.msgtype, (prev.count if prev else 0) + c.msgcount)
-        return sorted(out.values(), key=lambda t: t.name)
+            prev = out.get((c.topic, c.msgtype))
+            count = (prev.count if prev else 0) + c.msgcount
+            out[c.topic, c.msgtype] = TopicInfo(c.topic, c.msgtype, count)
+        return sorted(out.values(), key=lambda t: (t.name, t.msgtype))
 
     def pick_topic(
         self, topic: str | None, msgtype: str = POINTCLOUD2, flag: str = "--topic"
@@ -187,13 +192,14 @@ class BagReader:
             if not match:
                 listing = ", ".join(f"{t.name} ({t.msgtype})" for t in infos) or "none"
                 raise BagError(f"{self.path}: no topic {topic!r}; topics: {listing}")
-            if match[0].msgtype != msgtype:
-                raise BagError(
-                    f"{self.path}: topic {topic!r} carries {match[0].msgtype}, not {msgtype}"
-                )
+            if all(t.msgtype != msgtype for t in match):
+                carried = ", ".join(t.msgtype for t in match)
+                raise BagError(f"{self.path}: topic {topic!r} carries {carried}, not {msgtype}")
+            self._picked[topic] = msgtype
             return topic
         cands = [t for t in infos if t.msgtype == msgtype]
         if len(cands) == 1:
+            self._picked[cands[0].name] = msgtype
             return cands[0].name
         if not cands:  # say what the bag holds instead: a user who recorded the wrong topic
             others = ", ".join(f"{t.name} ({t.msgtype})" for t in infos) or "none"
@@ -203,14 +209,21 @@ class BagReader:
             f"{self.path}: {len(cands)} {msgtype} topics ({listing}); choose one with {flag}"
         )
 
-    def count(self, topics: Iterable[str]) -> int:
+    def _connections(self, topics: Iterable[str]) -> list[Any]:
+        """The connections of ``topics``, of the type :meth:`pick_topic` chose where it did."""
         wanted = set(topics)
-        return sum(c.msgcount for c in self.reader.connections if c.topic in wanted)
+        return [
+            c
+            for c in self.reader.connections
+            if c.topic in wanted and self._picked.get(c.topic, c.msgtype) == c.msgtype
+        ]
+
+    def count(self, topics: Iterable[str]) -> int:
+        return sum(c.msgcount for c in self._connections(topics))
 
     def raw(self, topics: Iterable[str]) -> Iterator[tuple[str, str, int, bytes]]:
         """(topic, msgtype, log time ns, CDR bytes) in log-time order."""
-        wanted = set(topics)
-        conns = [c for c in self.reader.connections if c.topic in wanted]
+        conns = self._connections(topics)
         try:
             for conn, t_ns, raw in self.reader.messages(connections=conns):
                 yield conn.topic, conn.msgtype, int(t_ns), bytes(raw)
