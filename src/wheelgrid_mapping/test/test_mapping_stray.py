@@ -128,6 +128,12 @@ def test_a_first_depth_image_of_another_size_or_an_8_bit_one_fails_its_frame_onl
             cap / "depth" / f"{i:06d}.png"
         )
     assert (StrayExport(cap).height, StrayExport(cap).width) == (6, 8)
+    # three odd ones first of ten: the first five that read outvoted the other seven with
+    # three, and every frame of the export was refused (a review: 37 good frames of 40)
+    cap = make_export(tmp_path / "cap10", 10)
+    for i in range(3):
+        Image.fromarray(np.full((12, 16), 1000, np.uint16)).save(cap / "depth" / f"{i:06d}.png")
+    assert (StrayExport(cap).height, StrayExport(cap).width) == (6, 8)
 
 
 def test_a_16_bit_png_opened_as_32_bit_is_read_as_millimetres(tmp_path: Path, monkeypatch) -> None:

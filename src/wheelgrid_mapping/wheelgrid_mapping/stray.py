@@ -22,6 +22,7 @@ import contextlib
 import csv
 import math
 import sys
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,10 +91,22 @@ def _read_depth(path: Path) -> np.ndarray:
     )
 
 
-#: How many readable depth images the export's resolution is taken from (the most common shape
-#: among them), and after how many files it settles for those it has.
-SHAPE_VOTES = 5
-SHAPE_LOOK = 50
+def _image_shape(path: Path) -> tuple[int, int]:
+    """(height, width) from the file's header, without decoding its pixels; ``ValueError``
+    where there is none to read."""
+    try:
+        if path.suffix == ".npy":
+            shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
+        else:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                shape = (im.height, im.width)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path}: cannot read the image ({exc})") from exc
+    if len(shape) < 2:
+        raise ValueError(f"{path}: not an image (shape {shape})")
+    return int(shape[0]), int(shape[1])
 
 
 def _read_camera_matrix(path: Path) -> np.ndarray:
@@ -233,28 +246,26 @@ class StrayExport:
 
     @staticmethod
     def _resolution(files: list[Path]) -> tuple[int, int]:
-        """(height, width) of the export's depth: the most common shape of its first
-        :data:`SHAPE_VOTES` depth images that read (the earliest on a tie). One broken file at
-        the start must not refuse a capture whose other frames read (each frame that does not
-        is skipped when it is read), nor one of another size: the first image alone set the
-        resolution, and one 512 x 384 first frame made all 119 others "differ from the first
-        frame's", the whole capture unreadable."""
+        """(height, width) of the export's depth: the most common shape among all its depth
+        images, read from their headers (the earliest on a tie). One broken file at the start
+        must not refuse a capture whose other frames read (each frame that does not is skipped
+        when it is read), nor one of another size: the first image alone set the resolution,
+        and one 512 x 384 first frame made all 119 others "differ from the first frame's", the
+        whole capture unreadable; the first five that read then outvoted 35 others with three
+        (a review)."""
         shapes: list[tuple[int, int]] = []
         first_error: ValueError | None = None
-        for i, f in enumerate(files):
-            if len(shapes) == SHAPE_VOTES or (shapes and i >= SHAPE_LOOK):
-                break
+        for f in files:
             try:
-                raw = _read_depth(f)
+                shapes.append(_image_shape(f))
             except ValueError as exc:
                 first_error = first_error or exc
-                continue
-            shapes.append((int(raw.shape[0]), int(raw.shape[1])))
         if not shapes:
             raise ValueError(
                 f"none of the {len(files)} depth images reads; the first: {first_error}"
             )
-        return max(shapes, key=shapes.count)  # max keeps the first of equal counts
+        counts = Counter(shapes)
+        return max(counts, key=counts.__getitem__)  # max keeps the first of equal counts
 
     @property
     def has_poses(self) -> bool:
