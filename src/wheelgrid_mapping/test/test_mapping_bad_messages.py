@@ -270,7 +270,10 @@ def test_frames_the_bag_lists_but_does_not_hold_are_reported_lost(tmp_path: Path
     err = capsys.readouterr().err
     assert "Traceback" not in err
     assert "lists 8 message(s) on the topic but only 5 could be read" in err, err
-    assert json.loads((out / "report.json").read_text())["frames"]["read"] == 5
+    rep = json.loads((out / "report.json").read_text())
+    # report.json says it too (only stderr did: the run read as complete from the report)
+    assert rep["frames"]["read"] == 5
+    assert rep["storage"] == {"listed": 8, "read": 5, "damage": None}
 
 
 def test_storage_damaged_mid_bag_keeps_the_frames_before_it(tmp_path: Path, capsys) -> None:
@@ -306,5 +309,28 @@ def test_storage_damaged_mid_bag_keeps_the_frames_before_it(tmp_path: Path, caps
     err = capsys.readouterr().err
     assert "Traceback" not in err
     assert "bag is corrupt" in err and "the map is made from the" in err, err
-    read = json.loads((out / "report.json").read_text())["frames"]["read"]
+    rep = json.loads((out / "report.json").read_text())
+    read = rep["frames"]["read"]
     assert 0 < read < 30
+    storage = rep["storage"]
+    assert storage["listed"] == 30 and storage["read"] == read
+    assert "bag is corrupt" in storage["damage"]
+
+
+def test_frames_empty_or_unreadable_are_said_as_both(tmp_path: Path, capsys) -> None:
+    """Every frame unusable, half of them all NaN and half malformed: the run said "all 6
+    frames have no valid points", 3 of which were unreadable."""
+
+    def nan(msg: Any) -> None:
+        msg.data = np.frombuffer(
+            np.full(len(msg.data) // 4, np.nan, np.float32).tobytes(), np.uint8
+        ).copy()
+
+    def cut(msg: Any) -> None:
+        msg.data = msg.data[: len(msg.data) // 2]
+
+    bag = _copy_first(tmp_path, "mixed", 6, {k: (nan if k % 2 else cut) for k in range(6)})
+    argv = [str(bag), "--out", str(tmp_path / "map"), "--no-loop-closure"]
+    assert cli_map.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "no usable frame: 3 without valid points" in err and "3 unreadable (" in err, err

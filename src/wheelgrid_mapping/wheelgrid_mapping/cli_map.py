@@ -648,7 +648,13 @@ def _run(args: argparse.Namespace) -> int:
         what = "depth frame" if stray else "PointCloud2 frame"  # an export holds no clouds
         raise InputError(f"{path}: no readable {what} ({', '.join(sorted(set(bad)))}){hint}")
     if mapper.frames_empty == n - len(bad):
-        raise InputError(f"{path}: all {n} frames have no valid points (all NaN/out of range)")
+        if not bad:
+            raise InputError(f"{path}: all {n} frames have no valid points (all NaN/out of range)")
+        # "all 30 frames have no valid points" where 15 of them were unreadable
+        raise InputError(
+            f"{path}: no usable frame: {n - len(bad)} without valid points (all NaN/out of "
+            f"range), {len(bad)} unreadable ({', '.join(sorted(set(bad)))})"
+        )
     if mapper.registrar.counters.accepted == 0:
         print("wheelgrid map: no frame could be registered", file=sys.stderr)
         return 1
@@ -692,6 +698,13 @@ def _run(args: argparse.Namespace) -> int:
             {
                 "input": str(path),
                 "malformed_frames": {c: bad.count(c) for c in sorted(set(bad))},
+                # what the storage held back (said on stderr only: report.json read as a
+                # complete run where 23 of 30 frames were behind a damaged chunk)
+                "storage": {
+                    "listed": total,
+                    "read": n,
+                    "damage": damage[0] if damage else None,
+                },
                 **(
                     {"prior": {"frames": match.frames, "frames_without": len(match.missing)}}
                     if match.odom_stamps is not None
