@@ -29,6 +29,22 @@ FREE, OCCUPIED, UNKNOWN = 0, 100, -1
 PIX_FREE, PIX_OCCUPIED, PIX_UNKNOWN = 254, 0, 205
 OCCUPIED_THRESH = 0.65
 FREE_THRESH = 0.196
+#: The chair's longer side (its length; it is 80 cm wide), in metres. The grid, the planner and
+#: the drive treat one cell as the chair's place: a free cell smaller than the chair can lie in
+#: a gap the chair does not fit through (a review: 0.6 m cells, and the 5 cm fine map, planned
+#: and drove through a 70 cm gap, exit 0 at every stage).
+CHAIR_SIZE_M = 1.0
+
+
+def chair_cell_problem(resolution: float) -> str | None:
+    """Why cells of ``resolution`` metres cannot carry a route of the chair (None: they can)."""
+    if resolution >= CHAIR_SIZE_M - 1e-9:
+        return None
+    return (
+        f"cells of {resolution:g} m are smaller than the chair ({CHAIR_SIZE_M:g} m): a free cell "
+        "may be a gap it does not fit through; plan on the safe grid (grid.yaml), not the "
+        "fine map"
+    )
 
 
 @dataclass

@@ -93,7 +93,7 @@ def test_speed_is_capped_and_heading_flag_works(make_sim, tmp_path, capsys):
             "--speed",
             "9",
             "--cell-size",
-            "0.6",
+            "1.0",
             "--set-pose",
         ]
     )
@@ -202,6 +202,7 @@ def test_a_plan_nested_too_deep_is_bad_input(tmp_path, capsys):
         (["--cell-size", "0"], "outside [0.001, 2]"),  # `or 1.2` made it 1.2 m silently
         (["--cell-size", "0.0004"], "outside [0.001, 2]"),  # 0 mm: refused only when sent
         (["--cell-size", "nan"], "outside [0.001, 2]"),
+        (["--cell-size", "0.6"], "smaller than the chair (1 m)"),  # a gap it does not fit
         (["--speed", "0.001"], "--speed must be >= 0.1 km/h"),  # never ends in its timeout
         (["--speed", "nan"], "--speed must be >= 0.1 km/h"),
         (["--reply-timeout", "0"], "--reply-timeout must be in (0, 10] s"),
@@ -367,7 +368,7 @@ def test_a_plan_from_another_grid_or_not_verified_is_refused_and_a_wrong_heading
 
     free = Grid(np.zeros((8, 8), np.int8), 1.2, origin=(0.0, -9.6, 0.0))
     grid_a = write_map(tmp_path / "a.yaml", free)
-    grid_b = write_map(tmp_path / "b.yaml", Grid(free.data, 0.6, origin=free.origin))
+    grid_b = write_map(tmp_path / "b.yaml", Grid(free.data, 1.0, origin=free.origin))
     argv = [str(grid_a), "--start", "2,0", "--goal", "6,5", "--heading", "down", "--json"]
     assert plan_main(argv) == 0
     planned = json.loads(capsys.readouterr().out)
@@ -399,14 +400,14 @@ def test_a_plan_from_another_grid_or_not_verified_is_refused_and_a_wrong_heading
         main(
             [
                 write(
-                    tmp_path, {**planned, "grid": {**planned["grid"], "resolution": 0.9}}, "n.json"
+                    tmp_path, {**planned, "grid": {**planned["grid"], "resolution": 1.1}}, "n.json"
                 ),
                 "--dry-run",
             ]
         )
         == 0
     )
-    assert "0.9 m per cell" in capsys.readouterr().out
+    assert "1.1 m per cell" in capsys.readouterr().out
     # on its start cell, facing left where the plan starts facing down
     x, y = free.cell_center(2, 0)
     facing_left = make_sim(pose=(float(x), float(y), math.pi))

@@ -38,7 +38,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Bool, String
 
 from wheelgrid_common.fileio import quat_yaw
-from wheelgrid_common.map_io import Grid, from_occupancy_grid
+from wheelgrid_common.map_io import Grid, chair_cell_problem, from_occupancy_grid
 from wheelgrid_common.params import (
     check_bounds,
     check_finite,
@@ -524,6 +524,8 @@ class DriveNode(Node):
     def _on_grid(self, msg: OccupancyGrid) -> None:
         try:
             grid = from_occupancy_grid(msg)
+            if problem := chair_cell_problem(grid.resolution):
+                raise ValueError(problem)
         except ValueError as exc:
             self._grid = None  # a broken grid is no grid: every cell check now refuses
             self._set_state(ERROR, f"bad safe grid: {exc}")

@@ -428,16 +428,22 @@ def test_the_ranges_the_grid_parameters_declare_hold_every_valid_value_and_no_ot
     """The grid node's parameters carry ranges (`ros2 param describe`, rqt's sliders, rclpy
     refusing a value before the node sees it), which nothing had. At the ends themselves the
     config's open ends refuse (drop_depth 0, density_threshold 1); pixel_size must also
-    divide cell_size, which no range can say."""
+    divide cell_size, which no range can say (cell_size is at least the chair's length: a
+    free 0.6 m cell lay in a 70 cm gap, and a route led through it)."""
+    from wheelgrid_common.map_io import CHAIR_SIZE_M
     from wheelgrid_common.testing import check_declared_bounds
     from wheelgrid_nav.grid import GridNodeConfig
 
     ranged = check_declared_bounds(
-        GridNodeConfig, lambda c: c.validate(), outside_only=("pixel_size",)
+        GridNodeConfig, lambda c: c.validate(), outside_only=("pixel_size", "cell_size")
     )
     assert {"safe_height", "density_threshold", "min_observed_fraction", "max_rate_hz"} <= set(
         ranged
     )
+    assert "cell_size" in ranged
+    GridNodeConfig(cell_size=CHAIR_SIZE_M).validate()  # the chair's own size is a cell
+    with pytest.raises(ValueError, match="smaller than the chair"):
+        GridNodeConfig(cell_size=CHAIR_SIZE_M - 0.05).validate()
 
 
 def test_the_most_points_a_pixel_may_need_keeps_every_obstacle_of_the_paper_room():

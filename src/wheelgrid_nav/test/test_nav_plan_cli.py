@@ -19,8 +19,8 @@ def paper_yaml(tmp_path):
     for r, c in [*PAPER_OCCUPIED, (6, 7)]:
         g[r, c] = 100
     g[0, 7] = -1  # an unknown corner
-    # 0.9 m cells (a wheelchair footprint), lower-left corner at (1, 2) in the map frame
-    return write_map(tmp_path / "grid.yaml", Grid(g, 0.9, (1.0, 2.0, 0.0)))
+    # 1.2 m cells (a wheelchair footprint), lower-left corner at (1, 2) in the map frame
+    return write_map(tmp_path / "grid.yaml", Grid(g, 1.2, (1.0, 2.0, 0.0)))
 
 
 def run(capsys, *argv):
@@ -60,14 +60,14 @@ def test_json_without_heading_has_no_actions(paper_yaml, capsys):
 
 
 def test_metres_in_the_map_frame(paper_yaml, capsys):
-    # cell (2, 0) centre: x = 1 + 0.45, y = 2 + (8 - 2 - 0.5) * 0.9; (6, 5): x = 1 + 5.5 * 0.9
+    # cell (2, 0) centre: x = 1 + 0.6, y = 2 + (8 - 2 - 0.5) * 1.2; (6, 5): x = 1 + 5.5 * 1.2
     code, out, err = run(
         capsys,
         paper_yaml,
         "--start-xy",
-        f"{1.45},{2 + 5.5 * 0.9}",
+        f"{1.6},{2 + 5.5 * 1.2}",
         "--goal-xy",
-        f"{1 + 5.5 * 0.9 + 0.3},{2 + 1.5 * 0.9 - 0.3}",
+        f"{1 + 5.5 * 1.2 + 0.3},{2 + 1.5 * 1.2 - 0.3}",
         "--json",
     )
     assert code == 0, err
@@ -236,3 +236,17 @@ def test_far_coordinates_exit_2_without_overflow(paper_yaml, capsys):
         warnings.simplefilter("error")
         code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal-xy", "1e300,-1e300")
     assert code == 2 and "outside the 8x8 grid" in err
+
+
+def test_cells_smaller_than_the_chair_are_refused(tmp_path, capsys):
+    """The fine map (5 cm) and 0.6 m cells planned through a 70 cm gap, exit 0: one cell is
+    the chair's place, and a cell smaller than the chair can be a gap it does not fit."""
+    g = np.zeros((3, 8), np.int8)
+    for res in (0.05, 0.6):
+        yaml_path = write_map(tmp_path / f"g{res}.yaml", Grid(g, res))
+        code, _, err = run(capsys, yaml_path, "--start", "1,0", "--goal", "1,7")
+        assert code == 2 and "smaller than the chair (1 m)" in err, err
+    code, _, err = run(
+        capsys, write_map(tmp_path / "g1.yaml", Grid(g, 1.0)), "--start", "1,0", "--goal", "1,7"
+    )
+    assert code == 0, err

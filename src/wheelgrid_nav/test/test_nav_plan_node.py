@@ -17,7 +17,7 @@ pytestmark = pytest.mark.ros
 
 PAPER_OCCUPIED = [(3, 0), (3, 1), (3, 2), (3, 3), (3, 4), (5, 0), (5, 1), (5, 2), (5, 3), (4, 4)]
 PAPER_ROUTE = [(2, 0)] + [(2, c) for c in range(1, 6)] + [(r, 5) for r in range(3, 7)]
-RES = 0.9
+RES = 1.2
 ORIGIN = (1.0, 2.0, 0.0)
 
 
@@ -914,6 +914,23 @@ def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_sta
         occupied[2, 0] = 100  # the start cell turns occupied: that is a change
         node._on_grid(to_occupancy_grid(Grid(occupied, 1.0)))
         assert node.plans == 2 and published[-1] == []
+
+
+def test_a_grid_of_cells_smaller_than_the_chair_withdraws_the_route_and_plans_nothing():
+    """A grid of 0.6 m cells (or the 5 cm /map sent as the safe grid) planned a route through
+    a gap narrower than the chair. It is refused: the route before it withdrawn (the map it
+    was planned on is gone), nothing planned until a grid of chair-sized cells comes."""
+    data = np.zeros((6, 6), np.int8)
+    grid = Grid(data, 1.0)
+    with recording_planner() as (node, published):
+        node._on_grid(to_occupancy_grid(grid))
+        node._on_initialpose(start_msg(grid, (2, 0), 0.0))
+        node._on_goal(goal_msg(grid, (2, 4)))
+        assert published == [[(2, c) for c in range(5)]] and node.plans == 1
+        node._on_grid(to_occupancy_grid(Grid(data, 0.6)))
+        assert published[-1] == [] and node.grid is None and node.plans == 1
+        node._on_grid(to_occupancy_grid(grid))  # chair-sized again: the goal is planned
+        assert node.plans == 2 and published[-1] == [(2, c) for c in range(5)]
 
 
 def drive_state(job):

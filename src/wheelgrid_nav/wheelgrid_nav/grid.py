@@ -61,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from wheelgrid_common.map_io import FREE, OCCUPIED, UNKNOWN, Grid
+from wheelgrid_common.map_io import CHAIR_SIZE_M, FREE, OCCUPIED, UNKNOWN, Grid, chair_cell_problem
 from wheelgrid_common.params import check_bounds, check_finite, field
 
 ALIGNMENTS = ("walls", "map")
@@ -159,8 +159,10 @@ class GridConfig:
     )
     cell_size: float = field(
         1.2,
-        "side of a grid cell: the chair's safe footprint; a whole number of pixels",
+        f"side of a grid cell: the chair's safe footprint, at least the chair's {CHAIR_SIZE_M:g} m "
+        "length; a whole number of pixels",
         "m",
+        bounds=(CHAIR_SIZE_M, math.inf),
     )
     density_threshold: float = field(
         0.05,
@@ -297,6 +299,8 @@ class GridConfig:
         ``pixel_size`` is at least 1 cm: a 1 mm raster of a room took 7 GB."""
         check_finite(self)
         self.cell_pixels()
+        if problem := chair_cell_problem(self.cell_size):
+            raise ValueError(f"cell_size: {problem}")
         if self.pixel_size < MIN_PIXEL_SIZE:
             raise ValueError(f"pixel_size must be >= {MIN_PIXEL_SIZE} m, not {self.pixel_size}")
         if not 0.5 <= self.min_observed_fraction <= 1.0:
