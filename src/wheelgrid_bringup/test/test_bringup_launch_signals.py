@@ -241,6 +241,28 @@ def test_a_node_stopped_while_it_is_still_importing_ends_cleanly(tmp_path):
     assert proc.returncode == 0 and "Traceback" not in err, err
 
 
+def test_a_node_stopped_before_its_interpreter_has_started_ends_cleanly(tmp_path):
+    """Before the code above runs, the interpreter imports its site (the venv's bootstrap): a
+    Ctrl-C there was a traceback, exit 1, or death by the signal, -2 (a review: a launch
+    stopped 0.2-0.5 s after its start, "did not stop cleanly"). The supervisor starts each
+    node with SIGINT blocked, and the node lets it in once its quiet handler is set."""
+    from wheelgrid_bringup.supervisor import Supervisor, child_code
+    from wheelgrid_common.ros_env import child_env
+
+    (tmp_path / "quick_node.py").write_text("def main():\n    return 0\n")
+    env = child_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env.get("PYTHONPATH", "")])
+    sup = Supervisor(tmp_path / "log", env)
+    codes = []
+    for i in range(5):  # the signal within microseconds of the fork: still in start-up
+        managed = sup.start(f"n{i}", [sys.executable, "-c", child_code("quick_node", "main")])
+        managed.proc.send_signal(signal.SIGINT)
+        codes.append(managed.proc.wait(timeout=30))
+        assert "Traceback" not in managed.log_path.read_text()
+    assert codes == [0] * 5
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, set()) == set()  # ours given back
+
+
 def test_a_launch_holds_its_domain_so_that_no_test_process_claims_it(tmp_path):
     """Each test process claims a domain no other wheelgrid process holds, but only demos
     held theirs: a test run beside a `wheelgrid launch` could land on its graph, drive

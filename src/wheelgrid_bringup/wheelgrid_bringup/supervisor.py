@@ -9,6 +9,7 @@ driving a chair.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -41,12 +42,16 @@ def child_code(module: str, func: str) -> str:
     nothing to save and no chair to stop yet, and a stop half a second after start-up left a
     KeyboardInterrupt traceback in every node's log and "did not stop cleanly", exit 1 (a
     review). Python's own Ctrl-C handling is back before the node's main runs, and rclpy's
-    takes over from there."""
+    takes over from there. The child starts with SIGINT blocked (:meth:`Supervisor.start`): one
+    during the interpreter's own start-up, before this code runs (the venv's site import),
+    was a traceback, exit 1, or death by the signal (a review); it waits, pending, for the
+    handler here."""
     return (
         "import os, signal, sys\n"
         # a handler, not `except KeyboardInterrupt`: numpy turns one inside its import into an
         # ImportError (rc 1, a traceback; a review); os._exit, as there is nothing to flush
         "signal.signal(signal.SIGINT, lambda *_: os._exit(0))\n"
+        "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})\n"
         f"parent = {os.getpid()}\n" + DIE_WITH_PARENT_CODE + f"from {module} import {func} as m\n"
         "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "sys.exit(m() or 0)\n"
@@ -120,10 +125,19 @@ class Supervisor:
         log = open(log_path, "wb")  # noqa: SIM115 - owned by the child for its lifetime
         env = dict(self.env)
         env.setdefault("PYTHONUNBUFFERED", "1")
-        proc = subprocess.Popen(
-            list(argv), env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
-        )
-        log.close()
+        # Forked with SIGINT blocked, which the child inherits through exec: child_code
+        # unblocks it once its quiet handler is in, and a Ctrl-C before then waits for it.
+        # Blocked in this thread only, for the fork: one arriving meanwhile is handled here
+        # as ever, once unblocked (or by another thread).
+        unblocks = any("SIG_UNBLOCK" in a for a in argv)  # only code that lets it in again
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT} if unblocks else set())
+        try:
+            proc = subprocess.Popen(
+                list(argv), env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+            )
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+            log.close()
         managed = Managed(name, proc, log_path)
         self.procs[name] = managed
         return managed

@@ -307,11 +307,15 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     SIGINT and SIGTERM end the spin, the node is destroyed and the context shut down.
     """
     configure_ros_env()
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
     try:
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+
         rclpy.init(args=args)
+    except KeyboardInterrupt:
+        # Ctrl-C while rclpy loads (a launch stopped half a second after its start): nothing
+        # has started, nothing is to be saved; it was a traceback, and exit 1 or -2 (a review)
+        return 0
     except Exception as exc:  # rclpy's RCLError: a --params-file that does not parse, etc.
         # one line and exit 2, as a bad parameter value: it was rclpy's traceback, exit 1
         import sys
@@ -344,8 +348,10 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     except Exception:
         # A callback that ran into the context Ctrl-C/SIGTERM had just shut down ("publisher's
         # context is invalid", a take that failed) ended the node with a traceback and exit 1,
-        # which the launcher reported as a node that failed. Not so for a running node.
-        if node is None or node.context.ok():
+        # which the launcher reported as a node that failed. Not so for a running node, nor
+        # for one being built when its context went ("error creating node: the given context
+        # is not valid": a Ctrl-C during start-up).
+        if node.context.ok() if node is not None else rclpy.ok():
             raise
     finally:
         # A second Ctrl-C while the node closes (a mapper waits for its worker and saves the
