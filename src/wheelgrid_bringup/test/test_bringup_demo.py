@@ -226,3 +226,18 @@ def test_a_start_or_goal_outside_the_simulated_room_is_refused_before_the_replay
     assert demo.main(["--bag", str(sim), "--goal", "8,0", "--out", str(tmp_path / "o")]) == 2
     assert "--goal 8,0 lies outside" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_bag_without_truth_needs_its_start_and_goal_cells(tmp_path, capsys):
+    """A rosbag2 folder without truth.json (an imported capture) was driven from the paper
+    room's cells, (2, 0) to (6, 5), whatever the room (a review). It is refused, before
+    anything starts, until --start and --goal say where."""
+    from wheelgrid_bringup import demo
+
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    assert demo.main(["--bag", str(bag), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "no truth.json" in err and "--start R,C and --goal R,C" in err, err
+    assert demo.main(["--bag", str(bag), "--start", "1,1", "--out", str(tmp_path / "o")]) == 2
+    assert not (tmp_path / "o").exists()

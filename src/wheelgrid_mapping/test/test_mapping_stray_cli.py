@@ -184,9 +184,14 @@ def test_stream_stray_exit_codes(
     assert "HOST:PORT" in capsys.readouterr().err
     assert stream_main([str(cap), "--rate", "-1"]) == 2
     port = free_port()  # nobody listening
-    assert stream_main([str(cap), "--to", f"127.0.0.1:{port}", "--frames", "1"]) == 1
+    argv = [str(cap), "--to", f"127.0.0.1:{port}", "--frames", "1", "--wait", "0"]
+    assert stream_main(argv) == 1
     err = capsys.readouterr().err
     assert f"nothing listens on 127.0.0.1:{port}" in err and "launch --iphone" in err, err
+    assert stream_main([*argv[:-1], "0.5"]) == 1
+    err = capsys.readouterr().err
+    assert "waiting up to 0.5 s" in err and "nothing listens" in err and "after 0.5 s" in err
+    assert stream_main([str(cap), "--wait", "nan"]) == 2
     # each of these was a traceback: int("²"), an overflowed sleep until a frame's slot
     assert stream_main([str(cap), "--to", "127.0.0.1:\u00b2"]) == 2
     assert stream_main([str(cap), "--rate", "1e-300"]) == 2
@@ -370,3 +375,32 @@ def test_frames_stamped_before_the_clock_began_are_skipped_not_the_import(
     assert "frame 0 skipped" in captured.err and "no time a ROS stamp holds" in captured.err
     # frame 3 lies 3.3 ms after the clock began: kept
     assert "wrote 5 frames" in captured.out and "3 unreadable" in captured.out, captured.out
+
+
+def test_stream_stray_waits_for_a_bridge_that_is_still_starting(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], stray_capture: Path
+) -> None:
+    """`wheelgrid launch --iphone &` then `wheelgrid stream-stray` at once, as the README
+    shows: the bridge listens some seconds later, and the stream failed at once, "nothing
+    listens" (a review). It waits up to --wait (10 s) for the bridge."""
+    import threading
+
+    from wheelgrid_mapping import bridge_protocol as bp
+
+    port = free_port()
+    got: list[object] = []
+    srv = bp.BridgeServer(lambda f, c: got.append(f), lambda lv, t: None, port=port)
+    later = threading.Timer(1.0, srv.start)
+    later.start()
+    try:
+        argv = [str(stray_capture), "--to", f"127.0.0.1:{port}", "--frames", "2", "--rate", "0"]
+        assert stream_main(argv) == 0, capsys.readouterr().err
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        later.join()
+        srv.stop()
+    out = capsys.readouterr()
+    assert "waiting up to 10 s" in out.err and "sent 2 frames" in out.out
+    assert got  # the bridge received them

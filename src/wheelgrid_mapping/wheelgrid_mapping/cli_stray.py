@@ -46,6 +46,9 @@ TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
 #: the bridge closes a connection idle for its idle_timeout_s (5 s by default), and the rest
 #: of a capture with a 6 s pause was never sent, exit 1 (a review). The protocol's answer: a
 #: client that pauses longer reconnects (docs/iphone-protocol.md).
+#: How long stream-stray waits for a bridge that does not listen yet, and how often it tries.
+CONNECT_WAIT_S = 10.0
+CONNECT_RETRY_S = 0.2
 PAUSE_RECONNECT_S = 2.0
 
 
@@ -138,15 +141,34 @@ def stream_export(
     token: str = "",
     indices: range | None = None,
     depth_encoding: int = DEPTH_U16_MM,
+    wait: float = 0.0,
 ) -> StreamStats:
     """Send frames of ``exp`` to a bridge, paced by their capture times / ``rate`` (0 = no
-    pacing). Raises ConnectionError/OSError when the bridge refuses or goes away."""
+    pacing). Raises ConnectionError/OSError when the bridge refuses or goes away; nobody
+    listening is waited for up to ``wait`` seconds first (a bridge still starting)."""
     idx = indices if indices is not None else range(len(exp))
     stats = StreamStats()
     if not idx:
         return stats
     name = f"stream-stray {exp.path.name}"
-    sock = connect(host, port, token=token, name=name)
+    deadline, said = time.monotonic() + wait, False
+    while True:
+        try:
+            sock = connect(host, port, token=token, name=name)
+            break
+        except ConnectionRefusedError:
+            # `wheelgrid launch --iphone &` then this at once: the bridge listens ~3 s later,
+            # and the README's own lines failed, "nothing listens" (a review)
+            if time.monotonic() >= deadline:
+                raise
+            if not said:
+                print(
+                    f"stream-stray: waiting up to {wait:g} s for a bridge on {host}:{port}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                said = True
+            time.sleep(CONNECT_RETRY_S)
     try:
         t_first = exp.captured_by(idx[0])
         t0 = time.monotonic()
@@ -203,6 +225,12 @@ def stream_main(argv: list[str]) -> int:
     ap.add_argument("--rate", type=float, default=1.0, help="speed factor, 0 = unpaced [1.0]")
     ap.add_argument("--token", default=None, help=f"bridge token [env {TOKEN_ENV}]")
     ap.add_argument("--frames", type=int, default=None, help="send at most N frames")
+    ap.add_argument(
+        "--wait",
+        type=float,
+        default=CONNECT_WAIT_S,
+        help=f"wait this long for a bridge that is not listening yet, s [{CONNECT_WAIT_S:g}]",
+    )
     ap.add_argument("--start", type=int, default=0, help="first frame position [0]")
     ap.add_argument(
         "--depth-encoding", choices=("u16", "f32"), default="u16", help="wire depth [u16 mm]"
@@ -215,6 +243,8 @@ def stream_main(argv: list[str]) -> int:
             raise _UsageError(
                 f"--rate must be 0 (unpaced) or {MIN_RATE:g}..{MAX_RATE:g}, not {args.rate}"
             )
+        if not 0.0 <= args.wait <= 3600.0:  # NaN too
+            raise _UsageError(f"--wait must be in 0..3600 s, not {args.wait}")
         exp = _open_export(args.dir)
         idx = _frame_range(exp, args.start, args.frames)
     except _UsageError as exc:
@@ -223,15 +253,23 @@ def stream_main(argv: list[str]) -> int:
     enc = DEPTH_U16_MM if args.depth_encoding == "u16" else DEPTH_F32_M
     try:
         stats = stream_export(
-            exp, host, port, rate=args.rate, token=token, indices=idx, depth_encoding=enc
+            exp,
+            host,
+            port,
+            rate=args.rate,
+            token=token,
+            indices=idx,
+            depth_encoding=enc,
+            wait=args.wait,
         )
     except KeyboardInterrupt:
         return _fail(130, "interrupted")  # as import-stray and every other command
     except ConnectionRefusedError:
         return _fail(
             1,
-            f"nothing listens on {host}:{port} (is the bridge running: `wheelgrid launch "
-            "--iphone`?)",
+            f"nothing listens on {host}:{port}"
+            + (f" after {args.wait:g} s" if args.wait else "")
+            + " (is the bridge running: `wheelgrid launch --iphone`?)",
         )
     except BridgeClosedError as exc:
         return _fail(1, f"streaming to {host}:{port} stopped: {exc}")
@@ -276,6 +314,8 @@ def import_main(argv: list[str]) -> int:
             check_min_confidence(args.min_confidence, "--min-confidence")
         except ValueError as exc:
             raise _UsageError(str(exc)) from None
+        if not 0.0 <= args.wait <= 3600.0:  # NaN too
+            raise _UsageError(f"--wait must be in 0..3600 s, not {args.wait}")
         exp = _open_export(args.dir)
         idx = _frame_range(exp, args.start, args.frames)
         if Path(args.out).exists():
