@@ -150,7 +150,12 @@ def test_camera_info_of_a_binned_cropped_or_other_resolution_image_is_refused() 
         (info(binning_x=2, binning_y=2), "binned or cropped"),
         (info(roi_x_offset=10, roi_width=100, roi_height=50), "binned or cropped"),
         (info(k=[1400.0, 0, 960, 0, 1400.0, 720, 0, 0, 1]), "not near the centre"),
-        (info(k=[0.0, 0, 128, 0, 200.0, 96, 0, 0, 1]), "finite positive fx"),
+        (info(k=[0.0, 0, 128, 0, 200.0, 96, 0, 0, 1]), r"fx, fy in \[1, 100000\] px"),
+        # finite and positive was all: a cloud of inf, points 64 km away, or on one axis
+        (info(k=[1e-40, 0, 128, 0, 1e-40, 96, 0, 0, 1]), r"fx, fy in \[1, 100000\] px"),
+        (info(k=[1e-3, 0, 128, 0, 1e-3, 96, 0, 0, 1]), r"fx, fy in \[1, 100000\] px"),
+        (info(k=[1e300, 0, 128, 0, 1e300, 96, 0, 0, 1]), r"fx, fy in \[1, 100000\] px"),
+        (info(p=[1e-30, 0, 128, 0, 0, 1e-30, 96, 0, 0, 0, 1, 0]), r"fx, fy in \[1, 100000\]"),
     ):
         size = (128, 96) if "depth 128x96" in says else (256, 192)
         with pytest.raises(ValueError, match=says):

@@ -34,7 +34,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from wheelgrid_mapping.depth import MAX_DEPTH_M, metres_to_millimetres, principal_point_problem
+from wheelgrid_mapping.depth import (
+    MAX_DEPTH_M,
+    check_intrinsics,
+    metres_to_millimetres,
+    principal_point_problem,
+)
 
 MAGIC = b"WGIP"
 VERSION = 1
@@ -89,9 +94,6 @@ _U16 = struct.Struct("<H")
 # say hello at all; above the largest valid frame (4096 x 4096 float32 depth + confidence) a
 # limit only lets a peer make the receiver buffer more.
 MAX_HELLO_BYTES = 2 + MAX_TOKEN_BYTES + 2 + MAX_NAME_BYTES
-# The largest focal length (and principal point offset) in pixels a frame may give: 1e5 px is
-# a 0.6 deg field of view across a 1000 px image, far narrower than any depth camera.
-MAX_FOCAL_PX = 1e5
 MIN_FRAME_LIMIT = max(MAX_HELLO_BYTES, FRAME_HEADER.size + 5)
 MAX_FRAME_LIMIT = FRAME_HEADER.size + MAX_DIMENSION * MAX_DIMENSION * (4 + 1)
 
@@ -305,16 +307,11 @@ def decode_frame(body: bytes) -> Frame:
     if not (0 < w <= MAX_DIMENSION and 0 < h <= MAX_DIMENSION):
         raise ProtocolError("bad_size", f"{w}x{h} outside 1..{MAX_DIMENSION}")
     # Finite and positive was all: fx = 1e-40 passed, its rays overflowed float32, and the
-    # organised cloud went out full of inf. A camera's focal length lies between a pixel and
-    # MAX_FOCAL_PX pixels, its principal point within as many of the image.
-    if not (
-        all(math.isfinite(v) for v in (fx, fy, cx, cy))
-        and 1.0 <= fx <= MAX_FOCAL_PX
-        and 1.0 <= fy <= MAX_FOCAL_PX
-        and abs(cx) <= MAX_FOCAL_PX
-        and abs(cy) <= MAX_FOCAL_PX
-    ):
-        raise ProtocolError("bad_intrinsics", f"fx={fx} fy={fy} cx={cx} cy={cy}")
+    # organised cloud went out full of inf (check_intrinsics says what a camera's are).
+    try:
+        check_intrinsics(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+    except ValueError as exc:
+        raise ProtocolError("bad_intrinsics", str(exc)) from None
     problem = principal_point_problem(cx, cy, w, h)
     if problem:
         raise ProtocolError("bad_intrinsics", problem)

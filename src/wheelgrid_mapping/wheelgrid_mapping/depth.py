@@ -71,13 +71,33 @@ def _rays(h: int, w: int, fx: float, fy: float, cx: float, cy: float) -> np.ndar
     return rays
 
 
+#: The largest focal length (and principal point offset) in pixels: 1e5 px is a 0.6 deg field
+#: of view across a 1000 px image, far narrower than any depth camera.
+MAX_FOCAL_PX = 1e5
+
+
 def check_intrinsics(K: np.ndarray) -> np.ndarray:
-    """Return K as a (3, 3) float64 array; ValueError if it cannot be a pinhole camera."""
+    """Return K as a (3, 3) float64 array; ValueError if it cannot be a pinhole camera.
+
+    A focal length lies between a pixel and :data:`MAX_FOCAL_PX`, the principal point within
+    as many of the image: finite and positive was all depth_to_cloud asked of a CameraInfo,
+    and fx = 1e-40 published a cloud of inf, 1e-3 points 64 km away, 1e300 every point on the
+    optical axis (a review; the bridge refused them already)."""
     k = np.asarray(K, dtype=np.float64)
     if k.shape != (3, 3):
         raise ValueError(f"intrinsics must be 3x3, got shape {k.shape}")
-    if not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
-        raise ValueError(f"intrinsics need finite positive fx, fy; got fx={k[0, 0]} fy={k[1, 1]}")
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    if not (
+        np.isfinite(k).all()
+        and 1.0 <= fx <= MAX_FOCAL_PX
+        and 1.0 <= fy <= MAX_FOCAL_PX
+        and abs(cx) <= MAX_FOCAL_PX
+        and abs(cy) <= MAX_FOCAL_PX
+    ):
+        raise ValueError(
+            f"intrinsics need fx, fy in [1, {MAX_FOCAL_PX:g}] px and a principal point within "
+            f"as many; got fx={fx} fy={fy} cx={cx} cy={cy}"
+        )
     return k
 
 
