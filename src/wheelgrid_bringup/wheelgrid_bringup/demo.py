@@ -386,7 +386,10 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
             f"demos on this machine; a chain launched from this shell, in {inherited or 0}, "
             "stays apart: an RViz joins with that domain)"
         )
-        print(f"demo: bag {bag} ({', '.join(f'{t.name} x{t.count}' for t in topics)})")
+        counts: dict[str, int] = {}  # a topic of two types is one topic (BagReader.topics)
+        for t in topics:
+            counts[t.name] = counts.get(t.name, 0) + t.count
+        print(f"demo: bag {bag} ({', '.join(f'{n} x{c}' for n, c in counts.items())})")
         try:  # before any node starts: a ROS 1 bag or an unknown type ended in a traceback
             player = BagPlayer(monitor.node, bag, rate=args.rate)
         except BagError as exc:

@@ -402,13 +402,16 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
             while player.unsubscribed() and time.monotonic() < deadline and not stop["flag"]:
                 chain.check()
                 time.sleep(0.1)
-            if player.unsubscribed():
-                print(
-                    f"launch: no subscriber for {', '.join(player.unsubscribed())}; "
-                    "replaying anyway",
-                    flush=True,
-                )
-            player.start(delay=0.5)
+            # stopped while the nodes started (a review: "replaying anyway", then the
+            # replay started on the way out): nothing is replayed
+            if not stop["flag"]:
+                if player.unsubscribed():
+                    print(
+                        f"launch: no subscriber for {', '.join(player.unsubscribed())}; "
+                        "replaying anyway",
+                        flush=True,
+                    )
+                player.start(delay=0.5)
         t0 = time.monotonic()
         last = 0.0
         while not stop["flag"]:

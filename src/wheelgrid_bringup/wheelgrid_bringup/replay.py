@@ -133,7 +133,7 @@ class BagPlayer:
                 raise BagError(
                     f"{self.bag}: topic {twice[0]} carries more than one message type "
                     f"({types}), which ROS 2 cannot publish on one topic; replay the other "
-                    "topics with --topic"
+                    "topics with `wheelgrid launch --bag ... --topic`"
                 )
             self.total = sum(t.count for t in self.topics)
         classes = {}
@@ -144,7 +144,8 @@ class BagPlayer:
                 # a robot's bag often carries a vendor's types: a traceback named no topic
                 raise BagError(
                     f"{self.bag}: {t.name} holds {t.msgtype}, a message type this ROS "
-                    "installation does not have; replay the other topics with --topic"
+                    "installation does not have; replay the other topics with "
+                    "`wheelgrid launch --bag ... --topic`"
                 ) from None
         self._pubs = {
             t.name: node.create_publisher(

@@ -134,11 +134,15 @@ def test_a_topic_that_carries_two_message_types_is_read_as_the_type_picked(tmp_p
             w.write(conns["cloud"], 10 + i, serialize_message(cloud))
     with BagReader(bag) as r:
         assert r.pick_topic(None) == "/iphone/points"
-        assert r.count(["/iphone/points"]) == 3
-        got = [read_xyz(m) for _, _, m in r.messages(["/iphone/points"])]
+        # the same topic picked as the pose prior's too: each read keeps its own type
+        assert r.pick_topic(None, "nav_msgs/msg/Odometry") == "/iphone/points"
+        assert r.count(["/iphone/points"], POINTCLOUD2) == 3
+        got = [read_xyz(m) for _, _, m in r.messages(["/iphone/points"], msgtype=POINTCLOUD2)]
         assert len(got) == 3 and all(g.shape == (50, 3) for g in got)
+        odom = list(r.messages(["/iphone/points"], msgtype="nav_msgs/msg/Odometry"))
+        assert len(odom) == 1 and hasattr(odom[0][2], "pose")
+        assert r.count(["/iphone/points"]) == 4  # no type named: every message of the topic
     with BagReader(bag) as r:  # named with --topic: the same
         assert r.pick_topic("/iphone/points") == "/iphone/points"
-        assert r.count(["/iphone/points"]) == 3
         with pytest.raises(BagError, match=r"carries .*Odometry.*PointCloud2, not .*Imu"):
             r.pick_topic("/iphone/points", "sensor_msgs/msg/Imu")

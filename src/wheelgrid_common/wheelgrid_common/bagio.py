@@ -138,9 +138,6 @@ class BagReader:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._reader: Any = None
-        # the type :meth:`pick_topic` chose for a topic: a ROS 1 or merged bag may hold
-        # another type on the same topic, whose messages were read as this one (a traceback)
-        self._picked: dict[str, str] = {}
 
     def __enter__(self) -> BagReader:
         from rosbags.highlevel import AnyReader
@@ -195,11 +192,9 @@ class BagReader:
             if all(t.msgtype != msgtype for t in match):
                 carried = ", ".join(t.msgtype for t in match)
                 raise BagError(f"{self.path}: topic {topic!r} carries {carried}, not {msgtype}")
-            self._picked[topic] = msgtype
             return topic
         cands = [t for t in infos if t.msgtype == msgtype]
         if len(cands) == 1:
-            self._picked[cands[0].name] = msgtype
             return cands[0].name
         if not cands:  # say what the bag holds instead: a user who recorded the wrong topic
             others = ", ".join(f"{t.name} ({t.msgtype})" for t in infos) or "none"
@@ -209,21 +204,24 @@ class BagReader:
             f"{self.path}: {len(cands)} {msgtype} topics ({listing}); choose one with {flag}"
         )
 
-    def _connections(self, topics: Iterable[str]) -> list[Any]:
-        """The connections of ``topics``, of the type :meth:`pick_topic` chose where it did."""
+    def _connections(self, topics: Iterable[str], msgtype: str | None) -> list[Any]:
+        """The connections of ``topics``, only those of ``msgtype`` where it is given: a ROS 1
+        or merged bag may hold two types on one topic, and the other type's messages were
+        read as this one's (a traceback in ``wheelgrid map``)."""
         wanted = set(topics)
         return [
-            c
-            for c in self.reader.connections
-            if c.topic in wanted and self._picked.get(c.topic, c.msgtype) == c.msgtype
+            c for c in self.reader.connections if c.topic in wanted and msgtype in (None, c.msgtype)
         ]
 
-    def count(self, topics: Iterable[str]) -> int:
-        return sum(c.msgcount for c in self._connections(topics))
+    def count(self, topics: Iterable[str], msgtype: str | None = None) -> int:
+        return sum(c.msgcount for c in self._connections(topics, msgtype))
 
-    def raw(self, topics: Iterable[str]) -> Iterator[tuple[str, str, int, bytes]]:
-        """(topic, msgtype, log time ns, CDR bytes) in log-time order."""
-        conns = self._connections(topics)
+    def raw(
+        self, topics: Iterable[str], msgtype: str | None = None
+    ) -> Iterator[tuple[str, str, int, bytes]]:
+        """(topic, msgtype, log time ns, CDR bytes) in log-time order; of ``msgtype`` only,
+        where it is given."""
+        conns = self._connections(topics, msgtype)
         try:
             for conn, t_ns, raw in self.reader.messages(connections=conns):
                 yield conn.topic, conn.msgtype, int(t_ns), bytes(raw)
@@ -235,23 +233,23 @@ class BagReader:
             ) from exc
 
     def messages(
-        self, topics: Iterable[str], *, damaged_as_none: bool = False
+        self, topics: Iterable[str], *, damaged_as_none: bool = False, msgtype: str | None = None
     ) -> Iterator[tuple[str, int, Any]]:
         """(topic, log time ns, deserialised rosbags message) in log-time order.
 
         A message that does not deserialise is a ``BagError``, or with ``damaged_as_none`` its
         place in the order with ``None`` for the message: one damaged message in a long bag
         then costs the reader that message only (``wheelgrid map`` counts it and maps on)."""
-        for topic, msgtype, t_ns, raw in self.raw(topics):
+        for topic, kind, t_ns, raw in self.raw(topics, msgtype):
             try:
-                msg = self.reader.deserialize(raw, msgtype)
+                msg = self.reader.deserialize(raw, kind)
             except Exception as exc:  # rosbags raises several types for a damaged message
                 if damaged_as_none:
                     yield topic, t_ns, None
                     continue
                 raise BagError(
                     f"{self.path}: message on {topic} at {t_ns} ns does not deserialise as "
-                    f"{msgtype} ({type(exc).__name__}: {exc})"
+                    f"{kind} ({type(exc).__name__}: {exc})"
                 ) from exc
             yield topic, t_ns, msg
 

@@ -37,14 +37,18 @@ CHAIR_SIZE_M = 1.0
 
 
 def chair_cell_problem(resolution: float) -> str | None:
-    """Why cells of ``resolution`` metres cannot carry a route of the chair (None: they can)."""
+    """Why cells of ``resolution`` metres cannot carry a route of the chair (None: they can);
+    each caller adds what to do about it."""
     if resolution >= CHAIR_SIZE_M - 1e-9:
         return None
     return (
         f"cells of {resolution:g} m are smaller than the chair ({CHAIR_SIZE_M:g} m): a free cell "
-        "may be a gap it does not fit through; plan on the safe grid (grid.yaml), not the "
-        "fine map"
+        "may be a gap it does not fit through"
     )
+
+
+#: What a planner or drive given such a grid should be given instead.
+CHAIR_GRID_HINT = "plan on the safe grid (grid.yaml, /wheelgrid/safe_grid), not the fine map"
 
 
 @dataclass

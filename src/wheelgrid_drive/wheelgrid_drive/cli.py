@@ -261,10 +261,10 @@ def main(argv: list[str] | None = None) -> int:
         cell_size = 1.2
     if not (math.isfinite(cell_size) and 1 <= round(cell_size * 1000) <= proto.MAX_DISTANCE_MM):
         return _err(f"cell size {cell_size} m outside [0.001, {proto.MAX_DISTANCE_MM / 1000:g}] m")
-    from wheelgrid_common.map_io import chair_cell_problem
+    from wheelgrid_common.map_io import CHAIR_GRID_HINT, chair_cell_problem
 
     if problem := chair_cell_problem(cell_size):
-        return _err(problem)
+        return _err(f"{problem}; {CHAIR_GRID_HINT}")
     check: CellCheck | None = grid_cell_check(lambda: grid) if grid is not None else None
     if check is not None:
         from wheelgrid_common.map_io import UNKNOWN

@@ -38,7 +38,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Bool, String
 
 from wheelgrid_common.fileio import quat_yaw
-from wheelgrid_common.map_io import Grid, chair_cell_problem, from_occupancy_grid
+from wheelgrid_common.map_io import CHAIR_GRID_HINT, Grid, chair_cell_problem, from_occupancy_grid
 from wheelgrid_common.params import (
     check_bounds,
     check_finite,
@@ -76,7 +76,7 @@ from wheelgrid_drive.runner import (
 # DiagnosticStatus levels are ``byte`` fields: rclpy holds them as one-byte ``bytes``.
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 # The state says ERROR once the controller has not reported for this many heartbeat periods
-# (and their tries): it no longer answers, and its last pose is not the chair's.
+# (and one heartbeat's tries): it no longer answers, and its last pose is not the chair's.
 SILENT_HEARTBEATS = 3
 HEARTBEAT_LOG_PERIOD_S = 10.0  # a failing heartbeat is logged at most this often
 
@@ -420,9 +420,10 @@ class DriveNode(Node):
             "plan_publishers": str(self._plan_sub.get_publisher_count()),
         }
         silent = self.link.silent_for() if self.link.connected else 0.0
-        # heartbeats go every heartbeat_period, each tried twice: longer than three of them
-        # and their tries is a controller that no longer answers (a dead firmware, a cut RX
-        # wire), whose last pose is no longer the chair's
+        # heartbeats go every heartbeat_period, each tried twice: silent longer than three
+        # periods and one heartbeat's two tries (0.5 s: about two heartbeats lost in a row) is
+        # a controller that no longer answers (a dead firmware, a cut RX wire), whose last
+        # pose is no longer the chair's
         deaf = silent > SILENT_HEARTBEATS * self.cfg.heartbeat_period + 2 * self.cfg.reply_timeout
         if self.link.connected:
             values["status_age_s"] = f"{silent:.2f}"
@@ -525,7 +526,7 @@ class DriveNode(Node):
         try:
             grid = from_occupancy_grid(msg)
             if problem := chair_cell_problem(grid.resolution):
-                raise ValueError(problem)
+                raise ValueError(f"{problem}; {CHAIR_GRID_HINT}")
         except ValueError as exc:
             self._grid = None  # a broken grid is no grid: every cell check now refuses
             self._set_state(ERROR, f"bad safe grid: {exc}")

@@ -134,6 +134,27 @@ def test_a_first_depth_image_of_another_size_or_an_8_bit_one_fails_its_frame_onl
     for i in range(3):
         Image.fromarray(np.full((12, 16), 1000, np.uint16)).save(cap / "depth" / f"{i:06d}.png")
     assert (StrayExport(cap).height, StrayExport(cap).width) == (6, 8)
+    # a PNG whose header declares 30000 x 30000 pixels (PIL's decompression bomb error, no
+    # OSError): a traceback for every command on the export, now its frame fails alone
+    import struct
+    import zlib
+
+    def png_chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    ihdr = struct.pack(">IIBBBBB", 30000, 30000, 16, 0, 0, 0, 0)
+    (cap / "depth" / "000005.png").write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + png_chunk(b"IHDR", ihdr)
+        + png_chunk(b"IDAT", zlib.compress(b""))
+        + png_chunk(b"IEND", b"")
+    )
+    exp = StrayExport(cap)
+    assert (exp.height, exp.width) == (6, 8)
+    with pytest.raises(ValueError, match=r"000005\.png: cannot read the image"):
+        exp.frame(5)
+    assert exp.frame(6).depth.shape == (6, 8)
 
 
 def test_a_16_bit_png_opened_as_32_bit_is_read_as_millimetres(tmp_path: Path, monkeypatch) -> None:

@@ -174,7 +174,9 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
     # one damaged Odometry message costs the frames near it their prior, as a NaN pose does;
     # it ended the whole run before the first frame
     try:
-        for _, t_ns, msg in reader.messages([topic], damaged_as_none=True):  # type: ignore[attr-defined]
+        for _, t_ns, msg in reader.messages(  # type: ignore[attr-defined]
+            [topic], damaged_as_none=True, msgtype=ODOMETRY
+        ):
             if msg is None:
                 unreadable += 1
                 continue
@@ -256,7 +258,7 @@ def bag_frames(
     bridge's /iphone/odometry, i.e. ARKit), gives each frame a pose prior: the odometry message
     nearest in time (<= 0.1 s), and ``match`` counts the frames without one.
     """
-    from wheelgrid_common.bagio import BagError, BagReader
+    from wheelgrid_common.bagio import POINTCLOUD2, BagError, BagReader
     from wheelgrid_common.pointcloud2 import CloudError, has_field, organised, read_fields
 
     bad: list[str] = []
@@ -264,7 +266,7 @@ def bag_frames(
     try:
         reader = holder.__enter__()
         name = reader.pick_topic(topic)
-        total = reader.count([name])
+        total = reader.count([name], POINTCLOUD2)
         prior_stamps, prior_poses = np.empty(0), np.empty((0, 4, 4))
         if prior:
             try:
@@ -298,7 +300,7 @@ def bag_frames(
         # metadata.yaml's count, not the storage's: a bag whose metadata lists none was
         # refused as empty while it held every frame. The storage is asked.
         try:
-            held = next(iter(reader.raw([name])), None) is not None
+            held = next(iter(reader.raw([name], POINTCLOUD2)), None) is not None
         except BagError:
             held = False
         if not held:
@@ -315,7 +317,7 @@ def bag_frames(
             # one message that does not deserialise ended the whole run with exit 2 and threw
             # away every frame mapped before it; it is skipped and counted like any other
             # malformed frame
-            for _, t_ns, msg in reader.messages([name], damaged_as_none=True):
+            for _, t_ns, msg in reader.messages([name], damaged_as_none=True, msgtype=POINTCLOUD2):
                 if msg is None:
                     bad.append("undeserialisable")
                     yield np.empty((0, 3)), t_ns * 1e-9, "", None, None, None

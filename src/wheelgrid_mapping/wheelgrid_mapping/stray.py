@@ -68,7 +68,9 @@ def _read_image(path: Path) -> np.ndarray:
 
         with Image.open(path) as im:
             return np.array(im)
-    except (OSError, ValueError, EOFError) as exc:  # PIL's UnidentifiedImageError is an OSError
+    except Exception as exc:  # PIL's UnidentifiedImageError (an OSError), its bomb error, ...
+        # a header declaring 30000 x 30000 pixels raised DecompressionBombError, none of
+        # OSError, ValueError or EOFError: a traceback for the whole export (a review)
         raise ValueError(f"{path}: cannot read the image ({exc})") from exc
 
 
@@ -102,7 +104,7 @@ def _image_shape(path: Path) -> tuple[int, int]:
 
             with Image.open(path) as im:
                 shape = (im.height, im.width)
-    except (OSError, ValueError, EOFError) as exc:
+    except Exception as exc:  # as _read_image's
         raise ValueError(f"{path}: cannot read the image ({exc})") from exc
     if len(shape) < 2:
         raise ValueError(f"{path}: not an image (shape {shape})")

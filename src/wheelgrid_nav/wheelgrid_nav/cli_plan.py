@@ -17,7 +17,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from wheelgrid_common.map_io import Grid, chair_cell_problem, grid_identity, read_map
+from wheelgrid_common.map_io import (
+    CHAIR_GRID_HINT,
+    Grid,
+    chair_cell_problem,
+    grid_identity,
+    read_map,
+)
 from wheelgrid_common.params import describe, load_yaml
 from wheelgrid_nav.actions import MOVES, moves_to_actions
 from wheelgrid_nav.planner import METHODS, PlanInputError, PlannerConfig, PlanResult, plan
@@ -210,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wheelgrid plan: cannot read grid {args.grid}: {exc}", file=sys.stderr)
         return 2
     if problem := chair_cell_problem(grid.resolution):
-        print(f"wheelgrid plan: {args.grid}: {problem}", file=sys.stderr)
+        print(f"wheelgrid plan: {args.grid}: {problem}; {CHAIR_GRID_HINT}", file=sys.stderr)
         return 2
     try:
         start = _cell(grid, args.start, args.start_xy, "start")

@@ -300,7 +300,9 @@ class GridConfig:
         check_finite(self)
         self.cell_pixels()
         if problem := chair_cell_problem(self.cell_size):
-            raise ValueError(f"cell_size: {problem}")
+            raise ValueError(
+                f"cell_size must be at least the chair's {CHAIR_SIZE_M:g} m length: {problem}"
+            )
         if self.pixel_size < MIN_PIXEL_SIZE:
             raise ValueError(f"pixel_size must be >= {MIN_PIXEL_SIZE} m, not {self.pixel_size}")
         if not 0.5 <= self.min_observed_fraction <= 1.0:

@@ -52,7 +52,13 @@ import numpy as np
 
 from wheelgrid_common.fileio import quat_yaw
 from wheelgrid_common.frames import CONVENTIONS, convention_for_frame
-from wheelgrid_common.map_io import Grid, chair_cell_problem, from_occupancy_grid, same_geometry
+from wheelgrid_common.map_io import (
+    CHAIR_GRID_HINT,
+    Grid,
+    chair_cell_problem,
+    from_occupancy_grid,
+    same_geometry,
+)
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass
 from wheelgrid_common.params import field as pfield
 from wheelgrid_common.ros_env import sample_key, spin_node, steady_timer, with_message_info
@@ -295,7 +301,7 @@ def _make_node_class() -> type:
                 return
             if problem := chair_cell_problem(grid.resolution):
                 # no route on it, nor on the grid before it: that one is no longer the map's
-                self.get_logger().error(f"safe grid refused: {problem}")
+                self.get_logger().error(f"safe grid refused: {problem}; {CHAIR_GRID_HINT}")
                 self.grid = None
                 if self.route:
                     self._publish_route(grid, [])
