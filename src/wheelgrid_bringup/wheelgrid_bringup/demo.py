@@ -300,14 +300,6 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
     truth: dict[str, Any] = {}
     if (sim_dir / "truth.json").exists():
         truth = json.loads((sim_dir / "truth.json").read_text())
-    if not truth and not (args.start and args.goal):
-        # the paper room's cells, (2, 0) -> (6, 5), were taken for any room's (a review)
-        print(
-            f"wheelgrid demo: {sim_dir} has no truth.json (a `wheelgrid simulate --out` "
-            "folder's) to take the start and goal cells from: give --start R,C and --goal R,C",
-            file=sys.stderr,
-        )
-        return 2
     start = args.start or tuple(truth.get("start_cell", (2, 0)))
     goal = args.goal or tuple(truth.get("goal_cell", (6, 5)))
     why = cells_outside_room(sim_dir, truth, {"start": args.start, "goal": args.goal})
@@ -322,6 +314,14 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
         print(
             f"wheelgrid demo: {exc} (--bag takes a `wheelgrid simulate --out` folder, which "
             "holds scan/ and truth.json, or a rosbag2 folder)",
+            file=sys.stderr,
+        )
+        return 2
+    if not truth and not (args.start and args.goal):
+        # the paper room's cells, (2, 0) -> (6, 5), were taken for any room's (a review)
+        print(
+            f"wheelgrid demo: {sim_dir} has no truth.json (a `wheelgrid simulate --out` "
+            "folder's) to take the start and goal cells from: give --start R,C and --goal R,C",
             file=sys.stderr,
         )
         return 2

@@ -101,8 +101,16 @@ def test_heading_method_table_and_png(paper_yaml, tmp_path, capsys):
     assert lines[7].split()[-1] == "Right-Forward"
     with Image.open(png) as im:
         img = np.asarray(im.convert("RGB"))
-    px = img.shape[0] // 8
-    assert img.shape[:2] == (8 * px, 8 * px)
+    px = 48  # render_plan's cell size for a small grid
+    # the grid, and below it the words for what it shows (there were none; a review)
+    assert img.shape[1] >= 8 * px and img.shape[0] > 8 * px
+    from wheelgrid_nav.plan_png import plan_caption
+
+    words = plan_caption([(2, 0), (2, 1), (3, 1)], (2, 0), (3, 1), "ok")
+    assert "green: start (2, 0)" in words and "blue arrows: the route, 2 moves" in words
+    assert "no route: unreachable" in plan_caption([], (2, 0), (3, 1), "unreachable")
+    caption_band = img[8 * px :, :]
+    assert (caption_band.sum(axis=2) < 300).any()  # dark text on the white band
 
     def centre(r, c):
         return tuple(int(v) for v in img[r * px + 2, c * px + 2])

@@ -226,10 +226,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wheelgrid plan: {exc}", file=sys.stderr)
         return 2
     if args.png:
-        from wheelgrid_nav.plan_png import save_plan_png
+        from wheelgrid_nav.plan_png import plan_caption, save_plan_png
 
         try:
-            save_plan_png(args.png, grid.data, res.cells, start, goal)
+            words = plan_caption(res.cells, start, goal, res.reason)
+            save_plan_png(args.png, grid.data, res.cells, start, goal, caption=words)
         except OSError as exc:  # e.g. no permission: the early check cannot foresee all
             print(f"wheelgrid plan: cannot write --png {args.png}: {exc}", file=sys.stderr)
             return 2

@@ -28,8 +28,10 @@ def render_plan(
     start: Sequence[int] | None = None,
     goal: Sequence[int] | None = None,
     cell_px: int = 0,
+    caption: str = "",
 ) -> object:
-    """A PIL image of the grid (image orientation, row 0 on top) with the route drawn.
+    """A PIL image of the grid (image orientation, row 0 on top) with the route drawn, and
+    ``caption`` below it, a line per "; "-separated part.
 
     ``cell_px`` 0 picks a size that makes small grids readable and keeps big ones < ~2000 px.
     """
@@ -58,7 +60,37 @@ def render_plan(
     width = max(1, cell_px // 8)
     for a, b in itertools.pairwise(cells):
         _arrow(draw, _centre(a, cell_px), _centre(b, cell_px), cell_px, width)
-    return img
+    if not caption:
+        return img
+    from PIL import ImageFont
+
+    font = ImageFont.load_default()
+    lines = caption.split("; ")
+    line_h, pad = 14, 6
+    text_w = max(int(font.getlength(line)) for line in lines) + 2 * pad
+    out = Image.new(
+        "RGB", (max(img.width, text_w), img.height + len(lines) * line_h + pad), "white"
+    )
+    out.paste(img, (0, 0))
+    text = ImageDraw.Draw(out)
+    for i, line in enumerate(lines):
+        text.text((pad, img.height + pad // 2 + i * line_h), line, fill=(40, 40, 40), font=font)
+    return out
+
+
+def plan_caption(
+    cells: Sequence[Sequence[int]], start: Sequence[int], goal: Sequence[int], reason: str
+) -> str:
+    """What the picture shows, in words: the colours, the start and goal, the moves, or why
+    there is no route (the picture had no text at all; a review)."""
+    head = (
+        f"green: start ({start[0]}, {start[1]}); red: goal ({goal[0]}, {goal[1]}); "
+        "white free, black occupied, grey unknown (never entered)"
+    )
+    if len(cells) < 2:
+        return f"{head}; no route: {reason}" if reason != "ok" else f"{head}; already at the goal"
+    moves = len(cells) - 1
+    return f"{head}; blue arrows: the route, {moves} move{'' if moves == 1 else 's'}"
 
 
 def save_plan_png(
@@ -68,10 +100,12 @@ def save_plan_png(
     start: Sequence[int] | None = None,
     goal: Sequence[int] | None = None,
     cell_px: int = 0,
+    caption: str = "",
 ) -> Path:
     """Render (see :func:`render_plan`) and write a PNG; returns the path."""
     path = Path(path)
-    render_plan(data, cells, start, goal, cell_px).save(path, format="PNG")  # type: ignore[attr-defined]
+    img = render_plan(data, cells, start, goal, cell_px, caption)
+    img.save(path, format="PNG")  # type: ignore[attr-defined]
     return path
 
 

@@ -240,7 +240,16 @@ def test_an_interrupted_simulation_leaves_no_bag_that_looks_complete(
     assert [p.name for p in kept.iterdir()] == ["notes.txt"]
     assert simulate(kept, frames=3, stride=16).frames == 3  # the rerun is not refused
     assert cli_main(["--rate", "inf", "--out", str(tmp_path / "inf")]) == 2
-    assert "--rate must be in (0, 1000] Hz" in capsys.readouterr().err
+    assert "--rate must be in [0.001, 1000] Hz" in capsys.readouterr().err
+    # 1e-300 overflowed the stamps (exit 1, "failed"); a negative seed was a random room's
+    # traceback (a review)
+    assert cli_main(["--rate", "1e-300", "--out", str(tmp_path / "slow")]) == 2
+    assert "--rate must be in [0.001, 1000] Hz" in capsys.readouterr().err
+    for scene in ("random", "paper"):
+        argv = ["--scene", scene, "--seed", "-5", "--frames", "3", "--out", str(tmp_path / "s")]
+        assert cli_main(argv) == 2
+        assert "--seed must be >= 0, not -5" in capsys.readouterr().err
+    assert not (tmp_path / "slow").exists() and not (tmp_path / "s").exists()
     # the command: folder_problem made --out before simulate() looked, and an empty --out
     # stayed behind "removed"
     from wheelgrid_common.progress import Progress

@@ -14,6 +14,7 @@ from wheelgrid_sim.trajectory import SPEED, nominal_duration, nominal_frames
 
 CHAIR_SPEED = 3.0 / 3.6  # m/s: the paper's chair drives at <= 3 km/h
 MAX_RATE_HZ = 1000.0  # a depth camera's frame rate; inf ended in an OverflowError traceback
+MIN_RATE_HZ = 1e-3  # a frame every 17 minutes; 1e-300 overflowed the stamps (exit 1)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,11 +81,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames is not None and args.frames < 1:
         print("wheelgrid simulate: --frames must be >= 1", file=sys.stderr)
         return 2
-    if not 0 < args.rate <= MAX_RATE_HZ:
+    if not MIN_RATE_HZ <= args.rate <= MAX_RATE_HZ:
+        # 1e-300 passed, and the frames' stamps overflowed: "failed", exit 1 (a review)
         print(
-            f"wheelgrid simulate: --rate must be in (0, {MAX_RATE_HZ:g}] Hz, not {args.rate}",
+            f"wheelgrid simulate: --rate must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, not "
+            f"{args.rate}",
             file=sys.stderr,
         )
+        return 2
+    if args.seed < 0:  # a random room's traceback, the paper room's words without the flag
+        print(f"wheelgrid simulate: --seed must be >= 0, not {args.seed}", file=sys.stderr)
         return 2
     nominal = nominal_duration(make_scene(args.scene, args.seed), args.back_to_start)  # s
     at_speed = nominal_frames(nominal, args.rate)
