@@ -77,7 +77,10 @@ _EXTENT_MAX_POINTS = 200_000
 # Share of a wall peak's points in the obstacle band below which it does not stand on the floor
 # (a room wall: ~60 %; one half behind furniture still ~30 %; a bulkhead over a drop: 0).
 _WALL_MIN_STANDING = 0.1
-# Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels, ~0.5 GB of rasters.
+# Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels. The build's peak is
+# several times its rasters: `wheelgrid grid` on a 140 m square floor (7.8 M pixels) peaked at
+# 0.82 GB (1.39 GB before the floor patches were labelled in int32; a review measured 2.8 GB
+# on a 200 m floor then).
 _MAX_EXTENT = 200.0
 _MAX_COORDINATE = 50_000.0  # m from the origin: beyond it the float32 pass loses millimetres
 _MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pixels
@@ -539,7 +542,10 @@ def _components(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     neighbouring pair shares a root: a few rounds even for a line hundreds of pixels long.
     """
     h, w = mask.shape
-    flat = np.flatnonzero(mask)  # sorted
+    # int32 where it fits (the grid's rasters hold at most _MAX_PIXELS): int64 throughout
+    # took ~2 GB on a 200 m floor's 16 M pixels (a review)
+    index = np.int32 if mask.size < 2**31 - 2 * w - 2 else np.int64
+    flat = np.flatnonzero(mask).astype(index)  # sorted
     rows, cols = flat // w, flat % w
     n = flat.size
     if n == 0:
@@ -549,13 +555,16 @@ def _components(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         nr, nc = rows + dr, cols + dc
         inside = (nr < h) & (nc >= 0) & (nc < w)
         key = nr * w + nc
-        at = np.minimum(np.searchsorted(flat, key), n - 1)
+        del nr, nc
+        at = np.minimum(np.searchsorted(flat, key), n - 1).astype(index)
         hit = inside & (flat[at] == key)
-        a_all.append(np.flatnonzero(hit))
+        a_all.append(np.flatnonzero(hit).astype(index))
         b_all.append(at[hit])
+        del key, at, hit, inside
     a = np.concatenate(a_all)
     b = np.concatenate(b_all)
-    lab = np.arange(n)
+    del a_all, b_all
+    lab = np.arange(n, dtype=index)
     while True:
         ra, rb = lab[a], lab[b]
         differ = ra != rb
