@@ -341,12 +341,15 @@ def _cell_groups(pts: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     return inverse, counts
 
 
-def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> float:
+def cell_for_target(points: np.ndarray, target: int, iterations: int = 8) -> float:
     """Cell edge whose :func:`voxel_downsample` leaves about ``target`` points.
 
     Starts from eq. 5 (``n = N_a / target`` points per cell); because scanned clouds are
     surfaces, not volumes, the count follows ``c * L^-a`` with ``a`` near 2, so a secant step
-    in log-log space converges in a few iterations.
+    in log-log space converges in a few iterations where the count is smooth. Where it is not
+    (axis-aligned walls, whose count jumps as the lattice phase changes) the steps are kept
+    inside the tightest bracket seen, and the cell returned is the one tried whose count came
+    closest: the untried last step was returned, 90 % over a 100 k target (a review).
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if target <= 0 or target >= pts.shape[0]:
@@ -360,8 +363,11 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
 
     def count_full(c: float) -> int:
         # Occupied-cell count without sorting when the lattice fits a bitmap (O(N)); offsets
-        # are >= 0, so truncation is floor.
-        ijk = (rel * np.float32(1.0 / c)).astype(np.int32)
+        # are >= 0, so truncation is floor. On voxel_downsample's lattice, anchored at 0: one
+        # anchored at the cloud's minimum counted another phase, and on walls aligned with
+        # the axes the two counts differed by up to 40 %, so the search missed its target
+        shift = (lo - np.floor(lo / c) * c).astype(np.float32)
+        ijk = ((rel + shift) * np.float32(1.0 / c)).astype(np.int32)
         dims = col_max(ijk).astype(np.int64) + 1
         if int(dims.prod()) <= 256_000_000:
             occ = np.zeros(int(dims.prod()), dtype=bool)
@@ -370,17 +376,27 @@ def cell_for_target(points: np.ndarray, target: int, iterations: int = 4) -> flo
         return int(np.unique(_cell_keys(pts, c, lo)).shape[0])
 
     prev: tuple[float, int] | None = None
+    best = (math.inf, cell)
+    small, big = 0.0, math.inf  # cells known to leave too many / too few points
     for _ in range(iterations):
         n = count_full(cell)
+        best = min(best, (abs(n - target), cell))
         if abs(n - target) <= 0.02 * target:
             break
+        if n > target:
+            small = max(small, cell)
+        else:
+            big = min(big, cell)
         slope = 2.0
         if prev is not None and prev[1] != n and prev[0] != cell:
             slope = -math.log(n / prev[1]) / math.log(cell / prev[0])
             slope = min(max(slope, 0.5), 3.0)
         prev = (cell, n)
-        cell *= (n / target) ** (1.0 / slope)
-    return cell
+        step = cell * (n / target) ** (1.0 / slope)
+        if not small < step < big:  # outside the bracket: its middle (geometric)
+            step = math.sqrt(small * big) if small > 0 and big < math.inf else step
+        cell = step
+    return best[1]
 
 
 def grid_knn(points: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.ndarray]:
