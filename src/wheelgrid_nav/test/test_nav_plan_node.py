@@ -894,6 +894,13 @@ def recording_planner():
             node.destroy_node()
 
 
+def row_2_goal(node, grid):
+    """Give ``node`` ``grid``, the chair at (2, 0) facing right and a goal at (2, 4)."""
+    node._on_grid(to_occupancy_grid(grid))
+    node._on_initialpose(start_msg(grid, (2, 0), 0.0))
+    node._on_goal(goal_msg(grid, (2, 4)))
+
+
 def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_start_was_unknown():
     """The chair's own cell may be unknown (a sensor on the chair never sees the floor under
     it), and the route starts there. Every new grid -- the grid node republishes at each map
@@ -904,9 +911,7 @@ def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_sta
     data[2, 0] = -1  # the chair's cell, never seen
     grid = Grid(data, 1.0)
     with recording_planner() as (node, published):
-        node._on_grid(to_occupancy_grid(grid))
-        node._on_initialpose(start_msg(grid, (2, 0), 0.0))
-        node._on_goal(goal_msg(grid, (2, 4)))
+        row_2_goal(node, grid)
         assert published == [[(2, c) for c in range(5)]]
         node._on_grid(to_occupancy_grid(grid))  # the same grid again
         assert len(published) == 1 and node.plans == 1
@@ -923,9 +928,7 @@ def test_a_grid_of_cells_smaller_than_the_chair_withdraws_the_route_and_plans_no
     data = np.zeros((6, 6), np.int8)
     grid = Grid(data, 1.0)
     with recording_planner() as (node, published):
-        node._on_grid(to_occupancy_grid(grid))
-        node._on_initialpose(start_msg(grid, (2, 0), 0.0))
-        node._on_goal(goal_msg(grid, (2, 4)))
+        row_2_goal(node, grid)
         assert published == [[(2, c) for c in range(5)]] and node.plans == 1
         node._on_grid(to_occupancy_grid(Grid(data, 0.6)))
         assert published[-1] == [] and node.grid is None and node.plans == 1
@@ -954,9 +957,7 @@ def test_the_same_goal_again_and_a_cell_behind_the_chair_leave_the_route_as_it_i
     data = np.zeros((6, 6), np.int8)
     grid = Grid(data, 1.0)
     with recording_planner() as (node, published):
-        node._on_grid(to_occupancy_grid(grid))
-        node._on_initialpose(start_msg(grid, (2, 0), 0.0))
-        node._on_goal(goal_msg(grid, (2, 4)))
+        row_2_goal(node, grid)
         route = [(2, c) for c in range(5)]
         assert published == [route] and node.plans == 1
         node._on_goal(goal_msg(grid, (2, 4)))  # again, no drive driving it: planned again
