@@ -217,3 +217,24 @@ def test_import_and_stream_stray_time_a_frame_stamped_far_ahead_by_capture_order
         srv.stop()
     assert stats.frames_sent == 16 and stats.capture_s < 1.0
     assert stats.wall_s < 30.0  # an hour before; the frames' own pace is 0.75 s
+
+
+def test_two_bad_stamps_in_a_row_are_no_dropout_of_the_stream(tmp_path, capsys) -> None:
+    """Two clouds in a row with bad stamps (one an hour ahead, the next 1000 s back), both
+    skipped: the hole they left in the stamps was read as a dropout of the stream, and the
+    frames after it failed to the end (56 of 120 in a review's run). The log times say the
+    stream never stopped: nothing after them fails."""
+    bad = {20: 3600.0, 21: -1000.0}
+    err, rep = _run(
+        _bag(
+            tmp_path / "bag",
+            0.0,
+            frames=40,
+            shift=lambda t, k: bad.get(k, 0.0) if t == CLOUDS else 0.0,
+        ),
+        tmp_path,
+        capsys,
+    )
+    fr = rep["frames"]
+    assert fr["stamped_ahead"] == 1 and fr["stamped_behind"] == 1, err
+    assert fr["after_gap"] == 0 and fr["failed"] == 0 and fr["used"] == 38, fr

@@ -73,3 +73,18 @@ def test_a_frame_between_two_bad_stamps_forgets_the_first() -> None:
     stamps = [0.0, 0.2, 0.4, 900.0, 0.6, 5000.0, 0.8, 1.0]
     said = _feed(clock, stamps, [0.2 * i for i in range(8)])
     assert said == ["ok", "ok", "ok", "ahead", "ok", "ahead", "ok", "ok"]
+
+
+def test_a_frame_delivered_late_does_not_make_the_frames_after_it_early() -> None:
+    """A 1.6 s stall in delivery: the one frame of the backlog admitted (a busy node takes the
+    newest of those queued, and drops the rest) arrived 1.6 s late. Predicted from it alone,
+    the on-time frames after it were 1.2-1.3 s "ahead": held back, then taken for a clock jump
+    (a review). Each recent frame predicts, and the latest prediction counts."""
+    clock = FrameClock()
+    stamps = [0.2 * i for i in range(12)]
+    received = [s + 0.05 for s in stamps]
+    received[6] += 1.6  # delivered late; the frames 7-13 it held up were dropped as busy
+    stamps = stamps[:7] + [0.2 * i for i in range(14, 20)]
+    received = received[:7] + [0.2 * i + 0.05 for i in range(14, 20)]
+    assert _feed(clock, stamps, received) == ["ok"] * 13
+    assert clock.offset == 0.0 and clock.jumps == []

@@ -956,7 +956,8 @@ def test_the_map_is_published_under_use_sim_time_with_no_clock(tmp_path):
 
     from wheelgrid_common.qos import MAP_QOS
 
-    with mapper_in_process(tmp_path, 2, use_sim_time=True, publish_period=0.1) as node:
+    # three frames: the map frame is fixed after level_min_frames (3) frames
+    with mapper_in_process(tmp_path, 3, use_sim_time=True, publish_period=0.1) as node:
         listener = Node("sim_time_listener", context=node.context)
         ex = SingleThreadedExecutor(context=node.context)
         ex.add_node(node)

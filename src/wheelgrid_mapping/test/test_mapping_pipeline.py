@@ -90,6 +90,21 @@ def test_body_convention_levelled_saved_and_reset(tmp_path: Path) -> None:
     assert m.report()["frames"]["read"] == 0 and m.T_map_odom is None
 
 
+def test_the_live_map_is_not_levelled_before_level_min_frames() -> None:
+    """The node publishes the map every second (published_points), which levelled it from the
+    first one or two frames whatever level_min_frames said (a review: levelled after 5 frames
+    with 10); ``wheelgrid map`` honoured it. The map frame waits for it now."""
+    rng = np.random.default_rng(22)
+    m = Mapper(cfg=MapperConfig(level_min_frames=4))
+    for i in range(4):
+        assert m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link").status == "used"
+        if i < 3:
+            with pytest.raises(RuntimeError, match=r"after 4 frames \(level_min_frames\), "):
+                m.published_points()
+            assert m.T_map_odom is None
+    assert m.published_points().shape[0] > 0 and m.T_map_odom is not None
+
+
 def test_config_yaml_sections(tmp_path: Path) -> None:
     y = tmp_path / "c.yaml"
     y.write_text(

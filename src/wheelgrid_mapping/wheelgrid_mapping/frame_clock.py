@@ -74,9 +74,12 @@ class FrameClock:
         if len(self._recent) < 2:
             return None
         (s0, r0), (s1, r1) = self._recent[0], self._recent[-1]
-        if r1 <= r0 or s1 <= s0:
+        # the fastest the stamps went from the first: one frame delivered late (a stall) read
+        # slow over the span it ends, and on-time frames after it seemed early
+        paces = [(s - s0) / (r - r0) for s, r in list(self._recent)[1:] if r > r0 and s > s0]
+        if not paces:
             return None
-        return (s1 - s0) / (r1 - r0), s1, r1
+        return max(paces), s1, r1
 
     def check(self, stamp: float, received: float | None) -> Verdict:
         """Whether ``stamp`` is further on than the stream's pace since the last admitted frame
@@ -85,9 +88,14 @@ class FrameClock:
         read = self._pace()
         if received is None or read is None:
             return Verdict()
-        pace, s1, r1 = read
+        pace, _, _ = read
         window = AHEAD_WINDOW * max(pace, 1.0)
-        ahead = float(stamp) - (s1 + pace * max(float(received) - r1, 0.0))
+        # From each recent frame, the latest prediction: one delivered late (a stall in the
+        # bridge or DDS, the node's worker busy) predicted the frames after it too early, and
+        # on-time frames were held back as "ahead", then taken for a clock jump (a review)
+        r = float(received)
+        predicted = max(s + pace * max(r - rk, 0.0) for s, rk in self._recent)
+        ahead = float(stamp) - predicted
         if ahead <= window:
             self._suspects.clear()
             return Verdict()

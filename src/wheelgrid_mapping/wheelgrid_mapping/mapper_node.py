@@ -804,6 +804,10 @@ class MapperNode(Node):  # type: ignore[misc]
         self._publish(self.status_pub, arr)
 
     def _on_save(self, request: Any, response: Any) -> Any:
+        if self._reset_pending:  # it said "save once ... closed", which never came
+            response.success = False
+            response.message = "a ~/reset is clearing the map: nothing to save"
+            return response
         if self._loop_state in _CLOSING:
             # the worker holds the map; waiting here would stall every other callback
             response.success = False
@@ -820,13 +824,23 @@ class MapperNode(Node):  # type: ignore[misc]
             return response
         try:
             out = user_folder(self.output_dir)
+            with self._slot_lock:
+                waiting = len(self._queue)
             with self._lock:
-                rep = self.mapper.save(out, {"node_counts": dict(self.counts)})
+                # received, not mapped yet: the frame in preparation and those queued (a save
+                # during a burst read 75 frames of 100 received, the rest said nowhere)
+                waiting += int(self._pipe.pending)
+                counts = {**self.counts, "unmapped_at_save": waiting}
+                rep = self.mapper.save(out, {"node_counts": counts})
                 self._saved = self._map_state()
             response.success = True
             response.message = (
                 f"wrote {out}/map.ply ({rep['points']['map']} points), trajectory.tum, report.json"
             )
+            if waiting:
+                response.message += (
+                    f"; {waiting} frame(s) received are not mapped yet (queued), not in it"
+                )
             from .cli_map import lost_at_end
 
             lost = lost_at_end(rep["registration"])
@@ -927,8 +941,11 @@ class MapperNode(Node):  # type: ignore[misc]
                 self._loop_note = ""
                 self._slot_lock.notify()
                 response.success = True
+                # the queued ones are mapped first (it said 75 over a closure of 100)
+                queued = len(self._queue) + int(self._pipe.pending)
+                over = f"{frames} frames" + (f" and the {queued} queued" if queued else "")
                 response.message = (
-                    f"closing loops over {frames} frames in the background; the map is final "
+                    f"closing loops over {over} in the background; the map is final "
                     "from now on (new frames are not mapped until ~/reset); "
                     "/wheelgrid/mapper_status says loop_closure: closed when the corrected map "
                     "is on /wheelgrid/map_cloud"

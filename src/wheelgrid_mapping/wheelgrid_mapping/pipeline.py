@@ -427,6 +427,14 @@ class Mapper:
         # (index, stamp, mapping time) admitted, not yet added
         self._admitted: list[tuple[int, float, float]] = []
         self.clock = FrameClock()
+        # Frames skipped for their stamps leave a hole in the stamps the registration sees,
+        # which it read as a dropout of the stream: two bad stamps in a row at 5 Hz, and the
+        # next 56 of 120 frames failed (a review). Where every frame arrived within max_gap
+        # of the one before, the stream never stopped: those admitted frames are ``_bridged``.
+        self._seen_received: float | None = None  # when the last frame seen arrived
+        self._receipt_gap: float | None = 0.0  # the longest since the last admitted (None: unknown)
+        self._stamp_hole = False  # a frame skipped for its stamp since the last admitted
+        self._bridged: set[int] = set()
 
     def _begin_again_with_prior(
         self, pts: np.ndarray, t_map: float, prior: np.ndarray, inputs: FrameInputs | None
@@ -515,7 +523,7 @@ class Mapper:
     def drop_admitted(self) -> None:
         """Forget the oldest admitted frame: its preparation failed (it stays counted as read)."""
         if self._admitted:
-            self._admitted.pop(0)
+            self._bridged.discard(self._admitted.pop(0)[0])
             self.frames_errored += 1
 
     def admit(
@@ -530,6 +538,11 @@ class Mapper:
             # against a map that no longer matches the trajectory it is appended to.
             raise RuntimeError("Mapper.add_frame after close_loops: start a new Mapper")
         self.frames_read += 1
+        prev, self._seen_received = self._seen_received, received
+        if received is None or prev is None or self._receipt_gap is None:
+            self._receipt_gap = None if received is None else self._receipt_gap
+        else:
+            self._receipt_gap = max(self._receipt_gap, received - prev)
         convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
         if self.convention is None:
             self.convention = convention
@@ -552,6 +565,7 @@ class Mapper:
         if verdict.ahead_s > 0.0:
             # Mapped, its dt of hours would let any pose through the jump check, and the
             # trajectory would go back at the next frame (:mod:`.frame_clock`).
+            self._stamp_hole = True
             self.frames_skipped += 1
             self.stamped_ahead += 1
             return FrameOutcome(
@@ -573,6 +587,7 @@ class Mapper:
             # a late one: mapped, it gave trajectory.tum a stamp twice or going back (no TUM
             # reader takes that), and a repeat counted its own flying pixels as a second frame's
             # evidence. A step back of LATE_FRAME_WINDOW or more is a clock jump (below).
+            self._stamp_hole = True
             self.frames_skipped += 1
             self.out_of_order += 1
             return FrameOutcome(
@@ -595,6 +610,7 @@ class Mapper:
                 self._behind.clear()  # not one clock: another bad stamp
             self._behind.append(stamp)
             if len(self._behind) < BEHIND_CONFIRM:
+                self._stamp_hole = True
                 self.frames_skipped += 1
                 self.stamped_behind += 1
                 return FrameOutcome(
@@ -620,6 +636,10 @@ class Mapper:
             return FrameOutcome("skipped", "keyframe interval")
         self._last_processed = stamp
         index = self.frames_read - 1
+        gap = self._receipt_gap
+        if self._stamp_hole and gap is not None and gap <= self.reg_cfg.max_gap:
+            self._bridged.add(index)
+        self._stamp_hole, self._receipt_gap = False, 0.0 if received is not None else None
         t_map = self.clock.admit(index, stamp, received, jumped, self.cfg.min_frame_interval)
         self._admitted.append((index, float(stamp), t_map))
         return None
@@ -645,6 +665,9 @@ class Mapper:
         if not self._admitted:
             raise RuntimeError("Mapper.add_prepared without a frame admitted before it")
         index, stamp, t_map = self._admitted.pop(0)
+        if index in self._bridged:
+            self._bridged.discard(index)
+            after_gap = False if after_gap is None else after_gap
         if prior is not None and not is_rigid(prior):
             # A NaN pose from a bridge or bag would abort KISS-ICP (Sophus) and poison the loop
             # closure's prior drift: the frame is registered without it (it fails where frames
@@ -1119,7 +1142,20 @@ class Mapper:
         return True
 
     def published_points(self) -> np.ndarray:
-        """``map_points`` coarsened until it fits ``max_published_points``."""
+        """``map_points`` coarsened until it fits ``max_published_points``; RuntimeError before
+        ``level_min_frames`` frames are mapped, where the map frame is not fixed yet: the live
+        node publishes every second, and it fixed the frame from the first one or two frames
+        whatever ``level_min_frames`` said (a review; ``wheelgrid map`` always honoured it)."""
+        used = len(self.poses_odom)
+        if (
+            self.T_map_odom is None
+            and not self.cfg.mount_xyz_rpy
+            and used < self.cfg.level_min_frames
+        ):
+            raise RuntimeError(
+                f"map frame unknown: the floor is looked for after {self.cfg.level_min_frames} "
+                f"frames (level_min_frames), {used} mapped"
+            )
         pts = self.map_points()
         cell = self.cfg.map_voxel
         while pts.shape[0] > self.cfg.max_published_points:
