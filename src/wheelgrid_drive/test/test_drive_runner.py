@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.map_io import Grid
-from wheelgrid_drive.runner import cells_from_points, grid_cell_check
+from wheelgrid_drive.runner import cells_from_points, grid_cell_check, planned_grid_check
 
 
 def grid():
@@ -69,3 +69,19 @@ def test_a_step_is_refused_unless_the_chair_can_drive_it_from_where_it_stands():
     assert step_pose_problem(g, x, y, 0.0, left) is None
     assert step_pose_problem(g, x, y, 0.0, back) is None
     assert "would end" in step_pose_problem(g, x, y, math.pi / 2, left)
+
+
+def test_a_grid_that_moved_since_planning_refuses_every_cell():
+    """The runner's own guard: a plan holds cell indices, and on a grid of another origin,
+    resolution or frame they are other places. With the guard switched off no test failed
+    (the drive node's abort on a moved grid stood in for it; a review)."""
+    planned = Grid(np.zeros((4, 6), np.int8), 1.2, (0.0, 0.0, 0.0))
+    same = Grid(np.zeros((4, 6), np.int8), 1.2, (0.0, 0.0, 0.0))
+    assert planned_grid_check(lambda: same, planned)((3, 2)) is None
+    for moved in (
+        Grid(np.zeros((4, 6), np.int8), 1.2, (1.2, 0.0, 0.0)),  # shifted a cell
+        Grid(np.zeros((4, 6), np.int8), 1.5, (0.0, 0.0, 0.0)),  # other cells
+        Grid(np.zeros((4, 6), np.int8), 1.2, (0.0, 0.0, 0.0), "odom"),  # other frame
+    ):
+        reason = planned_grid_check(lambda g=moved: g, planned)((3, 2))
+        assert reason is not None and "changed since planning" in reason, reason

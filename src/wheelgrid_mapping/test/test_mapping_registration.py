@@ -121,6 +121,23 @@ def test_implausible_jump_is_rejected(world: np.ndarray) -> None:
     assert reg.state == "relocalising"
 
 
+def test_an_implausible_turn_is_rejected(world: np.ndarray) -> None:
+    """A chair does not turn 69 deg in 0.1 s (max_turn_rate 120 deg/s): refused, as the jump
+    is. No test broke with the turn rule switched off (a review)."""
+    rng = np.random.default_rng(15)
+    reg = Registrar(RegistrationConfig(min_fitness=0.0))
+    T0 = pose(1.5, 2.0, 0.0)
+    reg.register(view(world, T0, rng), 0.0, prior=T0)
+    spun = pose(1.5, 2.0, 1.2)
+    res = reg.register(view(world, spun, rng), 0.1, prior=spun)
+    assert not res.accepted and "deg in" in res.reason, res.reason
+    # the same turn over 1 s is a chair's: taken
+    reg = Registrar(RegistrationConfig(min_fitness=0.0))
+    reg.register(view(world, T0, rng), 0.0, prior=T0)
+    res = reg.register(view(world, spun, rng), 1.0, prior=spun)
+    assert res.accepted, res.reason
+
+
 def test_transform_applies_rotation_then_translation() -> None:
     T = np.eye(4)
     T[:3, :3] = rpy_matrix(0, 0, np.pi / 2)

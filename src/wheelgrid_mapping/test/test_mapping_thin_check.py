@@ -4,8 +4,6 @@ refused with one line naming it, and the opt-out runs them with a warning instea
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -99,15 +97,11 @@ def test_the_opt_out_runs_erasing_settings_with_a_warning_that_says_what_is_lost
     assert PreprocessConfig().accept_thin_obstacle_loss is False
 
 
-def test_the_scene_is_deterministic_and_the_check_is_cheap() -> None:
+def test_the_scene_is_deterministic_and_the_check_is_cached() -> None:
     a = room_with_thin_obstacles(np.random.default_rng(4))
     b = room_with_thin_obstacles(np.random.default_rng(4))
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
     # settings met for the first time: the scene is made and filtered once (the node and
-    # `wheelgrid map` pay this at start-up); on this 2-core machine 0.1-0.2 s
-    cfg = PreprocessConfig(sor_k=9)
-    t0 = time.perf_counter()
-    first = thin_obstacle_coverage(cfg)
-    took = time.perf_counter() - t0
-    assert took < 1.0, took
+    # `wheelgrid map` pay this at start-up, 0.1-0.2 s on 2 cores: timed by hand, not here)
+    first = thin_obstacle_coverage(PreprocessConfig(sor_k=9))
     assert thin_obstacle_coverage(PreprocessConfig(sor_k=9)) == first  # same answer, cached
