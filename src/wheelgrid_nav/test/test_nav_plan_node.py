@@ -921,19 +921,44 @@ def test_a_grid_that_leaves_the_route_open_is_not_a_change_under_it_when_the_sta
         assert node.plans == 2 and published[-1] == []
 
 
-def test_a_grid_of_cells_smaller_than_the_chair_withdraws_the_route_and_plans_nothing():
+def test_a_grid_of_cells_smaller_than_the_chair_withdraws_the_route_and_the_goal():
     """A grid of 0.6 m cells (or the 5 cm /map sent as the safe grid) planned a route through
     a gap narrower than the chair. It is refused: the route before it withdrawn (the map it
-    was planned on is gone), nothing planned until a grid of chair-sized cells comes."""
+    was planned on is gone) and its goal dropped. Kept, the next good grid planned it and the
+    chair drove on with no command (a review); a new goal is planned."""
     data = np.zeros((6, 6), np.int8)
     grid = Grid(data, 1.0)
     with recording_planner() as (node, published):
         row_2_goal(node, grid)
         assert published == [[(2, c) for c in range(5)]] and node.plans == 1
         node._on_grid(to_occupancy_grid(Grid(data, 0.6)))
-        assert published[-1] == [] and node.grid is None and node.plans == 1
-        node._on_grid(to_occupancy_grid(grid))  # chair-sized again: the goal is planned
+        assert published[-1] == [] and node.grid is None and node.goal is None
+        node._on_grid(to_occupancy_grid(grid))  # chair-sized again: nothing planned by itself
+        assert node.plans == 1 and published[-1] == []
+        node._on_goal(goal_msg(grid, (2, 4)))  # sent again: planned
         assert node.plans == 2 and published[-1] == [(2, c) for c in range(5)]
+
+
+def test_a_route_the_drive_stopped_or_refused_is_not_planned_again_at_the_next_grid():
+    """The drive stopped the route (the controller went silent) and said so; the planner kept
+    it, and the next grid of another geometry (the map growing) planned it again: the chair
+    set off 3 s after an ERROR with no command (a review). A route the drive is not driving
+    a while after it went out is dropped with its goal at the next grid; one it drives is
+    planned again as before."""
+    data = np.zeros((6, 6), np.int8)
+    grid, grown = Grid(data, 1.0), Grid(np.zeros((6, 7), np.int8), 1.0)
+    with recording_planner() as (node, published):
+        row_2_goal(node, grid)
+        node._on_drive_state(drive_state("plan"))  # driving it: a grown map replans
+        node._route_sent_at -= 10.0
+        node._on_grid(to_occupancy_grid(grown))
+        assert node.plans == 2 and published[-1] == [(2, c) for c in range(5)]
+        node._on_drive_state(drive_state("idle"))  # it stopped (its state said why)
+        node._on_grid(to_occupancy_grid(grid))  # just out: the drive may not have it yet
+        assert node.plans == 3 and node.goal is not None
+        node._route_sent_at -= 10.0
+        node._on_grid(to_occupancy_grid(grown))
+        assert node.plans == 3 and node.goal is None and published[-1] == []
 
 
 def drive_state(job):

@@ -77,6 +77,9 @@ HEADING_TOLERANCE_RAD = math.radians(20.0)
 # The drive's state (5 Hz by default) counts as current this long: a drive that died while
 # driving must not keep a goal sent again from being planned.
 DRIVE_STATE_FRESH_S = 2.0
+# A route out this long that the drive (heard, fresh) is not driving was stopped or refused
+# there: the drive takes a plan within milliseconds and reports at 5 Hz.
+ROUTE_TAKEN_S = 2.0
 
 
 @dataclass
@@ -258,6 +261,8 @@ def _make_node_class() -> type:
             # whether the drive is driving a plan (its state's job, and when that was heard):
             # the same goal sent again leaves a route being driven alone
             self._drive_job: tuple[str, float] = ("", -math.inf)
+            self._drive_said = ""  # the drive's last state message
+            self._route_sent_at = -math.inf  # when a route (not an empty path) last went out
             self.create_subscription(
                 DiagnosticArray, "wheelgrid/drive_state", self._on_drive_state, RELIABLE_QOS
             )
@@ -300,15 +305,20 @@ def _make_node_class() -> type:
                 self.get_logger().error(f"bad safe grid ignored: {exc}")
                 return
             if problem := chair_cell_problem(grid.resolution):
-                # no route on it, nor on the grid before it: that one is no longer the map's
+                # no route on it, nor on the grid before it: that one is no longer the map's.
+                # The goal goes too: kept, the next good grid planned it and the chair drove
+                # on with no command (a review)
                 self.get_logger().error(f"safe grid refused: {problem}; {CHAIR_GRID_HINT}")
                 self.grid = None
-                if self.route:
-                    self._publish_route(grid, [])
+                if self.route or self.goal is not None:
+                    self._no_route(grid, "safe grid refused")
                 return
             old = self.grid
             self.grid = grid
             if self.goal is None or self.start is None:
+                return
+            if why := self._drive_left_the_route():
+                self._no_route(grid, why)
                 return
             # the route's cells are only indices of the old grid: read on a smaller new one
             # they raised IndexError and ended the node
@@ -425,6 +435,22 @@ def _make_node_class() -> type:
                 for kv in status.values:
                     if kv.key == "job":
                         self._drive_job = (kv.value, time.monotonic())
+                        self._drive_said = str(status.message)
+
+        def _drive_left_the_route(self) -> str | None:
+            """Why the route held is no longer the drive's, or None: a drive is heard, it is
+            not driving a plan, and the route went out long enough ago for it to have taken
+            it. The drive stopped it (the controller went silent, a step refused, an e-stop
+            it heard first) or refused it, and says "send the goal again"; replanned at the
+            next grid change (the map growing), the chair set off with no command (a
+            review: 3 s after an ERROR, and after a grid of too small cells)."""
+            job, heard = self._drive_job
+            now = time.monotonic()
+            if not self.route or not job or now - heard > DRIVE_STATE_FRESH_S:
+                return None
+            if job == "plan" or now - self._route_sent_at < ROUTE_TAKEN_S:
+                return None
+            return f"the drive is not driving the route ({self._drive_said})"
 
         def _drive_runs_a_plan(self) -> bool:
             job, heard = self._drive_job
@@ -755,6 +781,8 @@ def _make_node_class() -> type:
             self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
         ) -> None:
             self.route = list(cells)
+            if cells:
+                self._route_sent_at = time.monotonic()
             stamp = self.get_clock().now().to_msg()
             frame = grid.frame_id if grid is not None else "map"
             path = Path()
