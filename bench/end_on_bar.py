@@ -8,7 +8,8 @@ are ray cast by the simulator's camera (256 x 192, its noise, wild returns and f
 from 1.0 m height. Two readings, each with no filter and with the default filters
 (``PreprocessConfig()``, the mapper's per-frame filtering):
 
-* per frame, the bar's points kept at bar-centre distances of 1-3 m (three noise draws);
+* per frame, the share of the bar's points kept at bar-centre distances of 1-3.5 m (ten
+  noise draws: median and range);
 * fused: frames every 5 cm of an approach from 3.5 m to 2.4, 1.5 and 1.0 m, at their true
   poses, through the mapper's evidence map (``MapperConfig().evidence_map()``): the bar's
   points in the map and how many of its ten 10 cm stretches hold one.
@@ -29,6 +30,7 @@ from wheelgrid_mapping.preprocess import PreprocessConfig, preprocess_for_map
 from wheelgrid_sim.camera import DepthCamera
 
 HEIGHT, RADIUS, SIDE, LENGTH = 0.75, 0.025, 0.15, 1.0
+DRAWS = 10  # noise draws of each per-frame reading
 CAMERA_HEIGHT = 1.0
 #: optical (x right, y down, z ahead) -> world (x ahead, y left, z up)
 OPTICAL_TO_WORLD = np.array([[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])
@@ -71,19 +73,20 @@ def on_bar(points: np.ndarray, centre: np.ndarray, axis: np.ndarray) -> np.ndarr
 
 def per_frame() -> None:
     centre, axis = np.array([SIDE, CAMERA_HEIGHT - HEIGHT, 0.0]), np.array([0.0, 0.0, 1.0])
-    for distance in (1.0, 1.5, 2.0, 2.5, 3.0):
-        got = {}
-        for name, cfg in FILTERS.items():
-            n = 0
-            for seed in range(3):
+    for distance in (1.0, 1.5, 2.0, 2.5, 3.0, 3.5):
+        shares, raw = [], []
+        for seed in range(DRAWS):
+            counts = {}
+            for name, cfg in FILTERS.items():
                 pts, keep = preprocess_for_map(frame(distance, 100 + seed), cfg)
                 kept = pts if keep is None else pts[keep]
-                n += on_bar(kept, centre + np.array([0.0, 0.0, distance]), axis).size
-            got[name] = n / 3
-        share = got["defaults"] / max(got["no filter"], 1e-9)
+                counts[name] = on_bar(kept, centre + np.array([0.0, 0.0, distance]), axis).size
+            raw.append(counts["no filter"])
+            shares.append(counts["defaults"] / max(counts["no filter"], 1))
         print(
-            f"per frame, bar {distance:.1f} m ahead: {got['no filter']:.1f} points unfiltered, "
-            f"{got['defaults']:.1f} kept ({100 * share:.0f} %)"
+            f"per frame, bar {distance:.1f} m ahead: {np.mean(raw):.1f} points unfiltered, "
+            f"kept {100 * np.median(shares):.0f} % (median of {DRAWS} draws; "
+            f"{100 * min(shares):.0f}-{100 * max(shares):.0f} %)"
         )
 
 

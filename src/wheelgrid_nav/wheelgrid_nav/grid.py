@@ -79,8 +79,9 @@ _EXTENT_MAX_POINTS = 200_000
 _WALL_MIN_STANDING = 0.1
 # Largest grid side accepted (m): 200 m at 5 cm pixels is 16 M pixels. The build's peak is
 # several times its rasters: `wheelgrid grid` on a 140 m square floor (7.8 M pixels) peaked at
-# 0.82 GB (1.39 GB before the floor patches were labelled in int32; a review measured 2.8 GB
-# on a 200 m floor then).
+# 0.82 GB with its floor sampled every 20 cm, 1.63 GB (build_grid alone) with a point in
+# every pixel; before the floor patches were labelled in int32, 1.39 and 3.24 GB (a review
+# measured 2.8 GB on a 200 m floor then).
 _MAX_EXTENT = 200.0
 _MAX_COORDINATE = 50_000.0  # m from the origin: beyond it the float32 pass loses millimetres
 _MAX_PIXELS = 40_000_000  # the raster of one build: 200 m x 200 m at 3.2 cm pixels
