@@ -14,6 +14,7 @@ from wheelgrid_mapping.levelling import rpy_matrix
 from wheelgrid_mapping.registration import (
     Registrar,
     RegistrationConfig,
+    RegResult,
     blend_correction,
     frame_inputs,
     rotation_angle_deg,
@@ -108,33 +109,30 @@ def test_failures_pause_integration_and_relocalise(world: np.ndarray) -> None:
     assert c.failure_reasons.get("too few points") == 1
 
 
-def test_implausible_jump_is_rejected(world: np.ndarray) -> None:
+def _second_frame(world: np.ndarray, to: np.ndarray, dt: float) -> tuple[Registrar, RegResult]:
+    """A registrar given a first frame at (1.5, 2.0) facing x, then one at ``to``, ``dt``
+    seconds later, its prior saying the same: the registrar and the second's result."""
     rng = np.random.default_rng(15)
     reg = Registrar(RegistrationConfig(min_fitness=0.0))
     T0 = pose(1.5, 2.0, 0.0)
     reg.register(view(world, T0, rng), 0.0, prior=T0)
+    return reg, reg.register(view(world, to, rng), dt, prior=to)
+
+
+def test_implausible_jump_is_rejected(world: np.ndarray) -> None:
     # The sensor really is 2 m away 0.1 s later (and the prior says so): ICP agrees, but a
     # chair cannot move at 20 m/s, so the frame is refused as a failure.
-    far = pose(3.5, 2.0, 0.0)
-    res = reg.register(view(world, far, rng), 0.1, prior=far)
+    reg, res = _second_frame(world, pose(3.5, 2.0, 0.0), 0.1)
     assert not res.accepted and "jump" in res.reason, res.reason
     assert reg.state == "relocalising"
 
 
 def test_an_implausible_turn_is_rejected(world: np.ndarray) -> None:
     """A chair does not turn 69 deg in 0.1 s (max_turn_rate 120 deg/s): refused, as the jump
-    is. No test broke with the turn rule switched off (a review)."""
-    rng = np.random.default_rng(15)
-    reg = Registrar(RegistrationConfig(min_fitness=0.0))
-    T0 = pose(1.5, 2.0, 0.0)
-    reg.register(view(world, T0, rng), 0.0, prior=T0)
-    spun = pose(1.5, 2.0, 1.2)
-    res = reg.register(view(world, spun, rng), 0.1, prior=spun)
+    is. No test broke with the turn rule switched off (a review). Over 1 s it is a chair's."""
+    _, res = _second_frame(world, pose(1.5, 2.0, 1.2), 0.1)
     assert not res.accepted and "deg in" in res.reason, res.reason
-    # the same turn over 1 s is a chair's: taken
-    reg = Registrar(RegistrationConfig(min_fitness=0.0))
-    reg.register(view(world, T0, rng), 0.0, prior=T0)
-    res = reg.register(view(world, spun, rng), 1.0, prior=spun)
+    _, res = _second_frame(world, pose(1.5, 2.0, 1.2), 1.0)
     assert res.accepted, res.reason
 
 
