@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 import signal
 import sys
@@ -320,10 +319,6 @@ def main(argv: list[str] | None = None) -> int:
     def on_event(kind: str, message: str) -> None:
         if kind not in ("timeout",):
             print(f"  ! {kind}: {message}", file=sys.stderr)
-
-    # the events are said above: logging's last-resort handler printed each a second time
-    # (a review)
-    logging.getLogger("wheelgrid_drive.link").addHandler(logging.NullHandler())
 
     link = MotorLink(
         args.port,

@@ -20,7 +20,6 @@ FREE cells); a stale /cmd_vel (0.5 s) stops the chair; any link trouble stops th
 
 from __future__ import annotations
 
-import logging
 import math
 import sys
 import threading
@@ -232,10 +231,6 @@ class DriveNode(Node):
             self.get_logger().fatal(f"invalid parameters: {exc}")
             raise SystemExit(2) from exc
         c = self.cfg
-        # the link's events are logged here (_on_link_event, throttled where they repeat):
-        # through logging's last-resort handler the link printed each again, ten heartbeat
-        # failures a second from a controller that no longer answers (a review)
-        logging.getLogger("wheelgrid_drive.link").addHandler(logging.NullHandler())
         self.speed = min(c.speed, proto.MAX_SPEED_KMH)  # check_config refuses too slow
         if c.speed > proto.MAX_SPEED_KMH:
             self.get_logger().warning(f"speed {c.speed} km/h capped at {self.speed} km/h")

@@ -38,6 +38,12 @@ from typing import Any
 from wheelgrid_drive import protocol as proto
 
 log = logging.getLogger("wheelgrid_drive.link")
+# A library's logger: the link's users say its events themselves (``on_event``: the CLI prints
+# them, the node logs them, throttled where they repeat). Without a handler of its own,
+# logging's last-resort handler printed each one again, ten heartbeat failures a second from a
+# controller that no longer answers (a review). A caller that configures logging still sees
+# them (they propagate).
+log.addHandler(logging.NullHandler())
 
 
 class LinkError(RuntimeError):
