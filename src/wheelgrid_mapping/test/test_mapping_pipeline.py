@@ -622,7 +622,7 @@ def test_a_frame_stamped_in_the_future_does_not_stop_the_keyframes() -> None:
     assert m.report()["frames"]["clock_jumps"] == 1
     # with stamps alone the future one cannot be told from a pause: taken, and the mapping
     # time (trajectory.tum's) goes on from it by the usual interval, never back
-    times = [t for _, _, t in m._admitted]
+    times = [t for _, _, t, _ in m._admitted]
     assert times == pytest.approx([0.0, 0.2, 1e6, 1e6 + 0.2, 1e6 + 0.4])
     assert [j["frame"] for j in m.report()["mapping_time"]["jumps"]] == [4]
 
@@ -639,7 +639,7 @@ def test_one_frame_stamped_zero_costs_that_frame_only() -> None:
     outcomes = [m.admit(t, "base_link", 50.0 + 0.2 * k) for k, t in enumerate(stamps)]
     assert [o.cause if o else "" for o in outcomes] == ["", "", "", "stamped_behind"] + [""] * 4
     assert m.clock_jumps == 0 and m.stamped_behind == 1 and m.stamped_ahead == 0
-    times = [t for _, _, t in m._admitted]
+    times = [t for _, _, t, _ in m._admitted]
     assert times == pytest.approx([s for s in stamps if s > 0.0])
     assert m.report()["frames"]["stamped_behind"] == 1
 
@@ -652,7 +652,7 @@ def test_a_frame_stamped_far_ahead_of_its_arrival_is_skipped_and_counted() -> No
     outcomes = [m.admit(t, "base_link", 50.0 + t if t < 1e5 else 50.3) for t in stamps]
     assert [o.cause if o else "" for o in outcomes] == ["", "", "stamped_ahead"] + [""] * 4
     assert m.stamped_ahead == 1 and m.clock_jumps == 0 and m.frames_skipped == 2
-    assert [t for _, _, t in m._admitted] == [0.0, 0.2, 0.4, 0.6, 0.8]
+    assert [t for _, _, t, _ in m._admitted] == [0.0, 0.2, 0.4, 0.6, 0.8]
     assert m.report()["frames"]["stamped_ahead"] == 1
 
 

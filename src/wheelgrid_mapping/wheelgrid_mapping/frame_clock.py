@@ -68,27 +68,24 @@ class FrameClock:
         self._intervals: deque[float] = deque(maxlen=9)  # between admitted frames (s)
         self.jumps: list[dict[str, Any]] = []
 
-    def _pace(self) -> tuple[float, float, float] | None:
-        """``(pace, stamp, receipt)``: stamp seconds per receipt second over the recent admitted
-        frames, and the last one's stamp and receipt; None before two frames moved both."""
+    def _pace(self) -> float | None:
+        """Stamp seconds per receipt second over the recent admitted frames; None before two
+        frames moved both."""
         if len(self._recent) < 2:
             return None
-        (s0, r0), (s1, r1) = self._recent[0], self._recent[-1]
+        s0, r0 = self._recent[0]
         # the fastest the stamps went from the first: one frame delivered late (a stall) read
         # slow over the span it ends, and on-time frames after it seemed early
         paces = [(s - s0) / (r - r0) for s, r in list(self._recent)[1:] if r > r0 and s > s0]
-        if not paces:
-            return None
-        return max(paces), s1, r1
+        return max(paces) if paces else None
 
     def check(self, stamp: float, received: float | None) -> Verdict:
         """Whether ``stamp`` is further on than the stream's pace since the last admitted frame
         predicts for the time its receipt says passed (never without receipt times, nor
         before two frames have set the pace)."""
-        read = self._pace()
-        if received is None or read is None:
+        pace = self._pace()
+        if received is None or pace is None:
             return Verdict()
-        pace, _, _ = read
         window = AHEAD_WINDOW * max(pace, 1.0)
         # From each recent frame, the latest prediction: one delivered late (a stall in the
         # bridge or DDS, the node's worker busy) predicted the frames after it too early, and
@@ -126,10 +123,9 @@ class FrameClock:
         stamp = float(stamp)
         if jumped and self._last_time is not None:
             gap = 0.0
-            read = self._pace()
-            if received is not None and read is not None:
-                pace, _, r1 = read
-                gap = pace * (float(received) - r1)
+            pace = self._pace()
+            if received is not None and pace is not None:
+                gap = pace * (float(received) - self._recent[-1][1])
             if gap <= 0.0:
                 gap = self.interval()
             gap = max(gap, min_gap, 1e-3)

@@ -424,17 +424,16 @@ class Mapper:
         # stamps of the frames in a row stamped LATE_FRAME_WINDOW or more before the last
         # keyframe, held back until BEHIND_CONFIRM of them agree that the clock went back
         self._behind: list[float] = []
-        # (index, stamp, mapping time) admitted, not yet added
-        self._admitted: list[tuple[int, float, float]] = []
+        # (index, stamp, mapping time, bridged) admitted, not yet added. Frames skipped for
+        # their stamps leave a hole in the stamps the registration sees, which it read as a
+        # dropout of the stream: two bad stamps in a row at 5 Hz, and the next 56 of 120
+        # frames failed (a review). Where every frame arrived within max_gap of the one
+        # before, the stream never stopped: the frame after such a hole is ``bridged``.
+        self._admitted: list[tuple[int, float, float, bool]] = []
         self.clock = FrameClock()
-        # Frames skipped for their stamps leave a hole in the stamps the registration sees,
-        # which it read as a dropout of the stream: two bad stamps in a row at 5 Hz, and the
-        # next 56 of 120 frames failed (a review). Where every frame arrived within max_gap
-        # of the one before, the stream never stopped: those admitted frames are ``_bridged``.
         self._seen_received: float | None = None  # when the last frame seen arrived
         self._receipt_gap: float | None = 0.0  # the longest since the last admitted (None: unknown)
         self._stamp_hole = False  # a frame skipped for its stamp since the last admitted
-        self._bridged: set[int] = set()
 
     def _begin_again_with_prior(
         self, pts: np.ndarray, t_map: float, prior: np.ndarray, inputs: FrameInputs | None
@@ -523,7 +522,7 @@ class Mapper:
     def drop_admitted(self) -> None:
         """Forget the oldest admitted frame: its preparation failed (it stays counted as read)."""
         if self._admitted:
-            self._bridged.discard(self._admitted.pop(0)[0])
+            self._admitted.pop(0)
             self.frames_errored += 1
 
     def admit(
@@ -539,9 +538,9 @@ class Mapper:
             raise RuntimeError("Mapper.add_frame after close_loops: start a new Mapper")
         self.frames_read += 1
         prev, self._seen_received = self._seen_received, received
-        if received is None or prev is None or self._receipt_gap is None:
-            self._receipt_gap = None if received is None else self._receipt_gap
-        else:
+        if received is None:
+            self._receipt_gap = None
+        elif prev is not None and self._receipt_gap is not None:
             self._receipt_gap = max(self._receipt_gap, received - prev)
         convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
         if self.convention is None:
@@ -637,11 +636,10 @@ class Mapper:
         self._last_processed = stamp
         index = self.frames_read - 1
         gap = self._receipt_gap
-        if self._stamp_hole and gap is not None and gap <= self.reg_cfg.max_gap:
-            self._bridged.add(index)
+        bridged = self._stamp_hole and gap is not None and gap <= self.reg_cfg.max_gap
         self._stamp_hole, self._receipt_gap = False, 0.0 if received is not None else None
         t_map = self.clock.admit(index, stamp, received, jumped, self.cfg.min_frame_interval)
-        self._admitted.append((index, float(stamp), t_map))
+        self._admitted.append((index, float(stamp), t_map, bridged))
         return None
 
     def _note_failure(self, entry: dict[str, Any]) -> None:
@@ -664,10 +662,9 @@ class Mapper:
         one that the caller dropped (while busy) and that had a pose prior; None: none."""
         if not self._admitted:
             raise RuntimeError("Mapper.add_prepared without a frame admitted before it")
-        index, stamp, t_map = self._admitted.pop(0)
-        if index in self._bridged:
-            self._bridged.discard(index)
-            after_gap = False if after_gap is None else after_gap
+        index, stamp, t_map, bridged = self._admitted.pop(0)
+        if bridged and after_gap is None:
+            after_gap = False
         if prior is not None and not is_rigid(prior):
             # A NaN pose from a bridge or bag would abort KISS-ICP (Sophus) and poison the loop
             # closure's prior drift: the frame is registered without it (it fails where frames
