@@ -58,20 +58,28 @@ class StrayFrame:
     pose: np.ndarray | None  # (4, 4) ARKit world (y up) <- optical camera; None if unknown
 
 
-def _read_image(path: Path) -> np.ndarray:
-    """An image as an array; a file that does not decode (cut off by a full phone, a stray
-    non-image) raises ``ValueError`` naming it, the error every reader of an export handles."""
+@contextlib.contextmanager
+def _unreadable(path: Path) -> Iterator[None]:
+    """A file that does not read as an image (cut off by a full phone, a stray non-image)
+    raises ``ValueError`` naming it, the error every reader of an export handles. Whatever
+    the reader raised: PIL's UnidentifiedImageError is an OSError, but a header declaring
+    30000 x 30000 pixels raised DecompressionBombError, none of OSError, ValueError or
+    EOFError, a traceback for the whole export (a review)."""
     try:
+        yield
+    except Exception as exc:
+        raise ValueError(f"{path}: cannot read the image ({exc})") from exc
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """An image as an array (``ValueError`` where it does not read: :func:`_unreadable`)."""
+    with _unreadable(path):
         if path.suffix == ".npy":
             return np.load(path, allow_pickle=False)
         from PIL import Image
 
         with Image.open(path) as im:
             return np.array(im)
-    except Exception as exc:  # PIL's UnidentifiedImageError (an OSError), its bomb error, ...
-        # a header declaring 30000 x 30000 pixels raised DecompressionBombError, none of
-        # OSError, ValueError or EOFError: a traceback for the whole export (a review)
-        raise ValueError(f"{path}: cannot read the image ({exc})") from exc
 
 
 def _read_depth(path: Path) -> np.ndarray:
@@ -96,7 +104,7 @@ def _read_depth(path: Path) -> np.ndarray:
 def _image_shape(path: Path) -> tuple[int, int]:
     """(height, width) from the file's header, without decoding its pixels; ``ValueError``
     where there is none to read."""
-    try:
+    with _unreadable(path):
         if path.suffix == ".npy":
             shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
         else:
@@ -104,8 +112,6 @@ def _image_shape(path: Path) -> tuple[int, int]:
 
             with Image.open(path) as im:
                 shape = (im.height, im.width)
-    except Exception as exc:  # as _read_image's
-        raise ValueError(f"{path}: cannot read the image ({exc})") from exc
     if len(shape) < 2:
         raise ValueError(f"{path}: not an image (shape {shape})")
     return int(shape[0]), int(shape[1])
