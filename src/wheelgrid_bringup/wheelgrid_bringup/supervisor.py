@@ -35,6 +35,11 @@ NODES: dict[str, str] = {
 }
 
 
+#: The line of :func:`child_code` that lets SIGINT in once its quiet handler is set:
+#: :meth:`Supervisor.start` blocks SIGINT for the fork of a child whose code holds it.
+_UNBLOCK_SIGINT = "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})\n"
+
+
 def child_code(module: str, func: str) -> str:
     """``python -c`` code that runs ``module.func()`` as a supervised child of this process.
 
@@ -51,8 +56,10 @@ def child_code(module: str, func: str) -> str:
         # a handler, not `except KeyboardInterrupt`: numpy turns one inside its import into an
         # ImportError (rc 1, a traceback; a review); os._exit, as there is nothing to flush
         "signal.signal(signal.SIGINT, lambda *_: os._exit(0))\n"
-        "signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})\n"
-        f"parent = {os.getpid()}\n" + DIE_WITH_PARENT_CODE + f"from {module} import {func} as m\n"
+        + _UNBLOCK_SIGINT
+        + f"parent = {os.getpid()}\n"
+        + DIE_WITH_PARENT_CODE
+        + f"from {module} import {func} as m\n"
         "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "sys.exit(m() or 0)\n"
     )
@@ -129,7 +136,7 @@ class Supervisor:
         # unblocks it once its quiet handler is in, and a Ctrl-C before then waits for it.
         # Blocked in this thread only, for the fork: one arriving meanwhile is handled here
         # as ever, once unblocked (or by another thread).
-        unblocks = any("SIG_UNBLOCK" in a for a in argv)  # only code that lets it in again
+        unblocks = any(_UNBLOCK_SIGINT in a for a in argv)  # only code that lets it in again
         mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT} if unblocks else set())
         try:
             proc = subprocess.Popen(
