@@ -991,7 +991,7 @@ def test_the_same_goal_again_and_a_cell_behind_the_chair_leave_the_route_as_it_i
         node._on_drive_state(drive_state("plan"))  # the drive on its way there
         node._on_goal(goal_msg(grid, (2, 4)))  # the same goal again: nothing
         assert published == [route] and node.plans == 2
-        node._drive_job = ("plan", time.monotonic() - 10.0)  # a drive silent since: died
+        node._drive_job = ("plan", time.monotonic() - 10.0, "")  # a drive silent since: died
         node._on_goal(goal_msg(grid, (2, 4)))
         assert published == [route, route] and node.plans == 3
         del published[1:]

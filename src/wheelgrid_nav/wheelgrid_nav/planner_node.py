@@ -260,8 +260,8 @@ def _make_node_class() -> type:
             self._last_chair: tuple[float, float, float] | None = None
             # whether the drive is driving a plan (its state's job, and when that was heard):
             # the same goal sent again leaves a route being driven alone
-            self._drive_job: tuple[str, float] = ("", -math.inf)
-            self._drive_said = ""  # the drive's last state message
+            # the drive's job, when it was heard and its state's message
+            self._drive_job: tuple[str, float, str] = ("", -math.inf, "")
             self._route_sent_at = -math.inf  # when a route (not an empty path) last went out
             self.create_subscription(
                 DiagnosticArray, "wheelgrid/drive_state", self._on_drive_state, RELIABLE_QOS
@@ -434,8 +434,7 @@ def _make_node_class() -> type:
             for status in msg.status:
                 for kv in status.values:
                     if kv.key == "job":
-                        self._drive_job = (kv.value, time.monotonic())
-                        self._drive_said = str(status.message)
+                        self._drive_job = (kv.value, time.monotonic(), str(status.message))
 
         def _drive_left_the_route(self) -> str | None:
             """Why the route held is no longer the drive's, or None: a drive is heard, it is
@@ -444,16 +443,16 @@ def _make_node_class() -> type:
             it heard first) or refused it, and says "send the goal again"; replanned at the
             next grid change (the map growing), the chair set off with no command (a
             review: 3 s after an ERROR, and after a grid of too small cells)."""
-            job, heard = self._drive_job
+            job, heard, said = self._drive_job
             now = time.monotonic()
             if not self.route or not job or now - heard > DRIVE_STATE_FRESH_S:
                 return None
             if job == "plan" or now - self._route_sent_at < ROUTE_TAKEN_S:
                 return None
-            return f"the drive is not driving the route ({self._drive_said})"
+            return f"the drive is not driving the route ({said})"
 
         def _drive_runs_a_plan(self) -> bool:
-            job, heard = self._drive_job
+            job, heard, _ = self._drive_job
             return job == "plan" and time.monotonic() - heard <= DRIVE_STATE_FRESH_S
 
         def _same_goal_cell(self, goal: tuple[float, float], frame: str) -> bool:
