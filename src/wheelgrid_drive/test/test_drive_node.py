@@ -1071,6 +1071,13 @@ def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
         assert h.spin(lambda: any("smaller than the chair" in s.message for s in h.states))
         assert h.drive._grid is None
         assert h.give_grid(grid)
+        # cells one move cannot cross: every step failed in the link as a ValueError
+        wide = to_occupancy_grid(grid)
+        wide.info.resolution = 2.4
+        h.pub_grid.publish(wide)
+        assert h.spin(lambda: any("longest move" in s.message for s in h.states))
+        assert h.drive._grid is None
+        assert h.give_grid(grid)
         fast = h.Twist()
         fast.linear.x = float("inf")
         for _ in range(5):

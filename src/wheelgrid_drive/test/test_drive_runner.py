@@ -85,3 +85,18 @@ def test_a_grid_that_moved_since_planning_refuses_every_cell():
     ):
         reason = planned_grid_check(lambda g=moved: g, planned)((3, 2))
         assert reason is not None and "changed since planning" in reason, reason
+
+
+def test_a_step_to_a_centre_over_2_m_away_is_refused_by_name():
+    """From 0.7 m behind its cell's centre on 1.6 m cells the way to the next centre is 2.3 m,
+    more than one MOVE carries: it reached pack_move as a ValueError the drive node did not
+    catch, and the node tried it again every 50 ms for as long as the stick was held."""
+    from wheelgrid_drive.actions import plan_steps
+    from wheelgrid_drive.runner import step_to_centre
+
+    g = Grid(np.zeros((4, 4), np.int8), 1.6)
+    (step,) = plan_steps((1, 1), ["right"], "right")
+    cx, cy = (float(v) for v in g.cell_center(1, 1))
+    assert step_to_centre(g, cx, cy, 0.0, step) == (pytest.approx(1.6), None)
+    along, why = step_to_centre(g, cx - 0.7, cy, 0.0, step)
+    assert along == 0.0 and "longest move the motor controller takes" in why

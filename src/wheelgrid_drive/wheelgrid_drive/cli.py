@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 import threading
@@ -258,8 +257,8 @@ def main(argv: list[str] | None = None) -> int:
     cell_size = grid.resolution if grid is not None else args.cell_size
     if cell_size is None:
         cell_size = 1.2
-    if not (math.isfinite(cell_size) and 1 <= round(cell_size * 1000) <= proto.MAX_DISTANCE_MM):
-        return _err(f"cell size {cell_size} m outside [0.001, {proto.MAX_DISTANCE_MM / 1000:g}] m")
+    if problem := proto.move_length_problem(cell_size):
+        return _err(problem)
     from wheelgrid_common.map_io import CHAIR_GRID_HINT, chair_cell_problem
 
     if problem := chair_cell_problem(cell_size):

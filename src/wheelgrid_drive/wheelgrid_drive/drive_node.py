@@ -211,8 +211,8 @@ def check_config(c: DriveConfig) -> None:
         )
     if not 0.0 < c.state_rate <= 100.0:
         raise ValueError(f"state_rate must be in (0, 100] Hz, not {c.state_rate}")
-    if not 0.001 <= c.cell_size <= proto.MAX_DISTANCE_MM / 1000:
-        raise ValueError(f"cell_size must be in [0.001, 2] m, not {c.cell_size}")
+    if problem := proto.move_length_problem(c.cell_size, "cell_size"):
+        raise ValueError(problem)
     if not 0.0 < c.pose_tolerance <= 0.5:
         raise ValueError(f"pose_tolerance must be in (0, 0.5] cells, not {c.pose_tolerance}")
     if c.initial_heading.strip().lower() not in ("auto", *actions.DELTA):
@@ -527,6 +527,9 @@ class DriveNode(Node):
             grid = from_occupancy_grid(msg)
             if problem := chair_cell_problem(grid.resolution):
                 raise ValueError(f"{problem}; {CHAIR_GRID_HINT}")
+            # a cell the controller cannot cross in one move: every step failed in pack_move
+            if problem := proto.move_length_problem(grid.resolution, "the grid's cell size"):
+                raise ValueError(problem)
         except ValueError as exc:
             self._grid = None  # a broken grid is no grid: every cell check now refuses
             self._set_state(ERROR, f"bad safe grid: {exc}")

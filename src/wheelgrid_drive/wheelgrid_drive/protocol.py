@@ -228,6 +228,19 @@ def kmh_to_mm_s(speed_kmh: float) -> int:
     return max(1, min(MAX_SPEED_MM_S, int(speed_kmh / 3.6 * 1000.0)))
 
 
+def move_length_problem(distance_m: float, what: str = "cell size") -> str | None:
+    """Why one MOVE cannot drive ``distance_m`` (m), else None: the frame carries whole
+    millimetres up to MAX_DISTANCE_MM. Checked where a length comes in (a grid's cells, a
+    step to a cell's centre) so it is refused there by name; at :func:`pack_move` it was a
+    ValueError the runner did not expect (the drive node retried it every 50 ms)."""
+    if not (math.isfinite(distance_m) and 1 <= round(distance_m * 1000) <= MAX_DISTANCE_MM):
+        return (
+            f"{what} {distance_m:g} m outside [0.001, {MAX_DISTANCE_MM / 1000:g}] m, the "
+            "longest move the motor controller takes"
+        )
+    return None
+
+
 def pack_move(distance_m: float, speed_kmh: float) -> bytes:
     mm = round(distance_m * 1000.0)
     if not 0 < mm <= MAX_DISTANCE_MM:

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.map_io import same_geometry as same_geometry
+from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.actions import Step, moves_from_cells
 from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
 
@@ -184,6 +185,9 @@ def step_to_centre(
             f"{miss:.2f} m from the centre of cell {step.dst} ({along:.2f} m ahead): more than "
             f"{tolerance:g} cell off its line"
         )
+    # up to 1.5 cells: over 2 m on cells over 1.33 m, which one move cannot drive
+    if problem := proto.move_length_problem(along, f"the way to cell {step.dst}'s centre"):
+        return 0.0, problem
     return along, None
 
 
