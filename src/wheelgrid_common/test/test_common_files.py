@@ -46,6 +46,13 @@ def test_occupancy_grid_message_rows_start_at_the_bottom():
     q = msg.info.origin.orientation
     q.z, q.w = 0.3 * q.z, 0.3 * q.w
     assert from_occupancy_grid(msg).origin[2] == pytest.approx(math.pi / 2)
+    # an origin rolled 180 deg is a mirror image: it read as yaw 0, and routes went out that
+    # the real origin put outside the grid (a review)
+    q.x, q.y, q.z, q.w = 1.0, 0.0, 0.0, 0.0
+    with pytest.raises(ValueError, match=r"tilts the grid 180\.0 deg out of the floor"):
+        from_occupancy_grid(msg)
+    q.x, q.w = 0.001, 1.0  # 0.1 deg: another tool's rounding, read as yaw 0
+    assert from_occupancy_grid(msg).origin[2] == pytest.approx(0.0)
 
 
 def test_a_huge_quaternion_is_the_rotation_it_points_to_not_the_identity():

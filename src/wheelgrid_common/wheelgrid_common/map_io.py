@@ -341,6 +341,9 @@ def to_occupancy_grid(grid: Grid, stamp: Any = None) -> Any:
     return msg
 
 
+MAX_ORIGIN_TILT_DEG = 1.0  # rounding in another tool's quaternion, not a grid off the floor
+
+
 def from_occupancy_grid(msg: Any) -> Grid:
     """nav_msgs/OccupancyGrid (rclpy or rosbags) -> Grid in image orientation."""
     rows, cols = int(msg.info.height), int(msg.info.width)
@@ -357,6 +360,15 @@ def from_occupancy_grid(msg: Any) -> Grid:
         raise ValueError(f"OccupancyGrid resolution {res} is not a finite size > 0")
     if not all(math.isfinite(v) for v in (*position, *quat)) or math.hypot(*quat) < 1e-6:
         raise ValueError(f"OccupancyGrid origin {position}, orientation {quat} is not a pose")
+    # A grid lies on the floor: its origin turns about z only. A roll of 180 deg (the grid's
+    # +y along the map's -y) was read as yaw 0, a mirror image, and routes went out that the
+    # real origin put outside the grid (a review).
+    tilt = 2.0 * math.degrees(math.asin(min(1.0, math.hypot(quat[0], quat[1]) / math.hypot(*quat))))
+    if tilt > MAX_ORIGIN_TILT_DEG:
+        raise ValueError(
+            f"OccupancyGrid origin orientation {quat} tilts the grid {tilt:.1f} deg out of the "
+            f"floor (more than {MAX_ORIGIN_TILT_DEG:g}): a grid's origin turns about z only"
+        )
     # normalised first: the unit formula read a 90 deg origin at a third of unit length as
     # 5.6 deg, and put start and goal in other cells
     yaw = quat_yaw(*quat)
