@@ -1066,3 +1066,88 @@ def test_a_goal_that_waits_longer_than_goal_wait_s_is_dropped():
             assert node.plans == 1 and node._goal_waits_since is None
         finally:
             node.destroy_node()
+
+
+def test_a_grid_of_another_size_or_origin_withdraws_the_route_at_once():
+    """A grid that grew (the map growing) and closed a cell on the route only said
+    "replanning": the old route stayed the plan for the whole learning, through the closed
+    cell (a review: 3.7 s; 20 s while grids kept coming). It is withdrawn first now, as a
+    closed cell on a grid of the same geometry is."""
+    data = np.zeros((6, 6), np.int8)
+    grid = Grid(data, 1.0)
+    with recording_planner() as (node, published):
+        row_2_goal(node, grid)
+        node._on_drive_state(drive_state("plan"))
+        grown = np.zeros((6, 7), np.int8)
+        grown[2, 3] = 100  # on the route
+        node._on_grid(to_occupancy_grid(Grid(grown, 1.0)))
+        assert published[1] == [], published
+        assert published[2][-1] == (2, 4) and (2, 3) not in published[2]
+
+
+def test_grids_that_keep_coming_while_routes_are_learned_replan_in_a_loop_not_a_recursion():
+    """Each grid of a new geometry read after a learning voided its route, and the replan was
+    called from within the plan: as long as grids came faster than a learning took (1 Hz
+    against 2.8 s on a big grid) the stack grew, eleven deep in a review's 20 s. Here 150 such
+    grids come, one during each learning, under a stack limit 100 frames above this test's:
+    a replan per frame ran out of stack; a loop does not."""
+    import inspect
+    import sys
+
+    data = np.zeros((6, 6), np.int8)
+    grid = Grid(data, 1.0)
+    with recording_planner() as (node, published):
+        row_2_goal(node, grid)
+        assert node.plans == 1
+        node._on_drive_state(drive_state("plan"))
+        take = node._take_waiting
+        shifts = iter(range(1, 151))
+
+        def a_grid_came(sub, handler, with_info=False):
+            if sub is node._grid_sub and (k := next(shifts, None)) is not None:
+                handler(to_occupancy_grid(Grid(data, 1.0, origin=(0.0, 1e-3 * k, 0.0))))
+            take(sub, handler, with_info)
+
+        node._take_waiting = a_grid_came
+        limit = sys.getrecursionlimit()
+        sys.setrecursionlimit(len(inspect.stack()) + 100)
+        try:
+            node._on_goal(goal_msg(grid, (2, 5)))
+        finally:
+            sys.setrecursionlimit(limit)
+        assert node.plans == 152
+        assert published[-1] and published[-1][-1] == (2, 5)
+
+
+def test_a_cell_left_behind_on_a_route_that_comes_back_through_it_is_behind():
+    """A route that turns in a side pocket comes back through the cell before it. The cells
+    ahead were counted from the chair's cell's first visit on the route, so the pocket, left
+    already, was still ahead, and a grid calling it unknown (the chair's own trace) withdrew
+    the route and stopped the chair (a review). The chair's progress along the route counts."""
+    from geometry_msgs.msg import PoseStamped
+
+    data = np.full((3, 10), 100, np.int8)
+    data[1, :] = 0
+    data[0, 5] = 0  # the pocket
+    grid = Grid(data, 1.0)
+    with recording_planner() as (node, published):
+        node._on_grid(to_occupancy_grid(grid))
+        node._on_initialpose(start_msg(grid, (1, 5), 0.0))
+        node._on_goal(goal_msg(grid, (1, 0)))
+        route = published[-1]
+        assert route[:3] == [(1, 5), (0, 5), (1, 5)] and route[-1] == (1, 0), route
+        node._on_drive_state(drive_state("plan"))
+        plans = node.plans
+        # the controller's pose: the first only sets the reference, then into the pocket and
+        # backed out of it
+        for cell, yaw in (((1, 5), 0.0), ((0, 5), math.pi / 2), ((1, 5), math.pi / 2)):
+            pose = PoseStamped()
+            pose.header.frame_id = "map"
+            x, y = grid.cell_center(*cell)
+            pose.pose.position.x, pose.pose.position.y = float(x), float(y)
+            pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+            node._on_chair_pose(pose)
+        left = data.copy()
+        left[0, 5] = -1  # the pocket the chair has left
+        node._on_grid(to_occupancy_grid(Grid(left, 1.0)))
+        assert node.plans == plans and published[-1] == route, published[-2:]

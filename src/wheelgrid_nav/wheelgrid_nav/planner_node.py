@@ -236,6 +236,7 @@ def _make_node_class() -> type:
             # the frame of the odometry last refused since the last one used (None: none was)
             self._odometry_refused: str | None = None
             self.route: list[tuple[int, int]] = []
+            self._route_at = 0  # the route's cell the chair has got to (_advance_on_route)
             self.plans = 0  # planning attempts (for tests and diagnostics)
             self.path_pub = self.create_publisher(Path, "wheelgrid/plan", MAP_QOS)
             self.marker_pub = self.create_publisher(MarkerArray, "wheelgrid/plan_markers", MAP_QOS)
@@ -323,7 +324,17 @@ def _make_node_class() -> type:
             # the route's cells are only indices of the old grid: read on a smaller new one
             # they raised IndexError and ended the node
             if not self.route or not same_geometry(grid, old):
-                self.get_logger().info("safe grid changed under the route: replanning")
+                if self.route:
+                    # Withdrawn at once, as for a closed cell (the drive stops its move at a
+                    # grid of another geometry anyway): kept, it stayed the plan for the whole
+                    # learning, through a cell the new grid had closed (a review).
+                    self.get_logger().info(
+                        "safe grid changed its size or origin under the route: the route is "
+                        "withdrawn (an empty path) while a new one is learned"
+                    )
+                    self._publish_route(grid, [])
+                else:
+                    self.get_logger().info("safe grid changed under the route: replanning")
                 self._plan()
             elif self._route_blocked(grid, self._route_ahead(grid)):
                 # Withdrawn at once: the route through the closed cell stayed the plan for
@@ -338,10 +349,22 @@ def _make_node_class() -> type:
                 self._plan()
 
         def _route_ahead(self, grid: Grid) -> list[tuple[int, int]]:
-            """The route from the chair's cell on (the whole route where the chair is off it)."""
-            here = grid.cell_of(self.start[0], self.start[1]) if self.start else None
-            route = self.route
-            return route[route.index(here) :] if here in route else route
+            """The route from the chair's cell on, counted from where the chair has got to
+            along it (all of that where the chair is off it)."""
+            self._advance_on_route(grid)
+            return self.route[self._route_at :]
+
+        def _advance_on_route(self, grid: Grid | None) -> None:
+            """Moves the route's progress on to the chair's cell, at its first visit from the
+            progress on. Taken from the route's start, a route that comes back through a cell
+            (a three-point turn into a side pocket) kept the pocket, already left, ahead of
+            the chair, and a grid closing it stopped the chair for nothing (a review)."""
+            if grid is None or self.start is None or not self.route:
+                return
+            here = grid.cell_of(self.start[0], self.start[1])
+            ahead = self.route[self._route_at :]
+            if here in ahead:
+                self._route_at += ahead.index(here)
 
         def _route_blocked(self, grid: Grid, route: list[tuple[int, int]]) -> bool:
             """Whether ``grid`` (same geometry as the route's) closes a cell of ``route``, by
@@ -527,6 +550,7 @@ def _make_node_class() -> type:
             )
             self.start_frame = frame
             self._start_from_odometry_at = None  # the odometry's own call sets it after this
+            self._advance_on_route(self.grid)  # at every pose: a grid may come cells later
             self._drop_if_reached()
             return True
 
@@ -634,10 +658,19 @@ def _make_node_class() -> type:
 
         # ---- planning -------------------------------------------------------------------
         def _plan(self) -> None:
+            # Learned again in a loop while a goal or grid that came during a learning voids
+            # it: called from itself, the stack grew for as long as grids came faster than
+            # one learning took (a review: eleven deep in 20 s).
+            while self._plan_once():
+                pass
+
+        def _plan_once(self) -> bool:
+            """Plan once; True where what came while the route was learned voids it and it
+            must be learned again."""
             if self._draining:  # an input read after a learning: judged once it is done
-                return
+                return False
             if self.grid is None or self.start is None or self.goal is None:
-                return
+                return False
             stale = self._stale_start()
             if stale:
                 # Where the chair is, is not known now: it stops (an empty path), and the goal
@@ -651,7 +684,7 @@ def _make_node_class() -> type:
                         f"({self.node_cfg.goal_wait_s:g} s) for a start pose"
                     )
                 self._publish_route(self.grid, [])
-                return
+                return False
             self._goal_waits_since = None  # planned (or refused) now: it waits no more
             grid = self.grid
             for what, frame in (("start", self.start_frame), ("goal", self.goal_frame)):
@@ -661,7 +694,7 @@ def _make_node_class() -> type:
                         f"the grid is in frame {grid.frame_id!r}, the {what} in {frame!r}: "
                         "no route (no tf)",
                     )
-                    return
+                    return False
             self.plans += 1
             start = grid.cell_of(self.start[0], self.start[1])
             goal = grid.cell_of(self.goal[0], self.goal[1])
@@ -676,16 +709,16 @@ def _make_node_class() -> type:
                     f"{math.degrees(HEADING_TOLERANCE_RAD):.0f}: which way each move turns is "
                     "a guess; turn the chair along the grid",
                 )
-                return
+                return False
             method = self.node_cfg.method
             try:
                 res = plan(grid.data, start, goal, self.cfg, method=method, heading=heading)
             except PlanInputError as exc:
                 self._no_route(grid, f"no route: {exc}")
-                return
+                return False
             if not res.ok:
                 self._no_route(grid, f"no route from {start} to {goal}: {res.reason}")
-                return
+                return False
             presses, goal_before = self._estop_presses, self.goal
             self._draining = True
             try:
@@ -703,7 +736,7 @@ def _make_node_class() -> type:
                 )
                 self.goal = None
                 self._publish_route(grid, [])
-                return
+                return False
             finally:
                 self._draining = False
             if self._estop_presses != presses:
@@ -720,15 +753,13 @@ def _make_node_class() -> type:
                         "a goal came while a route was learned across an e-stop: not planned "
                         "(whether it came before or after the clear is not known)",
                     )
-                return
+                return False
             if self.goal != goal_before:
                 # a new goal came while this one was learned (or was refused, and published
                 # its empty path): the route to the old goal went out after it, and stayed
                 # the plan while the new one was learned
                 self.get_logger().info("a new goal came while the route was learned: replanning")
-                if self.goal is not None:
-                    self._plan()
-                return
+                return self.goal is not None
             if self.grid is not grid:
                 newest = self.grid
                 if not same_geometry(newest, grid) or self._route_blocked(newest, res.cells):
@@ -736,8 +767,7 @@ def _make_node_class() -> type:
                     self.get_logger().info(
                         "the safe grid changed under the route while it was learned: replanning"
                     )
-                    self._plan()
-                    return
+                    return True
                 grid = newest
             self.get_logger().info(
                 f"route {start} -> {goal} facing {heading}: {len(res.moves)} moves "
@@ -745,6 +775,7 @@ def _make_node_class() -> type:
             )
             self._publish_route(grid, res.cells, heading)
             self._drop_if_reached()  # a goal in the chair's own cell: a one-cell route, done
+            return False
 
         def _no_route(self, grid: Grid | None, why: str) -> None:
             """The chair stops (an empty path) and the goal is dropped: kept, it was planned
@@ -780,6 +811,7 @@ def _make_node_class() -> type:
             self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
         ) -> None:
             self.route = list(cells)
+            self._route_at = 0
             if cells:
                 self._route_sent_at = time.monotonic()
             stamp = self.get_clock().now().to_msg()
