@@ -385,6 +385,51 @@ def test_clouds_without_a_frame_id_are_not_guessed_optical(
     assert rep["frames"]["used"] >= 10
 
 
+def test_frames_are_named_by_their_number_in_the_input_when_unreadable_ones_came_before(
+    sim_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """Five clouds without a frame_id, then an all-NaN one at input number 20: stderr named it
+    frame 20 and report.json's failures frame 15 (the mapper counted only what reached it),
+    the five were dropped with no word but the summary's count, and the summary's "25 frames
+    read" left them out (a review)."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
+    from wheelgrid_common.pointcloud2 import to_pointcloud2
+
+    bag = tmp_path / "mixed"
+    with BagReader(sim_dir / "scan") as r, BagWriter(bag) as w:
+        n = 0
+        for topic, msgtype, t_ns, raw in r.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/odometry":
+                w.write(topic, msgtype, t_ns, deserialize_message(raw, Odometry))
+                continue
+            msg = deserialize_message(raw, PointCloud2)
+            if n < 5:
+                msg.header.frame_id = ""
+            elif n == 20:
+                nan = to_pointcloud2(np.full((64, 3), np.nan), msg.header.frame_id, height=8)
+                nan.header.stamp = msg.header.stamp
+                msg = nan
+            w.write(topic, POINTCLOUD2, t_ns, msg)
+            n += 1
+            if n == 30:
+                break
+    out = tmp_path / "o"
+    argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
+    assert cli_map.main(argv) == 0
+    out_text, err = capsys.readouterr()
+    assert "WARNING frame 0 (and any like it): unreadable, skipped: no frame_id" in err, err
+    assert "WARNING frame 20 (and any like it): skipped: no valid points" in err, err
+    rep = json.loads((out / "report.json").read_text())
+    for failure in rep["failures"]:  # (the last cloud's prior is not in the cut bag)
+        assert f"WARNING frame {failure['frame']}" in err, (failure, err)
+    assert rep["failures"][0]["frame"] == 20, rep["failures"]
+    assert "map: 30 frames read, 5 unreadable skipped, 1 without a valid point" in out_text
+
+
 def test_two_cloud_topics_need_topic(tmp_path: Path, capsys) -> None:
     from wheelgrid_common.bagio import BagWriter
     from wheelgrid_common.pointcloud2 import to_pointcloud2

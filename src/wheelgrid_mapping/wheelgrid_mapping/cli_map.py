@@ -604,10 +604,21 @@ def _run(args: argparse.Namespace) -> int:
         for pts, stamp, frame_id, conf, prior, received in frames:
             n += 1
             if pts.shape[0] == 0:
+                if not stray and bad and bad[-1] not in causes_said:
+                    # said once per cause, as the frames skipped for their stamps are: only
+                    # the summary's count said a bag's clouds without a frame_id were dropped
+                    # (an export's reader names each image it cannot read)
+                    causes_said.add(bad[-1])
+                    print(
+                        f"\nWARNING frame {n - 1} (and any like it): unreadable, skipped: "
+                        f"{bad[-1]}",
+                        file=sys.stderr,
+                    )
                 bar.update(1)
                 continue
             index.push(stamp, n - 1)
-            report(pipe.push(pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior, received))
+            frame = (pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior, received)
+            report(pipe.push(*frame, number=n - 1))
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")
         report(pipe.flush())
         bar.finish(f"used {mapper.registrar.counters.accepted}")
@@ -804,8 +815,10 @@ def _run(args: argparse.Namespace) -> int:
     verdict = failure_verdict(fr, args.prior == "arkit")
     if verdict:
         print(f"wheelgrid map: warning: {verdict}", file=sys.stderr)
+    # the unreadable frames are not in report.json's frames.read (the mapper never saw them)
     print(
-        f"map: {fr['read']} frames read{skipped}, {fr['used']} used, {fr['failed']} failed "
+        f"map: {fr['read'] + len(bad)} frames read{skipped}, {fr['used']} used, "
+        f"{fr['failed']} failed "
         f"({fr['relocalised']} relocalised), {rep['points']['map']} points -> "
         f"{args.out / 'map.ply'} in {wall:.1f} s ({fr['read'] / max(wall, 1e-9):.1f} frames/s)"
     )

@@ -505,11 +505,13 @@ class Mapper:
         confidence: np.ndarray | None = None,
         prior: np.ndarray | None = None,
         received: float | None = None,
+        number: int | None = None,
     ) -> FrameOutcome:
         """Process one sensor-frame cloud (``(N, 3)``, NaN allowed) taken at ``stamp`` seconds;
         ``received``: when it arrived, on any clock that runs at the stamps' rate (a bag's log
-        time, the node's clock), which lets a stamp far ahead be told from a pause."""
-        skipped = self.admit(stamp, frame_id, received)
+        time, the node's clock), which lets a stamp far ahead be told from a pause;
+        ``number``: as :meth:`admit`'s."""
+        skipped = self.admit(stamp, frame_id, received, number)
         if skipped is not None:
             return skipped
         try:
@@ -526,12 +528,20 @@ class Mapper:
             self.frames_errored += 1
 
     def admit(
-        self, stamp: float, frame_id: str = DEFAULT_FRAME_ID, received: float | None = None
+        self,
+        stamp: float,
+        frame_id: str = DEFAULT_FRAME_ID,
+        received: float | None = None,
+        number: int | None = None,
     ) -> FrameOutcome | None:
         """The first half of :meth:`add_frame`, before any work on the points: counts the frame,
         and returns its outcome where it is not to be processed (between keyframes), else None,
         and the caller goes on with :meth:`add_prepared` for exactly this frame. Split out so
-        that a frame can be admitted in order and prepared ahead (:mod:`.prefetch`)."""
+        that a frame can be admitted in order and prepared ahead (:mod:`.prefetch`).
+
+        ``number``: the frame's number in the input, which the report's failures and clock
+        jumps name (default: its count here). An input's unreadable frames never come here,
+        and counted here the report named another frame than the warning (a review)."""
         if self.loop_info:  # close_loops has run
             # The registration map still holds the pre-graph poses: a new frame would register
             # against a map that no longer matches the trajectory it is appended to.
@@ -634,7 +644,7 @@ class Mapper:
             self.frames_skipped += 1
             return FrameOutcome("skipped", "keyframe interval")
         self._last_processed = stamp
-        index = self.frames_read - 1
+        index = self.frames_read - 1 if number is None else number
         gap = self._receipt_gap
         bridged = self._stamp_hole and gap is not None and gap <= self.reg_cfg.max_gap
         self._stamp_hole, self._receipt_gap = False, 0.0 if received is not None else None

@@ -138,12 +138,14 @@ class FramePipeline:
         received: float | None = None,
         after_gap: bool | None = None,
         dropped_priors: tuple[float, float] | None = None,
+        number: int | None = None,
     ) -> list[tuple[float, FrameOutcome]]:
         """Admit this frame and add the one before it: the ``(stamp, outcome)`` of every frame
         finished by this call. A frame skipped between keyframes is finished at once, so its
         outcome can come before that of the frame still in preparation. ``after_gap``,
-        ``dropped_priors``: as :meth:`Mapper.add_prepared`'s."""
-        skipped = self.mapper.admit(stamp, frame_id, received)
+        ``dropped_priors``: as :meth:`Mapper.add_prepared`'s; ``number``: as
+        :meth:`Mapper.admit`'s."""
+        skipped = self.mapper.admit(stamp, frame_id, received, number)
         if skipped is not None:
             return [(stamp, skipped)]
         previous = self._pending
