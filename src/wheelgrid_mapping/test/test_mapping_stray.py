@@ -388,3 +388,17 @@ def test_an_unreadable_odometry_or_camera_matrix_is_a_clear_error(
     (cap / name).mkdir()
     with pytest.raises(ValueError, match=rf"{name}: cannot read it"):
         StrayExport(cap)
+
+
+def test_prior_arkit_on_an_odometry_csv_without_a_pose_says_it_is_there(tmp_path: Path, capsys):
+    """An empty odometry.csv (or one of NaN rows) read "which this export lacks", and the user
+    looked for a file that is there (a review)."""
+    from wheelgrid_mapping import cli_map
+
+    none = make_export(tmp_path / "none", odometry=False)
+    assert cli_map.main([str(none), "--out", str(tmp_path / "o"), "--prior", "arkit"]) == 2
+    assert "which this export lacks" in capsys.readouterr().err
+    empty = make_export(tmp_path / "empty")
+    (empty / "odometry.csv").write_text("")
+    assert cli_map.main([str(empty), "--out", str(tmp_path / "o"), "--prior", "arkit"]) == 2
+    assert "holds, but with no usable pose" in capsys.readouterr().err

@@ -128,7 +128,17 @@ def stray_frames(
     except ValueError as exc:
         raise InputError(str(exc)) from exc
     if use_prior and not export.has_poses:
-        raise InputError(f"{path}: --prior arkit needs odometry.csv, which this export lacks")
+        # "lacks" said of an empty file, or one of NaN rows, sent the user looking for a file
+        # that is there (a review)
+        have = (path / "odometry.csv").exists()
+        raise InputError(
+            f"{path}: --prior arkit needs odometry.csv, which this export "
+            + (
+                "holds, but with no usable pose (empty, or every row NaN or a zero quaternion)"
+                if have
+                else "lacks"
+            )
+        )
     note = export.missing_poses_note() if use_prior else ""
     if note:
         print(
