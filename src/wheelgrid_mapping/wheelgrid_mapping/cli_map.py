@@ -570,7 +570,8 @@ def _run(args: argparse.Namespace) -> int:
     ensure_out_dir(args.out)
     if args.no_loop_closure:
         loop.enabled = False
-    mapper = Mapper(pre, reg, cfg, keep_frames=loop.enabled)
+    # an export's "receipt" is its capture order, on the stamps' own clock (captured_by)
+    mapper = Mapper(pre, reg, cfg, keep_frames=loop.enabled, receipts_on_stamp_clock=stray)
     pipe = FramePipeline(mapper, cfg.prepare_ahead)
     t0 = time.perf_counter()
     n = 0

@@ -23,7 +23,10 @@ time between two frames), the keyframe interval, the loop closure's submaps and
 
 A Stray export has no arrival times; its capture order stands in for them (a frame was
 taken no later than the frames after it: :meth:`.stray.StrayExport.captured_by`), which
-holds back one stamp far ahead and leaves a real pause a pause. Without either (the API
+holds back one stamp far ahead and leaves a real pause a pause. Being on the stamps' own
+clock, it holds back such a frame among the first two as well, before any pace is known
+(``receipts_on_stamp_clock``): one bad stamp on frame 0 or 1 shifted every line of
+trajectory.tum by its lead and cost the frames after it (a review). Without either (the API
 called with stamps only) a stamp far ahead cannot be told from a pause in the stream and is
 taken as it comes; the clock going back is still caught from the stamps alone.
 """
@@ -58,7 +61,10 @@ class Verdict:
 class FrameClock:
     """Maps each admitted frame's stamp to a continuous mapping time (``stamp + offset``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, receipts_on_stamp_clock: bool = False) -> None:
+        # receipts on the stamps' own clock, a frame's stamp never after it (a Stray export's
+        # capture order): a lead is a bad stamp from the first frame on
+        self.receipts_on_stamp_clock = receipts_on_stamp_clock
         self.offset = 0.0  # mapping time = stamp + offset (changes at each clock jump only)
         # (stamp, receipt) of the last admitted frames since the last jump: the stream's pace,
         # which a replay faster than real time (``--rate``, unpaced) sets, not the sensor
@@ -84,7 +90,12 @@ class FrameClock:
         predicts for the time its receipt says passed (never without receipt times, nor
         before two frames have set the pace)."""
         pace = self._pace()
-        if received is None or pace is None:
+        if received is None:
+            return Verdict()
+        if pace is None:
+            lead = float(stamp) - float(received)
+            if self.receipts_on_stamp_clock and lead > AHEAD_WINDOW:
+                return Verdict(ahead_s=lead)
             return Verdict()
         window = AHEAD_WINDOW * max(pace, 1.0)
         # From each recent frame, the latest prediction: one delivered late (a stall in the

@@ -368,11 +368,14 @@ class Mapper:
         reg: RegistrationConfig | None = None,
         cfg: MapperConfig | None = None,
         keep_frames: bool = False,
+        receipts_on_stamp_clock: bool = False,
     ) -> None:
         self.pre = pre or PreprocessConfig()
         self.reg_cfg = reg or RegistrationConfig()
         self.cfg = cfg or MapperConfig()
         self.keep_frames = keep_frames
+        # the frames' receipt times are on their stamps' clock (:class:`.frame_clock.FrameClock`)
+        self.receipts_on_stamp_clock = receipts_on_stamp_clock
         check_keyframe_interval(self.reg_cfg, self.cfg)
         self.reset()
 
@@ -430,7 +433,7 @@ class Mapper:
         # frames failed (a review). Where every frame arrived within max_gap of the one
         # before, the stream never stopped: the frame after such a hole is ``bridged``.
         self._admitted: list[tuple[int, float, float, bool]] = []
-        self.clock = FrameClock()
+        self.clock = FrameClock(self.receipts_on_stamp_clock)
         self._seen_received: float | None = None  # when the last frame seen arrived
         self._receipt_gap: float | None = 0.0  # the longest since the last admitted (None: unknown)
         self._stamp_hole = False  # a frame skipped for its stamp since the last admitted
