@@ -418,9 +418,12 @@ def main(argv: list[str] | None = None) -> int:
     if not result.ok:
         hint = ""
         if result.refused and result.done == 0 and OFF_CELL in result.error:
+            # It named --set-pose and --no-pose-check: followed, a chair 7.7 m off the start
+            # drove the plan's moves from where it stood, past the grid's edge, exit 0 (a
+            # review). Neither is a way past this for a real chair.
             hint = (
-                " (the controller's pose is not on the plan's start cell: --set-pose tells it "
-                "the chair stands there; --no-pose-check drives without the check)"
+                " (the controller's pose is not on the plan's start cell: drive the chair "
+                "there, or plan again from where it stands, `wheelgrid plan --start-xy X,Y`)"
             )
         elif result.refused and result.done == 0 and WOULD_END in result.error:
             # the chair stands on its cell but faces another way: --set-pose would overwrite
