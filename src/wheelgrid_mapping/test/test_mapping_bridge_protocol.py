@@ -160,6 +160,8 @@ def _patch_header(raw: bytes, fmt_index: int, value: object) -> bytes:
         (17, 7, "bad_pose_axes"),
         (14, 5.0, "bad_pose"),  # qw: quaternion no longer unit
         (8, float("nan"), "bad_pose"),
+        # finite, and on /iphone/odometry it stopped the mapper for good (a review)
+        (8, 1e300, "bad_pose"),
     ],
 )
 def test_bad_frames_are_rejected_and_stream_stays_in_sync(

@@ -141,21 +141,25 @@ def test_the_prior_reaches_loop_closure_only_when_every_frame_had_one(all_have_o
 def test_a_broken_prior_is_dropped_and_counted_not_fatal() -> None:
     """A NaN or scaled pose from a bridge or a bag: the frame fails as one without a prior does
     in a run with a prior (``no pose prior``), the report counts it, nothing raises, and loop
-    closure gets no half-broken prior."""
+    closure gets no half-broken prior. So does a translation of 1e300 m, finite: taken for a
+    jump of the prior, it was folded into registration's prior offset, and every frame after
+    it raised (math domain error) until a reset (a review)."""
     from wheelgrid_mapping.loop_closure import LoopClosureConfig
 
     rng = np.random.default_rng(24)
     m = Mapper(cfg=MapperConfig(level_min_frames=2), keep_frames=True)
-    nan, scaled = np.eye(4), 2.0 * np.eye(4)
+    nan, scaled, far = np.eye(4), 2.0 * np.eye(4), np.eye(4)
     nan[0, 3] = np.nan
     scaled[3, 3] = 1.0
-    for i, prior in enumerate([np.eye(4), nan, np.eye(4), scaled, np.eye(4), np.eye(4)]):
+    far[0, 3] = 1e300
+    priors = [np.eye(4), nan, np.eye(4), scaled, np.eye(4), far, np.eye(4), np.eye(4)]
+    for i, prior in enumerate(priors):
         out = m.add_frame(body_frame_room(rng, True), i * 0.2, "base_link", prior=prior)
-        assert out.status == ("failed" if i in (1, 3) else "used"), (i, out.reason)
+        assert out.status == ("failed" if i in (1, 3, 5) else "used"), (i, out.reason)
     assert np.isfinite(np.array(m.poses_odom)).all()
     report = m.report()
-    assert report["frames"]["priors_refused"] == 2
-    assert report["failure_reasons"] == {"no pose prior": 2}
+    assert report["frames"]["priors_refused"] == 3
+    assert report["failure_reasons"] == {"no pose prior": 3}
     info = m.close_loops(LoopClosureConfig(submap_seconds=0.2))
     # the four frames mapped each had a whole prior: the graph has it (a still sensor shows no
     # drift, and the note says why)

@@ -40,6 +40,7 @@ from wheelgrid_mapping.depth import (
     metres_to_millimetres,
     principal_point_problem,
 )
+from wheelgrid_mapping.se3 import MAX_TRANSLATION_M
 
 MAGIC = b"WGIP"
 VERSION = 1
@@ -333,6 +334,11 @@ def decode_frame(body: bytes) -> Frame:
         qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) if all(map(math.isfinite, tq)) else 0
         if not all(math.isfinite(v) for v in tq) or abs(qn - 1.0) > 1e-3:
             raise ProtocolError("bad_pose", f"pose t={tq[:3]} q={tq[3:]} (|q| must be 1)")
+        if max(abs(tx), abs(ty), abs(tz)) > MAX_TRANSLATION_M:
+            # finite, and passed on to /iphone/odometry it stopped the mapper for good
+            raise ProtocolError(
+                "bad_pose", f"pose t={tq[:3]} is over {MAX_TRANSLATION_M:g} m from the origin"
+            )
         from wheelgrid_mapping.depth import pose_from_xyz_quat
 
         pose = pose_from_xyz_quat(tx, ty, tz, qx, qy, qz, qw)

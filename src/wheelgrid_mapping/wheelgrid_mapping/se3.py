@@ -46,10 +46,19 @@ def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+# Farther than any indoor map reaches (m): a pose prior's translation of 1e300 is finite,
+# and folded into registration's prior offset it failed every frame after it for good (a
+# review: one flipped exponent bit in a phone's frame).
+MAX_TRANSLATION_M = 1e5
+
+
 def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
-    """Whether ``T`` is a finite 4x4 rigid transform (rotation to within ``tol``)."""
+    """Whether ``T`` is a finite 4x4 rigid transform (rotation to within ``tol``) whose
+    translation lies within :data:`MAX_TRANSLATION_M`."""
     M = np.asarray(T, dtype=np.float64)
     if M.shape != (4, 4) or not np.isfinite(M).all():
+        return False
+    if float(np.abs(M[:3, 3]).max()) > MAX_TRANSLATION_M:
         return False
     R = M[:3, :3]
     return (
