@@ -235,9 +235,11 @@ def test_the_boundary_strip_is_bounded_and_what_stands_against_a_wall_beyond_it_
 
 
 def test_walls_stay_boundary_when_the_grid_overflows_the_floor():
-    # A 3.4 m wide room snaps to 3 cells (3.6 m): the grid reaches ~10 cm past each side wall,
-    # so the walls lie inside the grid -- still boundary, not obstacles in the border cells.
-    res = build_grid(room_cloud([], size=(3.4, 3.6), spacing=SPACING))
+    # A 3.45 m wide room snaps to 3 cells (3.6 m): the grid reaches ~7.5 cm past each side
+    # wall, so the walls lie inside the grid -- still boundary, not obstacles in the border
+    # cells. (3.4 m, 10 cm past, is at the most a grid may overhang walls: the chair's 10 cm
+    # clearance in its cell; test_a_border_cell_holds_the_chair_between_walls.)
+    res = build_grid(room_cloud([], size=(3.45, 3.6), spacing=SPACING))
     assert res.grid.data.shape == (3, 3)
     assert (res.grid.data == FREE).all(), res.grid.data
     assert res.boundary[:, :2].any() and res.boundary[:, -2:].any()
@@ -877,3 +879,44 @@ def test_a_small_lean_across_a_long_room_is_warned_of():
             assert re.search(
                 r"leans 0\.[345] deg from level, (4\.[5-9]|5\.\d) cm off z = 0", said[0]
             )
+
+
+def test_an_unseen_pit_against_a_wall_makes_its_border_cell_unknown():
+    """The wall strip counted as seen whole: a 60 x 50 cm pit against the wall (no floor seen
+    in it, the wall seen only from 10 cm up) left its border cell free on 5 of 5 noisy draws
+    (a review). Only the wall's own pixels count as seen there now."""
+    size = 4.8
+    base = room_cloud([], size=(size, size), spacing=0.02, ceiling=False)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x0 = 1.3 + rng.uniform(0.0, 0.1)
+        gone = (
+            (base[:, 0] > x0)
+            & (base[:, 0] < x0 + 0.6)
+            & (base[:, 1] > size - 0.5)
+            & (base[:, 2] < 0.1)
+        )
+        pts = base[~gone] + rng.normal(0.0, 0.003, (int((~gone).sum()), 3))
+        grid = build_grid(pts, GridConfig(alignment="map")).grid
+        assert grid.data[grid.cell_of(x0 + 0.3, size - 0.01)] == UNKNOWN, grid.data
+
+
+def test_a_border_cell_holds_the_chair_between_walls():
+    """A 4.55 m room got four 1.2 m cells (extent_tolerance 25 cm): the walls 12.4 cm inside
+    the border cells, the chair centred in one facing a wall overlapped it, and a corner cell
+    held 95 x 95 cm of room (a review). Between walls found, the grid overhangs each by at most
+    the chair's 10 cm clearance in its cell; the room gets three cells."""
+    grid = build_grid(room_cloud([], size=(4.552, 4.552), spacing=SPACING)).grid
+    assert grid.data.shape == (3, 3), grid.data.shape
+    assert (grid.data == FREE).all(), grid.data
+    grid = build_grid(room_cloud([], size=(4.7, 4.7), spacing=SPACING)).grid
+    assert grid.data.shape == (4, 4), grid.data.shape  # 5 cm past each wall: the chair fits
+
+
+def test_a_cell_of_more_pixels_than_a_float_holds_is_a_value_error():
+    """cell_size 1e308 made cell / pixel inf, and round(inf) an OverflowError: a traceback
+    from `wheelgrid grid` (exit 1) and a grid node that died at a parameter change."""
+    with pytest.raises(ValueError, match="more than 10000 pixels"):
+        GridConfig(cell_size=1e308).validate()
+    with pytest.raises(ValueError, match="more than 10000 pixels"):
+        GridConfig(pixel_size=5e-324).validate()

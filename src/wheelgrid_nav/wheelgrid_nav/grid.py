@@ -117,6 +117,7 @@ MAX_EXTENT_TOLERANCE = 0.25  # m (the default): the grid reaches half of it past
 # the chair's clearance along its width in its safe cell. "At most a cell" (1.2 m) emptied the
 # obstacles of every border cell: the paper room's tables at (3, 0) and (5, 0) read free.
 MAX_BOUNDARY_MARGIN = 0.2
+MAX_CELL_PIXELS = 10_000  # pixels per cell side: 500 m cells of 5 cm pixels
 # height_classes: number of thresholds (-drop_depth, floor_clearance, safe_height) below z ->
 # class (drop 2, floor 0, band 1, above 3).
 _CLASS_OF_LEVEL = np.array([2, 0, 1, 3], dtype=np.uint8)
@@ -283,6 +284,13 @@ class GridConfig:
                 f"cell_size and pixel_size must be > 0, not {self.cell_size} and {self.pixel_size}"
             )
         k = self.cell_size / self.pixel_size
+        # 1e308 / 0.05 is inf, and round(inf) an OverflowError no caller expects: the grid
+        # node died at a parameter change, the CLI printed a traceback (a review)
+        if not math.isfinite(k) or k > MAX_CELL_PIXELS:
+            raise ValueError(
+                f"cell_size {self.cell_size} m is more than {MAX_CELL_PIXELS} pixels of "
+                f"pixel_size {self.pixel_size} m"
+            )
         if abs(k - round(k)) > 1e-6 or k < 1:
             raise ValueError(
                 f"cell_size {self.cell_size} m must be a whole number of pixel_size "
@@ -931,13 +939,19 @@ def floor_extent(
     vmin, vmax = (float(a) for a in np.quantile(v, qs))
     out = []
     for lo, hi, walls in ((umin, umax, walls_u), (vmin, vmax, walls_v)):
+        tolerance = cfg.extent_tolerance
         if walls is not None and walls.size:
             # walls a little beyond the floor's ends (never inside by more than 10 cm) win
             wl = wall_near(walls, lo, standing=walls_standing)
             wh = wall_near(walls, hi, standing=walls_standing)
             if wl <= lo + 0.1 and wh >= hi - 0.1:
                 lo, hi = wl, wh
-        count = max(1, math.floor((hi - lo + cfg.extent_tolerance) / cfg.cell_size + 1e-9))
+                # Between walls a border cell holds at least the chair's length of room: the
+                # grid, centred, overhangs each wall by at most the chair's clearance in its
+                # cell. With the whole tolerance a 4.55 m room got four 1.2 m cells, the walls
+                # 12.4 cm inside the border cells, and a free corner cell 95 cm square (a review).
+                tolerance = min(tolerance, cfg.cell_size - CHAIR_SIZE_M)
+        count = max(1, math.floor((hi - lo + tolerance) / cfg.cell_size + 1e-9))
         out.append(((lo + hi) / 2.0 - count * cfg.cell_size / 2.0, count))
     (u0, cols), (v0, rows) = out
     return u0, v0, rows, cols, (umin, umax), (vmin, vmax)
@@ -1117,14 +1131,14 @@ def floor_for_patches(
     return out, returns
 
 
-def unobserved_patches(
-    floor: np.ndarray, band: np.ndarray, ring: np.ndarray, cfg: GridConfig, k: int
-) -> np.ndarray:
-    """(rows, cols): cells reached by a square of ``cfg.unobserved_patch`` side, off the wall
-    strip, where neither floor nor an obstacle in the band was seen. The observed fraction
-    alone let a cell 80 % seen be free with a 68 x 68 cm hole in its middle, right under the
-    chair (a stairwell or pit; points seen below the floor count as not floor here, as they
-    are: a few sparse returns off a pit's bottom had counted as observed).
+def unobserved_patches(floor: np.ndarray, band: np.ndarray, cfg: GridConfig, k: int) -> np.ndarray:
+    """(rows, cols): cells reached by a square of ``cfg.unobserved_patch`` side where neither
+    floor nor an obstacle in the band was seen. The observed fraction alone let a cell 80 %
+    seen be free with a 68 x 68 cm hole in its middle, right under the chair (a stairwell or
+    pit; points seen below the floor count as not floor here, as they are: a few sparse
+    returns off a pit's bottom had counted as observed). The wall strip counts as seen only
+    where the wall was (its band pixels): counted seen whole, it hid up to 25 cm of an unseen
+    pit against a wall, and a border cell read free over a 60 x 50 cm hole (a review).
 
     Every cell such a square reaches, not only the one holding its centre: a hole across a
     cell border left the cells beside that one free with 15-25 cm of it inside (a 60 cm hole
@@ -1135,7 +1149,7 @@ def unobserved_patches(
     if cfg.unobserved_patch <= 0:
         return np.zeros((floor.shape[0] // k, floor.shape[1] // k), dtype=bool)
     side = max(1, round(cfg.unobserved_patch / cfg.pixel_size))
-    hole = ~(floor | band | ring)
+    hole = ~(floor | band)
     # erosion by a (2r+1)^2 square: a pixel stays where the whole square around it is a hole
     radius = max(0, (side - 1) // 2)
     inner = ~_dilate(~hole, radius) if radius else hole
@@ -1257,7 +1271,7 @@ def build_grid(
     # above it (a cord hanging to the floor, a streak of flying pixels) kept each other's
     # speck seen, and the cell over a 60 cm hole read free (a review)
     seen_floor, seen_returns = floor_for_patches(floor, floor_seen, ps)
-    patch = unobserved_patches(seen_floor, band_for_patches(band_black, seen_returns), ring, cfg, k)
+    patch = unobserved_patches(seen_floor, band_for_patches(band_black, seen_returns), cfg, k)
     data = np.full((rows, cols), UNKNOWN, dtype=np.int8)
     data[(observed >= cfg.min_observed_fraction) & ~patch] = FREE
     data[occupied] = OCCUPIED
