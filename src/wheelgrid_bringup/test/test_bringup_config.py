@@ -469,20 +469,24 @@ def test_demo_with_a_folder_that_holds_no_bag_says_what_bag_takes(tmp_path, caps
     assert not (tmp_path / "out").exists()
 
 
-def _bag_with_a_vendor_type(out: Path) -> Path:
-    """Two clouds of the bundled bag and a /battery topic of a type no installation has."""
+def _bag_with_a_vendor_type(out: Path, clouds: bool = True) -> Path:
+    """Two clouds of the bundled bag (or none) and a /battery topic of a type no installation
+    has."""
     from rosbags.rosbag2 import Reader, Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+    with_clouds = clouds
     store = get_typestore(Stores.ROS2_JAZZY)
     store.register(get_types_from_msg("float32 voltage\n", "vendor_msgs/msg/Battery"))
     battery = store.types["vendor_msgs/msg/Battery"](voltage=24.0)
     with Reader(PKG.parents[1] / "bags" / "paper_room" / "scan") as r, Writer(out, version=9) as w:
         clouds = [c for c in r.connections if c.topic == "/iphone/points"]
-        cloud_conn = w.add_connection("/iphone/points", clouds[0].msgtype, typestore=store)
+        if with_clouds:
+            cloud_conn = w.add_connection("/iphone/points", clouds[0].msgtype, typestore=store)
         vendor = w.add_connection("/battery", "vendor_msgs/msg/Battery", typestore=store)
         for _, (_, t, raw) in zip(range(2), r.messages(connections=clouds), strict=False):
-            w.write(cloud_conn, t, raw)
+            if with_clouds:
+                w.write(cloud_conn, t, raw)
             w.write(vendor, t, store.serialize_cdr(battery, "vendor_msgs/msg/Battery"))
     return out
 
@@ -499,13 +503,18 @@ def test_launch_and_demo_refuse_what_they_cannot_run_with_one_line_before_any_no
 
     (tmp_path / "afile").write_text("")
     vendor = _bag_with_a_vendor_type(tmp_path / "vendor_bag")
+    battery_only = _bag_with_a_vendor_type(tmp_path / "battery_bag", clouds=False)
     quick = ["--no-drive", "--duration", "1", "--log-dir", str(tmp_path / "logs")]
     for argv, says in (
         (["--rate", "nan"], "--rate must be > 0, not nan"),
         (["--duration", "-1"], "--duration must be >= 0 s"),
         (["--duration", "nan"], "--duration must be >= 0 s"),
         (["--log-dir", str(tmp_path / "afile" / "logs")], "Not a directory"),
-        (["--bag", str(vendor)], "/battery holds vendor_msgs/msg/Battery, a message type"),
+        # (replayed only when named: it is no sensor data)
+        (
+            ["--bag", str(vendor), "--topic", "/battery"],
+            "/battery holds vendor_msgs/msg/Battery, a message type",
+        ),
     ):
         assert launch_main([*quick, *argv]) == 2, argv
         err = capsys.readouterr().err
@@ -513,7 +522,7 @@ def test_launch_and_demo_refuse_what_they_cannot_run_with_one_line_before_any_no
     for argv, says in (
         (["--rate", "0"], "--rate must be > 0"),
         # (a bag without truth.json needs its cells)
-        (["--bag", str(vendor), "--start", "2,0", "--goal", "6,5"], "a message type this ROS"),
+        (["--bag", str(battery_only), "--start", "2,0", "--goal", "6,5"], "no sensor data"),
     ):
         assert demo_main([*argv, "--out", str(tmp_path / "demo")]) == 2, argv
         captured = capsys.readouterr()

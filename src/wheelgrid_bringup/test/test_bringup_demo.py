@@ -228,6 +228,20 @@ def test_a_start_or_goal_outside_the_simulated_room_is_refused_before_the_replay
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("text", ["{bad", "[1, 2]"])
+def test_a_truth_json_that_is_not_one_is_one_line_and_exit_2(tmp_path, capsys, text):
+    """A truth.json of `{bad` or `[1, 2]` beside a bag ended the demo in a traceback, exit 1
+    (a review)."""
+    from wheelgrid_bringup import demo
+
+    sim = tmp_path / "sim"
+    (sim / "scan").mkdir(parents=True)
+    (sim / "truth.json").write_text(text)
+    assert demo.main(["--bag", str(sim), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "truth.json" in err and "Traceback" not in err, err
+
+
 def test_a_bag_without_truth_needs_its_start_and_goal_cells(tmp_path, capsys):
     """A rosbag2 folder without truth.json (an imported capture) was driven from the paper
     room's cells, (2, 0) to (6, 5), whatever the room (a review). It is refused, before

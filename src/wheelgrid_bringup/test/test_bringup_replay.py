@@ -263,3 +263,123 @@ def test_a_wait_beyond_what_a_timeout_holds_is_waited_in_slices() -> None:
         waiter.join(5.0)
         node.destroy_node()
     assert out == [True]  # stopped, not an OverflowError
+
+
+def _chair_recording(path: Path, cut: set[int] | None = None) -> Path:
+    """The paper room's first 8 clouds and their odometry, with what `ros2 bag record -a` on a
+    chair also holds: /cmd_vel, /goal_pose, the chain's own /wheelgrid/odometry and /clock.
+    Clouds numbered in ``cut`` are cut to half their bytes (a damaged message)."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from wheelgrid_common.bagio import BagReader
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    t = ts.types
+    twist = t["geometry_msgs/msg/Twist"](
+        linear=t["geometry_msgs/msg/Vector3"](x=0.3, y=0.0, z=0.0),
+        angular=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+    )
+    clock = t["rosgraph_msgs/msg/Clock"](clock=t["builtin_interfaces/msg/Time"](sec=1, nanosec=0))
+    extra = {
+        "/wheelgrid/odometry": None,  # the odometry's own bytes
+        "/cmd_vel": ts.serialize_cdr(twist, "geometry_msgs/msg/Twist"),
+        "/clock": ts.serialize_cdr(clock, "rosgraph_msgs/msg/Clock"),
+    }
+    kinds = {
+        "/iphone/points": "sensor_msgs/msg/PointCloud2",
+        "/iphone/odometry": "nav_msgs/msg/Odometry",
+        "/wheelgrid/odometry": "nav_msgs/msg/Odometry",
+        "/cmd_vel": "geometry_msgs/msg/Twist",
+        "/clock": "rosgraph_msgs/msg/Clock",
+    }
+    n = 0
+    with BagReader(SCAN) as r, Writer(path, version=9) as w:  # raw bytes, damaged ones too
+        conns = {name: w.add_connection(name, kind, typestore=ts) for name, kind in kinds.items()}
+        for topic, _msgtype, t_ns, raw in r.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/points":
+                if n == 8:
+                    break
+                if n in (cut or set()):
+                    raw = raw[: len(raw) // 2]
+                n += 1
+            w.write(conns[topic], t_ns, raw)
+            if topic == "/iphone/odometry":
+                for name, data in extra.items():
+                    w.write(conns[name], t_ns, raw if data is None else data)
+    return path
+
+
+def test_a_replay_sends_sensor_data_only_unless_topics_are_named(tmp_path: Path) -> None:
+    """`wheelgrid launch --bag` replayed every topic: a chair's recording's /cmd_vel drove a
+    connected chair 3 m (a review), and its /wheelgrid/odometry would be the planner's start.
+    Only sensor data goes out unless --topic names more, and what is left out is said. With
+    --clock a named /clock is refused (two clocks, 40 of 191 going back)."""
+    import rclpy
+
+    from wheelgrid_bringup.replay import BagPlayer, not_replayed_note
+    from wheelgrid_common.testing import rclpy_context
+
+    bag = _chair_recording(tmp_path / "rec")
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_sensors_test", context=ctx)
+        try:
+            player = BagPlayer(node, bag)
+            assert sorted(player._pubs) == ["/iphone/odometry", "/iphone/points"]
+            assert player.left_out == ["/clock", "/cmd_vel", "/wheelgrid/odometry"]
+            assert "not replayed: /clock, /cmd_vel, /wheelgrid/odometry" in not_replayed_note(
+                player
+            )
+            assert sorted(BagPlayer(node, bag, ["/cmd_vel"])._pubs) == ["/cmd_vel"]  # named
+            with pytest.raises(BagError, match="two clocks"):
+                BagPlayer(node, bag, ["/iphone/points", "/clock"], clock_hz=40.0)
+        finally:
+            node.destroy_node()
+
+
+def test_a_damaged_message_is_not_replayed_and_is_said(tmp_path: Path) -> None:
+    """Clouds cut to half their bytes went out as they were: every subscriber dropped them
+    with an rmw error, and the replay read 'replay 59/59', exit 0 (a review). Each message is
+    deserialised first; the damaged ones are counted, not sent, and the replay ends in an
+    error that says how many, after sending the others."""
+    import rclpy
+
+    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_common.testing import rclpy_context
+
+    bag = _chair_recording(tmp_path / "cut", cut={2, 3})
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_damaged_test", context=ctx)
+        player = BagPlayer(node, bag, ["/iphone/points"], rate=20.0)
+        try:
+            player.start()
+            assert player.done.wait(30.0)
+            assert player.damaged == 2 and player.published == 6, player.error
+            assert "2 message(s) do not deserialise" in (player.error or "")
+        finally:
+            player.stop()
+            node.destroy_node()
+
+
+def test_a_topic_name_ros2_refuses_is_a_bag_error_naming_it(tmp_path: Path) -> None:
+    """A bag topic rclpy will not publish on ('/cam/depth-points') ended the launch in a
+    traceback, exit 1 (a review)."""
+    import rclpy
+
+    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_common.bagio import BagReader, BagWriter
+    from wheelgrid_common.testing import rclpy_context
+
+    bag = tmp_path / "dash"
+    with BagReader(SCAN) as r, BagWriter(bag) as w:
+        for i, (_topic, msgtype, t_ns, raw) in enumerate(r.raw(["/iphone/points"])):
+            if i == 2:
+                break
+            w.write("/cam/depth-points", msgtype, t_ns, raw)
+    with rclpy_context() as ctx:
+        node = rclpy.create_node("replay_name_test", context=ctx)
+        try:
+            with pytest.raises(BagError, match="topic /cam/depth-points cannot be published"):
+                BagPlayer(node, bag)
+        finally:
+            node.destroy_node()

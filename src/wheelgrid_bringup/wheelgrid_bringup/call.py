@@ -9,10 +9,11 @@ answered success, 1 when it refused or never answered, 2 when no such service ap
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
-from wheelgrid_common.ros_env import configure_ros_env, name_problem
+from wheelgrid_common.ros_env import configure_ros_env, domain_id_problem, name_problem
 from wheelgrid_common.testing import spin_until
 
 # How long the call waits, once the service is ready, before it sends its one request.
@@ -38,6 +39,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wheelgrid call: {args.service!r}: {why}", file=sys.stderr)
         return 2
     configure_ros_env()
+    if why := domain_id_problem(os.environ):
+        print(f"wheelgrid call: {why}", file=sys.stderr)
+        return 2
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor

@@ -299,7 +299,18 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
     bag = sim_dir / "scan" if (sim_dir / "scan").is_dir() else sim_dir
     truth: dict[str, Any] = {}
     if (sim_dir / "truth.json").exists():
-        truth = json.loads((sim_dir / "truth.json").read_text())
+        try:  # a traceback, exit 1, for a file of `{bad` or `[1, 2]` (a review)
+            truth = json.loads((sim_dir / "truth.json").read_text())
+        except (OSError, ValueError) as exc:
+            print(f"wheelgrid demo: {sim_dir / 'truth.json'}: not readable: {exc}", file=sys.stderr)
+            return 2
+        if not isinstance(truth, dict):
+            print(
+                f"wheelgrid demo: {sim_dir / 'truth.json'}: not a simulation's truth.json "
+                f"(a JSON object), but a {type(truth).__name__}",
+                file=sys.stderr,
+            )
+            return 2
     start = args.start or tuple(truth.get("start_cell", (2, 0)))
     goal = args.goal or tuple(truth.get("goal_cell", (6, 5)))
     why = cells_outside_room(sim_dir, truth, {"start": args.start, "goal": args.goal})
@@ -361,7 +372,7 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
     import rclpy
     from rclpy.context import Context
 
-    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_bringup.replay import BagPlayer, not_replayed_note
 
     interrupted = {"flag": False}
 
@@ -395,6 +406,8 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
         except BagError as exc:
             print(f"wheelgrid demo: {exc}", file=sys.stderr)
             return 2
+        if player.left_out:
+            print(f"demo: {not_replayed_note(player)}", flush=True)
         for name in ("mapper", "grid", "planner"):
             over: dict[str, object] = {"output_dir": str(out)}
             if name == "mapper":

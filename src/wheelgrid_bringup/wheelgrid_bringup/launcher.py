@@ -31,6 +31,7 @@ from wheelgrid_common.ros_env import (
     child_env,
     claim_domain,
     configure_ros_env,
+    domain_id_problem,
     held_claims,
     rcl_reason,
 )
@@ -296,6 +297,9 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
         print(f"wheelgrid launch: {exc}", file=sys.stderr)
         return 2
     configure_ros_env()
+    if why := domain_id_problem(os.environ):
+        print(f"wheelgrid launch: {why}", file=sys.stderr)
+        return 2
     try:
         params = args.params or default_params_file()
     except FileNotFoundError as exc:
@@ -320,7 +324,7 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
     import rclpy
     from rclpy.context import Context
 
-    from wheelgrid_bringup.replay import BagPlayer
+    from wheelgrid_bringup.replay import BagPlayer, not_replayed_note
 
     stop = {"flag": False}
 
@@ -389,6 +393,8 @@ def _main(argv: list[str] | None, held: list[int]) -> int:
             except BagError as exc:
                 print(f"wheelgrid launch: {exc}", file=sys.stderr)
                 return 2
+            if player.left_out:
+                print(f"launch: {not_replayed_note(player)}", flush=True)
         for name in names:
             sup.start_node(name, params, node_overrides(name, args), namespace)
             print(

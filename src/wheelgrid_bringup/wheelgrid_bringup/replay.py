@@ -1,7 +1,9 @@
 """Bag replay into the running graph (``ros2 bag play`` is not in the pip wheels).
 
-Publishes the bag's CDR bytes as they are (no re-serialisation), paced by the recorded log
-times divided by ``rate``. Publishers are reliable so a reliable or a best-effort (sensor-data)
+Publishes the bag's CDR bytes as they are (no re-serialisation, but each checked to
+deserialise: a damaged one is counted and said, not sent), paced by the recorded log times
+divided by ``rate``. Unless topics are named, only the sensors' data goes out
+(:func:`is_sensor_input`). Publishers are reliable so a reliable or a best-effort (sensor-data)
 subscriber both match. With ``clock_hz``, the bag's time also goes out on ``/clock``, as
 ``ros2 bag play --clock`` sends it: nodes under ``use_sim_time`` then stamp what they make
 on the sensor's clock, and a stack that looks transforms up at a cloud's stamp finds them.
@@ -18,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 
 from wheelgrid_common.bagio import BagError, BagReader, damage_hint
 
@@ -72,6 +75,37 @@ def play_remaps(bag: Path, namespace: str) -> list[str]:
     return ["--remap", *rules] if rules else []
 
 
+# What a replay sends unless its topics are named: sensor data. A bag recorded on a chair
+# (`ros2 bag record -a`) holds /cmd_vel, /goal_pose, /initialpose and the chain's own
+# outputs; replayed whole into a live chain, a recording's /cmd_vel drove the chair 3 m (a
+# review). A joystick is a command, not a sensor.
+SENSOR_TYPES = ("nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage")
+COMMAND_SENSOR_TYPES = ("sensor_msgs/msg/Joy",)
+# The replayed topics a replay waits for a reader of before it starts (the mapper's clouds
+# and pose prior: the first frame defines the map frame); the rest go out when they come (a
+# bag from import-stray also holds the depth images, which no node of the chain reads, and
+# the demo failed waiting for a reader of them; a review).
+AWAITED_TYPES = ("sensor_msgs/msg/PointCloud2", "nav_msgs/msg/Odometry")
+
+
+def is_sensor_input(topic: str, msgtype: str) -> bool:
+    """Whether a bag's ``topic`` of ``msgtype`` is sensor data a replay sends by default: a
+    sensor_msgs type (not a joystick), odometry or transforms, and not one of the chain's own
+    outputs (``.../wheelgrid/...``: its odometry is the planner's start pose)."""
+    if "wheelgrid" in topic.split("/") or msgtype in COMMAND_SENSOR_TYPES:
+        return False
+    return msgtype.startswith("sensor_msgs/msg/") or msgtype in SENSOR_TYPES
+
+
+def not_replayed_note(player: BagPlayer) -> str:
+    """The line that names the bag's topics a replay leaves out."""
+    return (
+        f"not replayed: {', '.join(player.left_out)} (not sensor data: commands, goals and "
+        "the chain's own outputs would reach the running chain; `wheelgrid launch --topic` "
+        "names the topics to replay)"
+    )
+
+
 def message_class(msgtype: str) -> Any:
     """'sensor_msgs/msg/PointCloud2' -> the rclpy class (ImportError if not installed)."""
     pkg, kind, name = msgtype.split("/")
@@ -116,7 +150,22 @@ class BagPlayer:
                     "and replay NEW_BAG; `wheelgrid map` reads it as it is"
                 )
             infos = reader.topics()
-            wanted = set(topics) if topics else {t.name for t in infos}
+            sensors = {t.name for t in infos if is_sensor_input(t.name, t.msgtype)}
+            wanted = set(topics) if topics else sensors
+            # said by the launcher and the demo: a topic not sent is no silent loss
+            self.left_out = sorted({t.name for t in infos} - wanted)
+            if not wanted:
+                raise BagError(
+                    f"{self.bag}: no sensor data to replay (topics: "
+                    f"{', '.join(f'{t.name} ({t.msgtype})' for t in infos) or 'none'}); name "
+                    "the topics to replay with `wheelgrid launch --bag ... --topic`"
+                )
+            if clock_hz > 0 and any(n in GLOBAL_TOPICS for n in wanted):
+                # two clocks on /clock: the replay's and the recording's, 40 of 191 going back
+                raise BagError(
+                    f"{self.bag}: --clock publishes the bag's time on /clock; replaying its "
+                    "recorded /clock too would send two clocks: leave --topic /clock out"
+                )
             absent = sorted(wanted - {t.name for t in infos})
             if absent:
                 # a misspelt --topic replayed nothing of it, without a word
@@ -147,14 +196,24 @@ class BagPlayer:
                     "installation does not have; replay the other topics with "
                     "`wheelgrid launch --bag ... --topic`"
                 ) from None
-        self._pubs = {
-            t.name: node.create_publisher(
-                classes[t.name],
-                replayed_name(t.name, namespace),
-                STATIC_TF_QOS if t.name.rstrip("/").endswith("tf_static") else REPLAY_QOS,
-            )
-            for t in self.topics
-        }
+        self._classes = classes
+        self._awaited = {t.name for t in self.topics if t.msgtype in AWAITED_TYPES}
+        self.damaged = 0  # messages that do not deserialise: not sent
+        self._pubs = {}
+        for t in self.topics:
+            try:
+                self._pubs[t.name] = node.create_publisher(
+                    classes[t.name],
+                    replayed_name(t.name, namespace),
+                    STATIC_TF_QOS if t.name.rstrip("/").endswith("tf_static") else REPLAY_QOS,
+                )
+            except Exception as exc:  # rclpy's InvalidTopicNameException: a traceback
+                for pub in self._pubs.values():
+                    node.destroy_publisher(pub)
+                raise BagError(
+                    f"{self.bag}: topic {t.name} cannot be published in ROS 2 ({exc}); replay "
+                    "the other topics with `wheelgrid launch --bag ... --topic`"
+                ) from None
         self._clock_period = 1.0 / clock_hz if clock_hz > 0 else 0.0
         self._clock_next = -math.inf  # monotonic time of the next /clock
         self._clock_pub = None
@@ -166,15 +225,15 @@ class BagPlayer:
         self._thread = threading.Thread(target=self._run, name="bag-replay", daemon=True)
 
     def unsubscribed(self) -> list[str]:
-        """Replayed topics nobody subscribes to yet (a frame sent now would be lost), and
+        """The chain's input topics nobody subscribes to yet (a frame sent now would be lost), and
         ``/clock`` while fewer than ``clock_readers`` nodes follow it (a node that matched it
         late stamped its first map or grid with time 0)."""
-        # a latched topic (/tf_static) reaches a reader that comes later: not waited for
+        # only the chain's inputs are waited for (AWAITED_TYPES): a latched /tf_static
+        # reaches a later reader anyway, and no node of the chain reads a depth image
         topics = [
             p.topic_name
-            for p in self._pubs.values()
-            if p.get_subscription_count() == 0
-            and p.qos_profile.durability != DurabilityPolicy.TRANSIENT_LOCAL
+            for name, p in self._pubs.items()
+            if name in self._awaited and p.get_subscription_count() == 0
         ]
         clock = self._clock_pub
         if clock is not None and clock.get_subscription_count() < self.clock_readers:
@@ -205,10 +264,23 @@ class BagPlayer:
                     due = t0_wall + (t_ns - t0_bag) / 1e9 / self.rate
                     if self._wait_until(due, t0_wall, t0_bag):
                         return
+                    try:
+                        # what every subscriber does with it: a message cut short went out
+                        # as it was, subscribers dropped it with an rmw error, and the
+                        # replay read as complete, exit 0 (a review)
+                        deserialize_message(raw, self._classes[topic])
+                    except Exception:
+                        self.damaged += 1
+                        continue
                     self._pubs[topic].publish(raw)
                     self.published += 1
                 if self._clock_pub is not None and t0_bag is not None:
                     self._publish_clock(t_ns)  # the clock ends on the last message's time
+                if self.damaged:
+                    raise BagError(
+                        f"{self.bag}: {self.damaged} message(s) do not deserialise (damaged?) "
+                        f"and were not replayed; the other {self.published} were"
+                    )
                 if self.published < self.total:
                     # the MCAP reader ends quietly at a damaged chunk: 5 of 12 went out, and
                     # the replay read as complete

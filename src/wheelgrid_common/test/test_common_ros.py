@@ -347,6 +347,21 @@ def test_an_rmw_that_is_not_installed_is_named(tmp_path):
     assert rmw_missing(env) == ""
 
 
+def test_a_domain_id_that_is_no_domain_is_named_and_the_launch_and_call_refuse_it(monkeypatch):
+    """ROS_DOMAIN_ID=abc ended `wheelgrid launch` and `wheelgrid call` in rclpy's traceback,
+    250 in Fast DDS's "port number is too high" with no word of the variable, and -1 ran the
+    chain in domain 0 (a review): each is one line and exit 2 now, before DDS starts."""
+    from wheelgrid_bringup import call, launcher
+    from wheelgrid_common.ros_env import domain_id_problem
+
+    assert domain_id_problem({}) == "" and domain_id_problem({"ROS_DOMAIN_ID": "232"}) == ""
+    for bad in ("abc", "250", "-1", "1.5"):
+        assert "is not a domain" in domain_id_problem({"ROS_DOMAIN_ID": bad}), bad
+    monkeypatch.setenv("ROS_DOMAIN_ID", "abc")
+    assert launcher.main(["--no-drive", "--duration", "1"]) == 2
+    assert call.main(["/mapper/save_map"]) == 2
+
+
 def test_env_sh_refuses_a_path_with_a_space_and_an_rmw_it_lacks(tmp_path):
     """A checkout at a path with a space set up well, then nothing of wheelgrid was found
     (colcon's setup scripts split the path); an RMW left from another ROS install that this

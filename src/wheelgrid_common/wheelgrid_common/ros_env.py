@@ -47,6 +47,22 @@ def configure_ros_env(env: MutableMapping[str, str] | None = None) -> MutableMap
     return env
 
 
+#: The highest ROS_DOMAIN_ID ROS 2 takes (its DDS ports go past 65535 above it).
+MAX_DOMAIN_ID = 232
+
+
+def domain_id_problem(env: Mapping[str, str]) -> str:
+    """Why ``env``'s ROS_DOMAIN_ID cannot run ("" where it can, or is unset): "abc" ended the
+    launch and `wheelgrid call` in rclpy's traceback, 250 in Fast DDS's "port number is too
+    high" with no word of the variable, and -1 ran the chain in domain 0 (a review)."""
+    value = env.get("ROS_DOMAIN_ID", "").strip()
+    if not value:
+        return ""
+    if not value.isdigit() or int(value) > MAX_DOMAIN_ID:
+        return f"ROS_DOMAIN_ID={value!r} is not a domain: a whole number from 0 to {MAX_DOMAIN_ID}"
+    return ""
+
+
 def rmw_missing(env: Mapping[str, str]) -> str:
     """Why ``env``'s RMW_IMPLEMENTATION cannot run here ("" where it can, or where it is not
     set: Fast DDS then, which the ROS wheels bring). rclpy exits with status 102 at its first
