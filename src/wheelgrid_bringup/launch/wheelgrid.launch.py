@@ -93,7 +93,18 @@ def _play_command(conf):
     bag = conf.get("bag", "")
     if not bag:
         return []
-    cmd = ["ros2", "bag", "play", bag, "--rate", conf.get("rate", "1.0")]
+    from wheelgrid_bringup.replay import sensor_topics
+    from wheelgrid_common.bagio import BagError
+
+    try:
+        # the sensor data only, as `wheelgrid launch --bag` replays it: played whole, a
+        # chair's recording's /cmd_vel and goals reach the running chain
+        topics = sensor_topics(bag)
+    except BagError as exc:
+        raise RuntimeError(f"bag:={bag}: {exc}") from None
+    if not topics:
+        raise RuntimeError(f"bag:={bag} holds no sensor data to replay")
+    cmd = ["ros2", "bag", "play", bag, "--rate", conf.get("rate", "1.0"), "--topics", *topics]
     if conf.get("clock", "false").lower() in ("true", "1"):
         cmd.append("--clock")
     if conf.get("namespace", "").strip("/"):

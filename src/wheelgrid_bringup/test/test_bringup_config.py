@@ -131,8 +131,15 @@ def test_launch_file_refuses_two_sources_and_leaves_the_files_port_alone():
     assert len(plays) == 1
     play = scope["_play_command"]
     assert play({}) == [] and play({"bag": ""}) == []
-    assert play({"bag": "/b", "rate": "2.0"}) == ["ros2", "bag", "play", "/b", "--rate", "2.0"]
-    assert play({"bag": "/b", "clock": "True"})[-1] == "--clock"
+    # the sensor data only, as `wheelgrid launch --bag` replays it (commands stay out)
+    scan = str(PKG.parents[1] / "bags" / "paper_room" / "scan")
+    assert play({"bag": scan, "rate": "2.0"}) == [
+        "ros2", "bag", "play", scan, "--rate", "2.0", "--topics", "/iphone/odometry",
+        "/iphone/points",
+    ]  # fmt: skip
+    assert play({"bag": scan, "clock": "True"})[-1] == "--clock"
+    with pytest.raises(RuntimeError, match="bag:=/b"):
+        play({"bag": "/b"})
     # SetParameter reaches only the nodes started after it
     sim_time = [n for n in calls if getattr(n.func, "id", "") == "SetParameter"]
     nodes = [n for n in calls if getattr(n.func, "id", "") == "Node"]

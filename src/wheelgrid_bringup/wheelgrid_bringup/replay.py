@@ -97,6 +97,13 @@ def is_sensor_input(topic: str, msgtype: str) -> bool:
     return msgtype.startswith("sensor_msgs/msg/") or msgtype in SENSOR_TYPES
 
 
+def sensor_topics(bag: Path) -> list[str]:
+    """The topics of ``bag`` a replay sends by default (:func:`is_sensor_input`), for ``ros2
+    bag play --topics``, which otherwise plays them all, commands included."""
+    with BagReader(Path(bag)) as reader:
+        return sorted({t.name for t in reader.topics() if is_sensor_input(t.name, t.msgtype)})
+
+
 def not_replayed_note(player: BagPlayer) -> str:
     """The line that names the bag's topics a replay leaves out."""
     return (
