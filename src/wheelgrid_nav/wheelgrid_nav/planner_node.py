@@ -71,6 +71,10 @@ _DIR_ANGLE = {"right": 0.0, "up": math.pi / 2, "left": math.pi, "down": -math.pi
 # dead reckoning at rest stays put, and an /initialpose given since must stand.
 CHAIR_MOVED_M = 0.01
 CHAIR_TURNED_RAD = math.radians(1.0)
+# The route's progress moves on to the chair's cell only within this many cells of it (the
+# next cell, and one more should a pose between them be lost): a pose further on is no step
+# along the route.
+ROUTE_STEP_CELLS = 2
 # The drive refuses a chair turned more than this from its plan's start heading
 # (wheelgrid_drive.actions.heading_from_yaw): a route for a guessed heading is refused there.
 HEADING_TOLERANCE_RAD = math.radians(20.0)
@@ -350,21 +354,28 @@ def _make_node_class() -> type:
 
         def _route_ahead(self, grid: Grid) -> list[tuple[int, int]]:
             """The route from the chair's cell on, counted from where the chair has got to
-            along it (all of that where the chair is off it)."""
+            along it (all of that where the chair is off it). A pose further on than the
+            next few cells (a stray pose, a relocalisation) moves no progress: it counts for
+            this check alone, as every pose did before progress was kept."""
             self._advance_on_route(grid)
-            return self.route[self._route_at :]
+            ahead = self.route[self._route_at :]
+            here = grid.cell_of(self.start[0], self.start[1]) if self.start else None
+            return ahead[ahead.index(here) :] if here in ahead else ahead
 
         def _advance_on_route(self, grid: Grid | None) -> None:
-            """Moves the route's progress on to the chair's cell, at its first visit from the
-            progress on. Taken from the route's start, a route that comes back through a cell
-            (a three-point turn into a side pocket) kept the pocket, already left, ahead of
-            the chair, and a grid closing it stopped the chair for nothing (a review)."""
+            """Moves the route's progress on to the chair's cell where it is the cell of the
+            progress or one of the next ROUTE_STEP_CELLS. Taken from the route's start, a
+            route that comes back through a cell (a three-point turn into a side pocket) kept
+            the pocket, already left, ahead of the chair, and a grid closing it stopped the
+            chair for nothing (a review). Any cell further on: one stray pose at the far leg
+            of a U-shaped route passed the cells between for good, and a cell closing there
+            withdrew nothing (a review)."""
             if grid is None or self.start is None or not self.route:
                 return
             here = grid.cell_of(self.start[0], self.start[1])
-            ahead = self.route[self._route_at :]
-            if here in ahead:
-                self._route_at += ahead.index(here)
+            near = self.route[self._route_at : self._route_at + ROUTE_STEP_CELLS + 1]
+            if here in near:
+                self._route_at += near.index(here)
 
         def _route_blocked(self, grid: Grid, route: list[tuple[int, int]]) -> bool:
             """Whether ``grid`` (same geometry as the route's) closes a cell of ``route``, by
