@@ -150,6 +150,23 @@ def _stray_every_third(capture: Path, out: Path, frames: int, ahead: dict[int, f
     return out
 
 
+def test_a_stray_frame_stamped_behind_early_costs_only_itself(
+    tmp_path, capsys, stray_capture: Path
+) -> None:
+    """Frame 2 stamped 2 s back: its stamp, the minimum of the next frames', was taken as when
+    frames 0 and 1 were captured at the latest, and they were skipped as stamped ahead while
+    frame 2 began the map (a review). The lower median of the frames after a frame is its
+    bound: only frame 2 is skipped, as stamped behind."""
+    cap = _stray_every_third(stray_capture, tmp_path / "cap", 16, {2: -2.0})
+    err, rep = _run(cap, tmp_path, capsys)
+    fr = rep["frames"]
+    assert fr["stamped_ahead"] == 0 and fr["stamped_behind"] == 1, err
+    assert fr["used"] == 15 and fr["after_gap"] == 0, fr
+    stamps, _ = read_tum(tmp_path / "map" / "trajectory.tum")
+    want = [StrayExport(cap).stamp(i) for i in range(16) if i != 2]
+    np.testing.assert_allclose(stamps, want, atol=1e-6)
+
+
 @pytest.mark.parametrize("bad", [8, 0, 1])
 def test_a_stray_frame_stamped_far_ahead_is_skipped_by_its_place_in_capture_order(
     tmp_path, capsys, stray_capture: Path, bad: int

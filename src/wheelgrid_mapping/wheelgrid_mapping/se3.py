@@ -46,10 +46,11 @@ def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-# Farther than any indoor map reaches (m): a pose prior's translation of 1e300 is finite,
-# and folded into registration's prior offset it failed every frame after it for good (a
-# review: one flipped exponent bit in a phone's frame).
-MAX_TRANSLATION_M = 1e5
+# Farther than any place on Earth lies from a map-wide origin (m; UTM northings reach 1e7):
+# a pose prior's translation of 1e300 is finite, and folded into registration's prior offset
+# it failed every frame after it for good (a review: one flipped exponent bit in a phone's
+# frame). 1e5 refused a bag's odometry in map-wide coordinates (a review).
+MAX_TRANSLATION_M = 1e7
 
 
 def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:

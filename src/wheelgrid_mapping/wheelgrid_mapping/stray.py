@@ -315,14 +315,22 @@ class StrayExport:
     def captured_by(self, i: int) -> float:
         """The latest time position ``i`` can have been captured: Stray numbers frames in
         capture order, so no later than the stamps of the :data:`CAPTURE_ORDER_FRAMES` frames
-        after it (its own, where it is the earliest). An export has no arrival times, so a
+        after it where most of them are stamped before it (else its own: one of them stamped
+        behind is that frame's fault). An export has no arrival times, so a
         frame stamped far in the future (one bad timestamp in odometry.csv) read as a pause in
         the capture: it was registered as after a dropout, and every later stamp in
         trajectory.tum came shifted by its lead. Given as the frame's arrival, this holds such
         a frame back (:mod:`.frame_clock`), while a real pause (the app stalled: the stamps
         jump and go on from there) stays a pause."""
         end = min(len(self), i + 1 + CAPTURE_ORDER_FRAMES)
-        return min(self.stamp(j) for j in range(i, end))
+        # Only where most of the frames after it are stamped before it: one of them stamped
+        # behind (a bad row) pulled the frames before it down with it, and taken for stamped
+        # ahead they were skipped while the bad one began the map (a review).
+        later = sorted(self.stamp(j) for j in range(i + 1, end))
+        own = self.stamp(i)
+        if not later or later[(len(later) - 1) // 2] >= own:
+            return own
+        return min(own, later[0])
 
     def _stamp_of(self, index: int) -> float:
         """Odometry time of frame ``index``; else extrapolated at 60 Hz on the same clock from
