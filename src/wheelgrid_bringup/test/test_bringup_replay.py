@@ -317,7 +317,7 @@ def test_a_replay_sends_sensor_data_only_unless_topics_are_named(tmp_path: Path)
     --clock a named /clock is refused (two clocks, 40 of 191 going back)."""
     import rclpy
 
-    from wheelgrid_bringup.replay import BagPlayer, not_replayed_note
+    from wheelgrid_bringup.replay import BagPlayer, is_sensor_input, not_replayed_note
     from wheelgrid_common.testing import rclpy_context
 
     bag = _chair_recording(tmp_path / "rec")
@@ -333,6 +333,13 @@ def test_a_replay_sends_sensor_data_only_unless_topics_are_named(tmp_path: Path)
             assert sorted(BagPlayer(node, bag, ["/cmd_vel"])._pubs) == ["/cmd_vel"]  # named
             with pytest.raises(BagError, match="two clocks"):
                 BagPlayer(node, bag, ["/iphone/points", "/clock"], clock_hz=40.0)
+            # the chain's outputs by their last two names (a chain recorded in a namespace
+            # called wheelgrid keeps its clouds); /tf holds the recorded mapper's transforms
+            assert is_sensor_input("/wheelgrid/iphone/points", "sensor_msgs/msg/PointCloud2")
+            assert not is_sensor_input("/chair1/wheelgrid/odometry", "nav_msgs/msg/Odometry")
+            assert not is_sensor_input("/tf", "tf2_msgs/msg/TFMessage")
+            assert is_sensor_input("/chair1/tf_static", "tf2_msgs/msg/TFMessage")
+            assert not is_sensor_input("/joy", "sensor_msgs/msg/Joy")
         finally:
             node.destroy_node()
 

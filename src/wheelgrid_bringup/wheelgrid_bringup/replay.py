@@ -79,7 +79,7 @@ def play_remaps(bag: Path, namespace: str) -> list[str]:
 # (`ros2 bag record -a`) holds /cmd_vel, /goal_pose, /initialpose and the chain's own
 # outputs; replayed whole into a live chain, a recording's /cmd_vel drove the chair 3 m (a
 # review). A joystick is a command, not a sensor.
-SENSOR_TYPES = ("nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage")
+SENSOR_TYPES = ("nav_msgs/msg/Odometry",)
 COMMAND_SENSOR_TYPES = ("sensor_msgs/msg/Joy",)
 # The replayed topics a replay waits for a reader of before it starts (the mapper's clouds
 # and pose prior: the first frame defines the map frame); the rest go out when they come (a
@@ -90,10 +90,16 @@ AWAITED_TYPES = ("sensor_msgs/msg/PointCloud2", "nav_msgs/msg/Odometry")
 
 def is_sensor_input(topic: str, msgtype: str) -> bool:
     """Whether a bag's ``topic`` of ``msgtype`` is sensor data a replay sends by default: a
-    sensor_msgs type (not a joystick), odometry or transforms, and not one of the chain's own
-    outputs (``.../wheelgrid/...``: its odometry is the planner's start pose)."""
-    if "wheelgrid" in topic.split("/") or msgtype in COMMAND_SENSOR_TYPES:
+    sensor_msgs type (not a joystick), odometry or static transforms, and not one of the
+    chain's own outputs: ``wheelgrid/NAME`` (its odometry is the planner's start pose; a chain
+    recorded in a namespace called wheelgrid keeps its ``/wheelgrid/iphone/points``) and
+    ``tf``, where the recorded mapper's map -> sensor transforms would go out beside the live
+    mapper's (a review)."""
+    parts = [p for p in topic.split("/") if p]
+    if (len(parts) >= 2 and parts[-2] == "wheelgrid") or msgtype in COMMAND_SENSOR_TYPES:
         return False
+    if msgtype == "tf2_msgs/msg/TFMessage":
+        return bool(parts) and parts[-1] == "tf_static"
     return msgtype.startswith("sensor_msgs/msg/") or msgtype in SENSOR_TYPES
 
 
