@@ -881,26 +881,6 @@ def test_a_small_lean_across_a_long_room_is_warned_of():
             )
 
 
-def test_an_unseen_pit_against_a_wall_makes_its_border_cell_unknown():
-    """The wall strip counted as seen whole: a 60 x 50 cm pit against the wall (no floor seen
-    in it, the wall seen only from 10 cm up) left its border cell free on 5 of 5 noisy draws
-    (a review). Only the wall's own pixels count as seen there now."""
-    size = 4.8
-    base = room_cloud([], size=(size, size), spacing=0.02, ceiling=False)
-    rng = np.random.default_rng(0)
-    for _ in range(5):
-        x0 = 1.3 + rng.uniform(0.0, 0.1)
-        gone = (
-            (base[:, 0] > x0)
-            & (base[:, 0] < x0 + 0.6)
-            & (base[:, 1] > size - 0.5)
-            & (base[:, 2] < 0.1)
-        )
-        pts = base[~gone] + rng.normal(0.0, 0.003, (int((~gone).sum()), 3))
-        grid = build_grid(pts, GridConfig(alignment="map")).grid
-        assert grid.data[grid.cell_of(x0 + 0.3, size - 0.01)] == UNKNOWN, grid.data
-
-
 def test_a_border_cell_holds_the_chair_between_walls():
     """A 4.55 m room got four 1.2 m cells (extent_tolerance 25 cm): the walls 12.4 cm inside
     the border cells, the chair centred in one facing a wall overlapped it, and a corner cell

@@ -1131,14 +1131,18 @@ def floor_for_patches(
     return out, returns
 
 
-def unobserved_patches(floor: np.ndarray, band: np.ndarray, cfg: GridConfig, k: int) -> np.ndarray:
-    """(rows, cols): cells reached by a square of ``cfg.unobserved_patch`` side where neither
-    floor nor an obstacle in the band was seen. The observed fraction alone let a cell 80 %
-    seen be free with a 68 x 68 cm hole in its middle, right under the chair (a stairwell or
-    pit; points seen below the floor count as not floor here, as they are: a few sparse
-    returns off a pit's bottom had counted as observed). The wall strip counts as seen only
-    where the wall was (its band pixels): counted seen whole, it hid up to 25 cm of an unseen
-    pit against a wall, and a border cell read free over a 60 x 50 cm hole (a review).
+def unobserved_patches(
+    floor: np.ndarray, band: np.ndarray, ring: np.ndarray, cfg: GridConfig, k: int
+) -> np.ndarray:
+    """(rows, cols): cells reached by a square of ``cfg.unobserved_patch`` side, off the wall
+    strip, where neither floor nor an obstacle in the band was seen. The observed fraction
+    alone let a cell 80 % seen be free with a 68 x 68 cm hole in its middle, right under the
+    chair (a stairwell or pit; points seen below the floor count as not floor here, as they
+    are: a few sparse returns off a pit's bottom had counted as observed). The strip counts as
+    seen: it hides up to 25 cm of an unseen pit against a wall (a 60 x 50 cm pit left its
+    border cell free, a review), but counted as seen only where the wall was, the floor along
+    the bundled bag's north wall, which the camera does not see, took a free cell of its
+    live demo's grid.
 
     Every cell such a square reaches, not only the one holding its centre: a hole across a
     cell border left the cells beside that one free with 15-25 cm of it inside (a 60 cm hole
@@ -1149,7 +1153,7 @@ def unobserved_patches(floor: np.ndarray, band: np.ndarray, cfg: GridConfig, k: 
     if cfg.unobserved_patch <= 0:
         return np.zeros((floor.shape[0] // k, floor.shape[1] // k), dtype=bool)
     side = max(1, round(cfg.unobserved_patch / cfg.pixel_size))
-    hole = ~(floor | band)
+    hole = ~(floor | band | ring)
     # erosion by a (2r+1)^2 square: a pixel stays where the whole square around it is a hole
     radius = max(0, (side - 1) // 2)
     inner = ~_dilate(~hole, radius) if radius else hole
@@ -1271,7 +1275,7 @@ def build_grid(
     # above it (a cord hanging to the floor, a streak of flying pixels) kept each other's
     # speck seen, and the cell over a 60 cm hole read free (a review)
     seen_floor, seen_returns = floor_for_patches(floor, floor_seen, ps)
-    patch = unobserved_patches(seen_floor, band_for_patches(band_black, seen_returns), cfg, k)
+    patch = unobserved_patches(seen_floor, band_for_patches(band_black, seen_returns), ring, cfg, k)
     data = np.full((rows, cols), UNKNOWN, dtype=np.int8)
     data[(observed >= cfg.min_observed_fraction) & ~patch] = FREE
     data[occupied] = OCCUPIED
