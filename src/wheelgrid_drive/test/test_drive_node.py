@@ -190,6 +190,12 @@ def test_node_drives_the_table_ii_route(make_sim):
         assert grid.cell_of(st.x, st.y) == CELLS[-1]
         assert h.spin(lambda: bool(h.poses) and h.poses[-1].header.frame_id == "map", 3.0)
         assert h.spin(lambda: any(s.message.startswith("idle: plan done") for s in h.states), 3.0)
+        assert h.spin(lambda: plan_end(h.states[-1]) == "done", 3.0)
+
+
+def plan_end(status):
+    """Who ended the drive's last plan, as its state says it (the planner reads it)."""
+    return {kv.key: kv.value for kv in status.values}.get("plan_end")
 
 
 def test_estop_stops_the_chair_at_once_and_latches(make_sim):
@@ -206,6 +212,7 @@ def test_estop_stops_the_chair_at_once_and_latches(make_sim):
         print(f"e-stop -> STOP at the controller: {(stop.t - t_pub) * 1000:.1f} ms")
         assert sim.state == proto.State.IDLE and sim.result == proto.Result.STOPPED
         assert h.spin(lambda: any("e-stop" in s.message for s in h.states), 3.0)
+        assert h.spin(lambda: plan_end(h.states[-1]) == "user", 3.0)  # (for the planner)
         n_moves = len(sim_moves(sim))
         # Latched: a new plan is refused until the e-stop is cleared.
         h.publish_plan(grid, [(3, 0), (3, 1)])
@@ -1257,6 +1264,9 @@ def test_a_stick_moved_during_a_plan_stops_it_and_drives_only_after_a_release(ma
         hold_stick(h, back, 0.3)
         assert h.spin(lambda: sim.result == proto.Result.STOPPED, 3.0)
         assert h.spin(lambda: any("moved while a plan ran" in s.message for s in h.states), 3)
+        # the user ended it: the planner must not send it again (a review: the next grid's
+        # replan drove the chair 4.8 m on to the goal once the stick was released)
+        assert h.spin(lambda: plan_end(h.states[-1]) == "user", 3.0)
         hold_stick(h, back, 1.5)  # still held after the plan: nothing
         assert sim_moves(sim) == ["FORWARD"]
         assert not h.drive._twist_armed

@@ -251,6 +251,13 @@ class DriveNode(Node):
         # the last samples the reliable e-stop subscription served (see _on_estop_best_effort)
         self._estop_samples: deque[tuple[int, int]] = deque(maxlen=64)
         self._abort = threading.Event()
+        # Who ended the last plan, for the planner (drive_state's plan_end): "done", "planner"
+        # (its empty path, a newer plan, its grid changed under the move), "user" (the stick,
+        # an e-stop) or "fault" (a refusal, a failed step, a silent grid node or controller).
+        # A plan the user or a fault ended must not be sent again by the planner's next
+        # replan: the chair set off 4.8 m to a goal its user had stopped (a review).
+        self._plan_end = ""
+        self._abort_by = ""  # what aborted the running job (see _plan_end); "" a newer job
         self._worker: threading.Thread | None = None
         self._job = "idle"
         self._progress = (0, 0)
@@ -402,6 +409,7 @@ class DriveNode(Node):
             "connected": str(self.link.connected).lower(),
             "estop": str(self._estop).lower(),
             "job": job,
+            "plan_end": self._plan_end,
             "step": str(done),
             "steps": str(total),
             "speed_kmh": f"{self.speed:g}",
@@ -539,7 +547,9 @@ class DriveNode(Node):
         job_grid = self._job_grid
         if self._busy() and job_grid is not None and not same_geometry(grid, job_grid):
             # the running move's cells are other places on this grid: stop, never re-read them
-            self._abort_if_moving("the safe grid's size, resolution, origin or frame changed")
+            self._abort_if_moving(
+                "the safe grid's size, resolution, origin or frame changed", by="planner"
+            )
         with self._gate:
             pending, self._pending_plan = self._pending_plan, None
         if pending is not None:
@@ -563,10 +573,13 @@ class DriveNode(Node):
             reason = grid_cell_check(lambda: grid)(dst)
             if reason:
                 # The map changed under a running move (someone stepped in): stop now.
-                self._abort_if_moving(f"the cell being entered changed: {reason}")
+                # (the planner withdraws a route through it and plans another)
+                self._abort_if_moving(f"the cell being entered changed: {reason}", by="planner")
 
-    def _abort_if_moving(self, why: str) -> None:
+    def _abort_if_moving(self, why: str, by: str = "fault") -> None:
+        """Stop the running job for ``why``; ``by``: who ended it, as _plan_end says."""
         if self._busy():
+            self._abort_by = by
             self._abort.set()
             self.link.stop()
             self._set_state(ERROR, f"chair stopped: {why}")
@@ -619,6 +632,7 @@ class DriveNode(Node):
             stamp = received or time.time_ns()
             self._estop_received_ns = max(self._estop_received_ns, stamp)
             self._pending_plan = None  # a plan parked for the grid must not drive after it
+            self._abort_by = "user"
             self._abort.set()
         self.link.stop()
 
@@ -780,6 +794,7 @@ class DriveNode(Node):
                 return False
             abort = threading.Event()
             self._abort = abort
+            self._abort_by = ""
             with self._lock:
                 self._job = name
 
@@ -788,6 +803,8 @@ class DriveNode(Node):
                 fn(abort)
             except Exception as exc:  # never leave the chair moving after a bug
                 self.link.stop()
+                if name == "plan":
+                    self._plan_end = "fault"
                 self._set_state(ERROR, f"{name} failed: {exc!r}; chair stopped")
             finally:
                 with self._lock:
@@ -830,9 +847,11 @@ class DriveNode(Node):
             if self.cfg.check_start_pose:
                 self._check_start(grid, st, cells[0], steps[0].heading)
         except (LinkError, ValueError) as exc:
+            self._plan_end = "fault"
             self._set_state(ERROR, f"plan refused: {exc}")
             return
         if abort.is_set():  # an e-stop or a newer job came while the controller was asked
+            self._plan_end = self._abort_by or "planner"
             return
         self._set_state(OK, f"driving a plan of {total} step(s) from {cells[0]}")
 
@@ -860,13 +879,17 @@ class DriveNode(Node):
         if result.ok and self.cfg.check_start_pose:
             short = self._end_problem(grid, cells[-1])
             if short:
+                self._plan_end = "fault"
                 self._set_state(ERROR, f"plan ended short of its goal: {short}")
                 return
         if result.ok:
+            self._plan_end = "done"
             self._set_state(OK, f"plan done: {result.done}/{result.total} steps")
         elif result.aborted:
+            self._plan_end = self._abort_by or "planner"  # no one named: a newer plan or path
             self._set_state(WARN if not self._estop else ERROR, f"plan aborted: {result.error}")
         else:
+            self._plan_end = "fault"
             self._set_state(ERROR, f"plan stopped at step {result.done + 1}: {result.error}")
 
     def _end_problem(self, grid: Grid, goal: tuple[int, int]) -> str | None:
@@ -946,7 +969,8 @@ class DriveNode(Node):
                 self._disarm_cmd_vel("it moved while a plan ran, which it stopped")
                 self._abort_if_moving(
                     "/cmd_vel moved while a plan ran (the stick overrides a plan; release it, "
-                    "then send the goal again or drive by hand)"
+                    "then send the goal again or drive by hand)",
+                    by="user",
                 )
                 return
         if not self._twist_armed:

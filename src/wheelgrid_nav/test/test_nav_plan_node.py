@@ -597,16 +597,24 @@ def test_pose_problem_names_what_cannot_place_the_chair():
     assert pose_problem(pose(qw=0.0)) == "a zero quaternion"
 
 
-def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_path):
+@pytest.mark.parametrize("best_effort", [False, True])
+def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_path, best_effort):
     """Through an e-stop the planner kept its goal: cleared, the next grid change (the map
     grows during a scan) gave a new route to it, and the drive drove it with no new command.
     Now the e-stop drops the goal with an empty path, goals wait for the clear, and only a new
-    goal after it plans."""
+    goal after it plans. So does one published best-effort (a joystick, a safety bridge): the
+    drive latched it, the planner did not hear it, and after the clear the next grid sent the
+    chair 4.8 m on to the goal (a review)."""
     from std_msgs.msg import Bool
+
+    from wheelgrid_common.qos import SENSOR_QOS
 
     grid = Grid(paper_grid(), RES, ORIGIN)
     with planner_with_chair(grid) as (h, _chair_pub):
-        estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+        estop = h.node.create_publisher(
+            Bool, "/wheelgrid/estop", SENSOR_QOS if best_effort else RELIABLE_QOS
+        )
+        clear = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
         assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 10.0)
         h.init_pub.publish(start_msg(grid, (2, 0), -math.pi / 2))
         spin_until(h.ex, lambda: False, 0.3)
@@ -619,7 +627,7 @@ def test_an_estop_ends_the_goal_and_nothing_replans_to_it_after_the_clear(tmp_pa
         n = len(h.paths)
         h.goal_pub.publish(goal_msg(grid, (2, 5)))  # a goal while latched: refused
         assert h.next_path(n).poses == []
-        estop.publish(Bool(data=False))
+        clear.publish(Bool(data=False))
         spin_until(h.ex, lambda: False, 0.3)
         n = len(h.paths)
         grown = Grid(np.zeros((8, 9), np.int8), RES, ORIGIN)  # the map grows: a new geometry
@@ -942,32 +950,52 @@ def test_a_grid_of_cells_smaller_than_the_chair_withdraws_the_route_and_the_goal
 def test_a_route_the_drive_stopped_or_refused_is_not_planned_again_at_the_next_grid():
     """The drive stopped the route (the controller went silent) and said so; the planner kept
     it, and the next grid of another geometry (the map growing) planned it again: the chair
-    set off 3 s after an ERROR with no command (a review). A route the drive is not driving
-    a while after it went out is dropped with its goal at the next grid; one it drives is
-    planned again as before."""
+    set off 3 s after an ERROR with no command (a review). A route the drive stopped for the
+    user (the stick, an e-stop) or a fault ends its goal at once, as the drive says it
+    (drive_state's plan_end); one the planner's own grid change stopped is planned again; and
+    a route the drive has not taken ROUTE_TAKEN_S after it went out ends its goal at the next
+    grid. Counted from the newest route, a drive that never took any was sent one again at
+    every grid for ever (a review: a restarted drive drove it 4.8 m)."""
     data = np.zeros((6, 6), np.int8)
     grid, grown = Grid(data, 1.0), Grid(np.zeros((6, 7), np.int8), 1.0)
+    route = [(2, c) for c in range(5)]
     with recording_planner() as (node, published):
         row_2_goal(node, grid)
         node._on_drive_state(drive_state("plan"))  # driving it: a grown map replans
-        node._route_sent_at -= 10.0
         node._on_grid(to_occupancy_grid(grown))
-        assert node.plans == 2 and published[-1] == [(2, c) for c in range(5)]
-        node._on_drive_state(drive_state("idle"))  # it stopped (its state said why)
-        node._on_grid(to_occupancy_grid(grid))  # just out: the drive may not have it yet
-        assert node.plans == 3 and node.goal is not None
-        node._route_sent_at -= 10.0
+        assert node.plans == 2 and published[-1] == route
+        node._on_drive_state(drive_state("idle", "planner"))  # the grid change stopped it
+        assert node.goal is not None
+        node._on_grid(to_occupancy_grid(grid))
+        assert node.plans == 3 and published[-1] == route
+        node._on_drive_state(drive_state("plan"))
+        node._on_drive_state(drive_state("idle", "fault"))  # stopped: the controller silent
+        assert node.goal is None and published[-1] == [], published[-2:]
         node._on_grid(to_occupancy_grid(grown))
-        assert node.plans == 3 and node.goal is None and published[-1] == []
+        assert node.plans == 3
+    for end in ("user",):  # the stick or an e-stop the planner did not hear
+        with recording_planner() as (node, published):
+            row_2_goal(node, grid)
+            node._on_drive_state(drive_state("plan"))
+            node._on_drive_state(drive_state("cmd_vel", end))
+            assert node.goal is None and published[-1] == []
+    with recording_planner() as (node, published):
+        row_2_goal(node, grid)
+        node._on_drive_state(drive_state("idle"))  # it never takes the route (refused it)
+        node._on_grid(to_occupancy_grid(grown))  # just out: the drive may not have it yet
+        assert node.plans == 2 and node.goal is not None
+        node._untaken_since -= 10.0  # replanned since, but not taken since the first
+        node._on_grid(to_occupancy_grid(grid))
+        assert node.plans == 2 and node.goal is None and published[-1] == []
 
 
-def drive_state(job):
-    """The drive's state as it publishes it (wheelgrid/drive_state), its job ``job``."""
+def drive_state(job, plan_end=""):
+    """The drive's state as it publishes it (wheelgrid/drive_state), its job ``job`` and who
+    ended its last plan."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-    return DiagnosticArray(
-        status=[DiagnosticStatus(name="wheelgrid/drive", values=[KeyValue(key="job", value=job)])]
-    )
+    values = [KeyValue(key="job", value=job), KeyValue(key="plan_end", value=plan_end)]
+    return DiagnosticArray(status=[DiagnosticStatus(name="wheelgrid/drive", values=values)])
 
 
 def test_the_same_goal_again_and_a_cell_behind_the_chair_leave_the_route_as_it_is():
@@ -1187,3 +1215,21 @@ def test_one_stray_pose_far_along_a_route_does_not_pass_the_cells_between():
         n = len(published)
         node._on_grid(to_occupancy_grid(Grid(closed, 1.0)))
         assert published[n] == [], published[n:]
+
+
+def test_a_drive_that_falls_silent_while_it_drives_the_route_ends_the_goal():
+    """A drive last heard driving the route was stopped (killed, restarted): the planner sent
+    the route again at every grid meanwhile, and the restarted drive drove it 4.8 m with no
+    command (a review). Silent for DRIVE_STATE_FRESH_S, it ends the goal, said once."""
+    grid = Grid(np.zeros((6, 6), np.int8), 1.0)
+    with recording_planner() as (node, published):
+        row_2_goal(node, grid)
+        node._on_drive_state(drive_state("plan"))
+        node._drop_goal_of_a_silent_drive()
+        assert node.goal is not None  # heard just now
+        job, _heard, said = node._drive_job
+        node._drive_job = (job, time.monotonic() - 10.0, said)
+        node._drop_goal_of_a_silent_drive()
+        assert node.goal is None and published[-1] == []
+        node._on_grid(to_occupancy_grid(Grid(np.zeros((6, 7), np.int8), 1.0)))
+        assert node.plans == 1  # nothing to plan to

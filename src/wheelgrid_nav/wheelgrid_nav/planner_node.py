@@ -267,7 +267,11 @@ def _make_node_class() -> type:
             # the same goal sent again leaves a route being driven alone
             # the drive's job, when it was heard and its state's message
             self._drive_job: tuple[str, float, str] = ("", -math.inf, "")
-            self._route_sent_at = -math.inf  # when a route (not an empty path) last went out
+            # when the oldest route the drive has not driven since went out (None: it drives
+            # the newest, or none went out): replans (each grid of another size, the map
+            # growing) send a route anew, and counted from the newest one the drive never
+            # had to take any (a review: a refused route, sent again for ever)
+            self._untaken_since: float | None = None
             self.create_subscription(
                 DiagnosticArray, "wheelgrid/drive_state", self._on_drive_state, RELIABLE_QOS
             )
@@ -289,7 +293,15 @@ def _make_node_class() -> type:
                 MAP_QOS,
                 event_callbacks=volatile_writers_expected(),
             )
+            # An e-stop published best-effort (a joystick, a safety bridge) matches neither
+            # subscription above: the drive latched it, the planner kept the goal, and the
+            # next grid sent the chair on to it after the clear (a review). This copy latches
+            # only, as the latched one does.
+            self.create_subscription(
+                Bool, "wheelgrid/estop", with_message_info(self._on_estop_latched), SENSOR_QOS
+            )
             steady_timer(self, 0.5, self._drop_goal_waited_too_long)
+            steady_timer(self, 0.5, self._drop_goal_of_a_silent_drive)
             self.get_logger().info(f"planner ready (method {self.node_cfg.method})")
 
         # ---- inputs ---------------------------------------------------------------------
@@ -459,6 +471,7 @@ def _make_node_class() -> type:
                 self._publish_route(self.grid, [])
             self.goal = goal
             self.goal_frame = msg.header.frame_id
+            self._untaken_since = None  # the user's own goal: its routes counted anew
             self._goal_waits_since = None
             if self._say_what_the_goal_waits_for():
                 self._goal_waits_since = time.monotonic()
@@ -466,9 +479,35 @@ def _make_node_class() -> type:
 
         def _on_drive_state(self, msg: Any) -> None:
             for status in msg.status:
-                for kv in status.values:
-                    if kv.key == "job":
-                        self._drive_job = (kv.value, time.monotonic(), str(status.message))
+                values = {kv.key: kv.value for kv in status.values}
+                if "job" not in values:
+                    continue
+                was = self._drive_job[0]
+                job = values["job"]
+                self._drive_job = (job, time.monotonic(), str(status.message))
+                if job == "plan":
+                    self._untaken_since = None
+                elif (
+                    was == "plan"
+                    and values.get("plan_end") in ("user", "fault")
+                    and (self.route or self.goal is not None)
+                ):
+                    # the stick, an e-stop, a refusal or a fault ended it: sent again at the
+                    # next grid (the map growing), the chair drove 4.8 m on to a goal its user
+                    # had stopped (a review); "done" and the planner's own withdrawals
+                    # ("planner") keep the goal
+                    self._no_route(self.grid, f"the drive stopped the route ({status.message})")
+
+        def _drop_goal_of_a_silent_drive(self) -> None:
+            """A drive last heard driving the route that falls silent (stopped, killed) ends
+            the goal: the planner sent the route again at every grid meanwhile, and a drive
+            restarted on the port drove it 4.8 m with no command (a review)."""
+            job, heard, _ = self._drive_job
+            if job != "plan" or time.monotonic() - heard <= DRIVE_STATE_FRESH_S:
+                return
+            self._drive_job = ("", heard, "")  # said once
+            if self.route or self.goal is not None:
+                self._no_route(self.grid, "the drive went silent while it drove the route")
 
         def _drive_left_the_route(self) -> str | None:
             """Why the route held is no longer the drive's, or None: a drive is heard, it is
@@ -481,7 +520,8 @@ def _make_node_class() -> type:
             now = time.monotonic()
             if not self.route or not job or now - heard > DRIVE_STATE_FRESH_S:
                 return None
-            if job == "plan" or now - self._route_sent_at < ROUTE_TAKEN_S:
+            since = self._untaken_since
+            if job == "plan" or since is None or now - since < ROUTE_TAKEN_S:
                 return None
             return f"the drive is not driving the route ({said})"
 
@@ -823,8 +863,8 @@ def _make_node_class() -> type:
         ) -> None:
             self.route = list(cells)
             self._route_at = 0
-            if cells:
-                self._route_sent_at = time.monotonic()
+            if cells and self._untaken_since is None:
+                self._untaken_since = time.monotonic()
             stamp = self.get_clock().now().to_msg()
             frame = grid.frame_id if grid is not None else "map"
             path = Path()
