@@ -489,13 +489,14 @@ def _make_node_class() -> type:
                     self._untaken_since = None
                 elif (
                     was == "plan"
-                    and values.get("plan_end") in ("user", "fault")
+                    and values.get("plan_end", "") in ("user", "fault", "")
                     and (self.route or self.goal is not None)
                 ):
-                    # the stick, an e-stop, a refusal or a fault ended it: sent again at the
-                    # next grid (the map growing), the chair drove 4.8 m on to a goal its user
-                    # had stopped (a review); "done" and the planner's own withdrawals
-                    # ("planner") keep the goal
+                    # the stick, an e-stop, a refusal or a fault ended it, or a drive that
+                    # never ended a plan ("": restarted) now speaks: sent again at the next
+                    # grid (the map growing), the chair drove 4.8 m on to a goal its user had
+                    # stopped (a review); "done" and the planner's own withdrawals ("planner")
+                    # keep the goal
                     self._no_route(self.grid, f"the drive stopped the route ({status.message})")
 
         def _drop_goal_of_a_silent_drive(self) -> None:
