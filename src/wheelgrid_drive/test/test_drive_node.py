@@ -1071,20 +1071,15 @@ def test_bad_plans_grids_and_twists_are_refused_and_stop_the_chair(make_sim):
         h.pub_grid.publish(bad)
         assert h.spin(lambda: any("bad safe grid" in s.message for s in h.states))
         assert h.give_grid(grid)
-        # cells smaller than the chair: a free one can be a gap it does not fit through
-        small = to_occupancy_grid(grid)
-        small.info.resolution = 0.6
-        h.pub_grid.publish(small)
-        assert h.spin(lambda: any("smaller than the chair" in s.message for s in h.states))
-        assert h.drive._grid is None
-        assert h.give_grid(grid)
-        # cells one move cannot cross: every step failed in the link as a ValueError
-        wide = to_occupancy_grid(grid)
-        wide.info.resolution = 2.4
-        h.pub_grid.publish(wide)
-        assert h.spin(lambda: any("longest move" in s.message for s in h.states))
-        assert h.drive._grid is None
-        assert h.give_grid(grid)
+        # cells smaller than the chair (a free one can be a gap it does not fit through), and
+        # cells one move cannot cross (every step failed in the link as a ValueError)
+        for resolution, says in ((0.6, "smaller than the chair"), (2.4, "longest move")):
+            odd = to_occupancy_grid(grid)
+            odd.info.resolution = resolution
+            h.pub_grid.publish(odd)
+            assert h.spin(lambda says=says: any(says in s.message for s in h.states))
+            assert h.drive._grid is None
+            assert h.give_grid(grid)
         fast = h.Twist()
         fast.linear.x = float("inf")
         for _ in range(5):

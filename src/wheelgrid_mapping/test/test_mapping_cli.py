@@ -346,6 +346,28 @@ def test_all_nan_frames_exit_2(tmp_path: Path, capsys) -> None:
     assert "no valid points" in capsys.readouterr().err
 
 
+def _clouds_rewritten(sim_dir: Path, bag: Path, clouds: int, edit) -> Path:
+    """The simulated scan's first ``clouds`` clouds, each as ``edit(n, msg)`` returns it, and
+    the odometry among them, written to ``bag``."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
+
+    with BagReader(sim_dir / "scan") as r, BagWriter(bag) as w:
+        n = 0
+        for topic, msgtype, t_ns, raw in r.raw(["/iphone/points", "/iphone/odometry"]):
+            if topic == "/iphone/odometry":
+                w.write(topic, msgtype, t_ns, deserialize_message(raw, Odometry))
+                continue
+            w.write(topic, POINTCLOUD2, t_ns, edit(n, deserialize_message(raw, PointCloud2)))
+            n += 1
+            if n == clouds:
+                break
+    return bag
+
+
 def test_clouds_without_a_frame_id_are_not_guessed_optical(
     sim_dir: Path, tmp_path: Path, capsys
 ) -> None:
@@ -353,25 +375,12 @@ def test_clouds_without_a_frame_id_are_not_guessed_optical(
     cloud without one under ``sensor_convention: auto``. `wheelgrid map` read such clouds as
     the phone's optical frame, silently: a body-frame bag levelled its map on a wall. They are
     now skipped and counted like the node's, with the setting that maps them named."""
-    from nav_msgs.msg import Odometry
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import PointCloud2
 
-    from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
+    def nameless(_n, msg):
+        msg.header.frame_id = ""
+        return msg
 
-    bag = tmp_path / "noframe"
-    with BagReader(sim_dir / "scan") as r, BagWriter(bag) as w:
-        n = 0
-        for topic, msgtype, t_ns, raw in r.raw(["/iphone/points", "/iphone/odometry"]):
-            if topic == "/iphone/odometry":
-                w.write(topic, msgtype, t_ns, deserialize_message(raw, Odometry))
-                continue
-            msg = deserialize_message(raw, PointCloud2)
-            msg.header.frame_id = ""
-            w.write(topic, POINTCLOUD2, t_ns, msg)
-            n += 1
-            if n == 12:
-                break
+    bag = _clouds_rewritten(sim_dir, tmp_path / "noframe", 12, nameless)
     assert cli_map.main([str(bag), "--out", str(tmp_path / "o"), "--prior", "arkit"]) == 2
     err = capsys.readouterr().err
     assert "no frame_id" in err and "sensor_convention" in err, err
@@ -392,31 +401,18 @@ def test_frames_are_named_by_their_number_in_the_input_when_unreadable_ones_came
     frame 20 and report.json's failures frame 15 (the mapper counted only what reached it),
     the five were dropped with no word but the summary's count, and the summary's "25 frames
     read" left them out (a review)."""
-    from nav_msgs.msg import Odometry
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import PointCloud2
-
-    from wheelgrid_common.bagio import POINTCLOUD2, BagReader, BagWriter
     from wheelgrid_common.pointcloud2 import to_pointcloud2
 
-    bag = tmp_path / "mixed"
-    with BagReader(sim_dir / "scan") as r, BagWriter(bag) as w:
-        n = 0
-        for topic, msgtype, t_ns, raw in r.raw(["/iphone/points", "/iphone/odometry"]):
-            if topic == "/iphone/odometry":
-                w.write(topic, msgtype, t_ns, deserialize_message(raw, Odometry))
-                continue
-            msg = deserialize_message(raw, PointCloud2)
-            if n < 5:
-                msg.header.frame_id = ""
-            elif n == 20:
-                nan = to_pointcloud2(np.full((64, 3), np.nan), msg.header.frame_id, height=8)
-                nan.header.stamp = msg.header.stamp
-                msg = nan
-            w.write(topic, POINTCLOUD2, t_ns, msg)
-            n += 1
-            if n == 30:
-                break
+    def mixed(n, msg):
+        if n < 5:
+            msg.header.frame_id = ""
+        elif n == 20:
+            nan = to_pointcloud2(np.full((64, 3), np.nan), msg.header.frame_id, height=8)
+            nan.header.stamp = msg.header.stamp
+            return nan
+        return msg
+
+    bag = _clouds_rewritten(sim_dir, tmp_path / "mixed", 30, mixed)
     out = tmp_path / "o"
     argv = [str(bag), "--out", str(out), "--prior", "arkit", "--no-loop-closure"]
     assert cli_map.main(argv) == 0

@@ -1188,21 +1188,11 @@ def test_one_stray_pose_far_along_a_route_does_not_pass_the_cells_between():
     /initialpose put right) moved the route's progress past every cell between for good: a
     cell still ahead of the chair closing then withdrew nothing (a review). Progress moves
     only to the next cells; a pose further on counts for one check alone."""
-    from geometry_msgs.msg import PoseStamped
-
     data = np.full((3, 6), 100, np.int8)
     data[0, :] = 0
     data[2, :] = 0
     data[:, 5] = 0  # a U-shaped corridor
     grid = Grid(data, 1.0)
-
-    def pose_at(cell):
-        pose = PoseStamped()
-        pose.header.frame_id = "map"
-        x, y = grid.cell_center(*cell)
-        pose.pose.position.x, pose.pose.position.y = float(x), float(y)
-        pose.pose.orientation.w = 1.0
-        return pose
 
     with recording_planner() as (node, published):
         node._on_grid(to_occupancy_grid(grid))
@@ -1211,7 +1201,7 @@ def test_one_stray_pose_far_along_a_route_does_not_pass_the_cells_between():
         assert published[-1][-1] == (2, 1) and (0, 3) in published[-1]
         node._on_drive_state(drive_state("plan"))
         for cell in [(0, 0), (0, 1), (2, 2), (0, 1)]:  # (2, 2): one stray pose
-            node._on_chair_pose(pose_at(cell))
+            node._on_chair_pose(goal_msg(grid, cell))  # a PoseStamped at the cell's centre
         closed = data.copy()
         closed[0, 3] = 100  # still ahead of the chair at (0, 1)
         n = len(published)
