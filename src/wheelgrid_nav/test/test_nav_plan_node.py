@@ -697,29 +697,44 @@ def test_a_start_turned_between_two_grid_directions_gets_no_route(tmp_path):
         assert cells_of(h.next_path(n), grid) == PAPER_ROUTE
 
 
-def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(tmp_path):
+@pytest.mark.parametrize("best_effort", [False, True])
+def test_an_estop_pressed_and_released_while_a_route_is_learned_leaves_no_route(
+    tmp_path, best_effort
+):
     """The e-stop shares the planner's executor with the learning: pressed and released while a
     route was learned (up to max_seconds), both waited behind it, so the route to the goal of
     before the e-stop was published first -- after the drive had seen the clear, so it drove it
     with no new command -- and only then the e-stop's empty path. Now e-stops that came during
-    the learning are read before a route is published: none is, and the path is empty."""
+    the learning are read before a route is published: none is, and the path is empty. A
+    best-effort press (a joystick) was read after the reliable clear that followed it: the
+    route went out, and the planner stayed latched after the user's clear, refusing the next
+    goal (a review). Samples are handled in the order they were published."""
     from std_msgs.msg import Bool
 
+    from wheelgrid_common.qos import SENSOR_QOS
+
     with planner_process(tmp_path, *SLOW_LEARNING) as (h, log):
-        estop = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
+        estop = h.node.create_publisher(
+            Bool, "/wheelgrid/estop", SENSOR_QOS if best_effort else RELIABLE_QOS
+        )
+        clear = h.node.create_publisher(Bool, "/wheelgrid/estop", RELIABLE_QOS)
         assert spin_until(h.ex, lambda: estop.get_subscription_count() > 0, 15.0)
+        assert spin_until(h.ex, lambda: clear.get_subscription_count() > 0, 15.0)
         grid = paper_grid_with_the_chair_at_its_start(h)
         h.goal_pub.publish(goal_msg(grid, (6, 5)))
         spin_until(h.ex, lambda: False, 1.0)  # the route is being learned
         estop.publish(Bool(data=True))
         spin_until(h.ex, lambda: False, 0.2)
-        estop.publish(Bool(data=False))
+        clear.publish(Bool(data=False))
         assert spin_until(h.ex, lambda: "e-stop" in log.read_text(), 60.0), log.read_text()
         spin_until(h.ex, lambda: False, 1.0)
         assert h.paths, log.read_text()
         assert all(p.poses == [] for p in h.paths), (
             "a route to the goal of before the e-stop was published\n" + log.read_text()
         )
+        n = len(h.paths)
+        h.goal_pub.publish(goal_msg(grid, (2, 5)))  # after the clear: planned
+        assert h.next_path(n, timeout=60.0).poses, log.read_text()
 
 
 @pytest.mark.parametrize("start", ["initialpose", "odometry"])

@@ -297,7 +297,7 @@ def _make_node_class() -> type:
             # subscription above: the drive latched it, the planner kept the goal, and the
             # next grid sent the chair on to it after the clear (a review). This copy latches
             # only, as the latched one does.
-            self.create_subscription(
+            self._estop_best_effort_sub = self.create_subscription(
                 Bool, "wheelgrid/estop", with_message_info(self._on_estop_latched), SENSOR_QOS
             )
             steady_timer(self, 0.5, self._drop_goal_waited_too_long)
@@ -855,9 +855,24 @@ def _make_node_class() -> type:
             the press was published after the drive had seen the release (and it drove it with
             no new command), and only then came the e-stop's empty path. ``take_message`` is
             what rclpy's own executor calls, but not public API: where it fails, the caller
-            publishes no route rather than one an e-stop may have voided."""
-            self._take_waiting(self._estop_sub, self._on_estop_reliable, with_info=True)
-            self._take_waiting(self._estop_latched_sub, self._on_estop_latched, with_info=True)
+            publishes no route rather than one an e-stop may have voided.
+
+            All three subscriptions' samples are handled in the order they were published: a
+            best-effort press read after the reliable clear that followed it latched the
+            planner after the user's clear, and the route learned across it went out first (a
+            review)."""
+            waiting: list[tuple[Any, Any, dict[str, Any] | None]] = []
+            for sub, handler in (
+                (self._estop_sub, self._on_estop_reliable),
+                (self._estop_latched_sub, self._on_estop_latched),
+                (self._estop_best_effort_sub, self._on_estop_latched),
+            ):
+                self._take_waiting(sub, lambda msg, info, h=handler: waiting.append((h, msg, info)),
+                                   with_info=True)  # fmt: skip
+            # (a sample without a publication time goes first: no time to order it by)
+            waiting.sort(key=lambda w: sample_key(w[2]) or (0, 0))
+            for handler, msg, info in waiting:
+                handler(msg, info)
 
         def _publish_route(
             self, grid: Grid | None, cells: list[tuple[int, int]], heading: str | None = None
