@@ -484,7 +484,10 @@ def user_folder(text: str) -> Path:
 def check_user_folder(text: str, name: str = "output_dir") -> None:
     """``ValueError`` naming parameter ``name`` where :func:`user_folder` cannot place
     ``text`` (``~maps`` for ``~/maps``): a node checks it at start and on a live change, not
-    when a save is asked for (the save raised and the node died)."""
+    when a save is asked for (the save raised and the node died). An empty one names no folder:
+    it was the node's working directory, and `~/save` replaced grid files there (a review)."""
+    if not text.strip():
+        raise ValueError(f"{name} is empty: name the folder to save into")
     try:
         user_folder(text)
     except OSError as exc:

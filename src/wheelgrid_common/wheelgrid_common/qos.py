@@ -26,6 +26,16 @@ MAP_QOS: QoSProfile = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 
+# MAP_QOS for a reader that must see every map in turn, not only the newest: the mapper's
+# ~/reset is an empty map, and while the grid node was busy gridding a big map the next map
+# replaced it in the one slot, and the cleared map's grid stayed published (a review).
+MAP_QUEUE_QOS: QoSProfile = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
 # Commands and state that must arrive but need no late-joiner replay.
 RELIABLE_QOS: QoSProfile = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,

@@ -575,3 +575,51 @@ def test_a_parameter_change_recomputes_a_refused_map():
         np.testing.assert_array_equal(
             from_occupancy_grid(grids[-1]).data == OCCUPIED, paper_like_expected()
         )
+
+
+def test_a_reset_queued_behind_a_busy_node_is_not_replaced_by_the_next_map() -> None:
+    """While the node gridded a big map, the mapper's ~/reset (an empty map) and its next map
+    came: the subscription kept one message, the next map replaced the reset, and (refused:
+    only floor) the cleared map's grid stayed published (a review). Both are read in turn."""
+    from wheelgrid_common.map_io import UNKNOWN
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    with in_process_grid() as t:
+        t.pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(t.ex, lambda: t.grids, 20.0)
+        # both sent before the node's executor runs again, as while it grids a big map
+        t.pub.publish(to_pointcloud2(np.empty((0, 3)), "map"))  # the mapper's ~/reset
+        xy = np.random.default_rng(0).uniform(0, 3, (5000, 2))
+        t.pub.publish(to_pointcloud2(np.column_stack([xy, np.zeros(5000)]), "map"))
+        assert spin_until(t.ex, lambda: len(t.grids) > 1, 5.0), "the reset was lost"
+        assert (from_occupancy_grid(t.grids[-1]).data == UNKNOWN).all()
+
+
+def test_the_heartbeat_says_busy_while_a_map_is_read(monkeypatch) -> None:
+    """Reading a map of millions of points took seconds outside the busy mark: the heartbeat
+    said "stalled, not busy", which the drive reads as a hung grid node (a review)."""
+    from wheelgrid_nav import grid_node as gn
+
+    cloud = room_cloud(paper_like_boxes(), spacing=0.05)
+    read = gn.read_xyz
+    busy_while_read: list[bool] = []
+    with in_process_grid() as t:
+
+        def slow_read(msg):
+            busy_while_read.append(t.grid_node._busy_since is not None)
+            return read(msg)
+
+        monkeypatch.setattr(gn, "read_xyz", slow_read)
+        t.pub.publish(to_pointcloud2(cloud, "map"))
+        assert spin_until(t.ex, lambda: t.grids, 20.0)
+    assert busy_while_read == [True]
+
+
+def test_an_empty_output_dir_is_refused() -> None:
+    """An empty output_dir named the node's working directory, and ~/save replaced grid files
+    there (a review)."""
+    from wheelgrid_common.fileio import check_user_folder
+
+    for text in ("", "  "):
+        with pytest.raises(ValueError, match="output_dir is empty"):
+            check_user_folder(text)

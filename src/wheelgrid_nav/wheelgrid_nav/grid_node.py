@@ -39,7 +39,7 @@ from wheelgrid_common import params
 from wheelgrid_common.fileio import check_user_folder, user_folder
 from wheelgrid_common.map_io import UNKNOWN, to_occupancy_grid
 from wheelgrid_common.pointcloud2 import CloudError, read_xyz
-from wheelgrid_common.qos import MAP_QOS, RELIABLE_QOS
+from wheelgrid_common.qos import MAP_QOS, MAP_QUEUE_QOS, RELIABLE_QOS
 from wheelgrid_common.ros_env import SideSpinner, side_node, spin_node, steady_timer
 from wheelgrid_nav.grid import GridError, GridNodeConfig, GridResult, build_grid, grid_config
 
@@ -93,7 +93,7 @@ class GridNode(Node):
         # the map was cleared (~/reset) or when every map so far was refused
         self.grid_pub = self.create_publisher(OccupancyGrid, SAFE_GRID_TOPIC, MAP_QOS)
         self.fine_pub = self.create_publisher(OccupancyGrid, FINE_MAP_TOPIC, MAP_QOS)
-        self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QOS)
+        self.create_subscription(PointCloud2, MAP_CLOUD_TOPIC, self._on_cloud, MAP_QUEUE_QOS)
         self._no_grid = f"nothing received on {self.resolve_topic_name(MAP_CLOUD_TOPIC)}"
         self.create_service(Trigger, "~/save", self._on_save)
         self._timer = steady_timer(self, max(self.period, 0.05), self._maybe_compute)
@@ -188,7 +188,10 @@ class GridNode(Node):
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         try:
-            points = read_xyz(msg)
+            # a map of millions of points takes a second or more to read: said busy, or the
+            # heartbeat read "stalled, not busy" and the drive stopped for a hung grid node
+            with self._working():
+                points = read_xyz(msg)
         except CloudError as exc:
             if exc.cause != "empty":
                 self._reject(f"unusable map cloud ({exc})")

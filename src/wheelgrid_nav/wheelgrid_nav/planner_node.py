@@ -269,8 +269,8 @@ def _make_node_class() -> type:
             self._drive_job: tuple[str, float, str] = ("", -math.inf, "")
             # when the oldest route the drive has not driven since went out (None: it drives
             # the newest, or none went out): replans (each grid of another size, the map
-            # growing) send a route anew, and counted from the newest one the drive never
-            # had to take any (a review: a refused route, sent again for ever)
+            # growing) send a route anew, and counted from each new one a drive that took
+            # none was sent one again for ever (a review: a refused route)
             self._untaken_since: float | None = None
             self.create_subscription(
                 DiagnosticArray, "wheelgrid/drive_state", self._on_drive_state, RELIABLE_QOS
