@@ -404,3 +404,57 @@ def test_stream_stray_waits_for_a_bridge_that_is_still_starting(
     out = capsys.readouterr()
     assert "waiting up to 10 s" in out.err and "sent 2 frames" in out.out
     assert got  # the bridge received them
+
+
+def test_stream_stray_says_the_bridge_went_away_during_a_pause(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """The bridge stopped during a pause in the capture: stream-stray said "nothing listens
+    ... after 10 s" (it had not waited, had sent 3 frames, and the bridge had been running; a
+    review). It says the bridge went away, after how many frames."""
+    from wheelgrid_mapping import cli_stray
+
+    cap = _first_frames(stray_capture, tmp_path / "cap", 6)
+    _with_odometry(stray_capture, cap, [100.0, 100.1, 100.2, 101.7, 101.8, 101.9])
+    monkeypatch.setattr(cli_stray, "PAUSE_RECONNECT_S", 0.5)
+    got: list[bp.Frame] = []
+    srv = bp.BridgeServer(lambda f, c: got.append(f), lambda lv, t: None, port=0)
+    srv.start()
+    closed = cli_stray.connect
+
+    def stop_the_bridge_first(*args, **kwargs):
+        if got:  # the reconnect after the pause: the bridge is gone by then
+            srv.stop()
+        return closed(*args, **kwargs)
+
+    monkeypatch.setattr(cli_stray, "connect", stop_the_bridge_first)
+    try:
+        assert stream_main([str(cap), "--to", f"127.0.0.1:{srv.port}"]) == 1
+    finally:
+        srv.stop()
+    err = capsys.readouterr().err
+    assert "the bridge went away during a pause in the capture, after 3 of 6 frames" in err, err
+    assert "nothing listens" not in err
+
+
+def test_import_stray_logs_frames_in_capture_order_and_refuses_an_export_of_no_frame(
+    capsys: pytest.CaptureFixture[str], stray_capture: Path, tmp_path: Path
+) -> None:
+    """A frame stamped 10 s back was logged at its stamp, first in the bag, and began the map
+    there (mapped from the export it is skipped; a review): log times never go back in capture
+    order. An export whose every frame fails to read wrote an empty bag, exit 0."""
+    cap = _first_frames(stray_capture, tmp_path / "cap", 6)
+    _with_odometry(stray_capture, cap, [100.0, 100.1, 100.2, 90.3, 100.4, 100.5])
+    assert import_main([str(cap), "--out", str(tmp_path / "bag")]) == 0
+    with BagReader(tmp_path / "bag") as r:
+        clouds = list(r.messages(["/iphone/points"]))
+    logged = [t * 1e-9 for _, t, _ in clouds]
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for _, _, m in clouds]
+    assert np.all(np.diff(logged) >= 0) and logged[0] == pytest.approx(100.0)
+    assert stamps[3] == pytest.approx(90.3)  # the header keeps the bad stamp
+    for png in (cap / "depth").glob("*.png"):
+        png.write_bytes(png.read_bytes()[:2000])  # headers read, pixels do not
+    capsys.readouterr()
+    assert import_main([str(cap), "--out", str(tmp_path / "bag2")]) == 2
+    assert "none of the 6 frames read" in capsys.readouterr().err
+    assert not (tmp_path / "bag2").exists()

@@ -193,7 +193,15 @@ def stream_export(
                 if wait > PAUSE_RECONNECT_S:
                     sock.close()
                     time.sleep(wait)
-                    sock = connect(host, port, token=token, name=name)
+                    try:
+                        sock = connect(host, port, token=token, name=name)
+                    except ConnectionRefusedError:
+                        # said as "nothing listens ... after 10 s", with no wait and 15 frames
+                        # sent (a review)
+                        raise BridgeClosedError(
+                            f"the bridge went away during a pause in the capture, after "
+                            f"{stats.frames_sent} of {len(idx)} frames"
+                        ) from None
                     stats.reconnects += 1
                 elif wait > 0:
                     time.sleep(wait)
@@ -336,6 +344,7 @@ def import_main(argv: list[str]) -> int:
     skipped = 0
     unfiltered = 0  # frames with no confidence image: --min-confidence cannot apply
     t0 = time.monotonic()
+    log_ns = 0
     try:
         with BagWriter(args.out, args.storage) as bag, Progress(len(idx), "import-stray") as bar:
             for seq, i in enumerate(idx):
@@ -346,7 +355,10 @@ def import_main(argv: list[str]) -> int:
                     continue
                 unfiltered += int(sf.confidence is None and args.min_confidence > 0)
                 frame = stray_to_frame(sf, seq)
-                log_ns = round(exp.captured_by(i) * 1e9)
+                # never before the frame before it: a recorder gets frames in capture order, and
+                # a frame stamped 10 s back, logged at its stamp, went first in the bag and began
+                # the map there (its header keeps the stamp, which the mapper then skips; a review)
+                log_ns = max(log_ns, round(exp.captured_by(i) * 1e9))
                 for topic, msgtype, msg in frame_messages(
                     frame, frame.stamp, min_confidence=args.min_confidence, organized=not args.dense
                 ):
@@ -366,6 +378,10 @@ def import_main(argv: list[str]) -> int:
             130 if isinstance(exc, KeyboardInterrupt) else 1,
             f"{what}{detail}; the part of {args.out} written is removed, no bag was made",
         )
+    if skipped == len(idx):
+        # an empty bag, exit 0, which `wheelgrid map` then refused as "no topic" (a review)
+        shutil.rmtree(args.out, ignore_errors=True)
+        return _fail(2, f"none of the {len(idx)} frames read (see above); no bag was made")
     if unfiltered:
         print(
             f"wheelgrid import-stray: warning: {unfiltered} of {len(idx) - skipped} frames have "
