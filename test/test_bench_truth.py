@@ -54,3 +54,26 @@ def test_transport_lines_give_the_baseline_with_its_unit_and_no_empty_one() -> N
     assert row_line(leak) == "RTPS packets leaving: 0 packets; must be 0"
     share = dict(figure="delivered at 10 Hz", value=100.0, unit="%", baseline=36.0, note="n=100")
     assert row_line(share) == "delivered at 10 Hz: 100.0 % (baseline 36.0 %); n=100"
+
+
+def test_the_bench_does_not_score_a_box_that_wheelgrid_measure_refuses(capsys) -> None:
+    """A ghost copy of table B's face 3 cm nearer table A (as a loop might leave): `wheelgrid
+    measure` refuses the box (a second surface nearer the other box), while the bench read
+    9(a) off it, 0 % deviation, and counted the target met (a review)."""
+    bench = bench_module("bench_mapping")
+    scene = paper_scene()
+    pts = scene.interior_surface_points(0.02)
+    x_face = 1.1 + 1.2012  # table B's west face
+    face = pts[
+        (np.abs(pts[:, 0] - x_face) < 1e-9)
+        & (pts[:, 1] >= 4.95)
+        & (pts[:, 1] <= 5.85)
+        & (pts[:, 2] >= 0.1)
+        & (pts[:, 2] <= 0.745)
+    ]
+    ghost = face[face[:, 2] < 0.45].copy()
+    ghost[:, 0] -= 0.03
+    bench.truth_rows("ghost", np.vstack([pts, ghost]), json.loads(scene.dumps()))
+    out = capsys.readouterr().out
+    assert "ghost: 9(a)" in out and "not measurable (a second surface nearer" in out, out
+    assert "ghost: Table I 9(a) table A to table B deviation" not in out, out

@@ -1014,6 +1014,29 @@ def test_measure_says_how_it_read_surfaces_that_are_not_parallel(tmp_path: Path,
         out = capsys.readouterr().out
         assert "WARNING: surfaces 90 deg from parallel, the distance is " in out
         assert says in out and "centroid-based" not in out
+        # --json said nothing of it: a 12 % "deviation" between perpendicular faces went to a
+        # script as a valid reading (a review)
+        assert cli_measure.main([*argv, *extra, "--json"]) == 0
+        warnings = json.loads(capsys.readouterr().out)["warnings"]
+        assert any("90 deg from parallel" in w and says in w for w in warnings), warnings
+
+
+def test_resamples_microns_apart_are_not_unstable() -> None:
+    """On noise-free faces the resamples lie microns apart, a few of them "4x the standard
+    error" away, and the reading was flagged UNSTABLE (a review): a resample within 1 mm of
+    the median never counts."""
+    from wheelgrid_mapping.cli_measure import bootstrap_stderr
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(0.0, 1.0, (50, 1))
+    b = rng.normal(0.0, 1.0, (50, 1))
+    heavy = rng.standard_cauchy(200) * 1e-6  # heavy tails: a few resamples far in sigmas
+
+    def distance(x: np.ndarray, y: np.ndarray) -> float:
+        return 1.2 + heavy[int(abs(x.sum() * 1e3)) % 200]
+
+    se, unstable = bootstrap_stderr(a, b, distance)
+    assert 0 < se < 1e-4 and unstable == 0.0, (se, unstable)
 
 
 def test_too_few_frames_to_level_says_why(tmp_path: Path, capsys) -> None:
@@ -1154,6 +1177,7 @@ def test_measure_of_one_surface_is_unchanged_by_the_second_surface_check(
     out = json.loads(capsys.readouterr().out)
     expected = asdict(cli_measure.measure(read_ply(ply), box_a, box_b))  # the map's float32
     del expected["second_a"], expected["second_b"], expected["behind_a"], expected["behind_b"]
+    expected["warnings"] = []  # (the line's warnings, none here)
     assert out == json.loads(json.dumps(expected))  # the keys and numbers of before
 
 
