@@ -23,7 +23,7 @@ import math
 import shutil
 import struct
 import sys
-from collections.abc import Collection
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,6 +66,9 @@ class Recovery:
     # sqlite3 files nothing lists a count for (no metadata.yaml): what their recorder had not
     # yet written out when it stopped cannot be counted, so "nothing was cut off" is not known
     unlisted: list[str] = field(default_factory=list)
+    # sqlite3 rows that could not be read or do not decode (a damaged page): skipped, the rows
+    # after them copied
+    unreadable: int = 0
 
 
 def mcap_extent(path: Path) -> Extent:
@@ -492,8 +495,13 @@ def _copy(
     try:
         with Progress(total, "recover", "messages") as bar:
             for path, reader in readers:
+                rows = (
+                    _sqlite_rows(reader, res, store)
+                    if path.suffix == ".db3"
+                    else reader.messages(reader.connections)
+                )
                 try:
-                    for conn, t_ns, data in reader.messages(reader.connections):
+                    for conn, t_ns, data in rows:
                         key = (conn.topic, conn.msgtype)
                         if key not in conns:
                             try:
@@ -532,6 +540,31 @@ def _copy(
         shutil.rmtree(out, ignore_errors=True)
         raise
     writer.close()
+
+
+def _sqlite_rows(reader: Any, res: Recovery, store: Any) -> Iterator[tuple[Any, int, bytes]]:
+    """A sqlite3 file's messages row by row, in the order they were written, each row that
+    does not read or decode skipped and counted in ``res.unreadable``. Read in one query, the
+    copy ended at the first damaged page: 40 of 100 messages kept where 97 rows read one by
+    one, and the missing ones never counted (a review)."""
+    conns = {c.id: c for c in reader.connections}
+    db = reader.dbconn
+    (last,) = next(iter(db.execute("SELECT max(id) FROM messages")))
+    for row_id in range(1, int(last or 0) + 1):
+        try:
+            rows = list(
+                db.execute("SELECT topic_id, timestamp, data FROM messages WHERE id=?", (row_id,))
+            )
+            if not rows:
+                continue  # no row of that id (a recorder's deleted or never-written one)
+            topic_id, t_ns, data = rows[0]
+            conn = conns[topic_id]
+            if conn.msgtype in store.fielddefs:
+                store.deserialize_cdr(bytes(data), conn.msgtype)
+        except Exception:
+            res.unreadable += 1
+            continue
+        yield conn, int(t_ns), bytes(data)
 
 
 def _connection(writer: Any, conn: Any, store: Any) -> Any:
@@ -623,6 +656,8 @@ def main(argv: list[str] | None = None) -> int:
             f"metadata.yaml) are not in it: damaged or missing{where}"
             + ("" if res.already_complete == len(res.files) else f"; {state}")
         )
+    if res.unreadable:
+        state += f"; {res.unreadable} damaged row(s) skipped, the rows after them copied"
     print(
         f"bag-recover: {res.messages} messages over {span:.1f} s ({topics}) from "
         f"{len(res.files)} file(s) -> {args.out}; {state}"
