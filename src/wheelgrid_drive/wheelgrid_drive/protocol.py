@@ -242,10 +242,9 @@ def move_length_problem(distance_m: float, what: str = "cell size") -> str | Non
 
 
 def pack_move(distance_m: float, speed_kmh: float) -> bytes:
-    mm = round(distance_m * 1000.0)
-    if not 0 < mm <= MAX_DISTANCE_MM:
-        raise ValueError(f"distance {distance_m} m outside (0, {MAX_DISTANCE_MM / 1000} m]")
-    return _MOVE.pack(mm, kmh_to_mm_s(speed_kmh))
+    if problem := move_length_problem(distance_m, "distance"):
+        raise ValueError(problem)
+    return _MOVE.pack(round(distance_m * 1000.0), kmh_to_mm_s(speed_kmh))
 
 
 def unpack_move(payload: bytes) -> tuple[int, int]:
