@@ -780,20 +780,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     # what makes the reading doubtful, said in the JSON too: it printed a 12 % "deviation"
     # between perpendicular faces with no word of them (a review)
-    warnings = []
+    line_warnings = []  # the line's own (the normal's is said beside the normal)
     if m.angle_deg > 10.0:
         reading = not_parallel_reading(m.along is not None, args.normal_radius)
-        warnings.append(f"surfaces {m.angle_deg:.0f} deg from parallel, {reading}")
-    if m.along is not None and m.along_angle_deg > 10.0:
-        warnings.append("the normal given does not stand on these faces")
+        line_warnings.append(f"surfaces {m.angle_deg:.0f} deg from parallel, {reading}")
     if m.distance > ROOM_SIZE_M:
-        warnings.append(
+        line_warnings.append(
             f"{m.distance:.0f} m is no gap within a room: are the map's coordinates in metres "
             "(a map in millimetres reads 1000x, its surfaces' points mostly outside the fits' "
             "centimetre gates)?"
         )
     if args.json:
-        out["warnings"] = warnings
+        normal_off = m.along is not None and m.along_angle_deg > 10.0
+        out["warnings"] = line_warnings + (
+            ["the normal given does not stand on these faces"] if normal_off else []
+        )
         print(json.dumps(out))
         return 0
     if axis is None:
@@ -835,9 +836,8 @@ def main(argv: list[str] | None = None) -> int:
             f"; UNSTABLE: {m.unstable_pct:.0f} % of resamples of its points read it more than "
             f"{UNSTABLE_SIGMAS:.0f}x that away (too few points to fix {why})"
         )
-    for warning in warnings:
-        if "does not stand" not in warning:  # said with the normal above
-            line += f"; WARNING: {warning}"
+    for warning in line_warnings:
+        line += f"; WARNING: {warning}"
     for box, behind in (("A", m.behind_a), ("B", m.behind_b)):
         # "farther" has no sense between faces far from parallel (a table top's underside)
         if behind is not None and m.angle_deg <= 10.0:
