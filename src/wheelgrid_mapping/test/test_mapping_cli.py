@@ -1051,17 +1051,6 @@ def test_too_few_frames_to_level_says_why(tmp_path: Path, capsys) -> None:
     assert "Traceback" not in err and not (tmp_path / "m" / "map.ply").exists()
 
 
-def test_frames_that_share_a_stamp_keep_their_own_numbers_in_the_warnings() -> None:
-    """The warnings come back from the pipeline by stamp: with a plain dict the first of two
-    frames stamped alike was reported under the second's number, and the second as -1."""
-    numbers = cli_map.FrameNumbers()
-    numbers.push(5.0, 3)
-    numbers.push(5.0, 4)
-    numbers.push(6.0, 5)
-    assert [numbers.pop(5.0), numbers.pop(5.0), numbers.pop(6.0)] == [3, 4, 5]
-    assert numbers.pop(5.0) == -1  # nothing left under it
-
-
 def test_a_loop_closure_or_mapper_number_that_cannot_work_is_one_line(
     sim_dir: Path, tmp_path: Path, capsys
 ) -> None:

@@ -80,6 +80,31 @@ def test_a_frame_that_raises_is_its_own_error_and_the_next_ones_are_mapped() -> 
     assert m.frames_read == ref.frames_read + 1
 
 
+@pytest.mark.parametrize("ahead", [True, False])
+def test_each_outcome_names_its_own_frame_by_number(ahead: bool) -> None:
+    """The outcomes come back one frame late, a frame skipped at admission ahead of the one in
+    preparation: matched to their frames by stamp, two clouds stamped alike swapped numbers
+    (the CLI kept a queue per stamp for it). Each outcome carries its frame's input number:
+    a repeat (skipped), a frame that raises (error) and the numbers given, not counted."""
+    given = frames(6)
+    given.insert(2, (given[1][0].copy(), given[1][1]))  # frame 1 delivered twice
+    given.insert(5, (np.zeros(10), 0.7))  # 10 numbers: no (N, 3) cloud
+    numbers = [100 + 3 * k for k in range(len(given))]  # not the mapper's own count
+    m = mapper()
+    with FramePipeline(m, ahead) as pipe:
+        seen: list[tuple[float, FrameOutcome]] = []
+        for (pts, stamp), number in zip(given, numbers, strict=True):
+            seen.extend(pipe.push(pts, stamp, "base_link", number=number))
+        seen.extend(pipe.flush())
+    by_number = {o.number: o for _, o in seen}
+    assert sorted(by_number) == numbers  # each frame once, under its own number
+    assert by_number[numbers[2]].cause == "out_of_order"  # the repeat, not frame 1
+    assert by_number[numbers[1]].status == "used"
+    assert by_number[numbers[5]].status == "error"
+    stamps = {o.number: t for t, o in seen}
+    assert [stamps[n] for n in numbers] == [t for _, t in given]
+
+
 def test_the_second_process_dying_loses_no_frame() -> None:
     given = frames()
     m = mapper()

@@ -13,7 +13,6 @@ import contextlib
 import itertools
 import sys
 import time
-from collections import deque
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -78,32 +77,6 @@ def _not_a_bag_hint(path: Path) -> None:
             f"{path}: neither a rosbag2 bag (no metadata.yaml) nor a Stray Scanner export "
             f"(no depth/ folder){hint}"
         )
-
-
-class FrameNumbers:
-    """A frame's number in the input by its stamp, for the warnings about it, which come back
-    from the pipeline with the stamp only. Frames that share a stamp (a recorder that stamped
-    two clouds alike) queue up under it, in input order as the pipeline returns them: a plain
-    dict gave the first such frame's warning the second's number and the second's -1."""
-
-    def __init__(self) -> None:
-        self._numbers: dict[float, deque[int]] = {}
-
-    def push(self, stamp: float, number: int) -> None:
-        self._numbers.setdefault(float(stamp), deque()).append(number)
-
-    def pop(self, stamp: float, newest: bool = False) -> int:
-        """The oldest number pushed under ``stamp`` (-1 if none); with ``newest``, the last
-        one: a frame skipped at admission comes back at once, ahead of the frame still being
-        prepared, and is the one just pushed (a bag stamped alike throughout warned of its
-        frame 0, which was mapped, for frame 1)."""
-        queue = self._numbers.get(float(stamp))
-        if not queue:
-            return -1
-        number = queue.pop() if newest else queue.popleft()
-        if not queue:
-            del self._numbers[float(stamp)]
-        return number
 
 
 def stray_frames(
@@ -575,13 +548,11 @@ def _run(args: argparse.Namespace) -> int:
     pipe = FramePipeline(mapper, cfg.prepare_ahead)
     t0 = time.perf_counter()
     n = 0
-    index = FrameNumbers()
-
     causes_said: set[str] = set()
 
     def report(done: list[tuple[float, FrameOutcome]]) -> None:
-        for stamp, out in done:
-            k = index.pop(stamp, newest=out.status == "skipped")
+        for _, out in done:
+            k = out.number
             if out.status == "failed":
                 print(
                     f"\nWARNING frame {k}: registration failed: {out.reason}; "
@@ -627,7 +598,6 @@ def _run(args: argparse.Namespace) -> int:
                     )
                 bar.update(1)
                 continue
-            index.push(stamp, n - 1)
             frame = (pts, stamp, frame_id or DEFAULT_FRAME_ID, conf, prior, received)
             report(pipe.push(*frame, number=n - 1))
             bar.update(1, postfix=f"used {mapper.registrar.counters.accepted}")

@@ -231,13 +231,13 @@ class MapperNode(Node):  # type: ignore[misc]
         # soon as the closure lets go of it, before it maps any frame
         self._reset_pending = False
         self._sensor_frame = DEFAULT_FRAME_ID
-        # (stamp, frame_id, header stamp) of each frame pushed, in push order, until its
-        # outcome is reported: frames are filtered one ahead, so the frame just taken may not
-        # be the one whose pose comes out next. The stamp goes out as received: a float of
-        # epoch seconds is ~100 ns off. Not a dict by stamp: a cloud delivered twice took the
-        # first one's entry, and its pose went out with the repeat's frame_id and a stamp
-        # rebuilt from the float (see _pushed).
-        self._frame_ids: deque[tuple[float, str, Any]] = deque()
+        # (frame_id, header stamp) of each frame pushed, by its number in the mapper, until
+        # its outcome (which carries that number) is reported: frames are filtered one ahead,
+        # so the frame just taken may not be the one whose pose comes out next. The stamp goes
+        # out as received: a float of epoch seconds is ~100 ns off. Not by stamp: a cloud
+        # delivered twice took the first one's entry, and its pose went out with the repeat's
+        # frame_id and a stamp rebuilt from the float.
+        self._frame_ids: dict[int, tuple[str, Any]] = {}
 
         self.map_pub = self.create_publisher(PointCloud2, "wheelgrid/map_cloud", MAP_QOS)
         # reliable, keep last 10: best-effort readers (the planner) still match, and RViz's
@@ -534,7 +534,8 @@ class MapperNode(Node):  # type: ignore[misc]
                     # status read one skipped of none received)
                     continue
                 # this frame goes to the second process; the one before it to the map
-                self._frame_ids.append((stamp, frame_id or self._sensor_frame, header_stamp))
+                number = self.mapper.frames_read  # the mapper's own count, as its report's
+                self._frame_ids[number] = (frame_id or self._sensor_frame, header_stamp)
                 done = self._pipe.push(
                     pts,
                     stamp,
@@ -544,20 +545,9 @@ class MapperNode(Node):  # type: ignore[misc]
                     received,
                     False if no_gap else None,
                     dropped_priors,
+                    number,
                 )
             self._report(done, generation)
-
-    def _pushed(self, stamp: float, skipped: bool) -> tuple[str, Any]:
-        """The frame_id and header stamp of the frame with ``stamp`` whose outcome this is: a
-        frame skipped as it was admitted is the one just pushed (the latest with that stamp),
-        any other the earliest not reported yet (they are added in push order)."""
-        order = range(len(self._frame_ids) - 1, -1, -1) if skipped else range(len(self._frame_ids))
-        for i in order:
-            pushed, frame_id, header_stamp = self._frame_ids[i]
-            if pushed == stamp:
-                del self._frame_ids[i]
-                return frame_id, header_stamp
-        return self._sensor_frame, None
 
     def _report(
         self, done: list[tuple[float, FrameOutcome]], generation: int | None = None
@@ -575,7 +565,7 @@ class MapperNode(Node):  # type: ignore[misc]
                 f"process from now on, slower, none lost: {self._pipe.note}"
             )
         for stamp, out in done:
-            frame_id, header_stamp = self._pushed(stamp, out.status == "skipped")
+            frame_id, header_stamp = self._frame_ids.pop(out.number, (self._sensor_frame, None))
             if out.status == "error":
                 # throttled like the registration failures (frames_errored counts each)
                 self.get_logger().error(

@@ -321,6 +321,10 @@ class FrameOutcome:
     after_gap: bool = False  # came after a dropout (registration.max_gap), placed on the map
     # of a skipped frame that a user must hear of (not a keyframe interval): "other_frame"
     cause: str = ""
+    # the frame's number in the input (:meth:`Mapper.admit`'s), for the warnings that name it:
+    # outcomes come back one frame late and out of order from the prefetch pipeline, and
+    # matched to their frames by stamp, two frames stamped alike swapped numbers (-1: unknown)
+    number: int = -1
 
 
 @dataclass
@@ -545,6 +549,19 @@ class Mapper:
         ``number``: the frame's number in the input, which the report's failures and clock
         jumps name (default: its count here). An input's unreadable frames never come here,
         and counted here the report named another frame than the warning (a review)."""
+        skipped = self._admit(stamp, frame_id, received, number)
+        if skipped is not None:
+            skipped.number = self.frames_read - 1 if number is None else number
+        return skipped
+
+    @property
+    def newest_admitted(self) -> int:
+        """The input number of the frame :meth:`admit` let through last (-1: none waiting)."""
+        return self._admitted[-1][0] if self._admitted else -1
+
+    def _admit(
+        self, stamp: float, frame_id: str, received: float | None, number: int | None
+    ) -> FrameOutcome | None:
         if self.loop_info:  # close_loops has run
             # The registration map still holds the pre-graph poses: a new frame would register
             # against a map that no longer matches the trajectory it is appended to.
@@ -673,6 +690,18 @@ class Mapper:
         dropped while busy are none); None: registration reads it from their stamps.
         ``dropped_priors``: (first, last): seconds from the first and the last frame before this
         one that the caller dropped (while busy) and that had a pose prior; None: none."""
+        number = self._admitted[0][0] if self._admitted else -1
+        outcome = self._add_prepared(prep, prior, after_gap, dropped_priors)
+        outcome.number = number
+        return outcome
+
+    def _add_prepared(
+        self,
+        prep: PreparedFrame,
+        prior: np.ndarray | None,
+        after_gap: bool | None,
+        dropped_priors: tuple[float, float] | None,
+    ) -> FrameOutcome:
         if not self._admitted:
             raise RuntimeError("Mapper.add_prepared without a frame admitted before it")
         index, stamp, t_map, bridged = self._admitted.pop(0)

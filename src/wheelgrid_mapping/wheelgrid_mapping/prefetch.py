@@ -96,6 +96,7 @@ class _Pending:
     sent: bool  # to the worker (else it is prepared here when its turn comes)
     after_gap: bool | None = None  # Mapper.add_prepared's
     dropped_priors: tuple[float, float] | None = None  # Mapper.add_prepared's
+    number: int = -1  # in the input (Mapper.admit's): an error's outcome names it too
 
 
 class FramePipeline:
@@ -151,7 +152,14 @@ class FramePipeline:
         previous = self._pending
         prepared = self._collect(previous) if previous is not None else None
         self._pending = _Pending(
-            points, confidence, prior, float(stamp), False, after_gap, dropped_priors
+            points,
+            confidence,
+            prior,
+            float(stamp),
+            False,
+            after_gap,
+            dropped_priors,
+            self.mapper.newest_admitted,
         )
         if self._worker is not None:
             try:
@@ -182,14 +190,14 @@ class FramePipeline:
         outcome (``error``), as a bad frame must never stop the frames after it."""
         if not isinstance(prepared, PreparedFrame):
             self.mapper.drop_admitted()
-            return frame.stamp, FrameOutcome("error", repr(prepared))
+            return frame.stamp, FrameOutcome("error", repr(prepared), number=frame.number)
         try:
             return frame.stamp, self.mapper.add_prepared(
                 prepared, frame.prior, frame.after_gap, frame.dropped_priors
             )
         except Exception as exc:
             self.mapper.frames_errored += 1  # read, and neither used, failed nor skipped
-            return frame.stamp, FrameOutcome("error", repr(exc))
+            return frame.stamp, FrameOutcome("error", repr(exc), number=frame.number)
 
     def discard(self) -> None:
         """Forget the frame in preparation (a reset)."""
