@@ -383,6 +383,20 @@ def test_colour_and_16_bit_images_read_as_nav2_map_server_reads_them(tmp_path):
     assert read_map(tmp_path / "d.yaml").data.tolist() == [[-1, 0, 100]]
 
 
+def test_an_image_past_pillows_pixel_limit_is_one_clear_error(tmp_path, monkeypatch):
+    """A few KB of PNG that unpacks to over ~179 M pixels (Pillow's DecompressionBombError)
+    came out of read_map as a traceback, exit 1, from `wheelgrid plan` (a review). Pillow's
+    own limit, lowered here so that a small image passes it, is read as one ValueError."""
+    from PIL import Image
+
+    _png(tmp_path / "c.png", np.zeros((20, 20), np.uint8))
+    (tmp_path / "c.yaml").write_text("image: c.png\n" + _NAV2_HEAD)
+    assert read_map(tmp_path / "c.yaml").data.shape == (20, 20)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # 400 pixels: over twice the limit
+    with pytest.raises(ValueError, match=r"c\.png: too large to read as a map"):
+        read_map(tmp_path / "c.yaml")
+
+
 def test_transparent_pixels_read_as_nav2_map_server_reads_them(tmp_path):
     """Nav2's map_saver writes scale mode's unknown cells as transparent gray (0.5): map_server
     reads any pixel that is not opaque as unknown there, and in trinary mode averages the

@@ -217,6 +217,10 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             rgba = np.asarray(im.convert("RGBA"), dtype=np.float64)
     except UnidentifiedImageError as exc:
         raise ValueError(f"{path}: not an image ({exc})") from exc
+    except Image.DecompressionBombError as exc:
+        # a few KB of PNG that unpacks to gigabytes (over ~179 M pixels): a traceback, exit 1,
+        # from `wheelgrid plan` and the drive's --grid (a review)
+        raise ValueError(f"{path}: too large to read as a map ({exc})") from exc
     return rgba[..., :3].mean(axis=2), rgba[..., 3] if has_alpha else None
 
 
