@@ -43,6 +43,14 @@ def _remove_if_no_file(folder: str) -> None:
 if "ROS_LOG_DIR" not in os.environ:
     os.environ["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix="wheelgrid-test-log.")
     atexit.register(_remove_if_no_file, os.environ["ROS_LOG_DIR"])
+try:  # hypothesis keeps its cache in ./.hypothesis: the checkout, 75 files of it (a review)
+    from hypothesis.configuration import set_hypothesis_home_dir
+except ImportError:
+    pass
+else:
+    _hypothesis_home = tempfile.mkdtemp(prefix="wheelgrid-test-hypothesis.")
+    set_hypothesis_home_dir(_hypothesis_home)
+    atexit.register(shutil.rmtree, _hypothesis_home, ignore_errors=True)
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 _rmw = rmw_missing(os.environ)
 if _rmw:  # rclpy exits 102 at its first init, and the whole run with it
