@@ -64,8 +64,8 @@ def _check_arguments(context, *_args, **_kwargs):
         raise RuntimeError("clock:=true needs bag:= (it sends the bag's time)")
     if bag.endswith(".bag"):
         raise RuntimeError(
-            f"bag:={bag} is a ROS 1 bag, which ros2 bag play cannot read: "
-            "`wheelgrid launch --bag` or `wheelgrid map` read it"
+            f"bag:={bag} is a ROS 1 bag, which ros2 bag play cannot read: convert it first "
+            f"(`rosbags-convert --src {bag} --dst NEW_FOLDER`); `wheelgrid map` reads it as it is"
         )
     return []
 

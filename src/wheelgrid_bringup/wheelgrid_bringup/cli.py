@@ -51,7 +51,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "motor-sim": (
         "wheelgrid_drive.motor_sim:main",
-        "run the simulated motor controller on a pty (same as wheelgrid-motor-sim)",
+        "run the simulated motor controller on a pty "
+        "(`ros2 run wheelgrid_drive wheelgrid-motor-sim` on a full ROS 2)",
     ),
     "launch": (
         "wheelgrid_bringup.launcher:main",
