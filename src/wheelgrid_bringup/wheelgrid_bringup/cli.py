@@ -83,6 +83,18 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def _missing(command: str, exc: ModuleNotFoundError) -> int:
+    """A dependency not installed is one line and exit 2; any other missing module is ours to
+    see whole (raised again)."""
+    from wheelgrid_common.ros_env import missing_dependency
+
+    why = missing_dependency(exc)
+    if why is None:
+        raise exc
+    print(f"wheelgrid {command}: {why}", file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
@@ -103,10 +115,12 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return 2
-        raise
+        return _missing(name, exc)
     func = getattr(module, func_name)
     try:
         return int(func(rest) or 0)
+    except ModuleNotFoundError as exc:  # imported where it is first needed (kiss_icp, open3d)
+        return _missing(name, exc)
     except KeyboardInterrupt:
         print(f"wheelgrid {name}: interrupted", file=sys.stderr)
         return 130

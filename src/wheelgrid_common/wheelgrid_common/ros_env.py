@@ -315,6 +315,33 @@ def steady_timer(node: Any, period: float, callback: Callable[[], Any]) -> Any:
 # how often spin_node wakes a node's executor so that a signal handled in Python runs (s)
 SIGNAL_POLL_S = 0.5
 
+#: The PyPI name of each module the code imports that a full ROS 2 install does not bring
+#: (rosdep has no key for the first three): a module's name is not always its package's.
+PIP_NAMES = {
+    "kiss_icp": "kiss-icp",
+    "open3d": "open3d",
+    "rosbags": "rosbags",
+    "serial": "pyserial",
+    "PIL": "pillow",
+    "yaml": "pyyaml",
+    "numpy": "numpy",
+}
+
+
+def missing_dependency(exc: ModuleNotFoundError) -> str | None:
+    """One line for a dependency that is not installed, or None where the module missing is
+    none of them (a module of the project itself: a build problem, said elsewhere). On a full
+    ROS 2 the PyPI-only ones are not installed by rosdep, and a node or a command ended in a
+    traceback deep in the mapping, exit 1 (a review)."""
+    top = (exc.name or "").split(".")[0]
+    if top not in PIP_NAMES:
+        return None
+    return (
+        f"the Python package {PIP_NAMES[top]} is not installed (no module {top!r}): "
+        "`pip install -r requirements.lock` in the environment the nodes run in, or "
+        "scripts/setup.sh for this checkout's own"
+    )
+
 
 def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
     """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, clean up; return an exit code.
@@ -361,6 +388,14 @@ def spin_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
         pass
     except SystemExit as exc:  # a node may ask to stop with a code
         code = int(exc.code or 0)
+    except ModuleNotFoundError as exc:
+        why = missing_dependency(exc)
+        if why is None:
+            raise
+        import sys
+
+        print(f"[FATAL] {why}", file=sys.stderr)
+        code = 2
     except Exception:
         # A callback that ran into the context Ctrl-C/SIGTERM had just shut down ("publisher's
         # context is invalid", a take that failed) ended the node with a traceback and exit 1,

@@ -24,6 +24,15 @@ from wheelgrid_common.services import call_with_retry
 from wheelgrid_common.shm import clean_dead_segments
 
 
+def not_installed(monkeypatch: Any, package: str) -> None:
+    """``package`` as if not installed, marked the way Python itself marks a module it must not
+    import (None in sys.modules, for its submodules already loaded too): a full ROS 2 where
+    rosdep, which has no key for kiss-icp, did not bring it."""
+    for name in [n for n in sys.modules if n == package or n.startswith(package + ".")]:
+        monkeypatch.setitem(sys.modules, name, None)
+    monkeypatch.setitem(sys.modules, package, None)
+
+
 def box_surface(lo: Sequence[float], hi: Sequence[float], spacing: float, rng: Any) -> np.ndarray:
     """Random points on the six faces of an axis-aligned box, about one per ``spacing**2``."""
     lo_, hi_ = np.asarray(lo, float), np.asarray(hi, float)

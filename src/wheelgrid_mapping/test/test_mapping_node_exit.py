@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from wheelgrid_common.ros_env import configure_ros_env, spin_node
-from wheelgrid_common.testing import bag_cloud_odometry
+from wheelgrid_common.testing import bag_cloud_odometry, not_installed
 
 BAG = Path(__file__).resolve().parents[3] / "bags" / "paper_room" / "scan"
 
@@ -303,3 +303,16 @@ def test_a_node_with_no_timer_of_its_own_stops_on_sighup():
         time.sleep(1.5)  # idle in rcl, no message to wake it
         os.kill(proc.pid, signal.SIGHUP)
         assert proc.wait(timeout=10.0) == 0
+
+
+@pytest.mark.ros
+def test_a_mapper_without_kiss_icp_installed_is_one_fatal_line(monkeypatch, capfd):
+    """On a full ROS 2 rosdep brings no kiss-icp (no key): the mapper died at its start with a
+    traceback through the registration, exit 1, where a bad parameter is one line, exit 2."""
+    from wheelgrid_mapping.mapper_node import MapperNode
+
+    not_installed(monkeypatch, "kiss_icp")
+    assert spin_node(MapperNode, args=[]) == 2
+    err = capfd.readouterr().err
+    assert "[FATAL] the Python package kiss-icp is not installed" in err, err
+    assert "Traceback" not in err
