@@ -338,8 +338,8 @@ def missing_dependency(exc: ModuleNotFoundError) -> str | None:
         return None
     return (
         f"the Python package {PIP_NAMES[top]} is not installed (no module {top!r}): "
-        "`pip install -r requirements.lock` in the environment the nodes run in, or "
-        "scripts/setup.sh for this checkout's own"
+        f"`pip install {PIP_NAMES[top]}` where the nodes run (requirements.lock pins its "
+        "version), or scripts/setup.sh for this checkout's own environment"
     )
 
 
