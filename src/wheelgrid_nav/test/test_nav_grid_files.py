@@ -62,6 +62,39 @@ def test_files_round_trip_like_map_server(tmp_path):
     assert read_map(tmp_path / "grid.yaml").origin[2] == pytest.approx(math.radians(12.0), abs=1e-3)
 
 
+@pytest.mark.parametrize(
+    ("size", "pixel_size"), [((2.4, 12.0), 0.05), ((9.6, 9.6), 0.05), ((6.0, 3.6), 0.4)]
+)
+def test_grid_png_shows_every_label_whole_and_a_true_metre(size, pixel_size):
+    """A 2.4 x 12 m corridor's grid.png was 208 px wide: its panel titles printed over each
+    other and the legend stopped after two of its five entries; at a 0.4 m pixel_size the
+    "1 m" bar was 0.81 m; and the thin-obstacle guard's swatch was white, the free cells'
+    colour, where its cells are drawn black (a review)."""
+    from wheelgrid_nav.grid import GridConfig
+    from wheelgrid_nav.grid_png import _LEGEND, _text_width, layout, render
+
+    cfg = GridConfig(pixel_size=pixel_size, floor_fill=0, guard_line_length=1.2)
+    res = build_grid(room_cloud([], size=size, spacing=0.04), cfg)
+    plan = layout(res)
+    width, height = plan.size
+    boxes = [(x, y, x + _text_width(t), y + 11) for x, y, t in plan.texts]
+    boxes += [(x, y, x + 10, y + 10) for x, y, _, _ in plan.legend]  # the swatches
+    for x0, y0, x1, y1 in boxes:
+        assert x0 >= 0 and x1 <= width and y0 >= 0 and y1 <= height, (boxes, plan.size)
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1 :]:
+            apart = a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1]
+            assert apart, (a, b)
+    labels = [t for _, _, t in plan.texts]
+    assert all(label in labels for _, _, label in _LEGEND)
+    # the bar is 1 m at the picture's scale: canvas pixels per raster pixel / its size
+    assert plan.bar == pytest.approx(plan.scale / pixel_size, abs=0.5)
+    guard = next(fill for fill, _, label in _LEGEND if "guard" in label)
+    assert guard == (0, 0, 0)  # as its cells are drawn: occupied
+    picture = render(res)
+    assert picture.size == plan.size
+
+
 def test_cli_writes_the_paper_grid(map_ply, tmp_path, capsys):
     out = tmp_path / "out"
     assert main([map_ply, "--out", str(out)]) == 0

@@ -10,6 +10,7 @@ orange frame on cells that only the thin-obstacle guard made occupied (eq 10 alo
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,14 +29,13 @@ _GUARD = (255, 140, 0)
 _PANEL = 420  # target panel side, pixels
 _PAD = 16
 _TITLE = 22
-_FOOT = 60
 # the legend under the panels: (fill, outline, label); what each colour means, on the picture
 _LEGEND = (
     (_BLACK, _BLACK, "obstacle pixel / occupied cell"),
     (_WHITE, _BLACK, "floor seen / free cell"),
     (_GREY, _GREY, "never seen / unknown"),
     (_WALL, _WALL, "walls"),
-    (_WHITE, _GUARD, "occupied by the thin-obstacle guard"),
+    (_BLACK, _GUARD, "occupied by the thin-obstacle guard"),  # drawn black, framed
 )
 
 
@@ -58,16 +58,79 @@ def _grid_rgb(result: GridResult, k: int) -> np.ndarray:
     return np.repeat(np.repeat(rgb, k, axis=0), k, axis=1)
 
 
+#: Pillow's default font's line height and the gap between two legend entries, pixels
+_LINE_H = 14
+_GAP = 16
+
+
+def _text_width(text: str) -> int:
+    return int(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(text))
+
+
+@dataclass
+class Layout:
+    """Where everything goes on the picture, computed before anything is drawn: the canvas
+    was as wide as the three panels, and a narrow grid (a 2.4 m corridor) printed its panel
+    titles over each other and cut the legend off after two of its five entries (a review)."""
+
+    size: tuple[int, int]
+    scale: int  # canvas pixels per raster pixel
+    panels: list[int]  # x of each panel's left edge
+    texts: list[tuple[int, int, str]]  # (x, y, text), y its top
+    bar: int  # 1 m in canvas pixels
+    bar_y: int
+    legend: list[tuple[int, int, tuple[int, int, int], tuple[int, int, int]]]  # x, y, colours
+
+
+def layout(result: GridResult) -> Layout:
+    """Panels, titles, scale bars, the grid's yaw and the legend, every text inside the
+    canvas and none over another."""
+    cfg = result.config
+    h, w = result.obstacles.shape
+    scale = max(1, _PANEL // max(h, w))
+    ph, pw = h * scale, w * scale
+    rows, cols = result.grid.data.shape
+    titles = (
+        f"(a) 2D map, band {cfg.floor_clearance:g}-{cfg.safe_height:g} m",
+        f"(b) {rows} x {cols} grid of {cfg.cell_size:g} m",
+        f"(c) safe grid, density > {cfg.density_threshold:g}",
+    )
+    # 1 m at the picture's scale: rounded to whole raster pixels first, it read 0.81 m at a
+    # 0.4 m pixel_size (round(2.5) = 2), labelled "1 m" all the same (a review)
+    bar = round(scale / cfg.pixel_size)
+    col = max(pw, *(_text_width(t) + _PAD for t in titles), bar + 6 + _text_width("1 m") + _PAD)
+    panels = [_PAD + i * (col + _PAD) for i in range(3)]
+    width = 3 * col + 4 * _PAD
+    texts = [(x, 4, t) for x, t in zip(panels, titles, strict=True)]
+    bar_y = _TITLE + ph + 12
+    texts += [(x + bar + 6, bar_y - 3, "1 m") for x in panels]
+    yaw = result.stats.get("yaw_deg", 0.0)
+    yaw_text = f"grid yaw {yaw:.2f} deg in the map frame"
+    width = max(width, _PAD + _text_width(yaw_text) + _PAD)
+    texts.append((panels[0], bar_y + _LINE_H, yaw_text))
+    x, y = panels[0], bar_y + 2 * _LINE_H + 4
+    legend = []
+    for fill, outline, label in _LEGEND:
+        entry = 14 + _text_width(label)
+        if x > panels[0] and x + entry > width - _PAD:  # the next row
+            x, y = panels[0], y + _LINE_H + 4
+        legend.append((x, y, fill, outline))
+        texts.append((x + 14, y - 1, label))
+        width = max(width, x + entry + _PAD)
+        x += entry + _GAP
+    height = y + _LINE_H + _PAD
+    return Layout((width, height), scale, panels, texts, bar, bar_y, legend)
+
+
 def render(result: GridResult) -> Image.Image:
     """The three panels side by side, titled, with a 1 m scale bar under each."""
     cfg = result.config
     k = cfg.cell_pixels()
+    plan = layout(result)
+    scale = plan.scale
     h, w = result.obstacles.shape
-    scale = max(1, _PANEL // max(h, w))
     ph, pw = h * scale, w * scale
-    width = 3 * pw + 4 * _PAD
-    height = _TITLE + ph + _FOOT + _PAD
-    canvas = Image.new("RGB", (width, height), _WHITE)
+    canvas = Image.new("RGB", plan.size, _WHITE)
     draw = ImageDraw.Draw(canvas)
 
     def up(rgb: np.ndarray) -> Image.Image:
@@ -76,7 +139,7 @@ def render(result: GridResult) -> Image.Image:
 
     map_img = up(_map_rgb(result))
     grid_img = up(_grid_rgb(result, k))
-    xs = [_PAD + i * (pw + _PAD) for i in range(3)]
+    xs = plan.panels
     y0 = _TITLE
     canvas.paste(map_img, (xs[0], y0))
     canvas.paste(map_img, (xs[1], y0))
@@ -94,25 +157,12 @@ def render(result: GridResult) -> Image.Image:
     for r, c in zip(*np.nonzero(guard_only), strict=True):
         x, y = xs[2] + c * cell_px, y0 + r * cell_px
         draw.rectangle([x + 2, y + 2, x + cell_px - 3, y + cell_px - 3], outline=_GUARD, width=3)
-    titles = (
-        f"(a) 2D map, band {cfg.floor_clearance:g}-{cfg.safe_height:g} m",
-        f"(b) {rows} x {cols} grid of {cfg.cell_size:g} m",
-        f"(c) safe grid, density > {cfg.density_threshold:g}",
-    )
-    for x, title in zip(xs, titles, strict=True):
-        draw.text((x, 4), title, fill=_BLACK)
-    bar = round(1.0 / cfg.pixel_size) * scale  # 1 m in canvas pixels
-    yb = y0 + ph + 12
     for x in xs:
-        draw.rectangle([x, yb, x + bar, yb + 5], fill=_BLACK)
-        draw.text((x + bar + 6, yb - 3), "1 m", fill=_BLACK)
-    yaw = result.stats.get("yaw_deg", 0.0)
-    draw.text((xs[1], yb - 3 + 14), f"grid yaw {yaw:.2f} deg in the map frame", fill=_BLACK)
-    x, yl = xs[0], yb + 32
-    for fill, outline, label in _LEGEND:
-        draw.rectangle([x, yl, x + 10, yl + 10], fill=fill, outline=outline, width=2)
-        draw.text((x + 14, yl - 1), label, fill=_BLACK)
-        x += 14 + int(draw.textlength(label)) + 16
+        draw.rectangle([x, plan.bar_y, x + plan.bar, plan.bar_y + 5], fill=_BLACK)
+    for x, y, fill, outline in plan.legend:
+        draw.rectangle([x, y, x + 10, y + 10], fill=fill, outline=outline, width=2)
+    for x, y, text in plan.texts:
+        draw.text((x, y), text, fill=_BLACK)
     return canvas
 
 
