@@ -74,6 +74,22 @@ def test_metres_in_the_map_frame(paper_yaml, capsys):
     assert json.loads(out)["cells"] == PAPER_ROUTE
 
 
+def test_a_refused_plan_leaves_no_picture_of_an_earlier_route(paper_yaml, tmp_path, capsys):
+    """A start in an occupied cell was refused (exit 2), and the --png path still held the
+    previous plan's picture with its route: another route under the name asked for (a
+    review). A grid that does not read is refused the same way."""
+    png = tmp_path / "plan.png"
+    code, _, err = run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--png", png)
+    assert code == 0 and png.is_file(), err
+    code, _, err = run(capsys, paper_yaml, "--start", "3,0", "--goal", "6,5", "--png", png)
+    assert code == 2 and "not free" in err, err
+    assert not png.exists()
+    run(capsys, paper_yaml, "--start", "2,0", "--goal", "6,5", "--png", png)
+    code, _, err = run(capsys, tmp_path / "none.yaml", "--start", "2,0", "--goal", "6,5",
+                       "--png", png)  # fmt: skip
+    assert code == 2 and "cannot read grid" in err and not png.exists(), err
+
+
 def test_heading_method_table_and_png(paper_yaml, tmp_path, capsys):
     from PIL import Image
 

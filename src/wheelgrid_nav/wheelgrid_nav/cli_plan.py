@@ -210,6 +210,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.png and (problem := _png_problem(args.png)):
         print(f"wheelgrid plan: cannot write --png: {problem}", file=sys.stderr)
         return 2
+    if args.png:
+        # an earlier plan's picture left there by a plan refused below (a start not free, a
+        # grid that does not read) showed another route under the name asked for (a review)
+        try:
+            Path(args.png).unlink(missing_ok=True)
+        except OSError as exc:
+            print(f"wheelgrid plan: cannot replace --png {args.png}: {exc}", file=sys.stderr)
+            return 2
     try:
         grid = read_map(args.grid)
     except (OSError, ValueError) as exc:
