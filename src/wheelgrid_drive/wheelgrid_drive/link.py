@@ -331,7 +331,7 @@ class MotorLink:
         if ser is None:
             ser = current
         elif ser is not current:
-            raise LinkError(f"port {self.port} was lost and reopened since this request began")
+            raise LinkError(f"port {self.port} was lost since this request began")
         try:
             with self._write_lock:
                 if abort is not None and abort.is_set():
@@ -395,8 +395,8 @@ class MotorLink:
             stop_first, ser, now = self._stop_first, self._ser, self.connection
         if connection is not None and now != connection and not is_stop:
             raise LinkError(
-                f"{mtype.name} not sent: port {self.port} was lost and reopened since the "
-                "checks this request rests on"
+                f"{mtype.name} not sent: port {self.port} was lost since the checks this "
+                "request rests on"
             )
         if stop_first and not is_stop and self._stop_owed_at is None:
             raise LinkError(
@@ -467,7 +467,7 @@ class MotorLink:
         self._emit(
             "stop",
             f"STOP not acknowledged: {why}; the link falls silent so that the controller's "
-            f"watchdog stops the motors, STOP again in {STOP_SILENCE_S:g} s",
+            f"watchdog stops the motors, STOP again within {STOP_SILENCE_S:g} s",
             logging.ERROR,
         )
         return False
