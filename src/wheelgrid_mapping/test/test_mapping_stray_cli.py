@@ -173,6 +173,8 @@ def test_frames_without_confidence_are_said_by_import_and_map(
     assert import_main([str(cap), "--out", str(out), "--min-confidence", "2"]) == 0
     err = capsys.readouterr().err
     assert "4 of 4 frames have no confidence image" in err and "--min-confidence 2" in err
+    # and what level 2 costs thin obstacles where confidence is there: said at once
+    assert "warning: min_confidence 2 keeps only ARKit's high-confidence pixels" in err
 
 
 def test_stream_stray_exit_codes(

@@ -38,7 +38,7 @@ from wheelgrid_mapping.bridge_protocol import (
     parting_status,
     status_words,
 )
-from wheelgrid_mapping.depth import check_min_confidence, metres_to_millimetres
+from wheelgrid_mapping.depth import check_min_confidence, confidence_loss, metres_to_millimetres
 from wheelgrid_mapping.stray import StrayExport, StrayFrame
 
 TOKEN_ENV = "WHEELGRID_BRIDGE_TOKEN"
@@ -322,6 +322,8 @@ def import_main(argv: list[str]) -> int:
             check_min_confidence(args.min_confidence, "--min-confidence")
         except ValueError as exc:
             raise _UsageError(str(exc)) from None
+        if loss := confidence_loss(args.min_confidence):
+            print(f"wheelgrid import-stray: warning: {loss}", file=sys.stderr)
         exp = _open_export(args.dir)
         idx = _frame_range(exp, args.start, args.frames)
         if Path(args.out).exists():

@@ -24,6 +24,7 @@ from wheelgrid_mapping.depth import (
     camera_info_doubts,
     camera_info_intrinsics,
     check_min_confidence,
+    confidence_loss,
     depth_image_to_metres,
     depth_to_points,
     image_array,
@@ -102,6 +103,8 @@ def _make_node() -> Any:
             except ValueError as exc:  # as the other nodes: one FATAL line, exit 2
                 self.get_logger().fatal(f"invalid parameters: {exc}")
                 raise SystemExit(2) from exc
+            if loss := confidence_loss(self.cfg.min_confidence):
+                self.get_logger().warning(loss)  # the mapper refuses it; its clouds come here
             use_conf = bool(self.cfg.confidence_topic)
             streams = ["depth", "info"] + (["conf"] if use_conf else [])
             self.sync = StampSync(streams, self.cfg.sync_tolerance_s, self.cfg.queue_size)

@@ -37,7 +37,12 @@ from wheelgrid_mapping.bridge_protocol import (
     BridgeServer,
     Frame,
 )
-from wheelgrid_mapping.depth import arkit_pose_to_ros, check_min_confidence, depth_to_points
+from wheelgrid_mapping.depth import (
+    arkit_pose_to_ros,
+    check_min_confidence,
+    confidence_loss,
+    depth_to_points,
+)
 
 # The topics as a bag records them (`wheelgrid import-stray`) and in the root namespace; the
 # node publishes them relative to its own (`--ros-args -r __ns:=/chair1` -> /chair1/iphone/...).
@@ -267,6 +272,8 @@ def _make_node(cfg_override: BridgeConfig | None = None) -> Any:
             except (ValueError, OverflowError) as exc:  # as the other nodes: one FATAL, exit 2
                 log.fatal(f"invalid parameters: {exc}")
                 raise SystemExit(2) from exc
+            if loss := confidence_loss(self.cfg.min_confidence):
+                log.warning(loss)  # the mapper refuses it; its clouds come from here
             if self.cfg.max_clients > 1:
                 # two phones at once went out as one camera: the mapper failed 80 of 95
                 # frames, relocalising, and the bridge said nothing (a review)

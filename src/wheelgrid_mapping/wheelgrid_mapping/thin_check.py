@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from .depth import confidence_loss
 from .preprocess import PreprocessConfig, preprocess_for_map
 
 SEED = 4  # the room the preprocessing test checks the defaults on
@@ -174,15 +175,23 @@ def check_thin_obstacles(cfg: PreprocessConfig) -> str | None:
     at every start, saying what the settings lose or that the opt-out is not needed (left on,
     it would silence the next setting that does erase). None: nothing to say."""
     cov = thin_obstacle_coverage(cfg)
+    confidence = confidence_loss(cfg.min_confidence)
     if cfg.accept_thin_obstacle_loss:
-        if cov.ok:
+        if cov.ok and confidence is None:
             return (
                 f"{OPT_OUT} is set but not needed: these settings keep every thin obstacle of "
                 "the start-up check; set it false so that the check guards the next change"
             )
+        losses = [f"{cov.losses()} ({_settings(cfg)})"] if not cov.ok else []
+        losses += [confidence] if confidence else []
         return (
             f"{OPT_OUT} is set: preprocess settings that erase thin obstacles are used: "
-            f"{cov.losses()} ({_settings(cfg)}); the map may show free floor there"
+            f"{'; '.join(losses)}; the map may show free floor there"
+        )
+    if confidence is not None:
+        raise ThinObstaclesErasedError(
+            f"preprocess settings erase thin obstacles: {confidence}; the default 1 keeps "
+            f"medium confidence too ({OPT_OUT}: true to use it all the same)"
         )
     if not cov.ok:
         lost = sum(v < 1.0 for v in cov.kept.values())
