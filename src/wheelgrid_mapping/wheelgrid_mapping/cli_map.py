@@ -425,8 +425,9 @@ def floor_refound_line(level: dict[str, Any]) -> str | None:
     fit, on the first frames, was another plane): a user comparing two maps of one room, or
     a grid with an earlier one, must know the frame moved. None when it did not."""
     got = level.get("floor_refound")
+    refused = (level.get("floor_check") or {}).get("refused")
     if not got:
-        return None
+        return f"levelling: warning: {refused}" if refused else None
     moved = got["moved_m"]
     return (
         f"levelling: the floor the first frames gave was not the whole map's: z = 0 moved to "

@@ -95,7 +95,7 @@ def find_floor(
             below = float(n @ origin + d)
             if below > 0.1:
                 if vertical:
-                    n, d = _height_along(remaining, plane_pts, -down, distance)
+                    n, d = height_along(remaining, plane_pts, -down, distance)
                 else:
                     n, d = fit_plane(plane_pts, n)
                 below = float(n @ origin + d)
@@ -110,7 +110,7 @@ def find_floor(
     return best[1], best[2]
 
 
-def _height_along(
+def height_along(
     pts: np.ndarray, plane_pts: np.ndarray, up: np.ndarray, distance: float
 ) -> tuple[np.ndarray, float]:
     """The level plane (normal ``up``) through a candidate's points: the median height of its
@@ -209,38 +209,17 @@ def tilt_deg(T_map_odom: np.ndarray, down_in_odom: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip(-g[2], -1.0, 1.0))))
 
 
-def floor_of_map(
-    points: np.ndarray,
-    up: np.ndarray,
-    sensor_origin: np.ndarray,
-    voxel: float = 0.05,
-    min_fraction: float = 0.03,
-    band: float = 0.05,
-    gate: float = 0.03,
-    max_lean_deg: float | None = None,
-) -> tuple[np.ndarray, float]:
-    """Floor plane ``(n, d)`` (``n`` up) of a whole map whose vertical ``up`` is known to within
-    a few degrees: for checking a floor that :func:`find_floor` found on the first frames.
+def level_vertical(
+    points: np.ndarray, up: np.ndarray, voxel: float = 0.05
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vertical as the map's level surfaces give it, about ``up`` (known to within about
+    15 deg): the mean normal of the surfaces that face up or down (floor, seats, table tops and
+    ceiling share it), in cones of 15, 10 and 5 deg about the previous estimate. Returns the
+    ``voxel`` centroids, which of them are level, and the vertical (unit, on ``up``'s side).
 
-    Not :func:`find_floor`'s RANSAC: on a whole online map the floor is a population a few
-    centimetres thick (drift between the frames that saw it); a 3 cm slab catches a strip of
-    it, and which strip, tilted by up to 8 deg, changed with the RANSAC seed on the real
-    capture. Here every surface that faces up or down votes instead:
-
-    1. the vertical is the mean normal of the map's level surfaces (floor, seats, table tops
-       and ceiling share it), in cones of 15, 10 and 5 deg about the previous estimate;
-    2. the floor is the DEEPEST peak (2 cm bins) of those surfaces below the sensor that holds
-       ``min_fraction`` of them: the same "lowest large level surface" as the first search;
-    3. the plane is fitted by least squares to the level points within ``band`` of that peak,
-       then twice to those within ``gate`` of the fit (feet and skirting drop out).
-
-    Deterministic, and ~0.2 s on a 450 k-point map (the normals are found on ``voxel``
-    centroids, so dense and sparse parts vote alike).
-
-    ``max_lean_deg``: ``up`` is gravity itself (a gravity-aligned pose prior's), and the
-    plane's normal may lean at most this much from it; the height is then the median of the
-    fitted floor points along the normal kept.
-    """
+    Each surface votes by its area, not by how well a plane fits it: a 3 cm RANSAC slab through
+    a narrow strip of floor tilts with the strip (7 deg beside a large low table, a review),
+    where the strip's and the table top's normals both point straight up."""
     import open3d as o3d
 
     from .preprocess import voxel_downsample
@@ -261,6 +240,41 @@ def floor_of_map(
             raise FloorNotFoundError(f"only {int(level.sum())} map cells face up or down")
         u = (normals[level] * np.sign(c[level])[:, None]).sum(axis=0)
         u /= np.linalg.norm(u)
+    return pts, level, u
+
+
+def floor_of_map(
+    points: np.ndarray,
+    up: np.ndarray,
+    sensor_origin: np.ndarray,
+    voxel: float = 0.05,
+    min_fraction: float = 0.03,
+    band: float = 0.05,
+    gate: float = 0.03,
+    max_lean_deg: float | None = None,
+) -> tuple[np.ndarray, float]:
+    """Floor plane ``(n, d)`` (``n`` up) of a whole map whose vertical ``up`` is known to within
+    a few degrees: for checking a floor that :func:`find_floor` found on the first frames.
+
+    Not :func:`find_floor`'s RANSAC: on a whole online map the floor is a population a few
+    centimetres thick (drift between the frames that saw it); a 3 cm slab catches a strip of
+    it, and which strip, tilted by up to 8 deg, changed with the RANSAC seed on the real
+    capture. Here every surface that faces up or down votes instead:
+
+    1. the vertical is the mean normal of the map's level surfaces (:func:`level_vertical`);
+    2. the floor is the DEEPEST peak (2 cm bins) of those surfaces below the sensor that holds
+       ``min_fraction`` of them: the same "lowest large level surface" as the first search;
+    3. the plane is fitted by least squares to the level points within ``band`` of that peak,
+       then twice to those within ``gate`` of the fit (feet and skirting drop out).
+
+    Deterministic, and ~0.2 s on a 450 k-point map (the normals are found on ``voxel``
+    centroids, so dense and sparse parts vote alike).
+
+    ``max_lean_deg``: ``up`` is gravity itself (a gravity-aligned pose prior's), and the
+    plane's normal may lean at most this much from it; the height is then the median of the
+    fitted floor points along the normal kept.
+    """
+    pts, level, u = level_vertical(points, up, voxel)
     origin = np.asarray(sensor_origin, dtype=np.float64)
     flat = pts[level]
     depth = (origin - flat) @ u

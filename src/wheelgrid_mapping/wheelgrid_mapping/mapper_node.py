@@ -204,6 +204,7 @@ class MapperNode(Node):  # type: ignore[misc]
         # are PRIOR_CLOCK_BACK_POSES of them (see _on_prior)
         self._priors_behind: list[tuple[float, np.ndarray, str]] = []
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
+        self._floor_refused_seen: str | None = None  # a floor check's refusal, warned of
         self._mount_check_seen: dict[str, Any] | None = None  # the mount check last warned of
         self._logged: set[str] = set()
         # registration failures said one line each only where a run of them begins, then at
@@ -726,9 +727,14 @@ class MapperNode(Node):  # type: ignore[misc]
         from .cli_map import floor_refound_line, mount_check_line
 
         got = self.mapper.level_info.get("floor_refound")
+        refused = (self.mapper.level_info.get("floor_check") or {}).get("refused")
         if got and got is not self._floor_refound_seen:
             self._floor_refound_seen = got
             self.get_logger().warning(f"mapper: {floor_refound_line(self.mapper.level_info)}")
+        elif not got and refused and refused != self._floor_refused_seen:
+            # a large low table taken for the floor and not used: said once (not each check)
+            self._floor_refused_seen = refused
+            self.get_logger().warning(f"mapper: levelling: warning: {refused}")
         check = self.mapper.level_info.get("mount_floor_check")
         if check and check is not self._mount_check_seen:
             self._mount_check_seen = check

@@ -31,7 +31,9 @@ from .levelling import (
     convention_for_frame,
     find_floor,
     floor_of_map,
+    height_along,
     lean_within,
+    level_vertical,
     map_from_floor,
     map_from_mount,
     tilt_deg,
@@ -178,6 +180,18 @@ FLOOR_CHECK_GROWTH = 2.0
 # The floor found on the whole map holding this many times the map points within 3 cm that
 # z = 0 holds: z = 0 misses part of the floor, and the map frame is taken from the floor found.
 FLOOR_CHECK_GAIN = 1.1
+# ... but not a floor this far ABOVE z = 0 (m) with this many level map cells (5 cm) this far
+# below it: that "floor" is a large low table top or a platform, and the real floor, seen only
+# in strips, held too few cells to be the whole map's peak (a review: z = 0 moved 54 cm up on
+# to a 2.9 x 3 m table, every obstacle lower than it under the grid's floor band, silently).
+FLOOR_CHECK_MAX_RISE = 0.10
+# the slab find_floor's RANSAC planes are fitted in (m): its ``distance``
+FLOOR_SLAB_M = 0.03
+# ... and the lowest level along the voted vertical holding this share of its points (at least
+# this many) is the floor's part of it
+FLOOR_LEVEL_SHARE = 0.1
+FLOOR_LEVEL_MIN_POINTS = 50
+FLOOR_CHECK_BELOW_CELLS = 50
 # A floor the first frames show this far from the one an explicit mount transform gives
 # (deg between the normals, m along them under the first pose) makes a warning: the mount is
 # then wrong (a mount measured 30 cm high and 8 deg pitched off put the map's floor 3.4 deg
@@ -477,6 +491,9 @@ class Mapper:
         self._relevelled_at = -1
         self._lower_floor_tried = 0  # points below the floor at the last search that found none
         self._floor_checked_at = 0  # map points when the floor was last found or checked
+        # without a gravity-aligned prior: the vertical the map's level surfaces vote for
+        # (odom), found with the first floor and again at each floor check (_relevel's bound)
+        self._voted_up_odom: np.ndarray | None = None
         self.stamps: list[float] = []
         self.poses_odom: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
@@ -949,8 +966,10 @@ class Mapper:
                 first = self.poses_odom[0] if self.poses_odom else np.eye(4)
                 down = first[:3, :3] @ DOWN_HINT[conv]
                 up, not_gravity = self._upright_prior_up(down)
+                refined: dict[str, Any] = {}
                 if up is None:
                     n, d = find_floor(pts, down, first[:3, 3], self.cfg.floor_max_tilt_deg)
+                    n, d, refined = self._refine_first_floor(pts, n, d, first[:3, 3])
                 else:
                     n, d = find_floor(
                         pts,
@@ -969,12 +988,53 @@ class Mapper:
                     **not_gravity,
                     "sensor_height_m": float(n @ first[:3, 3] + d),
                     "first_view_tilt_deg": tilt,
+                    **refined,
                 }
         except FloorNotFoundError as exc:
             self.level_info = {"method": "none", "error": str(exc)}
         finally:
             self.timings["levelling_s"] += time.perf_counter() - t0
         return self.T_map_odom is not None
+
+    def _refine_first_floor(
+        self, pts: np.ndarray, n: np.ndarray, d: float, origin: np.ndarray
+    ) -> tuple[np.ndarray, float, dict[str, Any]]:
+        """The first frames' floor levelled along the vertical their level surfaces vote for
+        (:func:`level_vertical`, about the plane RANSAC gave): the same floor, its points'
+        median height along that vertical, as a gravity-aligned prior's vertical is used.
+        RANSAC's 3 cm slab through a narrow strip of floor tilts with the strip: a floor seen
+        only beside a large low table leaned 7-13 deg (9.4 after relevelling, z = 0 13 cm off
+        under the first pose; the floor check then moved z = 0 on to the table top, 45 cm up;
+        a review). As RANSAC gave it where the vote finds no vertical. Returns the plane and
+        what the refinement turned and moved it by."""
+        try:
+            _, _, up = level_vertical(pts, n)
+        except FloorNotFoundError as exc:
+            return n, d, {"first_fit_refined": {"error": str(exc)}}
+        self._voted_up_odom = up
+        finite = pts[np.isfinite(pts).all(axis=1)]
+        on = finite[np.abs(finite @ n + d) < FLOOR_SLAB_M]
+        # the tilted slab also cuts what stands on the floor (a table top): its points along
+        # the vertical fall into levels, and the floor is the lowest that holds a share of them
+        heights = on @ up
+        bins = np.arange(heights.min(), heights.max() + 0.04, 0.02)
+        counts, edges = np.histogram(heights, bins)
+        need = max(FLOOR_LEVEL_MIN_POINTS, FLOOR_LEVEL_SHARE * on.shape[0])
+        lowest = next(
+            (i for i, c in enumerate(np.convolve(counts, np.ones(3), "same")) if c >= need), None
+        )
+        if lowest is None:
+            return (
+                n,
+                d,
+                {"first_fit_refined": {"error": "no level of the floor plane holds a share"}},
+            )
+        level = 0.5 * (edges[lowest] + edges[lowest + 1])
+        n2, d2 = height_along(finite, on[np.abs(heights - level) < FLOOR_SLAB_M], up, FLOOR_SLAB_M)
+        turn = float(np.degrees(np.arccos(np.clip(n @ n2, -1.0, 1.0))))
+        moved = float((n2 @ origin + d2) - (n @ origin + d))
+        refined = {"turn_deg": round(turn, 3), "moved_m": round(moved, 4)}
+        return n2, d2, {"first_fit_refined": refined}
 
     def _mount_floor_check(self, conv: str) -> dict[str, Any]:
         """The floor the first frames show against the floor the mount transform puts at
@@ -1053,7 +1113,14 @@ class Mapper:
     def _relevel(self, pts: np.ndarray, used: int) -> np.ndarray:
         """``pts`` (the map in the map frame) after :func:`floor_correction`, if it made one."""
         assert self.T_map_odom is not None
-        corr = floor_correction(pts, up=self._prior_up_in_map())
+        up = self._prior_up_in_map()
+        if up is None and self._voted_up_odom is not None:
+            # the floor's least-squares refit on a strip of floor beside a large low table
+            # turned the map 0.45 deg further at each relevel (2.1 deg after 20 frames, the
+            # first fit 0.09 deg off): it leans at most as far from the level surfaces' vote
+            # as from a prior's gravity
+            up = self.T_map_odom[:3, :3] @ self._voted_up_odom
+        corr = floor_correction(pts, up=up)
         if corr is None:
             return pts
         # The refined floor (z = 0 after ``corr``), the convention applied afresh: the
@@ -1101,6 +1168,9 @@ class Mapper:
         g = self._prior_up_in_map()
         try:
             if g is None:
+                if self._voted_up_odom is not None:
+                    _, _, voted = level_vertical(pts, np.array([0.0, 0.0, 1.0]))
+                    self._voted_up_odom = self.T_map_odom[:3, :3].T @ voted
                 n, d = floor_of_map(pts, np.array([0.0, 0.0, 1.0]), first[:3, 3])
             else:
                 n, d = floor_of_map(pts, g, first[:3, 3], max_lean_deg=PRIOR_FLOOR_LEAN_DEG)
@@ -1110,7 +1180,7 @@ class Mapper:
         held = int(np.count_nonzero(np.abs(pts[:, 2]) < 0.03))
         found = int(np.count_nonzero(np.abs(pts @ n + d) < 0.03))
         height = float(n @ first[:3, 3] + d)  # the first sensor pose above the floor found
-        check = {
+        check: dict[str, Any] = {
             "at_frames": used,
             "turn_deg": round(float(np.degrees(np.arccos(np.clip(n[2], -1.0, 1.0)))), 3),
             "moved_m": round(height - float(first[2, 3]), 4),
@@ -1120,6 +1190,17 @@ class Mapper:
         info["floor_check"] = check
         if found <= FLOOR_CHECK_GAIN * held:
             return False
+        rise = float(first[2, 3]) - height  # how far above z = 0 the floor found lies
+        if rise > FLOOR_CHECK_MAX_RISE:
+            cells, level, _ = level_vertical(pts, n)
+            under = int(np.count_nonzero(cells[level] @ n + d < -FLOOR_CHECK_MAX_RISE))
+            if under >= FLOOR_CHECK_BELOW_CELLS:
+                check["refused"] = (
+                    f"the floor found on the whole map lies {100 * rise:.0f} cm above z = 0 with "
+                    f"{under} level map cells of 5 cm {100 * FLOOR_CHECK_MAX_RISE:.0f} cm or more "
+                    "below it: a large low table or platform, not the floor; z = 0 kept"
+                )
+                return False
         self._level_on(n, d, first_odom)
         info["floor_refound"] = check
         info["sensor_height_m"] = height
