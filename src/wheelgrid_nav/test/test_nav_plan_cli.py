@@ -88,6 +88,11 @@ def test_a_refused_plan_leaves_no_picture_of_an_earlier_route(paper_yaml, tmp_pa
     code, _, err = run(capsys, tmp_path / "none.yaml", "--start", "2,0", "--goal", "6,5",
                        "--png", png)  # fmt: skip
     assert code == 2 and "cannot read grid" in err and not png.exists(), err
+    # a file that is no picture is neither replaced nor removed: `--png grid.yaml`
+    before = paper_yaml.read_bytes()
+    code, _, err = run(capsys, paper_yaml, "--start", "3,0", "--goal", "6,5", "--png", paper_yaml)
+    assert code == 2 and "is not a PNG picture: not replaced" in err, err
+    assert paper_yaml.read_bytes() == before
 
 
 def test_heading_method_table_and_png(paper_yaml, tmp_path, capsys):

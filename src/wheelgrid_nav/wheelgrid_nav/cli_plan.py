@@ -104,6 +104,16 @@ def _png_problem(path: str) -> str | None:
         return f"{path} is a directory"
     if not target.parent.is_dir():
         return f"directory {target.parent} does not exist"
+    if target.is_file():
+        # it is replaced, or removed when the plan is refused: never a file that is no
+        # picture (`--png grid.yaml`, a slip of the hand, would have taken the grid)
+        try:
+            with target.open("rb") as fh:
+                head = fh.read(8)
+        except OSError as exc:
+            return f"{path}: {exc}"
+        if head != b"\x89PNG\r\n\x1a\n":
+            return f"{path} exists and is not a PNG picture: not replaced"
     return None
 
 
