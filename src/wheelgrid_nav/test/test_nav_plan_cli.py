@@ -93,6 +93,24 @@ def test_a_refused_plan_leaves_no_picture_of_an_earlier_route(paper_yaml, tmp_pa
     code, _, err = run(capsys, paper_yaml, "--start", "3,0", "--goal", "6,5", "--png", paper_yaml)
     assert code == 2 and "is not a PNG picture: not replaced" in err, err
     assert paper_yaml.read_bytes() == before
+    # nor a picture this command did not write (`wheelgrid grid`'s Fig. 12), on a refusal
+    from PIL import Image
+
+    fig = tmp_path / "grid.png"
+    Image.new("RGB", (50, 50), "red").save(fig)
+    code, _, err = run(capsys, paper_yaml, "--start", "3,0", "--goal", "6,5", "--png", fig)
+    assert code == 2 and fig.is_file(), err
+    # nor the map's own PNG image, which would have been gone before the map was read
+    image = tmp_path / "map.png"
+    Image.fromarray(np.full((8, 8), 254, np.uint8)).save(image)
+    (tmp_path / "map.yaml").write_text(
+        "image: map.png\nresolution: 1.2\norigin: [0, 0, 0]\nnegate: 0\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    kept = image.read_bytes()
+    code, _, err = run(capsys, tmp_path / "map.yaml", "--start", "2,0", "--goal", "6,5",
+                       "--png", image)  # fmt: skip
+    assert code == 2 and "is the grid's own image" in err and image.read_bytes() == kept, err
 
 
 def test_heading_method_table_and_png(paper_yaml, tmp_path, capsys):

@@ -10,6 +10,7 @@ a chair never gets a half-learned one).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import re
@@ -117,6 +118,19 @@ def _png_problem(path: str) -> str | None:
     return None
 
 
+def _refused(png: str | None) -> int:
+    """Exit 2 for a plan refused, and an earlier plan's picture at ``png`` removed: it showed
+    another route under the name asked for (a review). Only a picture this command wrote (its
+    text chunk says so): removing any PNG there took `wheelgrid grid`'s Fig. 12 picture, and
+    a map's own PNG image before the map was read (a review)."""
+    from wheelgrid_nav.plan_png import is_plan_png
+
+    if png and is_plan_png(png):
+        with contextlib.suppress(OSError):  # the refusal is said either way
+            Path(png).unlink()
+    return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="wheelgrid plan",
@@ -220,29 +234,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.png and (problem := _png_problem(args.png)):
         print(f"wheelgrid plan: cannot write --png: {problem}", file=sys.stderr)
         return 2
-    if args.png:
-        # an earlier plan's picture left there by a plan refused below (a start not free, a
-        # grid that does not read) showed another route under the name asked for (a review)
-        try:
-            Path(args.png).unlink(missing_ok=True)
-        except OSError as exc:
-            print(f"wheelgrid plan: cannot replace --png {args.png}: {exc}", file=sys.stderr)
-            return 2
     try:
         grid = read_map(args.grid)
     except (OSError, ValueError) as exc:
         print(f"wheelgrid plan: cannot read grid {args.grid}: {exc}", file=sys.stderr)
+        return _refused(args.png)
+    if args.png and Path(args.png).resolve() == Path(grid.meta["image_path"]).resolve():
+        print(f"wheelgrid plan: --png {args.png} is the grid's own image", file=sys.stderr)
         return 2
     if problem := chair_cell_problem(grid.resolution):
         print(f"wheelgrid plan: {args.grid}: {problem}; {CHAIR_GRID_HINT}", file=sys.stderr)
-        return 2
+        return _refused(args.png)
     try:
         start = _cell(grid, args.start, args.start_xy, "start")
         goal = _cell(grid, args.goal, args.goal_xy, "goal")
         res = plan(grid.data, start, goal, cfg, method=args.method, heading=args.heading)
     except PlanInputError as exc:
         print(f"wheelgrid plan: {exc}", file=sys.stderr)
-        return 2
+        return _refused(args.png)
     if args.png:
         from wheelgrid_nav.plan_png import plan_caption, save_plan_png
 

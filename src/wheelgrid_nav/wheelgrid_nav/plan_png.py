@@ -93,6 +93,10 @@ def plan_caption(
     return f"{head}; blue arrows: the route, {moves} move{'' if moves == 1 else 's'}"
 
 
+#: The PNG text chunk "Software" of the pictures `wheelgrid plan --png` writes.
+PLAN_PNG_SOFTWARE = "wheelgrid plan"
+
+
 def save_plan_png(
     path: str | Path,
     data: np.ndarray,
@@ -103,10 +107,25 @@ def save_plan_png(
     caption: str = "",
 ) -> Path:
     """Render (see :func:`render_plan`) and write a PNG; returns the path."""
+    from PIL.PngImagePlugin import PngInfo
+
     path = Path(path)
     img = render_plan(data, cells, start, goal, cell_px, caption)
-    img.save(path, format="PNG")  # type: ignore[attr-defined]
+    info = PngInfo()
+    info.add_text("Software", PLAN_PNG_SOFTWARE)  # a refused plan removes only its own kind
+    img.save(path, format="PNG", pnginfo=info)  # type: ignore[attr-defined]
     return path
+
+
+def is_plan_png(path: str | Path) -> bool:
+    """Whether ``path`` is a picture :func:`save_plan_png` wrote (its text chunk says so)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return bool(im.info.get("Software") == PLAN_PNG_SOFTWARE)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return False
 
 
 def _centre(cell: Sequence[int], px: int) -> tuple[float, float]:
