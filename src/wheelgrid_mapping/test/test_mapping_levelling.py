@@ -449,5 +449,6 @@ def test_the_floor_check_does_not_lift_z0_on_to_a_table_with_floor_below_it() ->
     check = m.level_info["floor_check"]
     assert check["moved_m"] == pytest.approx(-0.45, abs=0.02), check  # it found the table
     assert "45 cm above z = 0" in check["refused"] and np.array_equal(m.T_map_odom, np.eye(4))
+    assert "mount_xyz_rpy" in check["refused"]
     line = floor_refound_line(m.level_info)
     assert line is not None and line.startswith("levelling: warning: the floor found")

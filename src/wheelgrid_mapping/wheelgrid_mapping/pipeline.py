@@ -1195,10 +1195,15 @@ class Mapper:
             cells, level, _ = level_vertical(pts, n)
             under = int(np.count_nonzero(cells[level] @ n + d < -FLOOR_CHECK_MAX_RISE))
             if under >= FLOOR_CHECK_BELOW_CELLS:
+                # A safe refusal, not a sure one: z = 0 on a small sunken spot, the floor 20 cm
+                # above it, is refused alike (a review), and that floor then reads as an
+                # obstacle, the grid with no free cell; lifted on to a table, every obstacle
+                # lower than it would read free.
                 check["refused"] = (
                     f"the floor found on the whole map lies {100 * rise:.0f} cm above z = 0 with "
                     f"{under} level map cells of 5 cm {100 * FLOOR_CHECK_MAX_RISE:.0f} cm or more "
-                    "below it: a large low table or platform, not the floor; z = 0 kept"
+                    "below it (a large low table or platform; or z = 0 on a small lower level): "
+                    "z = 0 kept; give mapper.mount_xyz_rpy if z = 0 is not the floor"
                 )
                 return False
         self._level_on(n, d, first_odom)
