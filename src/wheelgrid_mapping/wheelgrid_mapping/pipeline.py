@@ -185,13 +185,13 @@ FLOOR_CHECK_GAIN = 1.1
 # in strips, held too few cells to be the whole map's peak (a review: z = 0 moved 54 cm up on
 # to a 2.9 x 3 m table, every obstacle lower than it under the grid's floor band, silently).
 FLOOR_CHECK_MAX_RISE = 0.10
-# the slab find_floor's RANSAC planes are fitted in (m): its ``distance``
+FLOOR_CHECK_BELOW_CELLS = 50
+# The slab find_floor's RANSAC planes are fitted in (m, its ``distance``), and the lowest level
+# along the voted vertical holding this share of the slab's points (at least this many) is the
+# floor's part of it (the slab tilted through a strip of floor also cuts a table top).
 FLOOR_SLAB_M = 0.03
-# ... and the lowest level along the voted vertical holding this share of its points (at least
-# this many) is the floor's part of it
 FLOOR_LEVEL_SHARE = 0.1
 FLOOR_LEVEL_MIN_POINTS = 50
-FLOOR_CHECK_BELOW_CELLS = 50
 # A floor the first frames show this far from the one an explicit mount transform gives
 # (deg between the normals, m along them under the first pose) makes a warning: the mount is
 # then wrong (a mount measured 30 cm high and 8 deg pitched off put the map's floor 3.4 deg
@@ -1017,18 +1017,17 @@ class Mapper:
         # the tilted slab also cuts what stands on the floor (a table top): its points along
         # the vertical fall into levels, and the floor is the lowest that holds a share of them
         heights = on @ up
-        bins = np.arange(heights.min(), heights.max() + 0.04, 0.02)
-        counts, edges = np.histogram(heights, bins)
         need = max(FLOOR_LEVEL_MIN_POINTS, FLOOR_LEVEL_SHARE * on.shape[0])
-        lowest = next(
-            (i for i, c in enumerate(np.convolve(counts, np.ones(3), "same")) if c >= need), None
-        )
-        if lowest is None:
-            return (
-                n,
-                d,
-                {"first_fit_refined": {"error": "no level of the floor plane holds a share"}},
+        lowest = None
+        if on.shape[0] >= need:
+            counts, edges = np.histogram(
+                heights, np.arange(heights.min(), heights.max() + 0.04, 0.02)
             )
+            smooth = np.convolve(counts, np.ones(3), "same")
+            lowest = next((i for i, c in enumerate(smooth) if c >= need), None)
+        if lowest is None:
+            why = "no level of the floor plane holds a share of its points"
+            return n, d, {"first_fit_refined": {"error": why}}
         level = 0.5 * (edges[lowest] + edges[lowest + 1])
         n2, d2 = height_along(finite, on[np.abs(heights - level) < FLOOR_SLAB_M], up, FLOOR_SLAB_M)
         turn = float(np.degrees(np.arccos(np.clip(n @ n2, -1.0, 1.0))))
