@@ -192,6 +192,10 @@ FLOOR_CHECK_BELOW_CELLS = 50
 FLOOR_SLAB_M = 0.03
 FLOOR_LEVEL_SHARE = 0.1
 FLOOR_LEVEL_MIN_POINTS = 50
+# The first fit is turned to the level surfaces' vote only where they disagree this much (deg),
+# and only the surfaces this far below the sensor (m) vote.
+FIRST_FIT_REFINE_DEG = 3.0
+FIRST_FIT_VOTE_BELOW_M = 0.3
 # A floor the first frames show this far from the one an explicit mount transform gives
 # (deg between the normals, m along them under the first pose) makes a warning: the mount is
 # then wrong (a mount measured 30 cm high and 8 deg pitched off put the map's floor 3.4 deg
@@ -1007,12 +1011,21 @@ class Mapper:
         under the first pose; the floor check then moved z = 0 on to the table top, 45 cm up;
         a review). As RANSAC gave it where the vote finds no vertical. Returns the plane and
         what the refinement turned and moved it by."""
+        finite = pts[np.isfinite(pts).all(axis=1)]
+        # only what lies well below the sensor votes: a ceiling sloping down ahead (an attic)
+        # outvoted the floor and turned the frame 11 deg, z = 0 64 cm up (a review)
+        below = finite[(origin - finite) @ n > FIRST_FIT_VOTE_BELOW_M]
         try:
-            _, _, up = level_vertical(pts, n)
+            _, _, up = level_vertical(below, n)
         except FloorNotFoundError as exc:
             return n, d, {"first_fit_refined": {"error": str(exc)}}
+        turn = float(np.degrees(np.arccos(np.clip(n @ up, -1.0, 1.0))))
+        if turn < FIRST_FIT_REFINE_DEG:
+            # RANSAC's plane kept where the vote nearly agrees: a ramp's normals lean the vote
+            # too, and a vote taken for the frame pushed a 1:12 ramp's room past 2 deg (a
+            # review); only a fit far off (7-13 deg beside a large low table) is turned
+            return n, d, {"first_fit_refined": {"kept": round(turn, 3)}}
         self._voted_up_odom = up
-        finite = pts[np.isfinite(pts).all(axis=1)]
         on = finite[np.abs(finite @ n + d) < FLOOR_SLAB_M]
         # the tilted slab also cuts what stands on the floor (a table top): its points along
         # the vertical fall into levels, and the floor is the lowest that holds a share of them
@@ -1030,7 +1043,6 @@ class Mapper:
             return n, d, {"first_fit_refined": {"error": why}}
         level = 0.5 * (edges[lowest] + edges[lowest + 1])
         n2, d2 = height_along(finite, on[np.abs(heights - level) < FLOOR_SLAB_M], up, FLOOR_SLAB_M)
-        turn = float(np.degrees(np.arccos(np.clip(n @ n2, -1.0, 1.0))))
         moved = float((n2 @ origin + d2) - (n @ origin + d))
         refined = {"turn_deg": round(turn, 3), "moved_m": round(moved, 4)}
         return n2, d2, {"first_fit_refined": refined}
