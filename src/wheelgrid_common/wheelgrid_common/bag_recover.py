@@ -464,7 +464,7 @@ def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) 
         for path in files:
             try:
                 readers.append((path, _open_file(path, res)))
-            except BagError:
+            except (BagError, ModuleNotFoundError):  # rosbags missing is no damaged bag
                 raise
             except Exception as exc:  # a record inside the kept part does not decode
                 raise BagError(
@@ -520,7 +520,7 @@ def _copy(
                         res.end_ns = max(res.end_ns, t_ns)
                         if total:
                             bar.update()
-                except BagError:
+                except (BagError, ModuleNotFoundError):
                     raise
                 except Exception as exc:
                     raise BagError(

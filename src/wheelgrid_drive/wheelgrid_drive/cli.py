@@ -200,6 +200,8 @@ def _err(msg: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    import serial  # noqa: F401  (not installed: one line from `wheelgrid`, not "cannot open")
+
     try:
         doc = json.loads(Path(args.plan).read_text())
     except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep

@@ -224,6 +224,10 @@ def check_config(c: DriveConfig) -> None:
 
 class DriveNode(Node):
     def __init__(self, cfg: DriveConfig | None = None, **kwargs: Any) -> None:
+        # pyserial at the start: imported at the port's opening, its absence was a port that
+        # "cannot open", retried for ever (a review); now one FATAL line, exit 2 (spin_node)
+        import serial  # noqa: F401
+
         super().__init__("drive", **kwargs)
         try:
             self.cfg = declare_dataclass(self, cfg or DriveConfig())

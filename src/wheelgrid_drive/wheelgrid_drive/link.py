@@ -191,6 +191,8 @@ class MotorLink:
     def _open_port(self, stop_first: bool = False) -> None:
         try:
             ser = self._factory(self.port, self.baud)
+        except ModuleNotFoundError:  # pyserial not installed: no port to wait for
+            raise
         except Exception as exc:  # pyserial raises SerialException/OSError/ValueError
             raise LinkError(f"cannot open {self.port}: {_open_reason(exc)}") from exc
         with contextlib.suppress(Exception):

@@ -374,6 +374,8 @@ def import_main(argv: list[str]) -> int:
         # as a traceback; Ctrl-C) was left behind with a metadata.yaml, opening as if complete.
         # --out did not exist before this run (checked above): the part written goes.
         shutil.rmtree(args.out, ignore_errors=True)
+        if isinstance(exc, ModuleNotFoundError):  # rosbags not installed: said by `wheelgrid`
+            raise
         what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "import failed"
         detail = "" if isinstance(exc, KeyboardInterrupt) else f" ({type(exc).__name__}: {exc})"
         return _fail(

@@ -133,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     kind = "PCD" if args.map.suffix.lower() == ".pcd" else "PLY"
     try:
         points = read_cloud(args.map)
+    except ModuleNotFoundError:  # open3d not installed: said by `wheelgrid`, not the file
+        raise
     except Exception as exc:  # the readers raise several types for corrupt files
         # the readers' own errors name the file and say what is wrong; others get their type
         detail = str(exc).removeprefix(f"{args.map}: ")

@@ -141,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a full disk: OSError, or sqlite3's OperationalError (a traceback)
         bar.close()
         remove_made()
+        if isinstance(exc, ModuleNotFoundError):  # rosbags not installed: said by `wheelgrid`
+            raise
         print(
             f"wheelgrid simulate: failed ({type(exc).__name__}: {exc}); what it wrote is removed",
             file=sys.stderr,
