@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_yaml(PlannerConfig, args.config, section="planner")
     except (OSError, ValueError) as exc:
         print(f"wheelgrid plan: bad --config: {exc}", file=sys.stderr)
-        return 2
+        return _refused(args.png)
     if args.seed is not None:
         cfg.seed = args.seed
     if args.png and (problem := _png_problem(args.png)):

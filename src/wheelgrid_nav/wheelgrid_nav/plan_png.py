@@ -124,7 +124,7 @@ def is_plan_png(path: str | Path) -> bool:
     try:
         with Image.open(path) as im:
             return bool(im.info.get("Software") == PLAN_PNG_SOFTWARE)
-    except (OSError, UnidentifiedImageError, ValueError):
+    except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError):
         return False
 
 
