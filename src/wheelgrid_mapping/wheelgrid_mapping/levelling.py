@@ -252,6 +252,7 @@ def floor_of_map(
     band: float = 0.05,
     gate: float = 0.03,
     max_lean_deg: float | None = None,
+    vote: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, float]:
     """Floor plane ``(n, d)`` (``n`` up) of a whole map whose vertical ``up`` is known to within
     a few degrees: for checking a floor that :func:`find_floor` found on the first frames.
@@ -273,8 +274,11 @@ def floor_of_map(
     ``max_lean_deg``: ``up`` is gravity itself (a gravity-aligned pose prior's), and the
     plane's normal may lean at most this much from it; the height is then the median of the
     fitted floor points along the normal kept.
+
+    ``vote``: :func:`level_vertical` of these points about ``up`` with this ``voxel``, where the
+    caller has it already (it is the costly part).
     """
-    pts, level, u = level_vertical(points, up, voxel)
+    pts, level, u = level_vertical(points, up, voxel) if vote is None else vote
     origin = np.asarray(sensor_origin, dtype=np.float64)
     flat = pts[level]
     depth = (origin - flat) @ u

@@ -1179,10 +1179,11 @@ class Mapper:
         g = self._prior_up_in_map()
         try:
             if g is None:
+                z = np.array([0.0, 0.0, 1.0])
+                vote = level_vertical(pts, z)
                 if self._voted_up_odom is not None:
-                    _, _, voted = level_vertical(pts, np.array([0.0, 0.0, 1.0]))
-                    self._voted_up_odom = self.T_map_odom[:3, :3].T @ voted
-                n, d = floor_of_map(pts, np.array([0.0, 0.0, 1.0]), first[:3, 3])
+                    self._voted_up_odom = self.T_map_odom[:3, :3].T @ vote[2]
+                n, d = floor_of_map(pts, z, first[:3, 3], vote=vote)
             else:
                 n, d = floor_of_map(pts, g, first[:3, 3], max_lean_deg=PRIOR_FLOOR_LEAN_DEG)
         except FloorNotFoundError as exc:
