@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from wheelgrid_common.fileio import read_ply, read_tum, write_ply
-from wheelgrid_common.testing import edit_bag, not_installed
+from wheelgrid_common.testing import edit_bag
 from wheelgrid_mapping import cli_map, cli_measure
 
 BUNDLED = Path(__file__).resolve().parents[3] / "bags" / "paper_room"
@@ -1224,18 +1224,3 @@ def test_stray_points_in_a_box_are_no_second_surface(seed: int) -> None:
     )
     assert m.second_a is None and m.second_b is None
     assert m.distance == pytest.approx(1.2, abs=1e-4)
-
-
-def test_a_dependency_not_installed_is_one_line_naming_its_pip_package(
-    sim_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
-) -> None:
-    """kiss-icp missing: `wheelgrid map` ended in a traceback from deep in the registration,
-    exit 1 (a review). The mapper node's start is the same line (test_mapping_node_exit.py)."""
-    from wheelgrid_bringup import cli
-
-    not_installed(monkeypatch, "kiss_icp")
-    argv = ["map", str(sim_dir / "scan"), "--out", str(tmp_path / "m"), "--max-frames", "3"]
-    assert cli.main(argv) == 2
-    err = capsys.readouterr().err
-    assert "wheelgrid map: the Python package kiss-icp is not installed" in err, err
-    assert "Traceback" not in err
