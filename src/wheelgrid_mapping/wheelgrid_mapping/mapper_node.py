@@ -740,7 +740,7 @@ class MapperNode(Node):  # type: ignore[misc]
         elif not got and refused and refused != self._floor_refused_seen:
             # a large low table taken for the floor and not used: said once (not each check)
             self._floor_refused_seen = refused
-            self.get_logger().warning(f"mapper: levelling: warning: {refused}")
+            self.get_logger().warning(f"mapper: {floor_refound_line(self.mapper.level_info)}")
         check = self.mapper.level_info.get("mount_floor_check")
         if check and check is not self._mount_check_seen:
             self._mount_check_seen = check
