@@ -564,7 +564,8 @@ def test_the_wall_strip_never_grows_past_its_cap_at_coarse_pixels():
     pts = pts[~((pts[:, 2] == 0.0) & (pts[:, 0] < 0.10))]  # the floor unseen by that wall
     for ps in (0.05, 0.24):
         cfg = GridConfig(pixel_size=ps, alignment="map", guard_line_length=max(0.3, 3 * ps))
-        cfg.floor_fill = 1 if ps <= 0.2 else 0
+        if ps > 0.2:  # a raster this coarse cannot look for holes (hidden_hole)
+            cfg.floor_fill, cfg.unobserved_patch = 0, 0.0
         res = build_grid(pts, cfg)
         r, c = res.grid.cell_of(0.11, 4.5)
         assert res.grid.data[r, c] == OCCUPIED, ps
@@ -716,6 +717,26 @@ def test_a_cell_with_an_unseen_hole_in_its_middle_is_not_free():
     for bad in (-0.35, 0.9, math.nan):
         with pytest.raises(ValueError, match="unobserved_patch must be"):
             build_grid(room, GridConfig(unobserved_patch=bad))
+
+
+def test_a_coarser_raster_never_hides_a_hole_wider_than_it_says():
+    """At 10 cm pixels (``--pixel-size 0.1``) floor_fill's pixel and the pixel a hole's edge
+    cuts grew the floor seen 20 cm over each edge: a 55 cm pit in a cell's middle lay under a
+    free cell, 70 cm at 20 cm pixels, exit 0 and no word (a review). Such a raster is refused;
+    one that is taken keeps every hole wider than its ``hidden_hole`` from a free cell."""
+    from wheelgrid_nav.grid_synth import room_cloud
+
+    with pytest.raises(ValueError, match=r"unseen hole up to 0\.70 m"):
+        GridConfig(pixel_size=0.1).validate()
+    room = room_cloud([], size=(4.8, 4.8), spacing=0.02)
+    x, y, z = room.T
+    for kw in ({"pixel_size": 0.1, "floor_fill": 0}, {"pixel_size": 0.08, "floor_fill": 0}, {}):
+        cfg = GridConfig(alignment="map", **kw)
+        side = cfg.hidden_hole() + 0.01
+        for cx, cy in ((1.8, 3.0), (1.84, 3.03), (1.87, 3.06), (1.81, 3.05)):
+            hole = (z == 0.0) & (np.abs(x - cx) < side / 2) & (np.abs(y - cy) < side / 2)
+            grid = build_grid(room[~hole], cfg).grid
+            assert grid.data[grid.cell_of(cx, cy)] != FREE, (kw, side, cx, cy)
 
 
 def test_a_lone_speck_in_the_band_over_an_unseen_hole_does_not_make_its_cell_free():

@@ -73,7 +73,7 @@ def test_grid_png_shows_every_label_whole_and_a_true_metre(size, pixel_size):
     from wheelgrid_nav.grid import GridConfig
     from wheelgrid_nav.grid_png import _LEGEND, _text_width, layout, render
 
-    cfg = GridConfig(pixel_size=pixel_size, floor_fill=0, guard_line_length=1.2)
+    cfg = GridConfig(pixel_size=pixel_size, floor_fill=0, guard_line_length=1.2, unobserved_patch=0)
     res = build_grid(room_cloud([], size=size, spacing=0.04), cfg)
     plan = layout(res)
     width, height = plan.size

@@ -112,6 +112,10 @@ MAX_FLOOR_RISE = 0.026
 MAX_UNOBSERVED_PATCH = 0.8  # the chair's width: a wider unseen square is no hole under it
 _TILT_SAMPLE = 20_000  # floor points a plane fit needs (a regular subsample)
 MAX_FLOOR_FILL_M = 0.2  # m of floor that gap-filling may invent
+# m: how much wider than unobserved_patch an unseen hole may be and still lie under a free
+# cell (GridConfig.hidden_hole), as at the defaults (5 cm pixels, floor_fill 1: a 35 cm patch,
+# 55 cm holes), which bench/grid_holes.py and the README's Safety section measure
+MAX_RASTER_LOSS = 0.2
 MAX_EXTENT_TOLERANCE = 0.25  # m (the default): the grid reaches half of it past the floor seen
 # m: the boundary rule's strip may hide an obstacle this deep against a wall; (120 - 80) / 2 cm,
 # the chair's clearance along its width in its safe cell. "At most a cell" (1.2 m) emptied the
@@ -272,6 +276,18 @@ class GridConfig:
         bounds=(0.0, 5.0),
     )
 
+    def hidden_hole(self) -> float:
+        """The widest unseen square (m) that may lie in a free cell's middle, or 0 with
+        ``unobserved_patch`` off: the patch as :func:`unobserved_patches` opens with it (an odd
+        number of whole pixels), plus on each side the floor ``floor_fill`` grows over the
+        hole's edge and the pixel that edge cuts, which holds floor returns and reads seen."""
+        if self.unobserved_patch <= 0:
+            return 0.0
+        ps = self.pixel_size
+        side = max(1, round(self.unobserved_patch / ps))
+        opened = (2 * ((side - 1) // 2) + 1) * ps
+        return opened + 2 * (self.floor_fill + 1) * ps
+
     def cell_pixels(self) -> int:
         """Pixels per cell side (m = n); ValueError unless cell_size is a whole number of them."""
         if not (math.isfinite(self.cell_size) and math.isfinite(self.pixel_size)):
@@ -379,6 +395,17 @@ class GridConfig:
             raise ValueError(
                 f"unobserved_patch must be 0 (off) or in (0, {MAX_UNOBSERVED_PATCH}] m, not "
                 f"{self.unobserved_patch}"
+            )
+        looked_for = max(self.unobserved_patch, self.pixel_size)  # a pixel at the least
+        if (hidden := self.hidden_hole()) > looked_for + MAX_RASTER_LOSS + 1e-9:
+            # a coarser raster grows the floor seen over a hole's edge by floor_fill's pixels
+            # and by the pixel its edge cuts: at 10 cm pixels a 55 cm pit, at 20 cm a 70 cm
+            # one, lay under a free cell, with no word (a review)
+            raise ValueError(
+                f"pixel_size {self.pixel_size:g} m with floor_fill {self.floor_fill} lets an "
+                f"unseen hole up to {hidden:.2f} m wide lie under a free cell, more than the "
+                f"{looked_for:g} m square looked for (unobserved_patch) + {MAX_RASTER_LOSS} m: "
+                "a smaller pixel_size or floor_fill (0 at 10 cm pixels)"
             )
         if self.alignment not in ALIGNMENTS:
             raise ValueError(f"alignment must be one of {ALIGNMENTS}, not {self.alignment!r}")
