@@ -20,3 +20,10 @@ def convention_for_frame(frame_id: str, setting: str = "auto") -> str:
     if setting != "auto":
         raise ValueError(f"sensor_convention must be auto, optical or body, not {setting!r}")
     return "optical" if frame_id.endswith(("optical_frame", "optical")) else "body"
+
+
+def other_frame(pose_frame: str, cloud_frame: str) -> bool:
+    """A pose of another frame than the cloud's, both named: no pose prior for it. With no tf
+    here to chain a base_link pose to the camera, read as the camera's it was an initial guess
+    off by the mount, and its vertical levelled the map by a wrong gravity."""
+    return bool(pose_frame and cloud_frame and pose_frame != cloud_frame)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from wheelgrid_common.fileio import folder_problem, out_folder
+from wheelgrid_common.frames import other_frame
 from wheelgrid_common.progress import Progress
 
 from .pipeline import (
@@ -147,12 +148,12 @@ def stray_frames(
 ODOMETRY = "nav_msgs/msg/Odometry"
 
 
-def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps, 4x4 poses) of an Odometry topic: the pose prior for bags."""
+def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(stamps, 4x4 poses, child frames) of an Odometry topic: the pose prior for bags."""
     from wheelgrid_common.bagio import BagError
     from wheelgrid_common.fileio import pose_or_nan
 
-    stamps, poses = [], []
+    stamps, poses, children = [], [], []
     unreadable = 0
     # one damaged Odometry message costs the frames near it their prior, as a NaN pose does;
     # it ended the whole run before the first frame
@@ -168,6 +169,7 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
             st = msg.header.stamp
             stamps.append(st.sec + st.nanosec * 1e-9 if (st.sec or st.nanosec) else t_ns * 1e-9)
             poses.append(T)
+            children.append(msg.child_frame_id)
     except BagError as exc:
         # storage damaged part-way (a bad MCAP chunk): the poses before it are the prior of
         # the frames before it, which the clouds' own read maps up to the same place; ending
@@ -179,7 +181,7 @@ def _odometry_poses(reader: object, topic: str) -> tuple[np.ndarray, np.ndarray]
             "frames without a prior pose within 0.1 s fail once one frame has had it",
             file=sys.stderr,
         )
-    return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4)
+    return np.asarray(stamps), np.asarray(poses).reshape(-1, 4, 4), children
 
 
 class PriorMatch:
@@ -192,6 +194,22 @@ class PriorMatch:
         self.odom_stamps: np.ndarray | None = None  # set where the bag gave a prior topic
         self.frames = 0  # readable frames the prior was looked up for
         self.missing: list[float] = []  # their stamps where none was found
+        # (pose's child frame, cloud's frame) -> frames whose nearest pose was of another frame
+        self.other_frame: dict[tuple[str, str], int] = {}
+
+    def other_frame_warning(self) -> str:
+        """One line for stderr, or '': the frames whose prior was the pose of another frame
+        than theirs (a base_link odometry), which is not used: read as the camera's, a pose
+        one mount away doubled the map's surfaces and levelled it 6 deg off, exit 0 (a
+        review). There is no tf here to chain them (docs/CONVENTIONS.md)."""
+        if not self.other_frame:
+            return ""
+        (child, cloud), _ = max(self.other_frame.items(), key=lambda kv: kv[1])
+        return (
+            f"{sum(self.other_frame.values())} of {self.frames} frames' odometry poses are of "
+            f"frame {child!r}, the clouds of {cloud!r}: the prior is not used for them (no tf "
+            "here to chain the two); record the sensor's own pose as the prior"
+        )
 
     def warning(self) -> str:
         """One line for stderr, or '' when every frame found its prior."""
@@ -251,6 +269,7 @@ def bag_frames(
         name = reader.pick_topic(topic)
         total = reader.count([name], POINTCLOUD2)
         prior_stamps, prior_poses = np.empty(0), np.empty((0, 4, 4))
+        prior_children: list[str] = []
         if prior:
             try:
                 odom = reader.pick_topic(prior_topic, ODOMETRY, "--prior-topic")
@@ -258,7 +277,7 @@ def bag_frames(
                 # the hint belongs to this error only: appended to every BagError, it told a
                 # user whose bag did not open that the bag lacked an Odometry topic
                 raise BagError(f"{exc} (--prior arkit needs one nav_msgs/Odometry topic)") from exc
-            prior_stamps, prior_poses = _odometry_poses(reader, odom)
+            prior_stamps, prior_poses, prior_children = _odometry_poses(reader, odom)
             if match is not None:
                 match.odom_stamps = prior_stamps
         elif any(t.msgtype == ODOMETRY for t in reader.topics()):
@@ -273,11 +292,24 @@ def bag_frames(
             holder.__exit__()
         raise InputError(str(exc)) from exc
 
-    def prior_for(stamp: float) -> np.ndarray | None:
-        if prior_stamps.size == 0:
+    def prior_for(stamp: float, frame_id: str) -> np.ndarray | None:
+        """The odometry pose nearest ``stamp`` (within 0.1 s) if it is of the cloud's own
+        frame; ``match`` counts the frames without one, and why."""
+        if not prior:
             return None
-        i = int(np.argmin(np.abs(prior_stamps - stamp)))
-        return prior_poses[i] if abs(prior_stamps[i] - stamp) <= 0.1 else None
+        if match is not None:
+            match.frames += 1
+        i = int(np.argmin(np.abs(prior_stamps - stamp))) if prior_stamps.size else -1
+        if i < 0 or abs(prior_stamps[i] - stamp) > 0.1:
+            if match is not None:
+                match.missing.append(stamp)
+            return None
+        if other_frame(prior_children[i], frame_id):
+            if match is not None:
+                key = (prior_children[i], frame_id)
+                match.other_frame[key] = match.other_frame.get(key, 0) + 1
+            return None
+        return prior_poses[i]
 
     if total == 0:
         # metadata.yaml's count, not the storage's: a bag whose metadata lists none was
@@ -326,11 +358,7 @@ def bag_frames(
                     bad.append(NO_FRAME_ID)
                     yield np.empty((0, 3)), stamp, "", None, None, None
                     continue
-                pose = prior_for(stamp)
-                if prior and match is not None:
-                    match.frames += 1
-                    if pose is None:
-                        match.missing.append(stamp)
+                pose = prior_for(stamp, msg.header.frame_id)
                 # the pixel grid, for the mixed-pixel test
                 yield organised(pts, msg), stamp, msg.header.frame_id, conf, pose, t_ns * 1e-9
         except BagError as exc:
@@ -630,9 +658,9 @@ def _run(args: argparse.Namespace) -> int:
             "(damaged storage?)",
             file=sys.stderr,
         )
-    unmatched = match.warning()
-    if unmatched:
-        print(f"wheelgrid map: warning: {unmatched}", file=sys.stderr)
+    for unmatched in (match.warning(), match.other_frame_warning()):
+        if unmatched:
+            print(f"wheelgrid map: warning: {unmatched}", file=sys.stderr)
     if bad and len(bad) == n:
         hint = (
             f"; {NO_FRAME_ID}: set sensor_convention to optical or body in the --config "
@@ -701,7 +729,13 @@ def _run(args: argparse.Namespace) -> int:
                     "damage": damage[0] if damage else None,
                 },
                 **(
-                    {"prior": {"frames": match.frames, "frames_without": len(match.missing)}}
+                    {
+                        "prior": {
+                            "frames": match.frames,
+                            "frames_without": len(match.missing),
+                            "frames_of_another_frame": sum(match.other_frame.values()),
+                        }
+                    }
                     if match.odom_stamps is not None
                     else {}
                 ),

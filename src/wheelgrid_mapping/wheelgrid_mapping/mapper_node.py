@@ -44,6 +44,7 @@ from wheelgrid_common.fileio import (
     pose_or_nan,
     user_folder,
 )
+from wheelgrid_common.frames import other_frame
 from wheelgrid_common.params import check_no_undeclared, declare_dataclass, field
 from wheelgrid_common.pointcloud2 import (
     CloudError,
@@ -457,7 +458,7 @@ class MapperNode(Node):  # type: ignore[misc]
         best = min(reversed(list(self._priors)), key=lambda sp: abs(sp[0] - stamp))
         if abs(best[0] - stamp) > 0.1:
             return None
-        if best[2] and frame_id and best[2] != frame_id:
+        if other_frame(best[2], frame_id):
             self._log_once(
                 "priorframe",
                 f"the poses on {self.resolve_topic_name(self.prior_topic)} are of frame "
