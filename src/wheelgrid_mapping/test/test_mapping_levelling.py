@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from wheelgrid_mapping.cli_map import mount_check_line
+from wheelgrid_mapping.cli_map import axes_lines, mount_check_line
 from wheelgrid_mapping.levelling import (
     FloorNotFoundError,
     convention_for_frame,
@@ -269,6 +269,31 @@ def test_the_mapper_takes_its_first_vertical_from_a_gravity_aligned_prior(prior:
         assert "prior_gravity_deg" not in info
         if prior == "y-up VIO":
             assert info["prior_not_gravity_deg"] == pytest.approx(90.0, abs=0.5)
+
+
+def test_axes_read_against_the_frame_name_or_a_prior_that_is_no_vertical_are_said() -> None:
+    """``sensor_convention: body`` on clouds whose frame is named ``*_optical_frame`` levelled
+    a map on a wall with exit 0 and no word, and the gravity prior it threw out was in no
+    report when the first levelling had come short of floor points (a review). Both are in
+    the levelling report now, and each is a warning line of `wheelgrid map` and the node."""
+    rng = np.random.default_rng(38)
+    m = Mapper(cfg=MapperConfig(level_min_frames=2, sensor_convention="body"))
+    y_up = np.eye(4)
+    y_up[:3, :3] = rpy_matrix(math.pi / 2, 0.0, 0.0)  # the prior's world y is up
+    name = "camera_depth_optical_frame"
+    assert m.add_frame(leaning_patch_view(rng, 3.3), 0.0, name, prior=y_up).status == "used"
+    assert not m.try_level()  # one frame: nothing in the map yet, no floor
+    assert m.level_info["method"] == "none"
+    assert m.add_frame(leaning_patch_view(rng, 3.3), 0.2, name, prior=y_up).status == "used"
+    info = m.report()["levelling"]
+    assert info["vertical"] == "floor plane"
+    assert info["prior_not_gravity_deg"] == pytest.approx(90.0, abs=0.5)
+    assert info["body_named_optical"] == name
+    lines = axes_lines(info)
+    assert len(lines) == 2
+    assert f"the clouds' frame {name!r} is optical by its name" in lines[0]
+    assert "the pose prior's vertical lies 90 deg" in lines[1]
+    assert axes_lines({"method": "floor"}) == []
 
 
 def test_lean_within_turns_toward_up_in_the_common_plane_only_as_far_as_needed() -> None:

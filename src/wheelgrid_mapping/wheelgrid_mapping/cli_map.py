@@ -474,6 +474,28 @@ def mount_check_line(level: dict[str, Any]) -> str | None:
     return f"levelling: warning: {warning}" if warning else None
 
 
+def axes_lines(level: dict[str, Any]) -> list[str]:
+    """A line each when the clouds' axes or the prior's vertical may have been read wrong:
+    frames whose name says optical read as body (``sensor_convention: body``), and a prior
+    whose vertical was no up the sensor could have. Each levelled a map on a wall, or on the
+    floor alone, with exit 0 and no word (a review)."""
+    lines = []
+    if name := level.get("body_named_optical"):
+        lines.append(
+            f"levelling: warning: the clouds' frame {name!r} is optical by its name (REP-103), "
+            "read as body because mapper.sensor_convention says so: if the map's floor is a "
+            "wall, set it to auto"
+        )
+    if (lean := level.get("prior_not_gravity_deg")) is not None:
+        lines.append(
+            f"levelling: warning: the pose prior's vertical lies {lean:g} deg from any up the "
+            "sensor could have, as its axes are read: not used, the map is levelled on the "
+            "floor alone (a prior that is not gravity-aligned, or mapper.sensor_convention "
+            "wrong for these clouds?)"
+        )
+    return lines
+
+
 # A run where this share of the frames failed registration says so as a whole: each failure
 # is a warning line of its own, and hundreds of them (a scan KISS-ICP lost) drowned the fact
 # that the map as a whole is not to be trusted.
@@ -767,7 +789,8 @@ def _run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"wheelgrid map: cannot write the map to {args.out}: {exc}", file=sys.stderr)
         return 1
-    for line in (floor_refound_line(rep["levelling"]), mount_check_line(rep["levelling"])):
+    level = rep["levelling"]
+    for line in (floor_refound_line(level), mount_check_line(level), *axes_lines(level)):
         if line:
             print(line, file=sys.stderr)
     fr = rep["frames"]

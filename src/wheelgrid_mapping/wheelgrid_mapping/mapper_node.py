@@ -213,6 +213,7 @@ class MapperNode(Node):  # type: ignore[misc]
         self._floor_refound_seen: dict[str, Any] | None = None  # the one last warned of
         self._floor_refused_seen: str | None = None  # a floor check's refusal, warned of
         self._mount_check_seen: dict[str, Any] | None = None  # the mount check last warned of
+        self._axes_lines_seen: set[str] = set()  # axes_lines already warned of
         self._logged: set[str] = set()
         # registration failures said one line each only where a run of them begins, then at
         # most every FAILURE_LOG_PERIOD_S with how many came between (see _say_failure)
@@ -731,7 +732,7 @@ class MapperNode(Node):  # type: ignore[misc]
         """Say so, once each, when the map frame jumped to the floor found on the whole map
         (the map, the poses and any grid made from an earlier map cloud move with it), and
         when the floor in view contradicts an explicit mount transform."""
-        from .cli_map import floor_refound_line, mount_check_line
+        from .cli_map import axes_lines, floor_refound_line, mount_check_line
 
         got = self.mapper.level_info.get("floor_refound")
         refused = (self.mapper.level_info.get("floor_check") or {}).get("refused")
@@ -747,6 +748,10 @@ class MapperNode(Node):  # type: ignore[misc]
             self._mount_check_seen = check
             line = mount_check_line(self.mapper.level_info)
             if line:
+                self.get_logger().warning(f"mapper: {line}")
+        for line in axes_lines(self.mapper.levelling_report()):
+            if line not in self._axes_lines_seen:
+                self._axes_lines_seen.add(line)
                 self.get_logger().warning(f"mapper: {line}")
 
     def _publish_status(self) -> None:

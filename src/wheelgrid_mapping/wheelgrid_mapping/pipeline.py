@@ -417,6 +417,9 @@ class Mapper:
         self.stamped_behind = 0  # of frames_skipped: stamped back, held (clock not confirmed)
         self.out_of_order = 0  # of frames_skipped: repeats and late frames (LATE_FRAME_WINDOW)
         self.other_frame = 0  # of frames_skipped: a frame_id of another axis convention
+        # the first frame whose name says optical (REP-103's suffix) read as body because
+        # sensor_convention says so: levelled on a wall, exit 0, without a word (a review)
+        self.body_named_optical: str | None = None
         self.frames_errored = 0  # raised while prepared or registered (FrameOutcome "error")
         self.failed_since_used = 0  # registration failures since the last frame mapped
         self.frames_empty = 0
@@ -508,7 +511,9 @@ class Mapper:
         self._after_gap: list[bool] = []
         # sum over the registered frames with a prior of the prior's up (its z) in odom
         self._prior_up_sum = np.zeros(3)
-        self._prior_not_vertical = False  # its z is no up an upright sensor could have
+        # how far the priors' z lies from any up an upright sensor could have, once it was
+        # found to (None: not found): no vertical from then on, and said in every levelling
+        self._prior_not_gravity_deg: float | None = None
         self.loop_info: dict[str, Any] = {}  # the report's loop_closure, once close_loops ran
         self.loop_result: LoopClosureResult | None = None  # its graph, for benchmarks
 
@@ -594,6 +599,12 @@ class Mapper:
         elif prev is not None and self._receipt_gap is not None:
             self._receipt_gap = max(self._receipt_gap, received - prev)
         convention = convention_for_frame(frame_id, self.cfg.sensor_convention)
+        if (
+            convention == "body"
+            and self.body_named_optical is None
+            and convention_for_frame(frame_id) == "optical"
+        ):
+            self.body_named_optical = frame_id
         if self.convention is None:
             self.convention = convention
         elif convention != self.convention:
@@ -920,7 +931,7 @@ class Mapper:
         fraction of a degree for the whole session, where a floor fitted to the first frames
         leans with whatever patch of floor they saw."""
         norm = float(np.linalg.norm(self._prior_up_sum))
-        if not self.cfg.prior_gravity or self._prior_not_vertical or norm < 1e-9:
+        if not self.cfg.prior_gravity or self._prior_not_gravity_deg is not None or norm < 1e-9:
             return None
         return self._prior_up_sum / norm
 
@@ -934,8 +945,8 @@ class Mapper:
             return None
         lean = tilt_deg(self.T_map_odom, -up)
         if lean > PRIOR_FLOOR_MAX_TILT_DEG:
-            self._prior_not_vertical = True
-            self.level_info["prior_not_gravity_deg"] = round(lean, 1)
+            self._prior_not_gravity_deg = round(lean, 1)
+            self.level_info["prior_not_gravity_deg"] = self._prior_not_gravity_deg
             return None
         return self.T_map_odom[:3, :3] @ up
 
@@ -943,15 +954,17 @@ class Mapper:
         """:meth:`prior_up` if this sensor could stand upright on it (within
         ``floor_max_tilt_deg`` of the sensor's own down hint), else None and the angle, for the
         report: a prior whose frame is not gravity-aligned (a y-up VIO) is no vertical, and the
-        floor alone is used, as without a prior."""
+        floor alone is used, as without a prior. The angle stays in the report of every later
+        try (a first try short of floor points had dropped it from the levelling that came)."""
         up = self.prior_up()
-        if up is None:
-            return None, {}
-        lean = math.degrees(math.acos(float(np.clip(-(up @ down), -1.0, 1.0))))
-        if lean > self.cfg.floor_max_tilt_deg:
-            self._prior_not_vertical = True
-            return None, {"prior_not_gravity_deg": round(lean, 1)}
-        return up, {}
+        if up is not None:
+            lean = math.degrees(math.acos(float(np.clip(-(up @ down), -1.0, 1.0))))
+            if lean > self.cfg.floor_max_tilt_deg:
+                self._prior_not_gravity_deg = round(lean, 1)
+                up = None
+        if self._prior_not_gravity_deg is None:
+            return up, {}
+        return None, {"prior_not_gravity_deg": self._prior_not_gravity_deg}
 
     def try_level(self) -> bool:
         """Find ``T_map_odom`` (mount parameter or floor); True once known."""
@@ -1385,6 +1398,8 @@ class Mapper:
         """``level_info`` and, with a gravity-aligned prior, the map frame's vertical against
         the prior's: the one check of the map frame a user without ground truth can read."""
         rep = dict(self.level_info)
+        if self.body_named_optical is not None:
+            rep["body_named_optical"] = self.body_named_optical
         up = self.prior_up()
         if up is not None and self.T_map_odom is not None:
             rep["prior_gravity_deg"] = round(tilt_deg(self.T_map_odom, -up), 3)
