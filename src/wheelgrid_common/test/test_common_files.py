@@ -347,6 +347,17 @@ def test_files_written_together_keep_the_old_set_when_one_cannot_be_replaced(tmp
     assert {n: (tmp_path / n).read_text() for n in old} == old  # a.txt put back
     assert not (tmp_path / "new.txt").exists()  # made, then taken away again
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt", "c.txt"]
+
+    def interrupted_at_b(src, dst):  # a Ctrl-C between two replaces: it left a new map.ply
+        if os.path.basename(dst) == "b.txt":  # beside the old report, the old map gone
+            raise KeyboardInterrupt
+        real_replace(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", interrupted_at_b)
+    with pytest.raises(KeyboardInterrupt):
+        write_together(writers)
+    assert {n: (tmp_path / n).read_text() for n in old} == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt", "c.txt"]
     monkeypatch.setattr(fileio.os, "replace", real_replace)
     write_together(writers)
     assert (tmp_path / "b.txt").read_text() == "new b.txt"

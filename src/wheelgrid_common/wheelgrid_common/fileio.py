@@ -443,7 +443,7 @@ def write_together(writers: dict[Path, Callable[[Path], object]]) -> None:
             for target, tmp in staged.items():
                 os.replace(tmp, target)
                 replaced.append(target)
-        except OSError:
+        except BaseException:  # a Ctrl-C between two replaces too: a new map, old report
             for target in reversed(replaced):
                 with contextlib.suppress(OSError):
                     if target in kept:
