@@ -16,8 +16,14 @@ CELLS = [[2, 0], [2, 1], [2, 2], [2, 3], [2, 4], [2, 5], [3, 5], [4, 5], [5, 5],
 MOVES = ["right"] * 5 + ["down"] * 4
 
 
-def table_ii_plan(with_actions=True):
-    plan = {"cells": CELLS, "moves": MOVES}
+def grid_of(rows, cols, res=1.2):
+    """A plan's record of its grid (`wheelgrid plan --json`'s): rows x cols cells of ``res``
+    with row 0 along y = 0, toward -y, the cells the plans here were written for."""
+    return {"rows": rows, "cols": cols, "resolution": res, "origin": [0.0, -rows * res, 0.0]}
+
+
+def table_ii_plan(with_actions=True, grid=None):
+    plan = {"cells": CELLS, "moves": MOVES} | ({"grid": grid} if grid else {})
     if with_actions:
         heading = "down"
         acts = []
@@ -94,7 +100,7 @@ def test_speed_is_capped_and_heading_flag_works(make_sim, tmp_path, capsys):
             "9",
             "--cell-size",
             "1.0",
-            "--set-pose",
+            "--no-pose-check",  # the plan names no grid: where its cells lie is not known
         ]
     )
     captured = capsys.readouterr()
@@ -223,7 +229,8 @@ def test_bad_settings_exit_2_before_any_frame(make_sim, tmp_path, capsys, extra,
 
 def test_set_pose_beyond_what_the_controller_holds_is_bad_input(make_sim, tmp_path, capsys):
     sim = make_sim()
-    doc = {"cells": [[0, 3_000_000], [0, 3_000_001]]}  # 3600 km east: int32 mm overflowed
+    # 3600 km east: int32 mm overflowed
+    doc = {"cells": [[0, 3_000_000], [0, 3_000_001]], "grid": grid_of(1, 3_000_002)}
     argv = [write(tmp_path, doc), "--port", sim.slave_path, "--heading", "right", "--set-pose"]
     assert main(argv) == 2
     assert "--set-pose: the start cell's pose" in capsys.readouterr().err
@@ -231,7 +238,8 @@ def test_set_pose_beyond_what_the_controller_holds_is_bad_input(make_sim, tmp_pa
 
 
 def test_missing_port_is_a_failure(tmp_path, capsys):
-    rc = main([write(tmp_path, table_ii_plan()), "--port", str(tmp_path / "ttyNONE")])
+    plan = table_ii_plan(grid=grid_of(8, 8))
+    rc = main([write(tmp_path, plan), "--port", str(tmp_path / "ttyNONE")])
     err = capsys.readouterr().err
     assert rc == 1 and "cannot open" in err
     # the OS's reason once, not pyserial's wrapper repeating errno and path
@@ -242,7 +250,8 @@ def test_missing_port_is_a_failure(tmp_path, capsys):
 def test_silent_controller_exits_1_and_stops(make_sim, tmp_path, capsys):
     sim = make_sim(time_scale=1.0)
     sim.drop_rx_next = 10**6  # the controller hears nothing any more: every request times out
-    rc = main([write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--retries", "1"])
+    plan = table_ii_plan(grid=grid_of(8, 8))
+    rc = main([write(tmp_path, plan), "--port", sim.slave_path, "--retries", "1"])
     assert rc == 1
     # STOP was sent, but a silent controller cannot confirm it: "chair stopped" would be a
     # claim nobody checked, so the user is told to check the chair
@@ -444,7 +453,7 @@ def test_a_signal_mid_move_stops_the_chair_as_ctrl_c_does(
     from wheelgrid_common.testing import managed_process, python_module
 
     sim = make_sim(time_scale=1.0)  # real time: a 1.2 m cell takes 1.4 s
-    plan = write(tmp_path, {"cells": [[0, 0], [0, 1], [0, 2]]})
+    plan = write(tmp_path, {"cells": [[0, 0], [0, 1], [0, 2]], "grid": grid_of(1, 3)})
     argv = python_module("wheelgrid_drive.cli", plan, "--port", sim.slave_path)
     argv += ["--heading", "right", "--set-pose", "--cell-size", "1.2", "--jsonl"]
     kw = {"preexec_fn": lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)} if ignored else {}
@@ -472,3 +481,71 @@ def test_a_plan_without_moves_takes_the_heading_wheelgrid_plan_wrote(make_sim, t
     doc["heading"] = "north"  # said as bad, not taken for none
     assert main([write(tmp_path, doc), "--port", sim.slave_path]) == 2
     assert "heading must be up/down/left/right" in capsys.readouterr().err
+
+
+def _drive_table_ii(tmp_path, sim, *extra):
+    free = Grid(np.zeros((8, 8), np.int8), 1.2)
+    grid = write_map(tmp_path / "grid.yaml", free)
+    argv = [write(tmp_path, table_ii_plan()), "--port", sim.slave_path, "--grid", str(grid)]
+    return main([*argv, "--set-pose", *extra]), free
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_each_step_drives_to_the_next_centre_so_move_errors_do_not_add_up(
+    make_sim, tmp_path, capsys, seed
+):
+    """Every step drove one cell's length from wherever the chair stood: with 8 cm of error a
+    move (the controller's odometry reporting it) the chair drifted off the cells' centres
+    until a step was refused half-way, 2 routes of 8 (a review). Each step now drives to the
+    next cell's centre from the pose the controller reports, and the route ends on its goal."""
+    sim = make_sim(noise_m=0.08, seed=seed)
+    rc, free = _drive_table_ii(tmp_path, sim)
+    assert rc == 0, capsys.readouterr().err
+    st = sim.status()
+    x, y = free.cell_center(6, 5)
+    assert math.hypot(st.x - x, st.y - y) < 0.3  # the move's own error, not the route's
+
+
+def test_a_route_from_a_chair_stopped_between_cell_centres_is_driven(make_sim, tmp_path, capsys):
+    """A chair stopped mid-move (a new route, a cell closed ahead) stands more than a quarter
+    cell from every centre: each route from there was refused at its first step, for good,
+    and the chair was stranded (a review). It drives on from where it stands, to the next
+    cell's centre."""
+    free = Grid(np.zeros((8, 8), np.int8), 1.2)
+    grid = write_map(tmp_path / "grid.yaml", free)
+    x, y = free.cell_center(2, 2)
+    sim = make_sim(pose=(float(x) + 0.59, float(y), 0.0))  # facing right, 0.59 m on
+    plan = {"cells": [[2, 2], [2, 3], [2, 4]], "grid": grid_of(8, 8) | {"origin": [0, 0, 0]}}
+    argv = [write(tmp_path, plan), "--port", sim.slave_path, "--grid", str(grid)]
+    assert main([*argv, "--heading", "right"]) == 0, capsys.readouterr().err
+    st = sim.status()
+    assert (st.x, st.y) == pytest.approx(tuple(float(v) for v in free.cell_center(2, 4)), abs=1e-3)
+
+
+def test_without_grid_the_pose_is_checked_on_the_cells_the_plan_was_made_on(
+    make_sim, tmp_path, capsys
+):
+    """Without --grid the chair's pose was checked against cells of a grid made up at the
+    origin, not the plan's: a chair on an occupied cell 3 m off the plan's start drove the
+    whole route through occupied cells and out of the room, exit 0, and a chair on the start
+    itself was refused (a review). The plan's own record of its grid places its cells; a plan
+    without one is driven only with --no-pose-check."""
+    planned_on = Grid(np.zeros((8, 8), np.int8), 1.2, (-1.3, -6.6, 0.0))
+    plan = table_ii_plan(grid=grid_of(8, 8) | {"origin": list(planned_on.origin)})
+    path = write(tmp_path, plan)
+    x, y = (float(v) for v in planned_on.cell_center(2, 0))
+    sim = make_sim(pose=(x, y, -math.pi / 2))  # on the start, facing down
+    assert main([path, "--port", sim.slave_path]) == 0, capsys.readouterr().err
+    st = sim.status()
+    assert (st.x, st.y) == pytest.approx(tuple(float(v) for v in planned_on.cell_center(6, 5)))
+    x, y = (float(v) for v in planned_on.cell_center(5, 1))
+    elsewhere = make_sim(pose=(x, y, -math.pi / 2))  # 3.6 m off the start, the review's cell
+    assert main([path, "--port", elsewhere.slave_path]) == 1
+    assert "is in cell (5, 1), not in cell (2, 0)" in capsys.readouterr().err
+    assert sim_moves(elsewhere) == []
+    unplaced = write(tmp_path, table_ii_plan(), "unplaced.json")
+    assert main([unplaced, "--port", elsewhere.slave_path]) == 2
+    assert "where its cells lie is unknown" in capsys.readouterr().err
+    assert main([unplaced, "--port", elsewhere.slave_path, "--set-pose", "--no-pose-check"]) == 2
+    assert sim_moves(elsewhere) == []
+

@@ -45,30 +45,38 @@ def test_only_free_cells_pass():
     assert "no safe grid" in grid_cell_check(lambda: None)((0, 0))
 
 
-def test_a_step_is_refused_unless_the_chair_can_drive_it_from_where_it_stands():
+def test_a_step_drives_to_the_next_centre_from_wherever_the_chair_stands_in_its_cell():
     """A chair 5 cm from its cell's edge and turned 19 deg passed the start check (right cell,
     within 20 deg of the heading) and one cell's FORWARD ended in the occupied cell diagonally
-    ahead."""
+    ahead. Then every step drove one cell's length from a chair within a quarter cell of its
+    centre: errors added up until a route stopped half-way, and a chair stopped mid-move could
+    drive no route again (a review). Each step now drives to the next cell's centre from
+    wherever in its first cell the chair stands, along a line through that centre."""
     import math
 
     from wheelgrid_drive.actions import plan_steps
-    from wheelgrid_drive.runner import step_pose_problem
+    from wheelgrid_drive.runner import step_from_pose
 
     g = Grid(np.zeros((4, 4), np.int8), 1.2)
     (step,) = plan_steps((2, 1), ["right"], "right")
     x, y = (float(v) for v in g.cell_center(2, 1))
-    assert step_pose_problem(g, x, y, 0.0, step) is None
-    assert step_pose_problem(g, x + 0.2, y - 0.2, math.radians(5), step) is None
-    assert "from the centre of cell (2, 1)" in step_pose_problem(g, x, y + 0.55, 0.0, step)
-    assert "would end" in step_pose_problem(g, x, y, math.radians(19), step)
-    assert "would end" in step_pose_problem(g, x, y, math.pi, step)  # facing the other way
+    assert step_from_pose(g, x, y, 0.0, step) == (pytest.approx(1.2), None)
+    assert step_from_pose(g, x + 0.2, y - 0.2, math.radians(5), step)[1] is None
+    # stopped mid-move, 0.59 m on: the rest of the way (it was refused, and so every route)
+    assert step_from_pose(g, x + 0.59, y, 0.0, step) == (pytest.approx(0.61), None)
+    assert step_from_pose(g, x - 0.25, y, 0.0, step) == (pytest.approx(1.45), None)
+    assert "is in cell (1, 1), not in cell (2, 1)" in step_from_pose(g, x, y + 0.65, 0.0, step)[1]
+    assert "off its line" in step_from_pose(g, x, y, math.radians(19), step)[1]
+    assert "off its line" in step_from_pose(g, x, y, math.pi, step)[1]  # facing the other way
     # the quarter turn and the reverse are driven the way the controller drives them
     (left,) = plan_steps((2, 1), ["up"], "right")
     (back,) = plan_steps((2, 1), ["left"], "right")
     assert left.action == "LEFT_FORWARD" and back.action == "BACKWARD"
-    assert step_pose_problem(g, x, y, 0.0, left) is None
-    assert step_pose_problem(g, x, y, 0.0, back) is None
-    assert "would end" in step_pose_problem(g, x, y, math.pi / 2, left)
+    assert step_from_pose(g, x, y, 0.0, left) == (pytest.approx(1.2), None)
+    assert step_from_pose(g, x, y, 0.0, back) == (pytest.approx(1.2), None)
+    assert "off its line" in step_from_pose(g, x, y, math.pi / 2, left)[1]
+    # a turn from 0.5 m along the cell would drive past the next centre's side: refused
+    assert "off its line" in step_from_pose(g, x + 0.5, y, 0.0, left)[1]
 
 
 def test_a_grid_that_moved_since_planning_refuses_every_cell():

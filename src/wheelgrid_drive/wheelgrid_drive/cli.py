@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from wheelgrid_common.params import DefaultsHelpFormatter
 from wheelgrid_drive import actions
@@ -23,10 +26,10 @@ from wheelgrid_drive import protocol as proto
 from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
 from wheelgrid_drive.runner import (
     OFF_CELL,
-    WOULD_END,
+    OFF_LINE,
     CellCheck,
     command_record,
-    controller_pose_check,
+    controller_step_length,
     grid_cell_check,
     off_centre_problem,
     run_steps,
@@ -168,7 +171,7 @@ def _parser() -> argparse.ArgumentParser:
         "--cell-size",
         type=float,
         default=None,
-        help="metres per cell (default: the --grid's resolution, else 1.2)",
+        help="metres per cell (default: the --grid's resolution, else the plan's, else 1.2)",
     )
     p.add_argument(
         "--speed", type=float, default=3.0, help=f"km/h, capped at {proto.MAX_SPEED_KMH:g}"
@@ -182,9 +185,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-pose-check",
         action="store_true",
-        help="drive without checking the controller's reported pose before each step (for a "
-        "controller whose pose is not in the plan's frame); each step then drives one cell "
-        "from wherever the chair stands",
+        help="drive without the controller's reported pose (for a controller whose pose is not "
+        "in the plan's frame): each step then drives one cell from wherever the chair stands, "
+        "where with it each drives to the next cell's centre",
     )
     p.add_argument("--reply-timeout", type=float, default=0.1, help="seconds per attempt")
     p.add_argument("--retries", type=int, default=3, help="resends of an unanswered frame")
@@ -298,6 +301,17 @@ def main(argv: list[str] | None = None) -> int:
         f", {cell_size:g} m per cell at {speed:g} km/h",
         file=notes,
     )
+    # where the plan's cells lie: the grid's, else the plan's own record of it (a chair's pose
+    # checked against cells of a grid made up at the origin, without --grid, drove a route
+    # from an occupied cell through occupied ones, out of the room, exit 0; a review)
+    where = grid if grid is not None else grid_of_plan(planned_on)
+    if where is None and steps and not args.dry_run and (args.set_pose or not args.no_pose_check):
+        return _err(
+            "no --grid, and the plan does not say which grid it was made on (a plan of another "
+            "tool): where its cells lie is unknown, so the chair's pose cannot be checked "
+            "against them; give --grid (or --no-pose-check, without --set-pose, for a "
+            "controller whose pose is not in the plan's frame)"
+        )
     if args.dry_run or not steps:
         for i, s in enumerate(steps, 1):
             if args.jsonl:
@@ -309,8 +323,9 @@ def main(argv: list[str] | None = None) -> int:
         return _err("--port is required (or --dry-run)")
     start_pose = None
     if args.set_pose:
-        x, y = _cell_xy(cells[0], cell_size, grid)
-        yaw = actions.YAW[steps[0].heading] + (grid.origin[2] if grid is not None else 0.0)
+        assert where is not None
+        x, y = (float(v) for v in where.cell_center(*cells[0]))
+        yaw = actions.YAW[steps[0].heading] + float(where.origin[2])
         try:
             proto.pack_pose(x, y, yaw)
         except ValueError as exc:
@@ -372,12 +387,11 @@ def main(argv: list[str] | None = None) -> int:
             speed_kmh=speed,
             cell_check=check,
             on_step=on_step,
-            # each step drives one cell's length from where the chair really stands: checked
-            # on the plan's cells alone, a chair turned a few degrees per turn, or standing
-            # off the plan's start, drove a free-checked route through occupied cells, exit 0
-            pose_check=None
-            if args.no_pose_check
-            else controller_pose_check(link, _Cells(cell_size, grid)),
+            # each step drives to the next cell's centre from where the chair really stands:
+            # checked on the plan's cells alone, a chair turned a few degrees per turn, or
+            # standing off the plan's start, drove a free-checked route through occupied
+            # cells, exit 0
+            step_length=None if args.no_pose_check else controller_step_length(link, where),
             on_start=on_start,
         )
         # the runner sent STOP already; once more, to learn whether the controller heard it
@@ -388,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
             # with the chair in another cell, an occupied one included: no next step's check
             # reads it (the drive node checks it, "plan ended short of its goal")
             st = link.status()
-            short = off_centre_problem(_Cells(cell_size, grid), st.x, st.y, cells[-1])
+            short = off_centre_problem(where, st.x, st.y, cells[-1])
             if short:
                 stop_note = _stopped(link)
     except (LinkError, KeyboardInterrupt, Terminated) as exc:
@@ -427,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                 " (the controller's pose is not on the plan's start cell: drive the chair "
                 "there, or plan again from where it stands, `wheelgrid plan --start-xy X,Y`)"
             )
-        elif result.refused and result.done == 0 and WOULD_END in result.error:
+        elif result.refused and result.done == 0 and OFF_LINE in result.error:
             # the chair stands on its cell but faces another way: --set-pose would overwrite
             # the controller's heading with the plan's, and every move would go astray
             hint = (
@@ -505,25 +519,30 @@ def _describe(s: actions.Step) -> str:
     )
 
 
-class _Cells:
-    """Where the plan's cells lie, as :func:`step_pose_problem` asks: the grid's cells, or
-    without one those of :func:`_cell_xy`."""
+def grid_of_plan(planned: Any) -> Any:
+    """The geometry of the grid a plan was made on (``wheelgrid plan --json``'s ``grid``), its
+    cells unknown: where the plan's cells lie, for the pose checks without ``--grid``. None
+    where the plan does not say (a plan of another tool, or from before plans said it)."""
+    from wheelgrid_common.map_io import UNKNOWN, Grid
 
-    def __init__(self, cell_size: float, grid: Any) -> None:
-        self.resolution = grid.resolution if grid is not None else cell_size
-        self._grid = grid
-
-    def cell_center(self, r: int, c: int) -> tuple[float, float]:
-        return _cell_xy((r, c), self.resolution, self._grid)
-
-
-def _cell_xy(cell: tuple[int, int], cell_size: float, grid: Any) -> tuple[float, float]:
-    """Map-frame centre of ``cell``: from the grid if we have one, else a grid at the origin
-    with row 0 at y = 0 going down (-y), as the image convention implies."""
-    if grid is not None:
-        x, y = grid.cell_center(cell[0], cell[1])
-        return float(x), float(y)
-    return (cell[1] + 0.5) * cell_size, -(cell[0] + 0.5) * cell_size
+    if not isinstance(planned, dict):
+        return None
+    rows, cols = planned.get("rows"), planned.get("cols")
+    res, origin = planned.get("resolution"), planned.get("origin")
+    if not isinstance(origin, list) or len(origin) != 3:
+        return None
+    numbers = [res, *origin]
+    if not (
+        isinstance(rows, int)
+        and isinstance(cols, int)
+        and 0 < rows * cols <= 10**7  # a made-up count must not take the memory
+        and rows > 0
+        and all(isinstance(v, int | float) and math.isfinite(v) for v in numbers)
+        and isinstance(res, int | float)
+        and res > 0
+    ):
+        return None
+    return Grid(np.full((rows, cols), UNKNOWN, dtype=np.int8), float(res), tuple(origin))
 
 
 if __name__ == "__main__":

@@ -63,7 +63,7 @@ from wheelgrid_drive.link import HEARTBEAT_PERIOD_S, RECONNECT_PERIOD_S, LinkErr
 from wheelgrid_drive.runner import (
     RunResult,
     cells_from_points,
-    controller_pose_check,
+    controller_step_length,
     dumps_record,
     grid_cell_check,
     off_centre_problem,
@@ -160,10 +160,10 @@ class DriveConfig:
     )
     pose_tolerance: float = field(
         0.25,
-        "with check_start_pose: before every step of a plan the chair must stand within this "
-        "much of its cell's centre, and the move as the controller drives it must end within "
-        "this much of the next cell's centre; a /cmd_vel step drives to the next cell's "
-        "centre and must pass within this much of it",
+        "every step (of a plan, with check_start_pose, and of /cmd_vel) drives from where the "
+        "controller says the chair stands, in the step's first cell, to the next cell's "
+        "centre, and its line as the controller drives it must pass within this much of that "
+        "centre; a plan's end must be within this much of its goal's centre",
         "cells",
         bounds=(0.0, 0.5),
     )
@@ -874,7 +874,7 @@ class DriveNode(Node):
             abort=abort,
             on_step=on_step,
             on_start=self._on_step_start,
-            pose_check=controller_pose_check(self.link, grid, self.cfg.pose_tolerance)
+            step_length=controller_step_length(self.link, grid, self.cfg.pose_tolerance)
             if self.cfg.check_start_pose
             else None,
             connection=connection,

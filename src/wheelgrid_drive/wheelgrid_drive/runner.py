@@ -26,8 +26,8 @@ from wheelgrid_drive.link import LinkAbortedError, LinkError, MotorLink
 StepCallback = Callable[[Step, dict[str, Any]], None]
 # cell -> None if the chair may enter it, else the reason it may not.
 CellCheck = Callable[[tuple[int, int]], str | None]
-# step -> None if the chair stands where the step can be driven from, else why not.
-PoseCheck = Callable[[Step], str | None]
+# step -> (how far to drive it, None), or (0, why the chair cannot drive it from where it is).
+StepLength = Callable[[Step], tuple[float, str | None]]
 
 # the turn each action makes before it drives, and the direction it drives in
 _TURN = {
@@ -101,19 +101,19 @@ def _line_to_centre(
     return (cx - x) * ux + (cy - y) * uy, abs((cy - y) * ux - (cx - x) * uy), res
 
 
-# How step_pose_problem's two problems read: the chair not on its cell, and a heading that
-# would end the move off the next cell; `wheelgrid drive` gives each its own advice (and
-# none to a refusal of another kind, such as no pose from the controller).
+# How step_from_pose's two refusals read: the chair not in the step's first cell, and a move
+# that would pass off the next cell's centre (a heading off); `wheelgrid drive` gives each its
+# own advice (and none to a refusal of another kind, such as no pose from the controller).
 OFF_CELL = "the chair at"
-WOULD_END = "would end"
+OFF_LINE = "off its line"
 
 
 def off_centre_problem(
     grid: Any, x: float, y: float, cell: tuple[int, int], tolerance: float = 0.25
 ) -> str | None:
     """Why a chair at (``x``, ``y``) does not stand in ``cell`` (more than ``tolerance`` cells
-    from its centre), or None: before a step (the chair must start there) and after a plan's
-    last one (a move reported done short of its cell)."""
+    from its centre), or None: after a plan's last step (a move reported done short of its
+    cell)."""
     res = float(grid.resolution)
     cx, cy = (float(v) for v in grid.cell_center(*cell))
     off = math.hypot(x - cx, y - cy)
@@ -123,48 +123,6 @@ def off_centre_problem(
             f"{tuple(cell)}, more than {tolerance:g} cell"
         )
     return None
-
-
-def step_pose_problem(
-    grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
-) -> str | None:
-    """Why a chair at controller pose (``x``, ``y``, ``yaw``) must not drive ``step``, or None.
-
-    The controller drives a step from where it stands and along its own yaw (after a quarter
-    turn for left/right-forward), one cell's length: a chair at the edge of its cell, or turned
-    up to 20 deg (all the start check asked), ended that move in a cell no one had checked, an
-    occupied one included. So the chair must stand within ``tolerance`` cells of the step's
-    first cell's centre, and the move, as the controller will drive it, must end within
-    ``tolerance`` cells of the next cell's centre; a straight move between two such points
-    stays inside those two cells.
-    """
-    off_centre = off_centre_problem(grid, x, y, step.src, tolerance)
-    if off_centre:
-        return off_centre
-    res = float(grid.resolution)
-    along, across, _ = _line_to_centre(grid, x, y, yaw, step)
-    miss = math.hypot(along - res, across)  # where one cell's length ends, from the centre
-    if miss > tolerance * res:
-        return (
-            f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg {WOULD_END} "
-            f"{miss:.2f} m from the centre of cell {step.dst}, more than {tolerance:g} cell"
-        )
-    return None
-
-
-def controller_pose_check(link: MotorLink, grid: Any, tolerance: float = 0.25) -> PoseCheck:
-    """Before each step, the controller's pose now, within reach of the step's cells
-    (:func:`step_pose_problem`): the drive node's and ``wheelgrid drive``'s check. ``grid``
-    needs ``resolution`` and ``cell_center`` only."""
-
-    def check(step: Step) -> str | None:
-        try:
-            st = link.status()
-        except LinkError as exc:
-            return f"no controller pose: {exc}"
-        return step_pose_problem(grid, st.x, st.y, st.yaw, step, tolerance)
-
-    return check
 
 
 def step_to_centre(
@@ -183,12 +141,47 @@ def step_to_centre(
         return 0.0, (
             f"{step.action} from ({x:.2f}, {y:.2f}) facing {math.degrees(yaw):.0f} deg passes "
             f"{miss:.2f} m from the centre of cell {step.dst} ({along:.2f} m ahead): more than "
-            f"{tolerance:g} cell off its line"
+            f"{tolerance:g} cell {OFF_LINE}"
         )
     # up to 1.5 cells: over 2 m on cells over 1.33 m, which one move cannot drive
     if problem := proto.move_length_problem(along, f"the way to cell {step.dst}'s centre"):
         return 0.0, problem
     return along, None
+
+
+def step_from_pose(
+    grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
+) -> tuple[float, str | None]:
+    """(distance, None) that takes a chair at controller pose (``x``, ``y``, ``yaw``) standing
+    in ``step``'s first cell to the next cell's centre (:func:`step_to_centre`), or (0, why
+    not): every step of a plan, from where the controller says the chair is.
+
+    Each step drove one cell's length from wherever the chair stood, checked to start within a
+    quarter cell of its cell's centre: per-move errors added up until a route stopped half-way
+    (8 cm a move), a chair 0.29 m ahead of its cell ended 0.29 m past the next, and a chair
+    stopped mid-move (a new route, a closed cell) was more than a quarter cell from every
+    centre, so no route from there could ever be driven (a review)."""
+    here = tuple(int(v) for v in grid.cell_of(x, y))
+    if here != tuple(step.src):
+        return 0.0, f"{OFF_CELL} ({x:.2f}, {y:.2f}) is in cell {here}, not in cell {step.src}"
+    return step_to_centre(grid, x, y, yaw, step, tolerance)
+
+
+def controller_step_length(
+    link: MotorLink, grid: Any, tolerance: float = 0.25
+) -> Callable[[Step], tuple[float, str | None]]:
+    """Before each step, the controller's pose now and :func:`step_from_pose` from it: the
+    drive node's and ``wheelgrid drive``'s step length. ``grid`` needs ``resolution``,
+    ``cell_center`` and ``cell_of`` only."""
+
+    def length(step: Step) -> tuple[float, str | None]:
+        try:
+            st = link.status()
+        except LinkError as exc:
+            return 0.0, f"no controller pose: {exc}"
+        return step_from_pose(grid, st.x, st.y, st.yaw, step, tolerance)
+
+    return length
 
 
 def command_record(step: Step, ack: str, t: float | None = None, **extra: Any) -> dict[str, Any]:
@@ -211,7 +204,7 @@ def run_steps(
     on_step: StepCallback | None = None,
     timeout: float | None = None,
     on_start: Callable[[Step], None] | None = None,
-    pose_check: PoseCheck | None = None,
+    step_length: StepLength | None = None,
     connection: int | None = None,
 ) -> RunResult:
     """Drive ``steps`` one by one; stops the chair and returns at the first problem.
@@ -221,9 +214,9 @@ def run_steps(
     after the checks: a grid that came between the check and ``on_start`` was compared with the
     previous step's cell by the node, and the chair was sent into a cell that grid had occupied.
     With the cell announced first, either the check reads the new grid or the node's grid
-    callback sees the announced cell (and aborts). ``pose_check(step)``, after the cell check,
-    refuses a step the chair does not stand where it can be driven from (see
-    :func:`step_pose_problem`).
+    callback sees the announced cell (and aborts). ``step_length(step)``, after the cell check,
+    gives how far to drive the step from where the chair stands, or refuses it (see
+    :func:`step_from_pose`); without it every step drives ``distance_m``.
 
     A link lost at any time during the run ends it, even when the port is back before the next
     step: the reconnection's STOP is where the chair stays, and the next step's MOVE, sent on
@@ -242,8 +235,9 @@ def run_steps(
         if on_start is not None:
             on_start(step)
         reason = cell_check(step.dst) if cell_check is not None else None
-        if not reason and pose_check is not None:
-            reason = pose_check(step)
+        distance = distance_m
+        if not reason and step_length is not None:
+            distance, reason = step_length(step)
         if reason:
             link.stop()
             if on_step is not None:
@@ -258,7 +252,7 @@ def run_steps(
         try:
             # the count goes with the move: a port lost and reopened after the check above
             # (the thread descheduled there) took the move on the reopened port
-            seq, st = link.execute(step.action, distance_m, speed_kmh, timeout, abort, connection)
+            seq, st = link.execute(step.action, distance, speed_kmh, timeout, abort, connection)
         except LinkAbortedError as exc:
             if on_step is not None:
                 on_step(step, command_record(step, "ABORTED", reason=str(exc), **_seq(exc)))
