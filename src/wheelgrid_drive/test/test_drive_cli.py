@@ -549,3 +549,25 @@ def test_without_grid_the_pose_is_checked_on_the_cells_the_plan_was_made_on(
     assert main([unplaced, "--port", elsewhere.slave_path, "--set-pose", "--no-pose-check"]) == 2
     assert sim_moves(elsewhere) == []
 
+
+def test_a_reader_that_leaves_the_jsonl_output_stops_the_route_and_says_so(make_sim, tmp_path):
+    """`wheelgrid drive --jsonl | head -n 1`: the second record's print raised BrokenPipeError,
+    which nothing caught: the route was abandoned after 2 of 9 moves with no word of it,
+    exit 141 (a review). The chair is stopped and it is said, exit 1."""
+    import subprocess
+
+    from wheelgrid_common.testing import managed_process, python_module
+
+    sim = make_sim(time_scale=5.0)
+    free = write_map(tmp_path / "grid.yaml", Grid(np.zeros((8, 8), np.int8), 1.2))
+    argv = python_module("wheelgrid_drive.cli", write(tmp_path, table_ii_plan()))
+    argv += ["--port", sim.slave_path, "--grid", str(free), "--set-pose", "--jsonl"]
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    with managed_process(argv, **pipes) as proc:
+        assert json.loads(proc.stdout.readline())["ack"] == "ACK"
+        proc.stdout.close()  # the reader leaves
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1, err
+    assert "the output was closed (its reader left): the route is not driven on; chair " in err
+    assert "stopped" in err and "Traceback" not in err
+    assert len(sim_moves(sim)) < 9

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -405,10 +406,15 @@ def main(argv: list[str] | None = None) -> int:
             short = off_centre_problem(where, st.x, st.y, cells[-1])
             if short:
                 stop_note = _stopped(link)
-    except (LinkError, KeyboardInterrupt, Terminated) as exc:
+    except (LinkError, KeyboardInterrupt, Terminated, BrokenPipeError) as exc:
         stopped = _stopped(link)
         if isinstance(exc, LinkError):
             why, code = str(exc), 1
+        elif isinstance(exc, BrokenPipeError):
+            # `--jsonl | head -n 1`: the route was abandoned with no word of it, exit 141 (a
+            # review). Said on stderr; stdout, gone, goes to /dev/null from here on
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            why, code = "the output was closed (its reader left): the route is not driven on", 1
         elif isinstance(exc, KeyboardInterrupt):
             why, code = "interrupted", 130
         else:
