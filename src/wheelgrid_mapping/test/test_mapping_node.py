@@ -759,6 +759,19 @@ def test_reset_replaces_the_latched_map_cloud(tmp_path: Path) -> None:
         assert late[-1].header.frame_id == "map"
 
 
+@pytest.mark.ros
+def test_a_started_mapper_replaces_the_latched_map_cloud_of_the_one_before(tmp_path: Path):
+    """A mapper restarted (a crash, a relaunch) left the one before's map latched, and the grid
+    made of it published, while its own first poses, in a new map frame under its own first
+    pose, went out at once: the planner judged a start in frame B on frame A's grid (a
+    review). It publishes an empty map cloud as it starts, as ~/reset does: the grid node
+    withdraws the old grid (every cell unknown) until the new map."""
+    with running_mapper(tmp_path, "restart_test", "save_on_exit:=false") as t:
+        assert spin_until(t.ex, lambda: bool(t.maps), 10.0), "nothing latched"
+        assert t.maps[0].width * t.maps[0].height == 0
+        assert t.maps[0].header.frame_id == "map"
+
+
 def _sec(stamp) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 

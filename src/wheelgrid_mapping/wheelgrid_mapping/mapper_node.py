@@ -249,6 +249,12 @@ class MapperNode(Node):  # type: ignore[misc]
         self._frame_ids: dict[int, tuple[str, Any]] = {}
 
         self.map_pub = self.create_publisher(PointCloud2, "wheelgrid/map_cloud", MAP_QOS)
+        # A mapper started again (a crash, a relaunch) maps in a new frame under its own first
+        # pose: the map cloud of the one before, and the grid made of it, stayed published
+        # while its first poses went out, and a start in the new frame was planned on the old
+        # grid (a review). An empty map cloud replaces it, as ~/reset does: the grid node
+        # withdraws that grid until this mapper's first map.
+        self._publish_empty_map()
         # reliable, keep last 10: best-effort readers (the planner) still match, and RViz's
         # and Nav2's default reliable readers do too (on sensor-data QoS they got nothing)
         self.odom_pub = self.create_publisher(Odometry, "wheelgrid/odometry", RELIABLE_QOS)
@@ -728,6 +734,12 @@ class MapperNode(Node):  # type: ignore[misc]
                 self._publish(self.map_pub, msg)
         self._publish_status()
 
+    def _publish_empty_map(self) -> None:
+        """No map (yet, or any more): what the grid node takes for a map gone."""
+        empty = to_pointcloud2(np.zeros((0, 3), dtype=np.float32), self.map_frame)
+        empty.header.stamp = self.get_clock().now().to_msg()
+        self.map_pub.publish(empty)
+
     def _warn_levelling(self) -> None:
         """Say so, once each, when the map frame jumped to the floor found on the whole map
         (the map, the poses and any grid made from an earlier map cloud move with it), and
@@ -907,9 +919,7 @@ class MapperNode(Node):  # type: ignore[misc]
         # The map topic is transient-local: left alone it kept the cleared map for every
         # subscriber that starts later (a restarted grid node made a grid of it, placed in a
         # map frame the next frames no longer share). An empty map cloud replaces it.
-        empty = to_pointcloud2(np.zeros((0, 3), dtype=np.float32), self.map_frame)
-        empty.header.stamp = self.get_clock().now().to_msg()
-        self.map_pub.publish(empty)
+        self._publish_empty_map()
         response.success = True
         response.message = (
             "loop closure cancelled; map, trajectory and counters cleared before the next "

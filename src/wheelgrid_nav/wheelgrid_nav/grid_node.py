@@ -201,7 +201,8 @@ class GridNode(Node):
             # the cleared map's grid stayed published (and a parameter change rebuilt it). A
             # map still waiting was made before the reset, in the cleared map's frame: gone too.
             self._pending = None
-            self._withdraw(GridError("empty", "an empty map cloud (the mapper's ~/reset)"))
+            why = "an empty map cloud: the mapper's ~/reset, or a mapper started anew"
+            self._withdraw(GridError("empty", why))
             return
         self._pending = (points, msg.header.frame_id or "map")
         self._maybe_compute()
