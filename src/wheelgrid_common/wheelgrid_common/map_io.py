@@ -321,7 +321,6 @@ def read_map(yaml_path: str | Path) -> Grid:
         data=data,
         resolution=resolution,
         origin=(float(origin[0]), float(origin[1]), float(origin[2]) if len(origin) > 2 else 0.0),
-        meta={"image_path": str(image_path)},  # what a writer beside it must never replace
     )
 
 

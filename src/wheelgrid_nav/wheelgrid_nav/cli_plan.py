@@ -115,6 +115,15 @@ def _png_problem(path: str) -> str | None:
             return f"{path}: {exc}"
         if head != b"\x89PNG\r\n\x1a\n":
             return f"{path} exists and is not a PNG picture: not replaced"
+        from wheelgrid_nav.plan_png import is_plan_png
+
+        if not is_plan_png(path):
+            # a plan that succeeded replaced `wheelgrid grid`'s Fig. 12 picture with its
+            # route's (a review), and a map's own PNG image would have gone the same way
+            return (
+                f"{path} is a picture `wheelgrid plan` did not write (grid.png, a map's image?): "
+                "not replaced"
+            )
     return None
 
 
@@ -239,9 +248,6 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"wheelgrid plan: cannot read grid {args.grid}: {exc}", file=sys.stderr)
         return _refused(args.png)
-    if args.png and Path(args.png).resolve() == Path(grid.meta["image_path"]).resolve():
-        print(f"wheelgrid plan: --png {args.png} is the grid's own image", file=sys.stderr)
-        return 2
     if problem := chair_cell_problem(grid.resolution):
         print(f"wheelgrid plan: {args.grid}: {problem}; {CHAIR_GRID_HINT}", file=sys.stderr)
         return _refused(args.png)
