@@ -769,7 +769,7 @@ def _prior_stream(name: str) -> tuple[np.ndarray, np.ndarray]:
         from wheelgrid_mapping.cli_map import ODOMETRY, _odometry_poses
 
         with BagReader(root / "bags" / "paper_room" / "scan") as reader:
-            stamps, poses = _odometry_poses(reader, reader.pick_topic(None, ODOMETRY, "--prior"))
+            stamps, poses, _ = _odometry_poses(reader, reader.pick_topic(None, ODOMETRY, "--prior"))
         return np.asarray(stamps), np.asarray(poses)
     from wheelgrid_mapping.stray import _read_odometry
 
