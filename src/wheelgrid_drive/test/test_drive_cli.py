@@ -571,3 +571,32 @@ def test_a_reader_that_leaves_the_jsonl_output_stops_the_route_and_says_so(make_
     assert "the output was closed (its reader left): the route is not driven on; chair " in err
     assert "stopped" in err and "Traceback" not in err
     assert len(sim_moves(sim)) < 9
+
+
+def test_a_plans_record_of_its_grid_is_read_as_json_numbers():
+    """``"rows": true`` passed as a count (a bool is a Python int) and ended in a traceback;
+    a resolution written ``1`` placed the cells but was not the step length, which fell back
+    to 1.2 m (a review)."""
+    from wheelgrid_drive.cli import grid_of_plan
+
+    good = grid_of(8, 8) | {"resolution": 1, "origin": [0, 0, 0]}
+    g = grid_of_plan(good)
+    assert g is not None and g.resolution == 1.0 and g.data.shape == (8, 8)
+    for bad in ({"rows": True}, {"cols": False}, {"resolution": True}, {"origin": [0, True, 0]}):
+        assert grid_of_plan(good | bad) is None, bad
+
+
+def test_without_grid_a_whole_metre_plan_drives_its_own_cells(make_sim, tmp_path, capsys):
+    """The plan's ``"resolution": 1`` is its step length without --grid, as 1.0 is: with
+    --no-pose-check each move drives one cell's length (1.2 m, and the route ended 20 %
+    beyond its goal)."""
+    plan = table_ii_plan(grid=grid_of(8, 8) | {"resolution": 1, "origin": [0, 0, 0]})
+    planned_on = Grid(np.zeros((8, 8), np.int8), 1.0)
+    x, y = (float(v) for v in planned_on.cell_center(2, 0))
+    for extra in ([], ["--no-pose-check"]):
+        sim = make_sim(pose=(x, y, -math.pi / 2))
+        argv = [write(tmp_path, plan), "--port", sim.slave_path, *extra]
+        assert main(argv) == 0, capsys.readouterr().err
+        st = sim.status()
+        goal = tuple(float(v) for v in planned_on.cell_center(6, 5))
+        assert (st.x, st.y) == pytest.approx(goal, abs=0.05), extra

@@ -392,7 +392,13 @@ def test_a_plan_is_refused_when_the_chair_could_not_drive_it_within_its_cells(ma
         assert h.matched()
         h.give_grid(grid)
         h.publish_plan(grid, [(2, 1), (2, 2)], heading_yaw=0.0)
-        assert h.spin(lambda: any("from the centre of cell" in s.message for s in h.states), 5.0)
+        # 0.55 m off the line of centres: its side would sweep the row beside, as well
+        assert h.spin(
+            lambda: any(
+                "0.55 m beside the line through the centres" in s.message for s in h.states
+            ),
+            5.0,
+        )
         h.spin(lambda: False, 0.3)
         assert sim_moves(sim) == []
         assert h.cmds[-1]["ack"] == "REFUSED"
@@ -453,6 +459,40 @@ def test_a_cmd_vel_stream_that_goes_on_through_an_estop_does_not_drive_after_the
         assert sim_moves(sim) == ["FORWARD"] and sim.state == proto.State.IDLE
         h.pub_twist.publish(h.Twist())  # let go of the stick: armed again
         h.spin(lambda: False, 0.2)
+        h.pub_twist.publish(tw)
+        assert h.spin(lambda: len(sim_moves(sim)) == 2, 3.0), sim_moves(sim)
+
+
+def publish_while_held(h, tw, seconds):
+    """The stick held at ``tw`` while the node's executor is held up (a long plan read): the
+    Twists reach the process and wait, unread."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        h.pub_twist.publish(tw)
+        time.sleep(0.05)
+
+
+def test_a_stick_held_while_the_executor_is_held_up_is_no_release(make_sim):
+    """Silence is the stream's, not the executor's: a hold-up longer than the watchdog's
+    timeout read the last Twist before it as stale, took that for a let-go stick and armed
+    /cmd_vel, and the Twists queued behind it drove a stick held since the e-stop."""
+    with chair_in_cell_3_3(make_sim) as (h, sim, _x):
+        tw = h.Twist()
+        tw.linear.x = 0.8
+        hold_stick(h, tw, 0.3)
+        assert sim_moves(sim) == ["FORWARD"]
+        h.pub_estop.publish(h.Bool(data=True))
+        hold_stick(h, tw, 0.3)
+        h.pub_estop.publish(h.Bool(data=False))
+        hold_stick(h, tw, 0.1)
+        assert h.spin(lambda: not h.drive._estop, 3.0)
+        for _ in range(2):  # two hold-ups, the stick held all along
+            publish_while_held(h, tw, 2.0 * h.drive.cfg.cmd_vel_timeout)
+            hold_stick(h, tw, 1.0)
+        assert sim_moves(sim) == ["FORWARD"] and sim.state == proto.State.IDLE, sim_moves(sim)
+        assert not h.drive._twist_armed
+        h.spin(lambda: False, 2.0 * h.drive.cfg.cmd_vel_timeout)  # truly silent: a release
+        assert h.drive._twist_armed
         h.pub_twist.publish(tw)
         assert h.spin(lambda: len(sim_moves(sim)) == 2, 3.0), sim_moves(sim)
 

@@ -75,8 +75,24 @@ def test_a_step_drives_to_the_next_centre_from_wherever_the_chair_stands_in_its_
     assert step_from_pose(g, x, y, 0.0, left) == (pytest.approx(1.2), None)
     assert step_from_pose(g, x, y, 0.0, back) == (pytest.approx(1.2), None)
     assert "off its line" in step_from_pose(g, x, y, math.pi / 2, left)[1]
-    # a turn from 0.5 m along the cell would drive past the next centre's side: refused
-    assert "off its line" in step_from_pose(g, x + 0.5, y, 0.0, left)[1]
+    # a turn from 0.5 m along the cell (past the next centre's side too): refused
+    assert "its body would sweep the cells beside" in step_from_pose(g, x + 0.5, y, 0.0, left)[1]
+    # the body is a cell wide: a turn is made near the centre, a straight move near the line
+    # of centres, or the body sweeps the cells beside (0.6 m deep for a turn from the edge,
+    # lined up with the next centre all the same; a review)
+    lx, ly = (float(v) for v in g.cell_center(*left.dst))
+    ux, uy = (lx - x) / 1.2, (ly - y) / 1.2
+    px, py = x + 0.5 * ux, y + 0.5 * uy
+    assert step_from_pose(g, px, py, 0.0, left) == (
+        0.0,
+        f"LEFT_FORWARD turns in place, and from ({px:.2f}, {py:.2f}), 0.50 m from the centre of "
+        "cell (2, 1) (more than 0.25 cell), its body would sweep the cells beside its way",
+    )
+    assert step_from_pose(g, x + 0.25 * ux, y + 0.25 * uy, 0.0, left)[1] is None
+    aim = math.atan2(0.4 * uy, 1.2 + 0.4 * ux)  # 0.4 m to the side, facing the next centre: no miss
+    why = step_from_pose(g, x - 0.4 * ux, y - 0.4 * uy, aim, step)[1]
+    assert why is not None and "0.40 m beside the line through the centres" in why, why
+    assert step_from_pose(g, x + 0.59 - 0.25 * ux, y - 0.25 * uy, 0.0, step)[1] is None
 
 
 def test_a_grid_that_moved_since_planning_refuses_every_cell():

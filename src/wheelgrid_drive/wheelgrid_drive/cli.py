@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -28,6 +28,7 @@ from wheelgrid_drive.link import LinkError, MotorLink, check_link_settings
 from wheelgrid_drive.runner import (
     OFF_CELL,
     OFF_LINE,
+    OFF_SIDE,
     CellCheck,
     command_record,
     controller_step_length,
@@ -253,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         planned_res = planned_on.get("resolution")
-        if isinstance(planned_res, float):
+        if _number(planned_res) and planned_res > 0:  # JSON's 1 is an int, as good as 1.0
             if args.cell_size is not None and abs(args.cell_size - planned_res) > 1e-6:
                 return _err(
                     f"--cell-size {args.cell_size:g} m, but the plan was made on cells of "
@@ -447,6 +448,11 @@ def main(argv: list[str] | None = None) -> int:
                 " (the controller's pose is not on the plan's start cell: drive the chair "
                 "there, or plan again from where it stands, `wheelgrid plan --start-xy X,Y`)"
             )
+        elif result.refused and result.done == 0 and OFF_SIDE in result.error:
+            hint = (
+                " (the chair stands too far off its start cell's centre for this move: drive "
+                "it nearer the centre first)"
+            )
         elif result.refused and result.done == 0 and OFF_LINE in result.error:
             # the chair stands on its cell but faces another way: --set-pose would overwrite
             # the controller's heading with the plan's, and every move would go astray
@@ -525,6 +531,15 @@ def _describe(s: actions.Step) -> str:
     )
 
 
+def _number(v: Any) -> TypeGuard[int | float]:
+    """A finite JSON number (true and false are Python ints: ``"rows": true`` was a count)."""
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _count(v: Any) -> TypeGuard[int]:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 def grid_of_plan(planned: Any) -> Any:
     """The geometry of the grid a plan was made on (``wheelgrid plan --json``'s ``grid``), its
     cells unknown: where the plan's cells lie, for the pose checks without ``--grid``. None
@@ -537,15 +552,14 @@ def grid_of_plan(planned: Any) -> Any:
     res, origin = planned.get("resolution"), planned.get("origin")
     if not isinstance(origin, list) or len(origin) != 3:
         return None
-    numbers = [res, *origin]
     if not (
-        isinstance(rows, int)
-        and isinstance(cols, int)
+        _count(rows)
+        and _count(cols)
         and 0 < rows * cols <= 10**7  # a made-up count must not take the memory
         and rows > 0
-        and all(isinstance(v, int | float) and math.isfinite(v) for v in numbers)
-        and isinstance(res, int | float)
+        and _number(res)
         and res > 0
+        and all(_number(v) for v in origin)
     ):
         return None
     return Grid(np.full((rows, cols), UNKNOWN, dtype=np.int8), float(res), tuple(origin))

@@ -102,6 +102,12 @@ MAX_PATH_POSES = 10_000  # a plan's poses: a route across a building is a few hu
 # power-on for the same reason. 2 s covers DDS discovery on loopback, so a stream that is
 # already running is heard within it.
 STARTUP_QUIET_S = 2.0
+# The /cmd_vel tick runs every 50 ms; a gap this long between two of them is the executor held
+# up (a long plan read, a job joined), with Twists waiting unread behind it. Silence counts as
+# a let-go stick only once the ticks have run on time for a whole watchdog timeout since: the
+# last Twist before a hold-up looked stale, /cmd_vel was armed, and the Twists queued behind it
+# drove a stick held through an e-stop, never released.
+TICK_LATE_S = 0.2
 # A plan parked until the safe grid comes (they arrive in any order at start-up) is kept this
 # long: kept for ever, a plan parked while the grid was withdrawn drove, with no new command,
 # whenever a grid came back, however much later.
@@ -289,6 +295,7 @@ class DriveNode(Node):
         self._twist_armed = False
         self._disarmed_why = "it was already moving when the drive started"  # for the warning
         self._started_mono = time.monotonic()
+        self._last_tick_mono = self._ticks_on_time_since = self._started_mono
 
         pub = self.create_publisher
         self.pub_state = pub(DiagnosticArray, "wheelgrid/drive_state", RELIABLE_QOS)
@@ -931,13 +938,23 @@ class DriveNode(Node):
 
     def _arm_if_quiet(self) -> None:
         """/cmd_vel is silent: it may drive again, unless an e-stop is latched or the node is
-        too young to have heard a stream already running. Under the gate: an e-stop latched
-        between reading ``_estop`` and writing the flag was undone by the write."""
-        settled = time.monotonic() - self._started_mono >= STARTUP_QUIET_S
+        too young to have heard a stream already running, or its executor was held up too
+        recently for Twists waiting unread to have been read (TICK_LATE_S). Under the gate:
+        an e-stop latched between reading ``_estop`` and writing the flag was undone by the
+        write."""
+        now = time.monotonic()
+        settled = (
+            now - self._started_mono >= STARTUP_QUIET_S
+            and now - self._ticks_on_time_since >= self.cfg.cmd_vel_timeout
+        )
         with self._gate:
             self._twist_armed = settled and not self._estop
 
     def _cmd_vel_tick(self) -> None:
+        now = time.monotonic()
+        if now - self._last_tick_mono > TICK_LATE_S:
+            self._ticks_on_time_since = now  # held up: what came meanwhile is still unread
+        self._last_tick_mono = now
         twist = self._last_twist
         if twist is None:
             self._arm_if_quiet()

@@ -101,10 +101,12 @@ def _line_to_centre(
     return (cx - x) * ux + (cy - y) * uy, abs((cy - y) * ux - (cx - x) * uy), res
 
 
-# How step_from_pose's two refusals read: the chair not in the step's first cell, and a move
-# that would pass off the next cell's centre (a heading off); `wheelgrid drive` gives each its
-# own advice (and none to a refusal of another kind, such as no pose from the controller).
+# How step_from_pose's three refusals read: the chair not in the step's first cell, a chair
+# whose body would sweep the cells beside its way (off its cell's centre), and a move that
+# would pass off the next cell's centre (a heading off); `wheelgrid drive` gives each its own
+# advice (and none to a refusal of another kind, such as no pose from the controller).
 OFF_CELL = "the chair at"
+OFF_SIDE = "its body would sweep the cells beside its way"
 OFF_LINE = "off its line"
 
 
@@ -125,6 +127,28 @@ def off_centre_problem(
     return None
 
 
+def _start_problem(grid: Any, x: float, y: float, step: Step, tolerance: float) -> str | None:
+    """Why a chair at (``x``, ``y``) is too far off its cell's centre to start ``step``
+    (see :func:`step_to_centre`), or None."""
+    res = float(grid.resolution)
+    sx, sy = (float(v) for v in grid.cell_center(*step.src))
+    dx, dy = (float(v) for v in grid.cell_center(*step.dst))
+    if _TURN[step.action]:
+        off = math.hypot(x - sx, y - sy)
+        where = f"{off:.2f} m from the centre of cell {tuple(step.src)}"
+    else:
+        n = math.hypot(dx - sx, dy - sy)
+        off = abs((x - sx) * (dy - sy) - (y - sy) * (dx - sx)) / n
+        where = f"{off:.2f} m beside the line through the centres of its cells"
+    if off <= tolerance * res:
+        return None
+    how = "turns in place" if _TURN[step.action] else "drives straight"
+    return (
+        f"{step.action} {how}, and from ({x:.2f}, {y:.2f}), {where} (more than {tolerance:g} "
+        f"cell), {OFF_SIDE}"
+    )
+
+
 def step_to_centre(
     grid: Any, x: float, y: float, yaw: float, step: Step, tolerance: float = 0.25
 ) -> tuple[float, str | None]:
@@ -135,7 +159,15 @@ def step_to_centre(
     A /cmd_vel step drove one cell's length from wherever the chair stood: from the far side
     of its cell, or after a stop mid-cell, that ended beyond the one cell checked free. Both
     ends lie in the two cells, whose union is a rectangle, so the path between stays in them.
-    The move must pass within ``tolerance`` cells of the centre (the heading's error)."""
+    The move must pass within ``tolerance`` cells of the centre (the heading's error).
+
+    That rectangle holds the chair's reference point, not its body, which is about a cell
+    wide: a straight move starts within ``tolerance`` cells of the line through the two
+    centres (anywhere along it: a chair stopped mid-move goes on), and a turn, made in place,
+    within ``tolerance`` cells of its cell's centre. From the edge of its cell a turn swung
+    the body 0.6 m into an occupied neighbour, and a straight move 0.57 m (a review)."""
+    if problem := _start_problem(grid, x, y, step, tolerance):
+        return 0.0, problem
     along, miss, res = _line_to_centre(grid, x, y, yaw, step)
     if miss > tolerance * res or not 0.25 * res <= along <= 1.5 * res:
         return 0.0, (
