@@ -399,6 +399,64 @@ def test_the_messages_inside_a_cut_compressed_chunk_come_back(tmp_path, codec, c
     assert bag_recover.cut_chunk_records(mcap, bag_recover.mcap_extent(mcap)) == (b"", 0)
 
 
+def _with_checksums(data: bytes) -> bytes:
+    """``data`` (an MCAP file of uncompressed chunks, as rosbags writes them) with each chunk's
+    CRC-32 of its records set, as libmcap (``ros2 bag record``) writes it."""
+    import struct
+    from binascii import crc32
+
+    out, pos = bytearray(data), 8
+    while pos + 9 <= len(out):
+        op, length = out[pos], struct.unpack("<Q", out[pos + 1 : pos + 9])[0]
+        if op in (0x0F, 0x02):
+            break
+        if op == 0x06:
+            records = bytes(out[pos + 9 + 40 : pos + 9 + length])
+            out[pos + 9 + 24 : pos + 9 + 28] = struct.pack("<I", crc32(records))
+        pos += 9 + length
+    return bytes(out)
+
+
+def test_a_damaged_chunk_before_the_cut_costs_its_messages_only(tmp_path, capsys) -> None:
+    """A cut file whose second chunk was damaged too (its checksum fails): rosbags' scan of
+    the complete records failed on it, and the recovery ended "damaged before the cut" with
+    nothing copied (a review). Each chunk is read on its own now: the damaged one is skipped
+    and said, the chunks before and after it and the messages of the cut chunk come back."""
+    import struct
+
+    bag, msgs = _recording(tmp_path)
+    mcap = next(bag.glob("*.mcap"))
+    data = bytearray(_compress_chunks(_with_checksums(mcap.read_bytes()), "zstd"))
+    chunks, pos = [], 8
+    while data[pos] not in (0x0F, 0x02):
+        length = struct.unpack("<Q", data[pos + 1 : pos + 9])[0]
+        if data[pos] == 0x06:
+            chunks.append((pos, pos + 9 + length))
+        pos += 9 + length
+    assert len(chunks) >= 5
+    data = data[: (chunks[-2][0] + chunks[-2][1]) // 2]  # cut inside the last chunk but one
+    whole = tmp_path / "whole"
+    whole.mkdir()
+    (whole / mcap.name).write_bytes(bytes(data))
+    assert bag_recover.main([str(whole), "--out", str(tmp_path / "back_whole")]) == 0
+    before = _read(tmp_path / "back_whole")  # what the cut alone leaves
+    a, b = chunks[1]
+    data[a + 200 : a + 2200] = bytes(2000)
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    (damaged / mcap.name).write_bytes(bytes(data))
+    capsys.readouterr()
+    assert bag_recover.main([str(damaged), "--out", str(tmp_path / "back")]) == 0
+    line = capsys.readouterr().out
+    got = _read(tmp_path / "back")
+    lost = [m for m in before if m not in got]
+    assert got == [m for m in before if m not in lost]  # the rest byte for byte, in order
+    assert 10 < len(lost) < 30 and set(msgs[:10]) <= set(got)  # one chunk's, not the first's
+    assert f"1 damaged chunk(s) before the cut ({(b - a) / 1e3:.0f} kB) skipped" in line, line
+    assert "the cut went through a record" in line  # and the cut chunk's messages came back
+    assert set(before[-3:]) <= set(got)
+
+
 def test_a_message_on_a_channel_nothing_defines_ends_the_salvage_counted_lost(tmp_path) -> None:
     """A reader skips a message whose channel nothing defines without a word: inside the chunk
     a cut went through (damage, never a recorder's doing) it reported no bytes lost. The
@@ -465,3 +523,39 @@ def test_the_rows_after_a_damaged_page_of_a_sqlite3_recording_are_given_back(
     assert kept == 97, out
     assert "3 of the 100 messages the recording lists" in out, out
     assert "3 damaged row(s) skipped, the rows after them copied" in out, out
+
+
+@pytest.mark.parametrize("where", ["middle", "end"])
+def test_a_damaged_page_of_the_messages_table_costs_its_rows_only(tmp_path, capsys, where) -> None:
+    """A leaf page of the messages table zeroed (not an image's overflow page): rosbags counts
+    the messages per topic in one query over the whole table, which failed on it, and 2000
+    messages gave back none, "damaged before the cut" (a review). The topics are read on their
+    own and the rows one by one now: only the page's rows are lost, and counted. The table's
+    last page hides its largest id too; the ids are probed past the last one read."""
+    from std_msgs.msg import String
+
+    bag = tmp_path / "rec"
+    n = 2000
+    with BagWriter(bag, "sqlite3") as w:
+        for i in range(n):
+            w.write("/s", "std_msgs/msg/String", 1_000 + i, String(data=f"row-{i:05d}-" + "x" * 40))
+    with BagReader(bag) as r:
+        msgs = [(t, ns, raw) for t, _, ns, raw in r.raw(["/s"])]
+    db = next(bag.glob("*.db3"))
+    data = bytearray(db.read_bytes())
+    at = data.find(f"row-{1000 if where == 'middle' else n - 1:05d}-".encode())
+    page = at // 4096 * 4096
+    assert data[page] == 0x0D  # a leaf page of a table
+    on_page = {i for i in range(n) if f"row-{i:05d}-".encode() in data[page : page + 4096]}
+    assert 10 < len(on_page) < 100
+    data[page : page + 4096] = bytes(4096)
+    db.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert bag_recover.main([str(bag), "--out", str(tmp_path / "back")]) == 0
+    out = capsys.readouterr().out
+    with BagReader(tmp_path / "back") as r:
+        got = [(t, ns, raw) for t, _, ns, raw in r.raw(["/s"])]
+    assert got == [m for i, m in enumerate(msgs) if i not in on_page]  # byte for byte, in order
+    assert f"{len(on_page)} of the {n} messages the recording lists" in out, out
+    if where == "middle":  # rows before later ones that read are rows: counted as damaged
+        assert f"{len(on_page)} damaged row(s) skipped, the rows after them copied" in out, out

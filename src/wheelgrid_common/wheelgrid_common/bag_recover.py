@@ -69,6 +69,10 @@ class Recovery:
     # sqlite3 rows that could not be read or do not decode (a damaged page): skipped, the rows
     # after them copied
     unreadable: int = 0
+    # chunks of a cut MCAP file, before the cut, that do not decode (a checksum, a codec's
+    # error): skipped, the records after them copied
+    damaged_chunks: int = 0
+    damaged_bytes: int = 0
 
 
 def mcap_extent(path: Path) -> Extent:
@@ -165,20 +169,81 @@ def _cut_reader(path: Path, extent: Extent) -> Any:
     from rosbags.rosbag2.storage_mcap import McapReader
 
     class _CutReader(McapReader):  # type: ignore[misc]
+        # the [start, end) of the parts read one by one, where a chunk inside the complete
+        # records does not decode (None: read whole), and of those that do not decode
+        segments: tuple[tuple[int, int], ...] | None = None
+        damaged: tuple[tuple[int, int], ...] = ()
+
         def _open(self) -> None:
             self.data_start, self.data_end = extent.data_start, extent.data_end
-            self.meta_scan()
-            # (meta_scan counts the records it read; no counts is no messages)
-            counts = self.statistics.channel_message_counts if self.statistics else {}
+            try:
+                self.meta_scan()
+                # (meta_scan counts the records it read; no counts is no messages)
+                counts = dict(self.statistics.channel_message_counts if self.statistics else {})
+            except Exception:  # a damaged chunk (a checksum, a codec's error) before the cut
+                counts = self._scan_part_by_part()
             conns: list[Any] = self.connections  # type: ignore[has-type]  # (untyped base)
             self.connections = [c._replace(msgcount=counts.get(c.id, 0)) for c in conns]
+
+        def _scan_part_by_part(self) -> dict[int, int]:
+            """Each chunk, and each run of records between chunks, scanned on its own: one
+            damaged chunk failed the whole scan, and every message before and after it was
+            lost with it (a review)."""
+            self.schemas.clear()
+            self.channels.clear()
+            self.connections.clear()  # type: ignore[has-type]
+            read: list[tuple[int, int]] = []
+            damaged: list[tuple[int, int]] = []
+            counts: dict[int, int] = {}
+            for part in _parts(path, extent):
+                self.data_start, self.data_end = part
+                try:
+                    self.meta_scan()
+                except Exception:  # this chunk's messages are lost, and counted
+                    damaged.append(part)
+                    continue
+                read.append(part)
+                stats = self.statistics.channel_message_counts if self.statistics else {}
+                for cid, n in stats.items():
+                    counts[cid] = counts.get(cid, 0) + n
+            self.data_start, self.data_end = extent.data_start, extent.data_end
+            self.segments, self.damaged = tuple(read), tuple(damaged)
+            return counts
 
         def messages(self, connections: Any, start: Any = None, stop: Any = None) -> Any:
             # In file order: rosbags' unindexed path refuses messages out of stamp order, and a
             # recorder writes them in arrival order.
-            return self.messages_scan(connections, start, stop)
+            if self.segments is None:
+                return self.messages_scan(connections, start, stop)
+            return self._messages_part_by_part(connections, start, stop)
+
+        def _messages_part_by_part(self, connections: Any, start: Any, stop: Any) -> Any:
+            for part in self.segments or []:
+                self.data_start, self.data_end = part
+                yield from self.messages_scan(connections, start, stop)
 
     return _CutReader(path)
+
+
+def _parts(path: Path, extent: Extent) -> list[tuple[int, int]]:
+    """The [start, end) of each chunk record of ``extent`` and of each run of other records
+    between them, in file order."""
+    parts: list[tuple[int, int]] = []
+    with Path(path).open("rb") as f:
+        pos = run = extent.data_start
+        while pos + 9 <= extent.data_end:
+            f.seek(pos)
+            rec = f.read(9)
+            op, nxt = rec[0], pos + 9 + struct.unpack("<Q", rec[1:])[0]
+            if op == _CHUNK:
+                if run < pos:
+                    parts.append((run, pos))
+                parts.append((pos, nxt))
+                run = nxt
+            pos = nxt
+        if run < extent.data_end:
+            parts.append((run, extent.data_end))
+    return parts
 
 
 def _reader(path: Path, extent: Extent) -> Any:
@@ -250,11 +315,9 @@ def _sqlite_reader(path: Path) -> Any:
     not touched."""
     import sqlite3
 
-    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
-
     wal = path.with_name(path.name + "-wal")
     if not (wal.is_file() and wal.stat().st_size > 0):
-        reader = Sqlite3Reader(path)
+        reader = _tolerant_sqlite_reader(path)
         reader.open()
         return reader
 
@@ -270,7 +333,125 @@ def _sqlite_reader(path: Path) -> Any:
             con.close()
         return copy
 
-    return _on_a_copy(path, checkpointed, lambda copy: Sqlite3Reader(copy))
+    return _on_a_copy(path, checkpointed, _tolerant_sqlite_reader)
+
+
+#: Ids probed past the last row read where a damaged page hides ``max(id)``: a recorder's ids
+#: run without gaps, so this many unread in a row is the end of the table. An id past the end
+#: is looked up on the table's last page: where that page is damaged it fails as a damaged row
+#: does, and the rows of that page are lost uncounted, as a cut sqlite3 file's are.
+_ID_GAP = 10_000
+
+
+def _tolerant_sqlite_reader(path: Path) -> Any:
+    """rosbags' sqlite3 reader, not yet opened, that opens a file with a damaged page of its
+    messages table too. rosbags counts each topic's messages in one query over the whole
+    table, which fails on the first unreadable page: a leaf page zeroed in a recording of 2000
+    messages gave back none of them, said as "damaged before the cut" (a review). Where that
+    fails, the topics are read on their own and the messages counted row by row, the damaged
+    rows left out (:func:`_sqlite_rows` skips and counts them as it copies)."""
+    from rosbags.interfaces import (
+        Connection,
+        ConnectionExtRosbag2,
+        MessageDefinition,
+        MessageDefinitionFormat,
+    )
+    from rosbags.rosbag2.metadata import ReaderMetadata, parse_qos
+    from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+    class _TolerantReader(Sqlite3Reader):  # type: ignore[misc]
+        last_id: int | None = None  # the messages' largest id, found where max(id) fails
+
+        def _open(self) -> None:
+            try:
+                super()._open()
+            except Exception:  # a damaged page: rosbags' whole-table queries fail on it
+                self._open_row_by_row()
+
+        def _open_row_by_row(self) -> None:
+            db: Any = self.dbconn
+            cols = {str(c[1]) for c in db.execute("PRAGMA table_info(topics)")}
+            schema = 1
+            if db.execute("PRAGMA table_info(schema)").fetchall():
+                with contextlib.suppress(Exception):
+                    schema = int(next(iter(db.execute("SELECT schema_version FROM schema")))[0])
+            elif "offered_qos_profiles" in cols:
+                schema = 2
+            defs: dict[str, MessageDefinition] = {}
+            fmts = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
+            with contextlib.suppress(Exception):  # definitions lost: the store's are used
+                for name, enc, text in db.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition "
+                    "FROM message_definitions ORDER BY id"
+                ):
+                    if enc in fmts:
+                        defs[str(name)] = MessageDefinition(fmts[enc], str(text))
+            qos_col = "offered_qos_profiles" if "offered_qos_profiles" in cols else "''"
+            hash_col = "type_description_hash" if "type_description_hash" in cols else "''"
+            topics = list(
+                db.execute(
+                    f"SELECT id, name, type, serialization_format, {qos_col}, {hash_col} "
+                    "FROM topics ORDER BY id"
+                )
+            )
+            counts: dict[int, int] = dict.fromkeys((int(t[0]) for t in topics), 0)
+            first, last_t, n = 2**63 - 1, 0, 0
+            for row_id in self.ids():
+                with contextlib.suppress(Exception):  # a damaged row: _sqlite_rows counts it
+                    for topic_id, t_ns in db.execute(
+                        "SELECT topic_id, timestamp FROM messages WHERE id=?", (row_id,)
+                    ):
+                        if topic_id in counts:
+                            counts[topic_id] += 1
+                        first, last_t, n = min(first, t_ns), max(last_t, t_ns + 1), n + 1
+            none = MessageDefinition(MessageDefinitionFormat.NONE, "")
+            self.connections = [
+                Connection(
+                    int(cid),
+                    str(topic),
+                    str(msgtype),
+                    defs.get(str(msgtype), none),
+                    str(digest or ""),
+                    counts[int(cid)],
+                    ConnectionExtRosbag2(str(fmt), parse_qos(qos) if qos else []),
+                    self,
+                )
+                for cid, topic, msgtype, fmt, qos, digest in topics
+            ]
+            self.schema = schema
+            self.msgtypes = [{"name": k, "msgdef": v.data} for k, v in defs.items()]
+            self.metadata = ReaderMetadata(
+                last_t - first if n else 0, first, last_t if n else 0, n,
+                None, None, None, None,
+            )  # fmt: skip
+
+        def ids(self) -> range:
+            """Every row id of the messages table, from 1 to its largest."""
+            if self.last_id is None:
+                db: Any = self.dbconn
+                try:
+                    (last,) = next(iter(db.execute("SELECT max(id) FROM messages")))
+                    self.last_id = int(last or 0)
+                except Exception:  # the table's last page is damaged: probe past it
+                    self.last_id = self._probe_last_id()
+            return range(1, self.last_id + 1)
+
+        def _probe_last_id(self) -> int:
+            db: Any = self.dbconn
+            last = row_id = absent = 0
+            while absent < _ID_GAP:
+                row_id += 1
+                try:
+                    found = list(db.execute("SELECT 1 FROM messages WHERE id=?", (row_id,)))
+                except Exception:  # damaged, or past the end (looked up on the last page)
+                    found = []
+                if found:
+                    last, absent = row_id, 0
+                else:
+                    absent += 1
+            return last
+
+    return _TolerantReader(path)
 
 
 def _copy_prefix(src: Path, dst: Path, n: int) -> None:
@@ -443,6 +624,8 @@ def _open_file(path: Path, res: Recovery) -> Any:
     if ext.complete:
         return _reader(path, ext)
     reader = _reader(path, ext)
+    res.damaged_chunks += len(reader.damaged)
+    res.damaged_bytes += sum(b - a for a, b in reader.damaged)
     inner, used = cut_chunk_records(path, ext, [c.id for c in reader.connections])
     res.bytes_lost += ext.size - ext.data_end - used
     if not inner:
@@ -467,10 +650,12 @@ def recover(src: Path, out: Path, storage: str = "mcap", progress: bool = True) 
             except (BagError, ModuleNotFoundError):  # rosbags missing is no damaged bag
                 raise
             except Exception as exc:  # a record inside the kept part does not decode
-                raise BagError(
-                    f"{path}: damaged before the cut, not only cut off ({type(exc).__name__}: "
-                    f"{exc})"
-                ) from exc
+                what = (
+                    "its tables of topics cannot be read, so none of its messages can"
+                    if path.suffix == ".db3"
+                    else "damaged before the cut, not only cut off"
+                )
+                raise BagError(f"{path}: {what} ({type(exc).__name__}: {exc})") from exc
         total = sum(int(c.msgcount) for _, r in readers for c in r.connections)
         if total == 0:
             raise BagError(f"{src}: no complete message before the cut: nothing to recover")
@@ -549,8 +734,7 @@ def _sqlite_rows(reader: Any, res: Recovery, store: Any) -> Iterator[tuple[Any, 
     one, and the missing ones never counted (a review)."""
     conns = {c.id: c for c in reader.connections}
     db = reader.dbconn
-    (last,) = next(iter(db.execute("SELECT max(id) FROM messages")))
-    for row_id in range(1, int(last or 0) + 1):
+    for row_id in reader.ids():
         try:
             rows = list(
                 db.execute("SELECT topic_id, timestamp, data FROM messages WHERE id=?", (row_id,))
@@ -635,7 +819,8 @@ def main(argv: list[str] | None = None) -> int:
     span = (res.end_ns - res.start_ns) / 1e9 if res.messages else 0.0
     topics = ", ".join(f"{t} {n}" for t, n in sorted(res.topics.items())) or "none"
     unknown = (
-        f"every message committed to {', '.join(res.unlisted)} copied; no metadata.yaml lists "
+        f"every {'readable ' if res.unreadable else ''}message committed to "
+        f"{', '.join(res.unlisted)} copied; no metadata.yaml lists "
         "how many were recorded, so any the recorder had not written out when it stopped "
         "cannot be counted"
     )
@@ -658,6 +843,11 @@ def main(argv: list[str] | None = None) -> int:
         )
     if res.unreadable:
         state += f"; {res.unreadable} damaged row(s) skipped, the rows after them copied"
+    if res.damaged_chunks:
+        state += (
+            f"; {res.damaged_chunks} damaged chunk(s) before the cut "
+            f"({res.damaged_bytes / 1e3:.0f} kB) skipped, the records after them copied"
+        )
     print(
         f"bag-recover: {res.messages} messages over {span:.1f} s ({topics}) from "
         f"{len(res.files)} file(s) -> {args.out}; {state}"
