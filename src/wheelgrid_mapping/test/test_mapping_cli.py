@@ -532,6 +532,24 @@ def test_measure_two_parallel_planes(tmp_path: Path, capsys) -> None:
             assert "share" in capsys.readouterr().err
 
 
+def test_measure_along_an_axis_needs_as_many_points_as_a_face() -> None:
+    """``--axis`` read a median and a bootstrap spread off three points a box (a review): it
+    now needs as many as a face does, and says so; at that many it reads."""
+    rng = np.random.default_rng(8)
+    box_a, box_b = [0.95, 0.3, 0.0, 1.05, 0.7, 0.8], [2.15, 0.3, 0.0, 2.25, 0.7, 0.8]
+
+    def faces(n: int) -> np.ndarray:
+        yz = rng.random((2 * n, 2)) * [0.2, 0.6] + [0.4, 0.1]
+        return np.column_stack([np.repeat([1.0, 2.2], n) + rng.normal(0, 0.003, 2 * n), yz])
+
+    n = cli_measure.MIN_FACING
+    with pytest.raises(ValueError, match=rf"hold {n - 1} and {n - 1} points, too few.*{n} each"):
+        cli_measure.measure(faces(n - 1), box_a, box_b, axis=0)
+    assert cli_measure.measure(faces(n), box_a, box_b, axis=0).distance == pytest.approx(
+        1.2, abs=0.01
+    )
+
+
 def test_measure_standard_error_follows_the_points_scatter(tmp_path: Path, capsys) -> None:
     """Two faces directly opposite, 3 mm of noise: the bootstrap's standard error is the
     textbook one of a difference of two means (sigma * sqrt(1/na + 1/nb)), and a face of ten

@@ -448,8 +448,12 @@ def measure(
         )
     if axis is not None:
         a, b = points_in_box(points, box_a), points_in_box(points, box_b)
-        if a.shape[0] < 3 or b.shape[0] < 3:
-            raise ValueError(f"boxes hold {a.shape[0]} and {b.shape[0]} points, need >= 3 each")
+        # as many as a face needs (3 read a median and a bootstrap spread off three points)
+        if a.shape[0] < MIN_FACING or b.shape[0] < MIN_FACING:
+            raise ValueError(
+                f"boxes hold {a.shape[0]} and {b.shape[0]} points, too few for a median and its "
+                f"spread (at least {MIN_FACING} each): is each drawn around its surface?"
+            )
 
         def on_axis(a: np.ndarray, b: np.ndarray) -> float:
             return abs(float(np.median(b[:, axis]) - np.median(a[:, axis])))

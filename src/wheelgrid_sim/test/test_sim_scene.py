@@ -172,8 +172,12 @@ def test_paper_trajectory_is_wheelchair_like() -> None:
 
 def test_a_path_back_to_the_start_ends_where_it_began() -> None:
     """``back_to_start`` (a scan that closes its loop): the paper route and a random room's lap
-    go on to their start, facing as they began, as clear of obstacles and as slow as the
-    route before, which they follow unchanged up to its end."""
+    go on to their start, the chair's heading as it began, as clear of obstacles and as slow
+    as the route before, which they follow unchanged up to its end. The phone's sweep about
+    that heading goes on: its last view is off its first by up to the sweep (the CLI's help
+    said "facing as it began"; a review)."""
+    from wheelgrid_sim.trajectory import SWEEP_AMPLITUDE
+
     for s in (paper_scene(), random_scene(3)):
         plain = nominal_duration(s)
         total = nominal_duration(s, back_to_start=True)
@@ -184,6 +188,11 @@ def test_a_path_back_to_the_start_ends_where_it_began() -> None:
         start, segs = scene_path(s, back_to_start=True)
         end = _knots(start, segs)[-1]  # the chair's heading (the phone sweeps about it)
         assert math.remainder(end.heading - start[2], math.tau) == pytest.approx(0.0, abs=1e-12)
+        views = [math.atan2(p[1, 2], p[0, 2]) for p in (poses[0], poses[-1])]  # optical z
+        off = abs(math.remainder(views[1] - views[0], math.tau))
+        assert off <= SWEEP_AMPLITUDE + math.radians(2)  # the sweep, a degree's roll tremor
+        if s.name == "paper":
+            assert math.degrees(off) == pytest.approx(32, abs=0.5)  # as the help says
         before = _knots(*scene_path(s))
         assert _knots(start, segs)[: len(before)] == before  # the same route up to its old end
         speed = np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1) * 5.0

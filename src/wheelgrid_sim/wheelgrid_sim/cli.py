@@ -65,8 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--back-to-start",
         action="store_true",
-        help="drive on to where the path began, facing as it began, so the scan closes its "
-        "loop (the paper room: 371 frames, 74 s, not 210 and 42)",
+        help="drive on to where the path began and turn to the heading it began with, so the "
+        "scan closes its loop (the paper room: 371 frames, 74 s, not 210 and 42); the hand's "
+        "+-35 deg sweep and the height's wander go on, so the last view can be that far off "
+        "the first (paper room: 32 deg)",
     )
     p.add_argument(
         "--no-odometry",

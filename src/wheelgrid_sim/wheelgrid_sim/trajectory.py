@@ -45,7 +45,8 @@ def paper_path(back_to_start: bool = False) -> tuple[tuple[float, float, float],
     rows of tables (north of Barrier 2's post) and reverse out; down column 5 again, under
     Barrier 2; then west along row 6. Every segment keeps >= 0.35 m from obstacles below 1.3 m.
     ``back_to_start``: then the way back, east along row 6, up column 5 and west along row 2,
-    ending where it began, facing as it began (a scan that closes its loop: 74 s, not 42).
+    ending where it began, its heading as it began (a scan that closes its loop: 74 s, not 42);
+    :func:`make_trajectory`'s sweep and height wander on, so the last view is not the first.
     """
     d = math.radians
     segs = [
