@@ -42,8 +42,9 @@ class Extent:
 
     data_start: int  # first byte after the header record
     data_end: int  # first byte after the last complete data record
-    size: int  # the file's size
+    size: int  # the file's size, less the zeros that end it (``unwritten``)
     complete: bool  # a data-end record or footer was reached: nothing was cut off
+    unwritten: int = 0  # zero bytes ending the file: space given it, never written
 
 
 @dataclass
@@ -54,6 +55,9 @@ class Recovery:
     messages: int = 0
     topics: dict[str, int] = field(default_factory=dict)
     bytes_lost: int = 0  # the incomplete tail after the last complete record
+    # zeros that end a cut file: space a file system gave it that was never written (a
+    # power cut after the size grew, before the data landed), no recorded data lost
+    bytes_unwritten: int = 0
     already_complete: int = 0  # files that had their footer (damage is counted in ``lost``)
     start_ns: int = 0
     end_ns: int = 0
@@ -78,8 +82,12 @@ class Recovery:
 def mcap_extent(path: Path) -> Extent:
     """The complete records of ``path`` (an MCAP file, footer or not); BagError if it is not
     MCAP at all."""
+    # A file ends with the MCAP magic or where the cut was; zeros after that were never
+    # written. Walked as data, they completed the record the cut went through (its declared
+    # length now inside the file) and a message was copied with its cut-off end as zeros.
+    unwritten = trailing_zeros(path)
     with path.open("rb") as f:
-        size = f.seek(0, 2)
+        size = f.seek(0, 2) - unwritten
         f.seek(0)
         if f.read(8) != MCAP_MAGIC:
             raise BagError(f"{path}: not an MCAP file (its first bytes are not the MCAP magic)")
@@ -95,12 +103,12 @@ def mcap_extent(path: Path) -> Extent:
             rec = f.read(9)
             op, length = rec[0], struct.unpack("<Q", rec[1:])[0]
             if op in (_DATA_END, _FOOTER):
-                return Extent(start, end, size, True)
+                return Extent(start, end, size, True, unwritten)
             nxt = pos + 9 + length
             if not 0x01 <= op <= 0x0F or nxt > size:
                 break  # a record the cut went through (or garbage after it)
             end = pos = nxt
-        return Extent(start, end, size, False)
+        return Extent(start, end, size, False, unwritten)
 
 
 def mcap_listed(path: Path) -> int | None:
@@ -286,6 +294,25 @@ def _indexed_reader(path: Path) -> Any | None:
         reader.close()
         return None
     return reader
+
+
+def trailing_zeros(path: Path) -> int:
+    """How many zero bytes end ``path``: a file system that grew a file before a power cut
+    leaves them where the data never landed. Counted as lost data, a tail of 500 kB of zeros
+    read "its 500 kB written are lost" (a review). A cut that fell just after a record's own
+    zero bytes loses that record with them: never a message copied with zeros for its end."""
+    with path.open("rb") as f:
+        end = f.seek(0, 2)
+        pos = end
+        while pos > 0:
+            n = min(pos, 1 << 20)
+            f.seek(pos - n)
+            block = f.read(n)
+            kept = len(block.rstrip(b"\0"))
+            if kept:
+                return end - (pos - n + kept)
+            pos -= n
+        return end
 
 
 def bag_files(src: Path) -> list[Path]:
@@ -627,6 +654,7 @@ def _open_file(path: Path, res: Recovery) -> Any:
     res.damaged_chunks += len(reader.damaged)
     res.damaged_bytes += sum(b - a for a, b in reader.damaged)
     inner, used = cut_chunk_records(path, ext, [c.id for c in reader.connections])
+    res.bytes_unwritten += ext.unwritten
     res.bytes_lost += ext.size - ext.data_end - used
     if not inner:
         return reader
@@ -833,6 +861,11 @@ def main(argv: list[str] | None = None) -> int:
         if res.bytes_lost
         else "the file ends after a complete record, without its footer"
     )
+    if res.bytes_unwritten and res.already_complete < len(res.files):
+        state += (
+            f"; then {res.bytes_unwritten / 1e3:.0f} kB of zeros, space the file was given "
+            "but never written (no data lost there)"
+        )
     if res.lost:
         # a footer reached is no proof: a damaged middle ends the copy early all the same
         where = f"; not there: {', '.join(res.missing)}" if res.missing else ""
