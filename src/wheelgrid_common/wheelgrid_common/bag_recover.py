@@ -26,7 +26,7 @@ import sys
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from .bagio import MCAP_MAGIC, BagError, typestore
 from .fileio import out_folder
@@ -79,6 +79,18 @@ class Recovery:
     damaged_bytes: int = 0
 
 
+def _record_heads(f: BinaryIO, pos: int, end: int) -> Iterator[tuple[int, int, int]]:
+    """``(position, opcode, length)`` of each record from ``pos`` on, by their length fields,
+    while a record's opcode and length lie before ``end``: the one walk of an MCAP file's
+    records that its extent, its listed count and its parts take."""
+    while pos + 9 <= end:
+        f.seek(pos)
+        rec = f.read(9)
+        op, length = rec[0], struct.unpack("<Q", rec[1:])[0]
+        yield pos, op, length
+        pos += 9 + length
+
+
 def mcap_extent(path: Path) -> Extent:
     """The complete records of ``path`` (an MCAP file, footer or not); BagError if it is not
     MCAP at all."""
@@ -98,16 +110,13 @@ def mcap_extent(path: Path) -> Extent:
         if pos > size:
             raise BagError(f"{path}: cut off inside its header record: nothing to recover")
         start = end = pos
-        while pos + 9 <= size:
-            f.seek(pos)
-            rec = f.read(9)
-            op, length = rec[0], struct.unpack("<Q", rec[1:])[0]
+        for pos, op, length in _record_heads(f, start, size):
             if op in (_DATA_END, _FOOTER):
                 return Extent(start, end, size, True, unwritten)
             nxt = pos + 9 + length
             if not 0x01 <= op <= 0x0F or nxt > size:
                 break  # a record the cut went through (or garbage after it)
-            end = pos = nxt
+            end = nxt
         return Extent(start, end, size, False, unwritten)
 
 
@@ -126,15 +135,11 @@ def mcap_listed(path: Path) -> int | None:
         pos = struct.unpack("<Q", foot[9:17])[0]
         if not 8 <= pos <= size - 37:
             return None
-        while pos + 9 <= size - 37:
-            f.seek(pos)
-            rec = f.read(9)
-            op, length = rec[0], struct.unpack("<Q", rec[1:])[0]
+        for _, op, length in _record_heads(f, pos, size - 37):
             if op == _STATISTICS and length >= 8:
                 return int(struct.unpack("<Q", f.read(8))[0])
             if op == _FOOTER:
                 break
-            pos += 9 + length
     return None
 
 
@@ -238,17 +243,13 @@ def _parts(path: Path, extent: Extent) -> list[tuple[int, int]]:
     between them, in file order."""
     parts: list[tuple[int, int]] = []
     with Path(path).open("rb") as f:
-        pos = run = extent.data_start
-        while pos + 9 <= extent.data_end:
-            f.seek(pos)
-            rec = f.read(9)
-            op, nxt = rec[0], pos + 9 + struct.unpack("<Q", rec[1:])[0]
+        run = extent.data_start
+        for pos, op, length in _record_heads(f, extent.data_start, extent.data_end):
             if op == _CHUNK:
                 if run < pos:
                     parts.append((run, pos))
-                parts.append((pos, nxt))
-                run = nxt
-            pos = nxt
+                run = pos + 9 + length
+                parts.append((pos, run))
         if run < extent.data_end:
             parts.append((run, extent.data_end))
     return parts
@@ -383,7 +384,7 @@ def _tolerant_sqlite_reader(path: Path) -> Any:
         MessageDefinition,
         MessageDefinitionFormat,
     )
-    from rosbags.rosbag2.metadata import ReaderMetadata, parse_qos
+    from rosbags.rosbag2.metadata import parse_qos
     from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
     class _TolerantReader(Sqlite3Reader):  # type: ignore[misc]
@@ -398,12 +399,6 @@ def _tolerant_sqlite_reader(path: Path) -> Any:
         def _open_row_by_row(self) -> None:
             db: Any = self.dbconn
             cols = {str(c[1]) for c in db.execute("PRAGMA table_info(topics)")}
-            schema = 1
-            if db.execute("PRAGMA table_info(schema)").fetchall():
-                with contextlib.suppress(Exception):
-                    schema = int(next(iter(db.execute("SELECT schema_version FROM schema")))[0])
-            elif "offered_qos_profiles" in cols:
-                schema = 2
             defs: dict[str, MessageDefinition] = {}
             fmts = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
             with contextlib.suppress(Exception):  # definitions lost: the store's are used
@@ -422,15 +417,13 @@ def _tolerant_sqlite_reader(path: Path) -> Any:
                 )
             )
             counts: dict[int, int] = dict.fromkeys((int(t[0]) for t in topics), 0)
-            first, last_t, n = 2**63 - 1, 0, 0
             for row_id in self.ids():
                 with contextlib.suppress(Exception):  # a damaged row: _sqlite_rows counts it
-                    for topic_id, t_ns in db.execute(
-                        "SELECT topic_id, timestamp FROM messages WHERE id=?", (row_id,)
+                    for (topic_id,) in db.execute(
+                        "SELECT topic_id FROM messages WHERE id=?", (row_id,)
                     ):
                         if topic_id in counts:
                             counts[topic_id] += 1
-                        first, last_t, n = min(first, t_ns), max(last_t, t_ns + 1), n + 1
             none = MessageDefinition(MessageDefinitionFormat.NONE, "")
             self.connections = [
                 Connection(
@@ -444,13 +437,7 @@ def _tolerant_sqlite_reader(path: Path) -> Any:
                     self,
                 )
                 for cid, topic, msgtype, fmt, qos, digest in topics
-            ]
-            self.schema = schema
-            self.msgtypes = [{"name": k, "msgdef": v.data} for k, v in defs.items()]
-            self.metadata = ReaderMetadata(
-                last_t - first if n else 0, first, last_t if n else 0, n,
-                None, None, None, None,
-            )  # fmt: skip
+            ]  # (its schema, msgtypes and metadata, which nothing here reads, stay unset)
 
         def ids(self) -> range:
             """Every row id of the messages table, from 1 to its largest."""
