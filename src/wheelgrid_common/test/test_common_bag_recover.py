@@ -584,3 +584,24 @@ def test_a_damaged_page_of_the_messages_table_costs_its_rows_only(tmp_path, caps
     assert f"{len(on_page)} of the {n} messages the recording lists" in out, out
     if where == "middle":  # rows before later ones that read are rows: counted as damaged
         assert f"{len(on_page)} damaged row(s) skipped, the rows after them copied" in out, out
+
+
+def test_a_sqlite3_file_without_its_topics_table_is_one_line_naming_it(tmp_path, capsys) -> None:
+    """Where the topics themselves cannot be read no message can be placed on a topic: one
+    line says so (it said "damaged before the cut", as if the file had been cut), exit 2, and
+    no bag is left half written."""
+    import sqlite3
+
+    db = tmp_path / "rec" / "rec_0.db3"
+    db.parent.mkdir()
+    con = sqlite3.connect(db)
+    con.execute("CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER, "
+                "timestamp INTEGER, data BLOB)")  # fmt: skip
+    con.execute("INSERT INTO messages VALUES (1, 1, 1000, x'00010000')")
+    con.commit()
+    con.close()
+    assert bag_recover.main([str(db.parent), "--out", str(tmp_path / "back")]) == 2
+    err = capsys.readouterr().err
+    assert f"{db}: its tables of topics cannot be read, so none of its messages can" in err, err
+    assert "\n" not in err.strip() and "before the cut" not in err
+    assert not (tmp_path / "back").exists()
